@@ -1,0 +1,530 @@
+"""The axis configuration schema and its loader.
+
+A config file is TOML. Every physical parameter carries its unit in its key name (``lead_m``,
+``rs_ohm``, ``kv_1000_per_min``) and may carry its source::
+
+    [mechanics]
+    lead_m = { value = 0.016, source = "seed 000 Table 2" }
+    table_mass_kg = 300.0            # a bare number is accepted; its source is then "unspecified"
+
+Loading validates every key: unknown keys, missing required keys, wrong types and non-physical values
+raise :class:`~virtualaxis.config.ConfigError` naming the file and ``section.key``.
+
+Sections (each a dataclass below, fields documented with unit and meaning):
+``axis``, ``mechanics``, ``backlash``, ``friction``, ``actuator``, ``motor``, ``inverter``, ``control``,
+``sensors``, ``effects``, ``limits``, ``simulation``. Sections owned by other packages (``rcsa``,
+``drive``, ``canopen``, ``modbus``, ``mqtt``, ``diagnosis``) are kept verbatim in
+:attr:`AxisConfig.extra` for their owners to validate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from virtualaxis.config.errors import ConfigError
+
+# Sections that belong to other packages; kept verbatim, validated by their owners.
+EXTENSION_SECTIONS = ("rcsa", "drive", "canopen", "modbus", "mqtt", "diagnosis", "metadata")
+
+
+def _p(default: Any = dataclasses.MISSING, *, check: str = "", doc: str = "", choices: tuple = ()):
+    """A schema field. ``check``: '' | '>0' | '>=0' | '0..1' ; ``choices`` for strings."""
+    meta = {"check": check, "doc": doc, "choices": choices}
+    if default is dataclasses.MISSING:
+        return field(metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisInfo:
+    """[axis] identity and geometry of the travel."""
+
+    name: str = _p("axis", doc="free name")
+    stroke_m: float = _p(check=">0", doc="usable table travel [m]")
+    nut_offset_m: float = _p(
+        check=">=0",
+        doc="distance from the fixed (motor-side) bearing to the nut at table position 0, which is the"
+        " middle of the stroke [m]",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class MechanicsParams:
+    """[mechanics] lumped bodies and springs (seed 004 six-body model, seed 000 stiffness formulas).
+
+    ``model``: ``ball_screw`` (six bodies: rotor, screw end, screw rotation, screw axial, nut, table),
+    ``two_mass`` (rotor + table through one equivalent spring) or ``rigid`` (one body).
+    """
+
+    model: str = _p("ball_screw", choices=("ball_screw", "two_mass", "rigid"))
+    lead_m: float = _p(0.0, check=">=0", doc="screw lead [m/rev]; 0 only for a direct (linear) drive")
+    motor_inertia_kg_m2: float = _p(0.0, check=">=0", doc="rotor inertia [kg m^2]")
+    coupling_inertia_kg_m2: float = _p(0.0, check=">=0", doc="coupling inertia, split half/half [kg m^2]")
+    screw_end_inertia_kg_m2: float = _p(0.0, check=">=0", doc="screw end (journal) inertia [kg m^2]")
+    coupling_stiffness_nm_per_rad: float = _p(0.0, check=">=0", doc="coupling torsion K_tc [N m/rad]")
+    motor_shaft_stiffness_nm_per_rad: float = _p(
+        0.0, check=">=0", doc="motor shaft torsion, in series with the coupling; 0 = rigid [N m/rad]"
+    )
+    screw_end_stiffness_nm_per_rad: float = _p(
+        0.0, check=">=0", doc="screw end torsion, in series with screw torsion; 0 = rigid [N m/rad]"
+    )
+    screw_length_m: float = _p(0.0, check=">=0", doc="distance between the support bearings L_sg [m]")
+    screw_root_diameter_m: float = _p(0.0, check=">=0", doc="screw root diameter for A_s, I_p [m]")
+    screw_density_kg_m3: float = _p(7850.0, check=">0", doc="steel [kg/m^3]")
+    youngs_modulus_pa: float = _p(2.06e11, check=">0", doc="steel [Pa]")
+    shear_modulus_pa: float = _p(7.9e10, check=">0", doc="steel [Pa]")
+    screw_mounting: str = _p(
+        "fixed_fixed",
+        choices=("fixed_fixed", "fixed_free"),
+        doc="axial mounting: fixed_fixed -> K_as = E A L / (x (L - x)); fixed_free -> E A / x",
+    )
+    bearing_axial_stiffness_n_per_m: float = _p(
+        0.0, check=">=0", doc="K_ab1 + K_ab2 of the support bearings [N/m]"
+    )
+    support_axial_stiffness_n_per_m: float = _p(
+        0.0, check=">=0", doc="metal support of the axis, 0 = rigid [N/m]"
+    )
+    nut_contact_stiffness_n_per_m: float = _p(0.0, check=">=0", doc="nut contact stiffness K_an [N/m]")
+    nut_mass_kg: float = _p(0.0, check=">=0", doc="ball nut mass [kg]")
+    flange_stiffness_n_per_m: float = _p(0.0, check=">=0", doc="nut flange to table [N/m]; 0 = rigid")
+    table_mass_kg: float = _p(check=">0", doc="table (slide) moving mass incl. workpiece [kg]")
+    equivalent_torsional_stiffness_nm_per_rad: float = _p(
+        0.0, check=">=0", doc="two_mass model only: rotor-to-table spring, seen at the motor [N m/rad]"
+    )
+    min_segment_m: float = _p(0.02, check=">0", doc="screw segment length floor keeping K_as finite [m]")
+    modal_damping_ratio: float = _p(
+        0.03, check="0..1", doc="structural damping: C = b K with b = 2 zeta / omega_1 (seed 004 eq. 19-21)"
+    )
+    motor_viscous_nm_s_per_rad: float = _p(0.0, check=">=0", doc="motor bearing viscous damping B_m")
+    table_viscous_n_s_per_m: float = _p(0.0, check=">=0", doc="linear guide viscous damping [N s/m]")
+    efficiency: float = _p(1.0, check="0..1", doc="screw efficiency eta (used in the seed 000 K_L)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BacklashParams:
+    """[backlash] dead-zone spring at the nut contact (seed 000 eq. 9)."""
+
+    enabled: bool = _p(False)
+    gap_m: float = _p(0.0, check=">=0", doc="total backlash b, measured at the table [m]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrictionParams:
+    """[friction] at the table/nut (seed 000 eq. 13) with a stick/slip switch that neither chatters nor creeps.
+
+    Sliding force: (F_c,dir + F_s exp(-(|v|/v_s)^delta)) sgn(v) + F_v v; break-away at F_c,dir + F_s.
+    """
+
+    enabled: bool = _p(False)
+    coulomb_n: float = _p(0.0, check=">=0", doc="Coulomb force F_c for +v (mu (M g + F_z)) [N]")
+    coulomb_negative_n: float = _p(-1.0, doc="Coulomb force for -v [N]; < 0 means 'same as coulomb_n'")
+    stribeck_n: float = _p(0.0, check=">=0", doc="Stribeck excess F_s over Coulomb at v = 0 [N]")
+    stribeck_velocity_m_s: float = _p(0.001, check=">0", doc="Stribeck velocity v_s [m/s]")
+    stribeck_exponent: float = _p(1.0, check=">0", doc="shape delta (1 in seed 000 eq. 13)")
+    viscous_n_s_per_m: float = _p(0.0, check=">=0", doc="viscous coefficient F_v [N s/m]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ActuatorParams:
+    """[actuator] what produces the drive effort: a PMSM (torque, rotary) or a force (linear, or
+    an external controller's force output)."""
+
+    kind: str = _p("pmsm", choices=("pmsm", "force"))
+    force_limit_n: float = _p(0.0, check=">=0", doc="force actuator only: |F| limit, 0 = none [N]")
+    force_lag_s: float = _p(0.0, check=">=0", doc="force actuator only: first-order force-loop lag [s]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MotorParams:
+    """[motor] PMSM in the dq frame (seed 000 eqs. 15-19) and cogging."""
+
+    pole_pairs: int = _p(4, check=">0")
+    rs_ohm: float = _p(1.0, check=">0", doc="phase resistance R_s [ohm]")
+    ld_h: float = _p(1e-3, check=">0", doc="d-axis inductance [H]")
+    lq_h: float = _p(1e-3, check=">0", doc="q-axis inductance [H]")
+    flux_wb: float = _p(0.0, check=">=0", doc="PM flux linkage psi_pm [Wb] (0: derived from torque constant)")
+    torque_constant_nm_per_a: float = _p(0.0, check=">=0", doc="k_t = 1.5 p psi_pm [N m/A]")
+    rated_current_a: float = _p(10.0, check=">0", doc="rated (nominal) current [A]")
+    rated_torque_nm: float = _p(0.0, check=">=0", doc="nominal torque [N m] (catalogue)")
+    rated_speed_rpm: float = _p(3000.0, check=">0", doc="nominal speed [1/min]")
+    cogging_amplitude_nm: float = _p(0.0, check=">=0", doc="cogging/ripple torque amplitude [N m]")
+    cogging_periods_per_rev: float = _p(0.0, check=">=0", doc="ripple periods per mechanical rev")
+    cogging_phase_rad: float = _p(0.0, doc="ripple phase [rad]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class InverterParams:
+    """[inverter] averaged (voltage clamp, one PWM period delay) or switching-level SVPWM."""
+
+    model: str = _p("averaged", choices=("averaged", "svpwm"))
+    dc_link_v: float = _p(560.0, check=">0", doc="DC-link voltage [V]")
+    svpwm_substeps: int = _p(16, check=">0", doc="svpwm: integration steps per switching segment")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControlParams:
+    """[control] Siemens-style cascade: P position loop (Kv), PI speed loop, PI current loops.
+
+    Kv may be given in exactly one of ``kv_1000_per_min`` (SINUMERIK MD32200, (m/min)/mm),
+    ``kv_per_min`` (seed 004) or ``kv_per_s``. For ``actuator.kind = "force"`` the speed loop output is a
+    force and its gain is ``velocity_kp_n_s_per_m``.
+    """
+
+    current_cycle_s: float = _p(62.5e-6, check=">0", doc="current-loop cycle [s]")
+    speed_cycle_s: float = _p(125e-6, check=">0", doc="speed-loop cycle [s]")
+    position_cycle_s: float = _p(1e-3, check=">0", doc="position-loop cycle [s]")
+    current_kp_v_per_a: float = _p(0.0, check=">=0", doc="current PI gain [V/A]")
+    current_ti_s: float = _p(0.0, check=">=0", doc="current PI integral time, 0 = P only [s]")
+    current_decoupling: bool = _p(True, doc="dq cross-coupling and back-EMF feed-forward")
+    speed_kp_nm_s_per_rad: float = _p(0.0, check=">=0", doc="speed PI gain (pmsm) [N m s/rad]")
+    velocity_kp_n_s_per_m: float = _p(0.0, check=">=0", doc="velocity PI gain (force actuator) [N s/m]")
+    speed_ti_s: float = _p(0.0, check=">=0", doc="speed PI integral time, 0 = P only [s]")
+    kv_1000_per_min: float = _p(0.0, check=">=0", doc="position gain Kv [1000/min]")
+    kv_per_min: float = _p(0.0, check=">=0", doc="position gain Kv [1/min] (seed 004)")
+    kv_per_s: float = _p(0.0, check=">=0", doc="position gain Kv [1/s]")
+    velocity_ff_factor: float = _p(0.0, check=">=0", doc="speed feed-forward weight (MD32610), 0..1")
+    torque_ff_factor: float = _p(0.0, check=">=0", doc="torque feed-forward weight, 0..1")
+    current_limit_a: float = _p(0.0, check=">=0", doc="|i_q| limit [A] (pmsm); 0 -> 3 x rated")
+    speed_limit_rpm: float = _p(0.0, check=">=0", doc="motor speed set-point limit [1/min]; 0 = none")
+    position_feedback: str = _p("motor_encoder", choices=("motor_encoder", "linear_scale"))
+
+    @property
+    def kv_1_per_s(self) -> float:
+        """Position-loop gain in 1/s, whichever unit the file used."""
+        if self.kv_per_s:
+            return self.kv_per_s
+        if self.kv_1000_per_min:
+            return self.kv_1000_per_min * 1000.0 / 60.0
+        return self.kv_per_min / 60.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SensorParams:
+    """[sensors] encoders, quantisation, measurement dead time and noise."""
+
+    motor_encoder_counts_per_rev: int = _p(1 << 20, check=">=0", doc="0 = ideal")
+    linear_scale_resolution_m: float = _p(0.0, check=">=0", doc="linear scale quantum, 0 = ideal [m]")
+    dead_time_s: float = _p(0.0, check=">=0", doc="measurement dead time of position feedback [s]")
+    position_noise_m: float = _p(0.0, check=">=0", doc="white noise on the linear scale (1 sigma) [m]")
+    current_noise_a: float = _p(0.0, check=">=0", doc="white noise on measured i_q (1 sigma) [A]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EffectsParams:
+    """[effects] further physical effects, all off (zero) by default."""
+
+    lead_error_ppm: float = _p(0.0, doc="cumulative lead deviation [um/m = ppm]")
+    lead_error_periodic_m: float = _p(0.0, check=">=0", doc="per-revolution lead error amplitude [m]")
+    lead_error_periodic_phase_rad: float = _p(0.0, doc="its phase [rad]")
+    thermal_expansion_per_k: float = _p(0.0, check=">=0", doc="screw alpha [1/K] (11.5e-6 for steel)")
+    thermal_resistance_k_per_w: float = _p(0.0, check=">=0", doc="screw temperature rise per friction W")
+    thermal_time_constant_s: float = _p(600.0, check=">0", doc="screw thermal time constant [s]")
+    initial_temperature_rise_k: float = _p(0.0, doc="screw temperature above ambient at t = 0 [K]")
+    resonance_frequency_hz: float = _p(0.0, check=">=0", doc="extra mode on the table, 0 = none [Hz]")
+    resonance_mass_kg: float = _p(0.0, check=">=0", doc="modal mass of the extra mode [kg]")
+    resonance_damping_ratio: float = _p(0.02, check="0..1", doc="damping of the extra mode")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LimitsParams:
+    """[limits] axis limits; profiles beyond them are rejected with a clear error."""
+
+    max_velocity_m_s: float = _p(1.0, check=">0")
+    max_acceleration_m_s2: float = _p(20.0, check=">0")
+    travel_min_m: float = _p(-1e9, doc="software limit [m]")
+    travel_max_m: float = _p(1e9, doc="software limit [m]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulationParams:
+    """[simulation] numerical settings of the compiled kernel."""
+
+    mechanical_substeps: int = _p(1, check=">0", doc="mechanics steps per current-loop cycle")
+    position_grid_points: int = _p(41, check=">0", doc="nut positions at which mechanics are discretised")
+    seed: int = _p(0, doc="random seed for sensor noise")
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisConfig:
+    """A whole axis. ``sources`` maps ``section.key`` to the value's source text."""
+
+    axis: AxisInfo
+    mechanics: MechanicsParams
+    backlash: BacklashParams
+    friction: FrictionParams
+    actuator: ActuatorParams
+    motor: MotorParams
+    inverter: InverterParams
+    control: ControlParams
+    sensors: SensorParams
+    effects: EffectsParams
+    limits: LimitsParams
+    simulation: SimulationParams
+    sources: dict = field(default_factory=dict, compare=False)
+    extra: dict = field(default_factory=dict, compare=False)
+    path: str = field(default="<dict>", compare=False)
+
+    def replace(self, **changes: dict) -> AxisConfig:
+        """A copy with some parameters changed: ``cfg.replace(backlash={"enabled": True, "gap_m": 5e-6})``.
+
+        Values are validated as on load.
+        """
+        data = self.to_dict()
+        for section, values in changes.items():
+            if section not in data:
+                raise ConfigError(self.path, section, "unknown section")
+            data[section].update(values)
+        return axis_config_from_dict(data, self.path, sources=self.sources)
+
+    def to_dict(self) -> dict:
+        out: dict = {}
+        for name, _cls in _SECTIONS.items():
+            out[name] = dataclasses.asdict(getattr(self, name))
+        for k, v in self.extra.items():
+            out[k] = v
+        return out
+
+    def to_toml(self, header: str = "") -> str:
+        """Serialise with sources, so a written config is as traceable as a hand-written one."""
+        lines = [f"# {h}" for h in header.splitlines()] if header else []
+        for name in _SECTIONS:
+            lines.append(f"\n[{name}]")
+            for f in fields(_SECTIONS[name]):
+                v = getattr(getattr(self, name), f.name)
+                src = self.sources.get(f"{name}.{f.name}")
+                lines.append(f"{f.name} = {_toml_value(v, src)}")
+        for k, v in self.extra.items():
+            lines.append(_toml_table(k, v))
+        return "\n".join(lines) + "\n"
+
+
+_SECTIONS: dict[str, type] = {
+    "axis": AxisInfo,
+    "mechanics": MechanicsParams,
+    "backlash": BacklashParams,
+    "friction": FrictionParams,
+    "actuator": ActuatorParams,
+    "motor": MotorParams,
+    "inverter": InverterParams,
+    "control": ControlParams,
+    "sensors": SensorParams,
+    "effects": EffectsParams,
+    "limits": LimitsParams,
+    "simulation": SimulationParams,
+}
+_REQUIRED_SECTIONS = ("axis", "mechanics", "control")
+
+
+def _toml_scalar(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_scalar(x) for x in v) + "]"
+    raise TypeError(type(v))
+
+
+def _toml_value(v: Any, source: str | None) -> str:
+    if source and not isinstance(v, (bool, str)):
+        return f"{{ value = {_toml_scalar(v)}, source = {_toml_scalar(source)} }}"
+    return _toml_scalar(v)
+
+
+def _toml_table(name: str, value: dict) -> str:
+    scalars = {k: v for k, v in value.items() if not isinstance(v, dict)}
+    tables = {k: v for k, v in value.items() if isinstance(v, dict)}
+    lines = [f"\n[{name}]"]
+    for k, v in scalars.items():
+        lines.append(f"{k} = {_toml_scalar(v)}")
+    for k, v in tables.items():
+        if "value" in v and set(v) <= {"value", "source", "unit"}:
+            inner = ", ".join(f"{kk} = {_toml_scalar(vv)}" for kk, vv in v.items())
+            lines.append(f"{k} = {{ {inner} }}")
+        else:
+            lines.append(_toml_table(f"{name}.{k}", v))
+    return "\n".join(lines)
+
+
+def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field) -> Any:
+    meta = f.metadata
+    typ = f.type if isinstance(f.type, str) else f.type.__name__
+    if typ == "bool":
+        if not isinstance(raw, bool):
+            raise ConfigError(file, key, f"must be true or false (got {raw!r})")
+        return raw
+    if typ == "str":
+        if not isinstance(raw, str):
+            raise ConfigError(file, key, f"must be a string (got {raw!r})")
+        if meta["choices"] and raw not in meta["choices"]:
+            raise ConfigError(file, key, f"must be one of {', '.join(meta['choices'])} (got {raw!r})")
+        return raw
+    if typ == "int":
+        if isinstance(raw, bool) or not isinstance(raw, int):
+            if isinstance(raw, float) and raw.is_integer():
+                raw = int(raw)
+            else:
+                raise ConfigError(file, key, f"must be an integer (got {raw!r})")
+        val: Any = raw
+    else:  # float
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+            raise ConfigError(file, key, f"must be a number (got {raw!r})")
+        val = float(raw)
+        if not math.isfinite(val) and key.split(".")[-1] not in ("travel_min_m", "travel_max_m"):
+            raise ConfigError(file, key, f"must be finite (got {raw!r})")
+    check = meta["check"]
+    if check == ">0" and not val > 0:
+        raise ConfigError(file, key, f"must be > 0 (got {val})")
+    if check == ">=0" and not val >= 0:
+        raise ConfigError(file, key, f"must be >= 0 (got {val})")
+    if check == "0..1" and not 0 <= val <= 1:
+        raise ConfigError(file, key, f"must be between 0 and 1 (got {val})")
+    return val
+
+
+def _section(file: str, name: str, cls: type, raw: Any, sources: dict) -> Any:
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(file, name, "must be a table")
+    known = {f.name: f for f in fields(cls)}
+    for k in raw:
+        if k not in known:
+            hint = _closest(k, known)
+            raise ConfigError(file, f"{name}.{k}", "unknown key" + (f" (did you mean {hint}?)" if hint else ""))
+    kwargs = {}
+    for fname, f in known.items():
+        key = f"{name}.{fname}"
+        if fname not in raw:
+            if f.default is dataclasses.MISSING:
+                raise ConfigError(file, key, "missing (required)")
+            continue
+        value = raw[fname]
+        if isinstance(value, dict):
+            extra_keys = set(value) - {"value", "source", "unit"}
+            if "value" not in value or extra_keys:
+                raise ConfigError(file, key, "a table value needs exactly 'value' and optionally 'source'")
+            src = value.get("source")
+            if src is not None and not isinstance(src, str):
+                raise ConfigError(file, key, "source must be a string")
+            if src:
+                sources[key] = src
+            value = value["value"]
+        kwargs[fname] = _coerce(file, key, value, f)
+    return cls(**kwargs)
+
+
+def _closest(name: str, known: dict) -> str | None:
+    import difflib
+
+    m = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return m[0] if m else None
+
+
+def axis_config_from_dict(data: dict, file: str = "<dict>", sources: dict | None = None) -> AxisConfig:
+    """Validate a parsed config (the TOML as a dict) and build an :class:`AxisConfig`."""
+    file = str(file)
+    srcs: dict = dict(sources or {})
+    for sec in data:
+        if sec not in _SECTIONS and sec not in EXTENSION_SECTIONS:
+            hint = _closest(sec, {**_SECTIONS, **dict.fromkeys(EXTENSION_SECTIONS)})
+            raise ConfigError(file, sec, "unknown section" + (f" (did you mean [{hint}]?)" if hint else ""))
+    for sec in _REQUIRED_SECTIONS:
+        if sec not in data:
+            raise ConfigError(file, sec, "missing section (required)")
+    parts = {name: _section(file, name, cls, data.get(name), srcs) for name, cls in _SECTIONS.items()}
+    extra = {k: v for k, v in data.items() if k in EXTENSION_SECTIONS}
+    cfg = AxisConfig(**parts, sources=srcs, extra=extra, path=file)
+    _check_consistency(cfg)
+    return cfg
+
+
+def _check_consistency(cfg: AxisConfig) -> None:
+    f = cfg.path
+    m, c, a = cfg.mechanics, cfg.control, cfg.actuator
+    if m.model in ("ball_screw", "two_mass") and not m.lead_m > 0:
+        raise ConfigError(f, "mechanics.lead_m", f"must be > 0 for a {m.model} axis (got {m.lead_m})")
+    if m.model == "ball_screw":
+        for key in (
+            "screw_length_m",
+            "screw_root_diameter_m",
+            "coupling_stiffness_nm_per_rad",
+            "nut_contact_stiffness_n_per_m",
+            "bearing_axial_stiffness_n_per_m",
+            "motor_inertia_kg_m2",
+            "nut_mass_kg",
+        ):
+            if not getattr(m, key) > 0:
+                raise ConfigError(f, f"mechanics.{key}", "must be > 0 for a ball_screw axis")
+        half = cfg.axis.stroke_m / 2
+        if cfg.axis.nut_offset_m - half < 0 or cfg.axis.nut_offset_m + half > m.screw_length_m:
+            raise ConfigError(
+                f, "axis.stroke_m", "nut_offset_m +- stroke_m/2 must lie inside 0..mechanics.screw_length_m"
+            )
+    if m.model == "two_mass":
+        for key in ("equivalent_torsional_stiffness_nm_per_rad", "motor_inertia_kg_m2"):
+            if not getattr(m, key) > 0:
+                raise ConfigError(f, f"mechanics.{key}", "must be > 0 for a two_mass axis")
+    if a.kind == "pmsm":
+        if not m.motor_inertia_kg_m2 > 0 and m.model != "rigid":
+            raise ConfigError(f, "mechanics.motor_inertia_kg_m2", "must be > 0 with a pmsm actuator")
+        if m.model == "rigid" and not m.lead_m > 0:
+            raise ConfigError(f, "mechanics.lead_m", "a rigid axis driven by a pmsm needs lead_m > 0")
+        if not (cfg.motor.flux_wb > 0 or cfg.motor.torque_constant_nm_per_a > 0):
+            raise ConfigError(f, "motor.flux_wb", "give flux_wb or torque_constant_nm_per_a (> 0)")
+        if not c.speed_kp_nm_s_per_rad > 0:
+            raise ConfigError(f, "control.speed_kp_nm_s_per_rad", "must be > 0 with a pmsm actuator")
+        if not c.current_kp_v_per_a > 0:
+            raise ConfigError(f, "control.current_kp_v_per_a", "must be > 0 with a pmsm actuator")
+    else:
+        if not c.velocity_kp_n_s_per_m > 0:
+            raise ConfigError(f, "control.velocity_kp_n_s_per_m", "must be > 0 with a force actuator")
+    kvs = [k for k in ("kv_1000_per_min", "kv_per_min", "kv_per_s") if getattr(c, k) > 0]
+    if len(kvs) != 1:
+        raise ConfigError(
+            f, "control.kv_1000_per_min", f"give exactly one of kv_1000_per_min, kv_per_min, kv_per_s (got {kvs})"
+        )
+    # loop cycles must nest: current | speed | position, integer ratios
+    for inner, outer in (("current_cycle_s", "speed_cycle_s"), ("speed_cycle_s", "position_cycle_s")):
+        ti, to = getattr(c, inner), getattr(c, outer)
+        ratio = to / ti
+        if ratio < 1 - 1e-9 or abs(ratio - round(ratio)) > 1e-6:
+            raise ConfigError(
+                f, f"control.{outer}", f"must be an integer multiple of control.{inner} ({to} / {ti} = {ratio:g})"
+            )
+    if cfg.limits.travel_min_m >= cfg.limits.travel_max_m:
+        raise ConfigError(f, "limits.travel_max_m", "must be greater than limits.travel_min_m")
+    if cfg.effects.resonance_frequency_hz > 0 and not cfg.effects.resonance_mass_kg > 0:
+        raise ConfigError(f, "effects.resonance_mass_kg", "must be > 0 when resonance_frequency_hz is set")
+    if cfg.backlash.enabled and m.model == "rigid":
+        raise ConfigError(f, "backlash.enabled", "a rigid axis has no nut contact for backlash")
+
+
+def load_axis_config(path: str | Path) -> AxisConfig:
+    """Read and validate an axis config file. Raises :class:`ConfigError` naming file and key."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(str(p), "", "file not found") from None
+    except OSError as exc:
+        raise ConfigError(str(p), "", f"cannot read ({exc.strerror})") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(p), "", f"not valid TOML: {exc}") from None
+    return axis_config_from_dict(data, str(p))
