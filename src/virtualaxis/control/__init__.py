@@ -1,0 +1,1 @@
+"""Control loops in Siemens-style units: digital PI with anti-windup, Kv conversions, feed-forward."""

@@ -1,0 +1,56 @@
+"""Digital control loops (compiled): PI with conditional-integration anti-windup, quantisation.
+
+Seed 000 section 2.3: u(k) = K_p e(k) + (K_p / T_i) sum_j e(j) T. The integral part is held when the output
+is saturated and the error would drive it further into saturation (conditional integration).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def pi_step(error: float, integral: float, kp: float, ti_s: float, cycle_s: float, limit: float) -> tuple:
+    """One digital PI sample. Returns (output clamped to +-limit, new integral, saturated flag).
+
+    ``integral`` is the sum of e(j) T / T_i (dimension of the error); ``ti_s`` = 0 means P only;
+    ``limit`` <= 0 means no limit.
+    """
+    new_int = integral
+    if ti_s > 0.0:
+        new_int = integral + error * cycle_s / ti_s
+    out = kp * (error + new_int)
+    sat = False
+    if limit > 0.0:
+        if out > limit:
+            sat = True
+            if error > 0.0:
+                new_int = integral  # conditional integration: do not wind up further
+            out = limit
+        elif out < -limit:
+            sat = True
+            if error < 0.0:
+                new_int = integral
+            out = -limit
+    return out, new_int, sat
+
+
+@njit(cache=True, inline="always")
+def quantise(value: float, quantum: float) -> float:
+    """Floor to the sensor quantum (an encoder count); ``quantum`` <= 0 means ideal."""
+    if quantum <= 0.0:
+        return value
+    return quantum * math.floor(value / quantum)
+
+
+@njit(cache=True, inline="always")
+def clamp(value: float, limit: float) -> float:
+    if limit <= 0.0:
+        return value
+    if value > limit:
+        return limit
+    if value < -limit:
+        return -limit
+    return value

@@ -1,0 +1,307 @@
+"""The axis simulator: control cascade + plant, as a step API (for the drive) and a batch API.
+
+``AxisSimulator`` owns every array the compiled kernel touches, so stepping allocates nothing.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig
+from virtualaxis.plant.discrete import DiscreteMechanics, discretise
+from virtualaxis.plant.mechanics import reflected_inertia_kg_m2
+from virtualaxis.sim import layout as L
+from virtualaxis.sim.kernel import run_cycles
+
+
+class ControlMode(enum.IntEnum):
+    POSITION = L.MODE_POSITION
+    VELOCITY = L.MODE_VELOCITY
+    TORQUE = L.MODE_TORQUE
+
+
+@dataclass(frozen=True)
+class AxisState:
+    """A snapshot of the axis (SI units). ``torque_nm`` is N for a force actuator."""
+
+    time_s: float
+    position_m: float
+    table_position_m: float
+    motor_angle_rad: float
+    motor_speed_rad_s: float
+    velocity_m_s: float
+    torque_nm: float
+    current_q_a: float
+    current_d_a: float
+    voltage_q_v: float
+    voltage_d_v: float
+    following_error_m: float
+    dc_link_v: float
+    current_limited: bool
+    voltage_saturated: bool
+    friction_force_n: float
+    stuck: bool
+    screw_temperature_rise_k: float
+
+
+def _ratio(outer: float, inner: float) -> int:
+    return int(round(outer / inner))
+
+
+def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
+    """Fill the kernel parameter vector from a validated config."""
+    pr = np.zeros(L.N_PARAMS)
+    c, mot, m = cfg.control, cfg.motor, cfg.mechanics
+    force = cfg.actuator.kind == "force"
+    r = m.lead_m / (2 * math.pi) if m.lead_m > 0 else 0.0
+    hc = c.current_cycle_s
+    pr[L.P_HC] = hc
+    pr[L.P_NSPD] = _ratio(c.speed_cycle_s, hc)
+    pr[L.P_NPOS] = _ratio(c.position_cycle_s, hc)
+    pr[L.P_NSUB] = cfg.simulation.mechanical_substeps
+    pr[L.P_HM] = hc / cfg.simulation.mechanical_substeps
+    psi = mot.flux_wb if mot.flux_wb > 0 else mot.torque_constant_nm_per_a / (1.5 * mot.pole_pairs)
+    pr[L.P_PSI] = psi
+    pr[L.P_KT] = 1.5 * mot.pole_pairs * psi
+    pr[L.P_PP] = mot.pole_pairs
+    pr[L.P_RS] = mot.rs_ohm
+    pr[L.P_LD] = mot.ld_h
+    pr[L.P_LQ] = mot.lq_h
+    pr[L.P_EXP_D] = math.exp(-mot.rs_ohm * hc / mot.ld_h)
+    pr[L.P_EXP_Q] = math.exp(-mot.rs_ohm * hc / mot.lq_h)
+    pr[L.P_VDC] = cfg.inverter.dc_link_v
+    pr[L.P_VMAX] = cfg.inverter.dc_link_v / math.sqrt(3.0)
+    pr[L.P_SVPWM] = 1.0 if cfg.inverter.model == "svpwm" else 0.0
+    pr[L.P_SVSUB] = cfg.inverter.svpwm_substeps
+    pr[L.P_KPI] = c.current_kp_v_per_a
+    pr[L.P_TII] = c.current_ti_s
+    pr[L.P_DECOUP] = 1.0 if c.current_decoupling else 0.0
+    pr[L.P_KPW] = c.velocity_kp_n_s_per_m if force else c.speed_kp_nm_s_per_rad
+    pr[L.P_TIW] = c.speed_ti_s
+    if force:
+        pr[L.P_ILIM] = cfg.actuator.force_limit_n
+    else:
+        pr[L.P_ILIM] = c.current_limit_a if c.current_limit_a > 0 else 3.0 * mot.rated_current_a
+    pr[L.P_G] = 1.0 if force else 1.0 / r
+    if c.speed_limit_rpm > 0:
+        w = c.speed_limit_rpm * 2 * math.pi / 60
+        pr[L.P_WLIM] = w * r if force else w
+    pr[L.P_KV] = c.kv_1_per_s
+    pr[L.P_KFF] = c.velocity_ff_factor
+    pr[L.P_KTFF] = c.torque_ff_factor
+    if force:
+        j_ref = m.table_mass_kg + m.nut_mass_kg + (reflected_inertia_kg_m2(cfg) / r**2 if r > 0 else 0.0) * 0.0
+        pr[L.P_JREF] = j_ref
+    else:
+        pr[L.P_JREF] = reflected_inertia_kg_m2(cfg)
+    pr[L.P_R] = r
+    pr[L.P_FB] = 1.0 if c.position_feedback == "linear_scale" else 0.0
+    s = cfg.sensors
+    pr[L.P_QENC] = 2 * math.pi / s.motor_encoder_counts_per_rev if s.motor_encoder_counts_per_rev > 0 else 0.0
+    pr[L.P_QSCALE] = s.linear_scale_resolution_m
+    pr[L.P_NDEAD] = int(round(s.dead_time_s / hc))
+    if pr[L.P_NDEAD] >= L.RING_SIZE:
+        from virtualaxis.config import ConfigError
+
+        raise ConfigError(cfg.path, "sensors.dead_time_s", f"must be below {(L.RING_SIZE - 1) * hc:.4f} s")
+    f = cfg.friction
+    pr[L.P_FRIC] = 1.0 if f.enabled else 0.0
+    pr[L.P_FC_POS] = f.coulomb_n
+    pr[L.P_FC_NEG] = f.coulomb_negative_n if f.coulomb_negative_n >= 0 else f.coulomb_n
+    pr[L.P_FS] = f.stribeck_n
+    pr[L.P_VS] = f.stribeck_velocity_m_s
+    pr[L.P_DELTA] = f.stribeck_exponent
+    pr[L.P_FV] = f.viscous_n_s_per_m
+    pr[L.P_BL] = 1.0 if (cfg.backlash.enabled and cfg.backlash.gap_m > 0) else 0.0
+    pr[L.P_BL_HALF] = cfg.backlash.gap_m / 2
+    pr[L.P_COG_A] = 0.0 if force else mot.cogging_amplitude_nm
+    pr[L.P_COG_N] = mot.cogging_periods_per_rev
+    pr[L.P_COG_PH] = mot.cogging_phase_rad
+    e = cfg.effects
+    pr[L.P_LEAD_PPM] = e.lead_error_ppm
+    pr[L.P_LEAD_PER_A] = e.lead_error_periodic_m
+    pr[L.P_LEAD_PER_PH] = e.lead_error_periodic_phase_rad
+    pr[L.P_TH_ALPHA] = e.thermal_expansion_per_k
+    pr[L.P_TH_R] = e.thermal_resistance_k_per_w
+    pr[L.P_TH_TAU] = e.thermal_time_constant_s
+    pr[L.P_NUT_OFF] = cfg.axis.nut_offset_m
+    pr[L.P_GRID_LO] = dm.grid_m[0]
+    pr[L.P_GRID_STEP] = (dm.grid_m[-1] - dm.grid_m[0]) / max(len(dm.grid_m) - 1, 1)
+    pr[L.P_NGRID] = len(dm.grid_m)
+    pr[L.P_FORCE_ACT] = 1.0 if force else 0.0
+    pr[L.P_FORCE_LAG] = cfg.actuator.force_lag_s
+    pr[L.P_NOISE_POS] = s.position_noise_m
+    pr[L.P_NOISE_I] = s.current_noise_a
+    pr[L.P_TABLE] = dm.table_body
+    pr[L.P_SCREW] = dm.screw_body
+    pr[L.P_NDOF] = dm.n
+    pr[L.P_KC] = dm.contact_stiffness
+    pr[L.P_HAS_CONTACT] = 1.0 if np.any(dm.contact_vector != 0) else 0.0
+    nz = np.flatnonzero(dm.motor_angle_vector)
+    pr[L.P_MOTOR_IDX] = nz[0] if (len(nz) == 1 and dm.motor_angle_vector[nz[0]] == 1.0) else -1
+    return pr
+
+
+class AxisSimulator:
+    """Control cascade + plant, stepped one position-loop cycle at a time (see docs/architecture.md)."""
+
+    def __init__(self, cfg: AxisConfig, seed: int | None = None, initial_position_m: float = 0.0,
+                 *, discrete: DiscreteMechanics | None = None):
+        self.cfg = cfg
+        self.cycle_s = cfg.control.position_cycle_s
+        hm = cfg.control.current_cycle_s / cfg.simulation.mechanical_substeps
+        self.dm = discrete if discrete is not None else discretise(cfg, hm)
+        self.pr = build_parameters(cfg, self.dm)
+        n = self.dm.n
+        s = 2 * n
+        self.st = np.zeros(L.Z0 + s)
+        self.ring = np.zeros((L.RING_SIZE, 2))
+        self.wad = np.zeros((4, s, s))
+        self.wbd = np.zeros((4, s, 4))
+        self.wk = np.zeros((2, n))
+        self.wc = np.zeros((2, n))
+        self.ztmp = np.zeros(s)
+        self.u = np.zeros(4)
+        self._rng = np.random.default_rng(cfg.simulation.seed if seed is None else seed)
+        # one-cycle buffers of the step API
+        self._one = {k: np.zeros(1) for k in ("pos", "vel", "acc", "aux", "fext")}
+        self._noise1 = np.zeros((1, 2))
+        self._out1 = np.zeros((1, L.N_OUT))
+        self._last = np.zeros(L.N_OUT)
+        self._velocity_setpoint = 0.0
+        self._torque_setpoint = 0.0
+        self.reset(initial_position_m)
+
+    # ----------------------------------------------------------------------------------------- state
+    def reset(self, position_m: float = 0.0) -> None:
+        """Put the axis at rest at ``position_m`` (table), disabled, position mode."""
+        self.st[:] = 0.0
+        n = self.dm.n
+        r = self.pr[L.P_R]
+        names = self.dm.body_names
+        for i, name in enumerate(names):
+            if name in ("table", "nut", "resonator"):
+                self.st[L.Z0 + i] = position_m
+            elif name in ("motor", "screw_end", "screw") and r > 0:
+                self.st[L.Z0 + i] = position_m / r
+        self.st[L.S_DIR] = 1.0
+        self.st[L.S_STUCK] = 1.0 if self.cfg.friction.enabled else 0.0
+        self.st[L.S_TEMP] = self.cfg.effects.initial_temperature_rise_k
+        self.ring[:, 0] = position_m / r if r > 0 else 0.0
+        self.ring[:, 1] = position_m
+        self._last[:] = 0.0
+        self._last[L.O_POS_FB] = position_m
+        self._last[L.O_TABLE_TRUE] = position_m
+        self._last[L.O_POS_MEAS] = position_m
+        self._last[L.O_POS_CMD] = position_m
+        self._one["pos"][0] = position_m
+        _ = n
+
+    def enable(self, on: bool = True) -> None:
+        self.st[L.S_ENABLED] = 1.0 if on else 0.0
+        if not on:
+            self.st[L.S_INT_W] = 0.0
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.st[L.S_ENABLED])
+
+    def set_mode(self, mode: ControlMode) -> None:
+        mode = ControlMode(mode)
+        if mode != self.mode:
+            self.st[L.S_INT_W] = 0.0
+        self.st[L.S_MODE] = int(mode)
+
+    @property
+    def mode(self) -> ControlMode:
+        return ControlMode(int(self.st[L.S_MODE]))
+
+    def set_position_setpoint(self, pos_m: float, vel_ff_m_s: float = 0.0, acc_ff_m_s2: float = 0.0) -> None:
+        self._one["pos"][0] = pos_m
+        self._one["vel"][0] = vel_ff_m_s
+        self._one["acc"][0] = acc_ff_m_s2
+
+    def set_velocity_setpoint(self, vel_m_s: float) -> None:
+        self._velocity_setpoint = vel_m_s
+
+    def set_torque_setpoint(self, torque: float) -> None:
+        self._torque_setpoint = torque
+
+    def set_external_force(self, force_n: float) -> None:
+        self._one["fext"][0] = force_n
+
+    def advance(self, n_cycles: int = 1) -> None:
+        """Run ``n_cycles`` position-loop cycles with the present set-points."""
+        o = self._one
+        o["aux"][0] = self._torque_setpoint if self.mode == ControlMode.TORQUE else self._velocity_setpoint
+        if self.mode != ControlMode.POSITION:
+            o["pos"][0] = self._last[L.O_POS_FB] if self._last is not None else 0.0
+        for _ in range(n_cycles):
+            if self.pr[L.P_NOISE_POS] or self.pr[L.P_NOISE_I]:
+                self._noise1[0] = self._rng.standard_normal(2)
+            self._run(o["pos"], o["vel"], o["acc"], o["aux"], o["fext"], self._noise1, self._out1)
+            self._last[:] = self._out1[0]
+
+    def _run(self, pos, vel, acc, aux, fext, noise, out) -> None:
+        d = self.dm
+        run_cycles(self.st, self.pr, d.ad, d.bd, d.table_k_row, d.table_c_row, d.table_g_row, d.contact_vector,
+                   d.motor_angle_vector, self.ring, self.wad, self.wbd, self.wk, self.wc, self.ztmp, self.u,
+                   pos, vel, acc, aux, fext, noise, out)
+
+    @property
+    def time_s(self) -> float:
+        return float(self.st[L.S_T])
+
+    @property
+    def state(self) -> AxisState:
+        st, n, tb = self.st, self.dm.n, self.dm.table_body
+        from virtualaxis.sim.kernel import motor_angle, motor_speed
+
+        force = self.pr[L.P_FORCE_ACT] != 0
+        return AxisState(
+            time_s=float(st[L.S_T]),
+            position_m=float(st[L.S_POS_FB]) if st[L.S_T] > 0 else float(self._last[L.O_POS_FB]),
+            table_position_m=float(st[L.Z0 + tb]),
+            motor_angle_rad=float(motor_angle(self.pr, st, self.dm.motor_angle_vector)),
+            motor_speed_rad_s=float(motor_speed(self.pr, st, self.dm.motor_angle_vector)),
+            velocity_m_s=float(st[L.Z0 + n + tb]),
+            torque_nm=float(st[L.S_TORQUE]),
+            current_q_a=0.0 if force else float(st[L.S_IQ]),
+            current_d_a=0.0 if force else float(st[L.S_ID]),
+            voltage_q_v=float(st[L.S_UQ_APP]),
+            voltage_d_v=float(st[L.S_UD_APP]),
+            following_error_m=float(st[L.S_FE]),
+            dc_link_v=float(self.cfg.inverter.dc_link_v),
+            current_limited=bool(st[L.S_ILIM]),
+            voltage_saturated=bool(st[L.S_VSAT]),
+            friction_force_n=float(st[L.S_F_FRIC]),
+            stuck=bool(st[L.S_STUCK]),
+            screw_temperature_rise_k=float(st[L.S_TEMP]),
+        )
+
+    # ----------------------------------------------------------------------------------------- batch
+    def run_arrays(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, fext: np.ndarray,
+                   aux: np.ndarray | None = None, chunk: int = 20000, callback=None) -> np.ndarray:
+        """Run a whole command (one entry per position cycle) and return the output rows ``(n, N_OUT)``.
+
+        ``callback(rows_done)`` is called after each chunk (progress bars, streaming writers).
+        """
+        n = len(pos)
+        out = np.zeros((n, L.N_OUT))
+        if aux is None:
+            aux = np.zeros(n)
+        noise = np.zeros((n, 2))
+        if self.pr[L.P_NOISE_POS] or self.pr[L.P_NOISE_I]:
+            noise[:] = self._rng.standard_normal((n, 2))
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            self._run(pos[a:b], vel[a:b], acc[a:b], aux[a:b], fext[a:b], noise[a:b], out[a:b])
+            if callback:
+                callback(b)
+        if n:
+            self._last[:] = out[-1]
+        return out
