@@ -12,15 +12,13 @@ from numba import njit
 
 
 @njit(cache=True, inline="always")
-def pi_step(error: float, integral: float, kp: float, ti_s: float, cycle_s: float, limit: float) -> tuple:
+def pi_step(error: float, integral: float, kp: float, cycle_over_ti: float, limit: float) -> tuple:
     """One digital PI sample. Returns (output clamped to +-limit, new integral, saturated flag).
 
-    ``integral`` is the sum of e(j) T / T_i (dimension of the error); ``ti_s`` = 0 means P only;
-    ``limit`` <= 0 means no limit.
+    ``integral`` is the sum of e(j) T / T_i (dimension of the error); ``cycle_over_ti`` = T / T_i is
+    precomputed (0 means P only); ``limit`` <= 0 means no limit.
     """
-    new_int = integral
-    if ti_s > 0.0:
-        new_int = integral + error * cycle_s / ti_s
+    new_int = integral + error * cycle_over_ti
     out = kp * (error + new_int)
     sat = False
     if limit > 0.0:
@@ -35,6 +33,11 @@ def pi_step(error: float, integral: float, kp: float, ti_s: float, cycle_s: floa
                 new_int = integral
             out = -limit
     return out, new_int, sat
+
+
+def integral_gain_per_sample(cycle_s: float, ti_s: float) -> float:
+    """T / T_i of a digital PI, 0 for a P controller (T_i = 0)."""
+    return cycle_s / ti_s if ti_s > 0 else 0.0
 
 
 @njit(cache=True, inline="always")

@@ -62,10 +62,13 @@ from virtualaxis.sim.layout import (
     P_FS,
     P_FV,
     P_G,
+    P_GI_I,
+    P_GI_W,
     P_GRID_LO,
     P_GRID_STEP,
     P_HAS_CONTACT,
     P_HC,
+    P_INV_RS,
     P_HM,
     P_ILIM,
     P_JREF,
@@ -108,6 +111,7 @@ from virtualaxis.sim.layout import (
     P_TIW,
     P_VDC,
     P_VMAX,
+    P_VMAX2,
     P_VS,
     P_WLIM,
     RING_SIZE,
@@ -258,8 +262,8 @@ def _electrical_averaged(pr, st, ud, uq, wm, h):
     eq = uq - we * (pr[P_LD] * idd + pr[P_PSI])
     ad = pr[P_EXP_D]
     aq = pr[P_EXP_Q]
-    st[S_ID] = idd * ad + (1.0 - ad) * ed / pr[P_RS]
-    st[S_IQ] = iqq * aq + (1.0 - aq) * eq / pr[P_RS]
+    st[S_ID] = idd * ad + (1.0 - ad) * ed * pr[P_INV_RS]
+    st[S_IQ] = iqq * aq + (1.0 - aq) * eq * pr[P_INV_RS]
     # average torque over the period (trapezoid on the currents)
     id_m = 0.5 * (idd + st[S_ID])
     iq_m = 0.5 * (iqq + st[S_IQ])
@@ -565,13 +569,13 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
                 if enabled and mode != MODE_TORQUE:
                     lim = pr[P_ILIM] * (pr[P_KT] if not force_act else 1.0)
                     ew = st[S_W_REF] - st[S_W_MEAS]
-                    tref, st[S_INT_W], sat = pi_step(ew, st[S_INT_W], pr[P_KPW], pr[P_TIW], tspd, 0.0)
+                    tref, st[S_INT_W], sat = pi_step(ew, st[S_INT_W], pr[P_KPW], pr[P_GI_W], 0.0)
                     tref += st[S_TFF]
                     if lim > 0.0 and abs(tref) > lim:
                         tref = clamp(tref, lim)
                         # anti-windup at the current limit: undo the last integration when pushing further
-                        if (tref > 0.0) == (ew > 0.0) and pr[P_TIW] > 0.0:
-                            st[S_INT_W] -= ew * tspd / pr[P_TIW]
+                        if (tref > 0.0) == (ew > 0.0):
+                            st[S_INT_W] -= ew * pr[P_GI_W]
                         ilim_any = 1.0
                     st[S_IQ_REF] = tref if force_act else tref / pr[P_KT]
                 elif enabled and mode == MODE_TORQUE:
@@ -608,13 +612,13 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
                         ffd = -we * pr[P_LQ] * st[S_IQ]
                         ffq = we * (pr[P_LD] * st[S_ID] + pr[P_PSI])
                     vmax = pr[P_VMAX]
-                    ud, intd, _s1 = pi_step(-st[S_ID], st[S_INT_D], pr[P_KPI], pr[P_TII], hc, 0.0)
-                    uq, intq, _s2 = pi_step(st[S_IQ_REF] - st[S_IQ], st[S_INT_Q], pr[P_KPI], pr[P_TII], hc, 0.0)
+                    ud, intd, _s1 = pi_step(-st[S_ID], st[S_INT_D], pr[P_KPI], pr[P_GI_I], 0.0)
+                    uq, intq, _s2 = pi_step(st[S_IQ_REF] - st[S_IQ], st[S_INT_Q], pr[P_KPI], pr[P_GI_I], 0.0)
                     ud += ffd
                     uq += ffq
-                    mag = math.sqrt(ud * ud + uq * uq)
-                    if mag > vmax:
-                        sc = vmax / mag
+                    mag2 = ud * ud + uq * uq
+                    if mag2 > pr[P_VMAX2]:
+                        sc = vmax / math.sqrt(mag2)
                         ud *= sc
                         uq *= sc
                         vsat_any = 1.0

@@ -67,7 +67,11 @@ P_EXP_D = 62  # exp(-Rs h / Ld)
 P_EXP_Q = 63
 P_HM = 64  # mechanical step [s]
 P_MOTOR_IDX = 65  # index into z of the motor body (-1: motor angle = table / r)
-N_PARAMS = 66
+P_GI_I = 66  # current PI: T_current / T_i
+P_GI_W = 67  # speed PI: T_speed / T_n
+P_INV_RS = 68
+P_VMAX2 = 69  # V_max^2
+N_PARAMS = 70
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from virtualaxis.config import AxisConfig
+from virtualaxis.control.loops import integral_gain_per_sample
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
 from virtualaxis.plant.mechanics import reflected_inertia_kg_m2
 from virtualaxis.sim import layout as L
@@ -77,6 +78,10 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_VMAX] = cfg.inverter.dc_link_v / math.sqrt(3.0)
     pr[L.P_SVPWM] = 1.0 if cfg.inverter.model == "svpwm" else 0.0
     pr[L.P_SVSUB] = cfg.inverter.svpwm_substeps
+    pr[L.P_VMAX2] = pr[L.P_VMAX] ** 2
+    pr[L.P_INV_RS] = 1.0 / mot.rs_ohm
+    pr[L.P_GI_I] = integral_gain_per_sample(hc, c.current_ti_s)
+    pr[L.P_GI_W] = integral_gain_per_sample(c.speed_cycle_s, c.speed_ti_s)
     pr[L.P_KPI] = c.current_kp_v_per_a
     pr[L.P_TII] = c.current_ti_s
     pr[L.P_DECOUP] = 1.0 if c.current_decoupling else 0.0
