@@ -25,7 +25,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from virtualaxis.config import load_axis_config
-    from virtualaxis.sim.batch import columns_for, rows_to_columns, EXTRA_COLUMNS
+    from virtualaxis.sim.batch import EXTRA_COLUMNS, columns_for, rows_to_columns
     from virtualaxis.sim.profiles import check_limits, parse_profile, sample_profile
     from virtualaxis.sim.simulator import AxisSimulator
     from virtualaxis.sim.trace_io import TraceWriter
@@ -90,6 +90,8 @@ def run(args) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
-    print(f"simulated {dur:g} s in {wall:.2f} s wall; RMSE tracking error "
-          f"{first['rmse_tracking_error_m'] * 1e6:.2f} um, max {first['max_tracking_error_m'] * 1e6:.2f} um -> {out_path}")
+    rmse_um = first["rmse_tracking_error_m"] * 1e6
+    max_um = first["max_tracking_error_m"] * 1e6
+    print(f"simulated {dur:g} s in {wall:.2f} s wall; RMSE tracking error {rmse_um:.2f} um, max {max_um:.2f} um"
+          f" -> {out_path}")
     return 0

@@ -1,6 +1,5 @@
 """Axis configuration: TOML files with SI units in key names and a source for every value."""
 
-from virtualaxis.config.errors import ConfigError
 from virtualaxis.config.axis import (
     ActuatorParams,
     AxisConfig,
@@ -15,9 +14,10 @@ from virtualaxis.config.axis import (
     MotorParams,
     SensorParams,
     SimulationParams,
-    load_axis_config,
     axis_config_from_dict,
+    load_axis_config,
 )
+from virtualaxis.config.errors import ConfigError
 
 __all__ = [
     "ActuatorParams",

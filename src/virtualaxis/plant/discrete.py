@@ -73,7 +73,9 @@ def zoh(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]
     return e[:s, :s].copy(), e[:s, s:].copy()
 
 
-def discretise(cfg: AxisConfig, step_s: float, grid_points: int | None = None, support_scale: float = 1.0) -> DiscreteMechanics:
+def discretise(
+    cfg: AxisConfig, step_s: float, grid_points: int | None = None, support_scale: float = 1.0
+) -> DiscreteMechanics:
     """Build the mode tables for the kernel at mechanical step ``step_s``."""
     lo, hi = nut_position_range_m(cfg)
     npts = grid_points or cfg.simulation.position_grid_points

@@ -175,13 +175,16 @@ def build_mechanics(cfg: AxisConfig, nut_pos_m: float, *, support_scale: float =
         k_ts = stf.screw_torsional_stiffness_nm_per_rad(
             m.shear_modulus_pa, m.screw_root_diameter_m, nut_pos_m, m.min_segment_m
         )
-        springs.append(Spring("screw_torsion", {end: 1.0, screw_body: -1.0}, stf.series(m.screw_end_stiffness_nm_per_rad, k_ts)))
+        k_torsion = stf.series(m.screw_end_stiffness_nm_per_rad, k_ts)
+        springs.append(Spring("screw_torsion", {end: 1.0, screw_body: -1.0}, k_torsion))
         k_as = stf.screw_axial_stiffness_n_per_m(
             m.youngs_modulus_pa, m.screw_root_diameter_m, m.screw_length_m, nut_pos_m, m.min_segment_m, m.screw_mounting
         )
         k_axial = stf.series(m.support_axial_stiffness_n_per_m * support_scale, m.bearing_axial_stiffness_n_per_m, k_as)
         springs.append(Spring("axial_support", {screw_ax: 1.0}, k_axial))
-        contact = Spring("nut_contact", {screw_ax: 1.0, screw_body: r, nut_or_table: -1.0}, m.nut_contact_stiffness_n_per_m)
+        contact = Spring(
+            "nut_contact", {screw_ax: 1.0, screw_body: r, nut_or_table: -1.0}, m.nut_contact_stiffness_n_per_m
+        )
         if nut is not None:
             springs.append(Spring("flange", {nut: 1.0, table: -1.0}, m.flange_stiffness_n_per_m))
         act = np.zeros(len(bodies))
@@ -197,7 +200,8 @@ def build_mechanics(cfg: AxisConfig, nut_pos_m: float, *, support_scale: float =
         )
         screw_body = motor_body
         table = add("table", "lin", m.table_mass_kg + m.nut_mass_kg)
-        contact = Spring("drive_spring", {motor_body: r, table: -1.0}, m.equivalent_torsional_stiffness_nm_per_rad / r**2)
+        k_lin = m.equivalent_torsional_stiffness_nm_per_rad / r**2
+        contact = Spring("drive_spring", {motor_body: r, table: -1.0}, k_lin)
         act = np.zeros(len(bodies))
         act[motor_body if is_pmsm else table] = 1.0
         ground[motor_body] = m.motor_viscous_nm_s_per_rad

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from virtualaxis.control.loops import clamp, pi_step, quantise
@@ -68,9 +67,9 @@ from virtualaxis.sim.layout import (
     P_GRID_STEP,
     P_HAS_CONTACT,
     P_HC,
-    P_INV_RS,
     P_HM,
     P_ILIM,
+    P_INV_RS,
     P_JREF,
     P_KC,
     P_KFF,
@@ -107,8 +106,6 @@ from virtualaxis.sim.layout import (
     P_TH_ALPHA,
     P_TH_R,
     P_TH_TAU,
-    P_TII,
-    P_TIW,
     P_VDC,
     P_VMAX,
     P_VMAX2,
@@ -133,7 +130,6 @@ from virtualaxis.sim.layout import (
     S_IQ_REF,
     S_MODE,
     S_POS_FB,
-    S_POWER,
     S_RING,
     S_SPD_INIT,
     S_STUCK,
@@ -497,7 +493,6 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
     npos = int(pr[P_NPOS])
     nspd = int(pr[P_NSPD])
     nsub = int(pr[P_NSUB])
-    hm = pr[P_HM]
     n = int(pr[P_NDOF])
     tb = int(pr[P_TABLE])
     g = pr[P_G]

@@ -287,8 +287,8 @@ def check_limits(profile: Profile, cfg: AxisConfig, duration_s: float, cycle_s: 
         vmax, amax = float(np.max(np.abs(v))), float(np.max(np.abs(a)))
         pmin, pmax = float(np.min(p)), float(np.max(p))
         if vmax > lim.max_velocity_m_s * (1 + 1e-9):
-            raise ProfileError(profile.spec, f"axis {name}: peak velocity {vmax:.4g} m/s exceeds limits.max_velocity_m_s"
-                                             f" = {lim.max_velocity_m_s:g} m/s")
+            raise ProfileError(profile.spec, f"axis {name}: peak velocity {vmax:.4g} m/s exceeds "
+                                             f"limits.max_velocity_m_s = {lim.max_velocity_m_s:g} m/s")
         if amax > lim.max_acceleration_m_s2 * (1 + 1e-9) and not profile.spec.startswith(("step", "file")):
             raise ProfileError(profile.spec, f"axis {name}: peak acceleration {amax:.4g} m/s^2 exceeds "
                                              f"limits.max_acceleration_m_s2 = {lim.max_acceleration_m_s2:g} m/s^2")

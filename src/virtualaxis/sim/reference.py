@@ -79,7 +79,8 @@ class ReferenceAxis:
             return 0.0
         e = self.cfg.effects
         th = q[self.sb]
-        off = e.lead_error_ppm * 1e-6 * self.r * th + e.lead_error_periodic_m * math.sin(th + e.lead_error_periodic_phase_rad)
+        off = e.lead_error_ppm * 1e-6 * self.r * th
+        off += e.lead_error_periodic_m * math.sin(th + e.lead_error_periodic_phase_rad)
         off += e.thermal_expansion_per_k * temp * (self.cfg.axis.nut_offset_m + q[self.tb])
         return off
 
@@ -120,7 +121,8 @@ class ReferenceAxis:
         diq = (uq - m.rs_ohm * iqq - we * (m.ld_h * idd + self.psi)) / m.lq_h
         torque = 1.5 * m.pole_pairs * (self.psi * iqq + (m.ld_h - m.lq_h) * idd * iqq)
         if m.cogging_amplitude_nm:
-            torque += m.cogging_amplitude_nm * math.sin(m.cogging_periods_per_rev * (self.mvec @ q) + m.cogging_phase_rad)
+            angle = m.cogging_periods_per_rev * (self.mvec @ q) + m.cogging_phase_rad
+            torque += m.cogging_amplitude_nm * math.sin(angle)
         kk, cc = self._matrices(q[self.tb])
         fcon, _ = self._contact_force(q, qd, temp)
         ffric = 0.0

@@ -43,12 +43,14 @@ def support_stiffness_study(cfg: AxisConfig, scales: np.ndarray | None = None) -
     rows = []
     for s in scales:
         res = modal_analysis(cfg, nut, support_scale=float(s))
-        share = res.spring_deformations[0].get("axial_support", float("nan")) if res.spring_deformations else float("nan")
+        share = res.spring_deformations[0].get("axial_support", float("nan")) if res.spring_deformations else None
         rows.append({
             "support_scale": float(s),
             "support_axial_stiffness_n_per_m": cfg.mechanics.support_axial_stiffness_n_per_m * float(s),
             "first_natural_frequency_hz": res.natural_frequencies_hz[0],
-            "second_natural_frequency_hz": res.natural_frequencies_hz[1] if len(res.natural_frequencies_hz) > 1 else None,
+            "second_natural_frequency_hz": (
+                res.natural_frequencies_hz[1] if len(res.natural_frequencies_hz) > 1 else None
+            ),
             "support_strain_energy_share_mode1": share,
         })
     return rows
@@ -104,7 +106,7 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
         return (x - np.nanmin(x)) / span if span > 0 else np.zeros_like(x)
 
     cost = norm("static_position_error_m") + norm("energy_per_cycle_j") + norm("response_time_s")
-    for r, cval in zip(rows, cost):
+    for r, cval in zip(rows, cost, strict=True):
         r["cost"] = float(cval)
     best = rows[int(np.nanargmin(cost))]
     # sensitivity: relative change of each metric across the sweep
