@@ -9,10 +9,14 @@ the tables are computed on a grid of nut positions and blended linearly by the k
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-from scipy.linalg import expm
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.plant.mechanics import (
@@ -65,6 +69,8 @@ def _continuous(mass, stiff, damp, g, table, stuck):
 
 def zoh(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Zero-order-hold discretisation via the augmented matrix exponential."""
+    from scipy.linalg import expm
+
     s, m = a.shape[0], b.shape[1]
     aug = np.zeros((s + m, s + m))
     aug[:s, :s] = a
@@ -73,12 +79,54 @@ def zoh(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]
     return e[:s, :s].copy(), e[:s, s:].copy()
 
 
+CACHE_VERSION = 1  # bump when the mechanics equations change
+
+
+def cache_dir() -> Path:
+    """Where discretised tables are cached (``VIRTUALAXIS_CACHE_DIR`` or ``~/.cache/virtualaxis``)."""
+    base = os.environ.get("VIRTUALAXIS_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "virtualaxis")
+    return Path(base) / "discrete"
+
+
+def _cache_key(cfg: AxisConfig, step_s: float, grid_points: int, support_scale: float) -> str:
+    relevant = {k: dataclasses.asdict(getattr(cfg, k)) for k in ("axis", "mechanics", "actuator", "effects")}
+    relevant["effects"] = {k: v for k, v in relevant["effects"].items() if k.startswith("resonance")}
+    blob = json.dumps([CACHE_VERSION, relevant, step_s, grid_points, support_scale], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
 def discretise(
-    cfg: AxisConfig, step_s: float, grid_points: int | None = None, support_scale: float = 1.0
+    cfg: AxisConfig, step_s: float, grid_points: int | None = None, support_scale: float = 1.0, *, cache: bool = True
 ) -> DiscreteMechanics:
-    """Build the mode tables for the kernel at mechanical step ``step_s``."""
-    lo, hi = nut_position_range_m(cfg)
+    """Mode tables for the kernel at mechanical step ``step_s``, cached on disk by the mechanical parameters
+    (a second start of the same axis skips the matrix exponentials)."""
     npts = grid_points or cfg.simulation.position_grid_points
+    path = cache_dir() / f"{_cache_key(cfg, step_s, npts, support_scale)}.npz"
+    if cache and path.exists():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"]))
+                arrays = {k: z[k] for k in z.files if k != "meta"}
+            return DiscreteMechanics(**arrays, **meta)
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # a damaged cache entry is rebuilt
+    dm = _discretise(cfg, step_s, npts, support_scale)
+    if cache:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            arrays = {f.name: getattr(dm, f.name) for f in dataclasses.fields(dm)
+                      if isinstance(getattr(dm, f.name), np.ndarray)}
+            meta = {f.name: getattr(dm, f.name) for f in dataclasses.fields(dm) if f.name not in arrays}
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(tmp, meta=json.dumps(meta), **arrays)
+            os.replace(tmp, path)
+        except OSError:
+            pass  # caching is an optimisation only
+    return dm
+
+
+def _discretise(cfg: AxisConfig, step_s: float, npts: int, support_scale: float) -> DiscreteMechanics:
+    lo, hi = nut_position_range_m(cfg)
     grid = np.array([lo]) if hi <= lo else np.linspace(lo, hi, max(npts, 2))
     b_struct = structural_damping_coefficient(cfg)
     mech0 = build_mechanics(cfg, grid[0], support_scale=support_scale)
@@ -111,13 +159,13 @@ def discretise(
         table_c_row=crow,
         table_g_row=mech0.input_matrix()[mech0.table_body].copy(),
         contact_vector=contact_vec,
-        contact_stiffness=kc,
-        contact_damping=b_struct * kc,
+        contact_stiffness=float(kc),
+        contact_damping=float(b_struct * kc),
         motor_angle_vector=mech0.motor_angle_vector.copy(),
-        screw_body=-1 if mech0.screw_body is None else mech0.screw_body,
-        table_body=mech0.table_body,
-        n=n,
-        step_s=step_s,
-        structural_b=b_struct,
+        screw_body=-1 if mech0.screw_body is None else int(mech0.screw_body),
+        table_body=int(mech0.table_body),
+        n=int(n),
+        step_s=float(step_s),
+        structural_b=float(b_struct),
         body_names=[b.name for b in mech0.bodies],
     )
