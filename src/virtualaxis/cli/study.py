@@ -13,7 +13,7 @@ from virtualaxis.cli.common import add_config_argument, parse_float_list
 
 def register(sub) -> None:
     p = sub.add_parser("study", help="reproduce a seed study: kv-sweep, support-stiffness, feed-sweep")
-    p.add_argument("name", choices=("kv-sweep", "support-stiffness", "feed-sweep"))
+    p.add_argument("name", choices=("kv-sweep", "support-stiffness", "feed-sweep", "inverter"))
     add_config_argument(p)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--values", default=None,
@@ -62,6 +62,14 @@ def run(args) -> int:
                     f"{key} [{unit}]", f"{cfg.axis.name}")
         print(f"cost optimum at kv = {doc['optimum_kv_per_min']:g} 1/min (paper: {doc['paper_optimum_kv_per_min']:g}); "
               f"relative spans: {json.dumps({k: round(v, 3) for k, v in doc['relative_span'].items()})}")
+    elif args.name == "inverter":
+        rows = seeds.inverter_study(cfg, vals or (1000, 6000))
+        doc = {"rows": rows, "paper": "seed 000 Fig. 6: SVPWM sector / dwell time / compare thresholds, six switches"}
+        for r in rows:
+            print(f"F{r['feed_mm_min']:.0f}: ripple {r['svpwm_current_ripple_rms_a']:.3f} A RMS (switching) vs 0 "
+                  f"(averaged); tracking RMS {r['averaged_rms_tracking_error_um']:.2f} / "
+                  f"{r['svpwm_rms_tracking_error_um']:.2f} um; "
+                  f"wall {r['averaged_wall_s']:.2f} / {r['svpwm_wall_s']:.2f} s")
     else:
         feeds = vals or [1000, 2000, 3000, 4000, 5000, 6000]
         with tqdm(total=len(feeds), desc="feed sweep", leave=False, disable=None) as bar:

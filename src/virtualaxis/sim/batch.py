@@ -37,6 +37,7 @@ EXTRA_COLUMNS = {
     "electrical_power": L.O_POWER,
     "screw_temperature_rise": L.O_TEMP,
     "airgap_torque": L.O_AIRGAP,
+    "current_ripple_rms": L.O_RIPPLE,
 }
 
 

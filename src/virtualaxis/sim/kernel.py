@@ -34,6 +34,7 @@ from virtualaxis.sim.layout import (
     O_POS_FB,
     O_POS_MEAS,
     O_POWER,
+    O_RIPPLE,
     O_STUCK,
     O_T,
     O_TABLE_TRUE,
@@ -131,6 +132,7 @@ from virtualaxis.sim.layout import (
     S_MODE,
     S_POS_FB,
     S_RING,
+    S_RIPPLE,
     S_SPD_INIT,
     S_STUCK,
     S_T,
@@ -303,6 +305,8 @@ def _electrical_svpwm(pr, st, ud, uq, wm, theta_e0, h):
     nsub = int(pr[P_SVSUB])
     torque_int = 0.0
     t_now = 0.0
+    iq_int = 0.0
+    iq2_int = 0.0
     for seg in range(7):
         if seg == 0 or seg == 6:
             dur = 0.25 * t0
@@ -360,7 +364,13 @@ def _electrical_svpwm(pr, st, ud, uq, wm, theta_e0, h):
             id_m = 0.5 * (idd + st[S_ID])
             iq_m = 0.5 * (iqq + st[S_IQ])
             torque_int += dt * 1.5 * pr[P_PP] * (pr[P_PSI] * iq_m + (pr[P_LD] - pr[P_LQ]) * id_m * iq_m)
+            iq_int += dt * iq_m
+            iq2_int += dt * iq_m * iq_m
             t_now += dt
+    mean = iq_int / h
+    var = iq2_int / h - mean * mean
+    if var > 0.0:
+        st[S_RIPPLE] += var * h
     return torque_int / h
 
 
@@ -659,6 +669,8 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
         out[j, O_ILIM] = ilim_any
         st[S_ILIM] = ilim_any
         out[j, O_POWER] = energy / (hc * npos)
+        out[j, O_RIPPLE] = math.sqrt(st[S_RIPPLE] / (hc * npos))
+        st[S_RIPPLE] = 0.0
 
     return ncyc
 

@@ -108,6 +108,7 @@ S_POWER = 30
 S_CMD_POS = 31
 S_F_EXT = 32
 S_CONTACT_MODE = 33
+S_RIPPLE = 34  # accumulated within-period i_q variance x time (svpwm)
 Z0 = 40  # mechanical state z = [q, q'] starts here
 
 RING_SIZE = 4096
@@ -137,6 +138,7 @@ O_ILIM = 20
 O_POWER = 21  # electrical input power 1.5 (u_d i_d + u_q i_q) [W], averaged over the cycle
 O_TEMP = 22
 O_AIRGAP = 23  # air-gap torque incl. cogging [N m] or actuator force [N]
-N_OUT = 24
+O_RIPPLE = 24  # RMS i_q ripple within PWM periods over the cycle [A] (svpwm; 0 when averaged)
+N_OUT = 25
 
 MODE_POSITION, MODE_VELOCITY, MODE_TORQUE = 0, 1, 2
