@@ -158,8 +158,12 @@ def blend_tables(pr, st, ad, bd, krow, crow, wad, wbd, wk, wc):
     """Interpolate the mode tables linearly at the present nut position (once per position cycle)."""
     ngrid = int(pr[P_NGRID])
     if ngrid == 1:
-        wad[:] = ad[0]
-        wbd[:] = bd[0]
+        for m in range(ad.shape[1]):
+            for r in range(ad.shape[2]):
+                for c in range(ad.shape[3]):
+                    wad[m, r, c] = ad[0, m, r, c]
+                for c in range(bd.shape[3]):
+                    wbd[m, r, c] = bd[0, m, r, c]
         wk[:] = krow[0]
         wc[:] = crow[0]
         return
@@ -251,21 +255,18 @@ def _kinematic_offset(pr, st):
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def _electrical_averaged(pr, st, ud, uq, wm, h):
-    """Advance i_d, i_q over one PWM period with the averaged inverter voltage (exponential integrator)."""
-    we = pr[P_PP] * wm
-    idd = st[S_ID]
-    iqq = st[S_IQ]
-    ed = ud + we * pr[P_LQ] * iqq
-    eq = uq - we * (pr[P_LD] * idd + pr[P_PSI])
-    ad = pr[P_EXP_D]
-    aq = pr[P_EXP_Q]
-    st[S_ID] = idd * ad + (1.0 - ad) * ed * pr[P_INV_RS]
-    st[S_IQ] = iqq * aq + (1.0 - aq) * eq * pr[P_INV_RS]
+def _electrical_averaged(pp, ld, lq, psi, inv_rs, exp_d, exp_q, idd, iqq, ud, uq, wm):
+    """Advance i_d, i_q over one PWM period with the averaged inverter voltage (exponential integrator with
+    the cross-coupling held). Returns (i_d, i_q, period-average air-gap torque)."""
+    we = pp * wm
+    ed = ud + we * lq * iqq
+    eq = uq - we * (ld * idd + psi)
+    id1 = idd * exp_d + (1.0 - exp_d) * ed * inv_rs
+    iq1 = iqq * exp_q + (1.0 - exp_q) * eq * inv_rs
     # average torque over the period (trapezoid on the currents)
-    id_m = 0.5 * (idd + st[S_ID])
-    iq_m = 0.5 * (iqq + st[S_IQ])
-    return 1.5 * pr[P_PP] * (pr[P_PSI] * iq_m + (pr[P_LD] - pr[P_LQ]) * id_m * iq_m)
+    id_m = 0.5 * (idd + id1)
+    iq_m = 0.5 * (iqq + iq1)
+    return id1, iq1, 1.5 * pp * (psi * iq_m + (ld - lq) * id_m * iq_m)
 
 
 @njit(cache=True, fastmath=True)
@@ -496,7 +497,8 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
     cycle ``j`` (the position-loop sampling instant), before the cycle is simulated.
 
     ``cmd_aux`` is the velocity set-point [m/s] in velocity mode or the torque [N m] / force [N] set-point in
-    torque mode. ``noise`` holds standard-normal samples (scale, current) per cycle.
+    torque mode. ``noise`` holds standard-normal samples (scale, current) per cycle. The hot electrical and
+    controller states live in locals for the whole call and are written back to ``st`` at the end.
     """
     ncyc = cmd_pos.shape[0]
     hc = pr[P_HC]
@@ -507,8 +509,28 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
     tb = int(pr[P_TABLE])
     g = pr[P_G]
     force_act = pr[P_FORCE_ACT] != 0.0
+    svpwm = pr[P_SVPWM] != 0.0
     tspd = hc * nspd
     zview = st[Z0:Z0 + 2 * n]
+    # parameters used every current cycle
+    pp, ld, lq, psi = pr[P_PP], pr[P_LD], pr[P_LQ], pr[P_PSI]
+    inv_rs, exp_d, exp_q = pr[P_INV_RS], pr[P_EXP_D], pr[P_EXP_Q]
+    kpi, gii, kpw, giw = pr[P_KPI], pr[P_GI_I], pr[P_KPW], pr[P_GI_W]
+    kt, vmax, vmax2 = pr[P_KT], pr[P_VMAX], pr[P_VMAX2]
+    decoup = pr[P_DECOUP] != 0.0
+    cog_a, cog_n, cog_ph = pr[P_COG_A], pr[P_COG_N], pr[P_COG_PH]
+    lim = pr[P_ILIM] * (kt if not force_act else 1.0)
+    lag = pr[P_FORCE_LAG]
+    lag_f = 1.0 - math.exp(-hc / lag) if lag > 0.0 else 1.0
+    # states held in locals
+    i_d, i_q = st[S_ID], st[S_IQ]
+    ud_app, uq_app, ud_next, uq_next = st[S_UD_APP], st[S_UQ_APP], st[S_UD_NEXT], st[S_UQ_NEXT]
+    int_d, int_q, int_w = st[S_INT_D], st[S_INT_Q], st[S_INT_W]
+    iq_ref, f_act, torque_act = st[S_IQ_REF], st[S_F_ACT], st[S_TORQUE]
+    theta_prev, w_meas = st[S_THETA_PREV], st[S_W_MEAS]
+    vsat = st[S_VSAT]
+    t_now = st[S_T]
+    ri = int(st[S_RING])
     for j in range(ncyc):
         blend_tables(pr, st, ad, bd, krow, crow, wad, wbd, wk, wc)
         mode = int(st[S_MODE])
@@ -516,49 +538,51 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
         st[S_F_EXT] = f_ext[j]
         st[S_CMD_POS] = cmd_pos[j]
         # ---- position loop sample
+        st[S_RING] = ri
         fb = _feedback_position(pr, st, ring)
         st[S_POS_FB] = fb
         fe = cmd_pos[j] - fb
         st[S_FE] = fe
+        tff = 0.0
         if enabled and mode == MODE_POSITION:
             wref = g * (pr[P_KV] * fe + pr[P_KFF] * cmd_vel[j])
-            st[S_TFF] = pr[P_KTFF] * pr[P_JREF] * g * cmd_acc[j]
+            tff = pr[P_KTFF] * pr[P_JREF] * g * cmd_acc[j]
         elif enabled and mode == MODE_VELOCITY:
             wref = g * cmd_aux[j]
-            st[S_TFF] = 0.0
         else:
             wref = 0.0
-            st[S_TFF] = 0.0
-        st[S_W_REF] = clamp(wref, pr[P_WLIM])
+        wref = clamp(wref, pr[P_WLIM])
+        st[S_W_REF] = wref
+        st[S_TFF] = tff
         # ---- record the sampling instant
-        x_tab = st[Z0 + tb]
-        out[j, O_T] = st[S_T]
+        x_tab = zview[tb]
+        out[j, O_T] = t_now
         out[j, O_POS_CMD] = cmd_pos[j]
         out[j, O_POS_MEAS] = quantise(x_tab + pr[P_NOISE_POS] * noise[j, 0], pr[P_QSCALE])
         out[j, O_POS_FB] = fb
         out[j, O_MOTOR_POS] = quantise(motor_angle(pr, st, mvec), pr[P_QENC])
-        out[j, O_VEL] = st[Z0 + n + tb]
+        out[j, O_VEL] = zview[n + tb]
         if force_act:
-            out[j, O_TORQUE] = st[S_F_ACT]
+            out[j, O_TORQUE] = f_act
             out[j, O_CURRENT_Q] = 0.0
-            out[j, O_FORCE_DRIVE] = st[S_F_ACT]
+            out[j, O_FORCE_DRIVE] = f_act
         else:
-            iq_meas = st[S_IQ] + pr[P_NOISE_I] * noise[j, 1]
-            out[j, O_TORQUE] = pr[P_KT] * iq_meas
+            iq_meas = i_q + pr[P_NOISE_I] * noise[j, 1]
+            out[j, O_TORQUE] = kt * iq_meas
             out[j, O_CURRENT_Q] = iq_meas
             out[j, O_FORCE_DRIVE] = 0.0
         out[j, O_FORCE_EXT] = f_ext[j]
         out[j, O_FOLLOWING] = fe
-        out[j, O_CURRENT_D] = st[S_ID]
-        out[j, O_VOLT_Q] = st[S_UQ_APP]
-        out[j, O_VOLT_D] = st[S_UD_APP]
+        out[j, O_CURRENT_D] = i_d
+        out[j, O_VOLT_Q] = uq_app
+        out[j, O_VOLT_D] = ud_app
         out[j, O_FRICTION] = st[S_F_FRIC]
         out[j, O_STUCK] = st[S_STUCK]
         out[j, O_CONTACT_F] = st[S_CONTACT_F]
         out[j, O_MOTOR_SPEED] = motor_speed(pr, st, mvec)
         out[j, O_TABLE_TRUE] = x_tab
         out[j, O_TEMP] = st[S_TEMP]
-        out[j, O_AIRGAP] = st[S_TORQUE]
+        out[j, O_AIRGAP] = torque_act
         vsat_any = 0.0
         ilim_any = 0.0
         energy = 0.0
@@ -567,111 +591,116 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
             if k % nspd == 0:
                 coord = _speed_sample_coordinate(pr, st, mvec)
                 if st[S_SPD_INIT] == 0.0:
-                    st[S_THETA_PREV] = coord
+                    theta_prev = coord
                     st[S_SPD_INIT] = 1.0
-                st[S_W_MEAS] = (coord - st[S_THETA_PREV]) / tspd
-                st[S_THETA_PREV] = coord
+                w_meas = (coord - theta_prev) / tspd
+                theta_prev = coord
                 if enabled and mode != MODE_TORQUE:
-                    lim = pr[P_ILIM] * (pr[P_KT] if not force_act else 1.0)
-                    ew = st[S_W_REF] - st[S_W_MEAS]
-                    tref, st[S_INT_W], sat = pi_step(ew, st[S_INT_W], pr[P_KPW], pr[P_GI_W], 0.0)
-                    tref += st[S_TFF]
+                    ew = wref - w_meas
+                    tref, int_w, _sat = pi_step(ew, int_w, kpw, giw, 0.0)
+                    tref += tff
                     if lim > 0.0 and abs(tref) > lim:
                         tref = clamp(tref, lim)
                         # anti-windup at the current limit: undo the last integration when pushing further
                         if (tref > 0.0) == (ew > 0.0):
-                            st[S_INT_W] -= ew * pr[P_GI_W]
+                            int_w -= ew * giw
                         ilim_any = 1.0
-                    st[S_IQ_REF] = tref if force_act else tref / pr[P_KT]
+                    iq_ref = tref if force_act else tref / kt
                 elif enabled and mode == MODE_TORQUE:
-                    lim = pr[P_ILIM] * (pr[P_KT] if not force_act else 1.0)
                     tref = clamp(cmd_aux[j], lim)
                     if tref != cmd_aux[j]:
                         ilim_any = 1.0
-                    st[S_IQ_REF] = tref if force_act else tref / pr[P_KT]
-                    st[S_INT_W] = 0.0
+                    iq_ref = tref if force_act else tref / kt
+                    int_w = 0.0
                 else:
-                    st[S_IQ_REF] = 0.0
-                    st[S_INT_W] = 0.0
+                    iq_ref = 0.0
+                    int_w = 0.0
             wm = motor_speed(pr, st, mvec)
             if force_act:
                 # force actuator: first-order force loop
                 if enabled:
-                    lag = pr[P_FORCE_LAG]
-                    if lag > 0.0:
-                        st[S_F_ACT] += (st[S_IQ_REF] - st[S_F_ACT]) * (1.0 - math.exp(-hc / lag))
-                    else:
-                        st[S_F_ACT] = st[S_IQ_REF]
+                    f_act += (iq_ref - f_act) * lag_f
                 else:
-                    st[S_F_ACT] = 0.0
-                actuator = st[S_F_ACT]
+                    f_act = 0.0
+                actuator = f_act
             else:
                 # ---- current loop (one-period computation delay)
-                st[S_UD_APP] = st[S_UD_NEXT]
-                st[S_UQ_APP] = st[S_UQ_NEXT]
+                ud_app = ud_next
+                uq_app = uq_next
                 if enabled:
-                    we = pr[P_PP] * wm
+                    we = pp * wm
                     ffd = 0.0
                     ffq = 0.0
-                    if pr[P_DECOUP] != 0.0:
-                        ffd = -we * pr[P_LQ] * st[S_IQ]
-                        ffq = we * (pr[P_LD] * st[S_ID] + pr[P_PSI])
-                    vmax = pr[P_VMAX]
-                    ud, intd, _s1 = pi_step(-st[S_ID], st[S_INT_D], pr[P_KPI], pr[P_GI_I], 0.0)
-                    uq, intq, _s2 = pi_step(st[S_IQ_REF] - st[S_IQ], st[S_INT_Q], pr[P_KPI], pr[P_GI_I], 0.0)
+                    if decoup:
+                        ffd = -we * lq * i_q
+                        ffq = we * (ld * i_d + psi)
+                    ud, intd, _s1 = pi_step(-i_d, int_d, kpi, gii, 0.0)
+                    uq, intq, _s2 = pi_step(iq_ref - i_q, int_q, kpi, gii, 0.0)
                     ud += ffd
                     uq += ffq
                     mag2 = ud * ud + uq * uq
-                    if mag2 > pr[P_VMAX2]:
+                    if mag2 > vmax2:
+                        # voltage limit; anti-windup: hold the integrators while saturated
                         sc = vmax / math.sqrt(mag2)
                         ud *= sc
                         uq *= sc
                         vsat_any = 1.0
-                        st[S_VSAT] = 1.0
-                        # anti-windup: hold the integrators while the voltage is saturated
+                        vsat = 1.0
                     else:
-                        st[S_VSAT] = 0.0
-                        st[S_INT_D] = intd
-                        st[S_INT_Q] = intq
-                    st[S_UD_NEXT] = ud
-                    st[S_UQ_NEXT] = uq
+                        vsat = 0.0
+                        int_d = intd
+                        int_q = intq
+                    ud_next = ud
+                    uq_next = uq
                 else:
-                    st[S_UD_NEXT] = 0.0
-                    st[S_UQ_NEXT] = 0.0
-                    st[S_INT_D] = 0.0
-                    st[S_INT_Q] = 0.0
+                    ud_next = 0.0
+                    uq_next = 0.0
+                    int_d = 0.0
+                    int_q = 0.0
                 if enabled:
-                    id0 = st[S_ID]
-                    iq0 = st[S_IQ]
-                    if pr[P_SVPWM] != 0.0:
-                        th_e = pr[P_PP] * motor_angle(pr, st, mvec)
-                        torque = _electrical_svpwm(pr, st, st[S_UD_APP], st[S_UQ_APP], wm, th_e, hc)
+                    id0 = i_d
+                    iq0 = i_q
+                    if svpwm:
+                        st[S_ID] = i_d
+                        st[S_IQ] = i_q
+                        th_e = pp * motor_angle(pr, st, mvec)
+                        torque = _electrical_svpwm(pr, st, ud_app, uq_app, wm, th_e, hc)
+                        i_d = st[S_ID]
+                        i_q = st[S_IQ]
                     else:
-                        torque = _electrical_averaged(pr, st, st[S_UD_APP], st[S_UQ_APP], wm, hc)
-                    energy += 1.5 * (st[S_UD_APP] * 0.5 * (id0 + st[S_ID]) + st[S_UQ_APP] * 0.5 * (iq0 + st[S_IQ])) * hc
+                        i_d, i_q, torque = _electrical_averaged(pp, ld, lq, psi, inv_rs, exp_d, exp_q, i_d, i_q,
+                                                                ud_app, uq_app, wm)
+                    energy += 1.5 * (ud_app * 0.5 * (id0 + i_d) + uq_app * 0.5 * (iq0 + i_q)) * hc
                 else:
-                    st[S_ID] = 0.0
-                    st[S_IQ] = 0.0
+                    i_d = 0.0
+                    i_q = 0.0
                     torque = 0.0
-                if pr[P_COG_A] != 0.0:
-                    torque += pr[P_COG_A] * math.sin(pr[P_COG_N] * motor_angle(pr, st, mvec) + pr[P_COG_PH])
+                if cog_a != 0.0:
+                    torque += cog_a * math.sin(cog_n * motor_angle(pr, st, mvec) + cog_ph)
                 actuator = torque
-            st[S_TORQUE] = actuator
+            torque_act = actuator
             for _ in range(nsub):
                 _mech_step(pr, st, zview, wad, wbd, wk, wc, gtab, avec, ztmp, u, actuator)
-            st[S_T] += hc
+            t_now += hc
             # feedback ring buffer (motor angle, table position) at the current-loop rate
-            ri = (int(st[S_RING]) + 1) % RING_SIZE
-            st[S_RING] = ri
+            ri += 1
+            if ri >= RING_SIZE:
+                ri = 0
             ring[ri, 0] = motor_angle(pr, st, mvec)
-            ring[ri, 1] = st[Z0 + tb]
+            ring[ri, 1] = zview[tb]
         out[j, O_VSAT] = vsat_any
         out[j, O_ILIM] = ilim_any
         st[S_ILIM] = ilim_any
         out[j, O_POWER] = energy / (hc * npos)
         out[j, O_RIPPLE] = math.sqrt(st[S_RIPPLE] / (hc * npos))
         st[S_RIPPLE] = 0.0
-
+    # write the local states back
+    st[S_ID], st[S_IQ] = i_d, i_q
+    st[S_UD_APP], st[S_UQ_APP], st[S_UD_NEXT], st[S_UQ_NEXT] = ud_app, uq_app, ud_next, uq_next
+    st[S_INT_D], st[S_INT_Q], st[S_INT_W] = int_d, int_q, int_w
+    st[S_IQ_REF], st[S_F_ACT], st[S_TORQUE] = iq_ref, f_act, torque_act
+    st[S_THETA_PREV], st[S_W_MEAS] = theta_prev, w_meas
+    st[S_VSAT] = vsat
+    st[S_T] = t_now
+    st[S_RING] = ri
     return ncyc
-
-
