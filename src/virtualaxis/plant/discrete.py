@@ -67,6 +67,22 @@ def _continuous(mass, stiff, damp, g, table, stuck):
     return a, b
 
 
+def zoh_batch(a_list: list, b_list: list, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-order-hold discretisation of many systems of one size in one batched matrix exponential, with
+    BLAS limited to one thread (multithreaded BLAS on tiny matrices is slower by orders of magnitude)."""
+    from scipy.linalg import expm
+    from threadpoolctl import threadpool_limits
+
+    s, m = a_list[0].shape[0], b_list[0].shape[1]
+    aug = np.zeros((len(a_list), s + m, s + m))
+    for i, (a, b) in enumerate(zip(a_list, b_list, strict=True)):
+        aug[i, :s, :s] = a
+        aug[i, :s, s:] = b
+    with threadpool_limits(1):
+        e = expm(aug * h)
+    return e[:, :s, :s].copy(), e[:, :s, s:].copy()
+
+
 def zoh(a: np.ndarray, b: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Zero-order-hold discretisation via the augmented matrix exponential."""
     from scipy.linalg import expm
@@ -136,6 +152,7 @@ def _discretise(cfg: AxisConfig, step_s: float, npts: int, support_scale: float)
     bd = np.zeros((len(grid), N_MODES, s, N_INPUTS))
     krow = np.zeros((len(grid), 2, n))
     crow = np.zeros((len(grid), 2, n))
+    conts = []  # continuous (A, B) per grid point and mode, exponentiated in one batch below
     for gi, x in enumerate(grid):
         mech = build_mechanics(cfg, x, support_scale=support_scale)
         mass = mech.mass_matrix()
@@ -147,8 +164,10 @@ def _discretise(cfg: AxisConfig, step_s: float, npts: int, support_scale: float)
             krow[gi, cg] = k[t]
             crow[gi, cg] = c[t]
             for stuck in (0, 1):
-                a, b = _continuous(mass, k, c, g, t, bool(stuck))
-                ad[gi, cg + 2 * stuck], bd[gi, cg + 2 * stuck] = zoh(a, b, step_s)
+                conts.append((gi, cg + 2 * stuck, *_continuous(mass, k, c, g, t, bool(stuck))))
+    ads, bds = zoh_batch([a for *_, a, _b in conts], [b for *_, b in conts], step_s)
+    for (gi, mode, _a, _b), a_d, b_d in zip(conts, ads, bds, strict=True):
+        ad[gi, mode], bd[gi, mode] = a_d, b_d
     contact_vec = mech0.incidence(mech0.contact) if mech0.contact is not None else np.zeros(n)
     kc = mech0.contact.stiffness if mech0.contact is not None else 0.0
     return DiscreteMechanics(
