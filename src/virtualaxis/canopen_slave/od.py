@@ -1,0 +1,190 @@
+"""The object dictionary the slave serves, loaded from the EDS with the `canopen` package's importer.
+
+`canopen` parses the EDS (sections, $NODEID, data types, defaults, integer limits); this module turns every
+sub-entry into a mutable :class:`Entry` holding the live value, its struct packer, size and limits, so that
+the SDO server and the PDO engine never go back to the `canopen` objects in the hot path.
+"""
+
+from __future__ import annotations
+
+import struct
+from configparser import RawConfigParser
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
+from canopen.objectdictionary import datatypes as dt
+
+from virtualaxis.config.errors import InputError
+
+# struct formats of the fixed-size types we map into PDOs or serve by SDO
+_STRUCT_FORMATS: dict[int, str] = {
+    dt.BOOLEAN: "?", dt.INTEGER8: "b", dt.INTEGER16: "h", dt.INTEGER32: "i", dt.INTEGER64: "q",
+    dt.UNSIGNED8: "B", dt.UNSIGNED16: "H", dt.UNSIGNED32: "I", dt.UNSIGNED64: "Q",
+    dt.REAL32: "f", dt.REAL64: "d",
+}
+_TYPE_RANGES: dict[int, tuple[int, int]] = {
+    dt.INTEGER8: (-(1 << 7), (1 << 7) - 1), dt.INTEGER16: (-(1 << 15), (1 << 15) - 1),
+    dt.INTEGER32: (-(1 << 31), (1 << 31) - 1), dt.INTEGER64: (-(1 << 63), (1 << 63) - 1),
+    dt.UNSIGNED8: (0, 0xFF), dt.UNSIGNED16: (0, 0xFFFF), dt.UNSIGNED32: (0, 0xFFFFFFFF),
+    dt.UNSIGNED64: (0, (1 << 64) - 1), dt.BOOLEAN: (0, 1),
+}
+STRING_TYPES = (dt.VISIBLE_STRING, dt.OCTET_STRING, dt.UNICODE_STRING, dt.DOMAIN)
+
+
+@dataclass(eq=False)
+class Entry:
+    """One (index, sub-index) of the dictionary with its live value."""
+
+    index: int
+    sub: int
+    name: str
+    data_type: int
+    access: str                  # "ro", "wo", "rw", "rwr", "rww", "const"
+    pdo_mappable: bool
+    default: object
+    low: float | int | None
+    high: float | int | None
+    fmt: str | None              # struct format character (fixed-size types) or None (strings, domain)
+    size: int | None             # bytes (fixed-size types) or None
+    value: object = None
+    #: TPDOs that map this entry (filled by the PDO engine; a change marks them for event transmission)
+    tpdos: list = field(default_factory=list)
+
+    @property
+    def readable(self) -> bool:
+        return self.access != "wo"
+
+    @property
+    def writable(self) -> bool:
+        return self.access in ("rw", "wo", "rwr", "rww")
+
+    def encode(self, value) -> bytes:
+        """Value -> bytes as sent on the bus (little endian)."""
+        if self.fmt is not None:
+            if self.fmt in "fd":
+                return struct.pack("<" + self.fmt, float(value))
+            return struct.pack("<" + self.fmt, int(value))
+        if isinstance(value, (bytes, bytearray)):
+            return bytes(value)
+        if self.data_type == dt.UNICODE_STRING:
+            return str(value).encode("utf_16_le")
+        return str(value).encode("ascii", errors="replace")
+
+    def decode(self, data: bytes):
+        """Bytes -> value (the caller has checked the length of fixed-size types)."""
+        if self.fmt is not None:
+            return struct.unpack("<" + self.fmt, data)[0]
+        if self.data_type == dt.VISIBLE_STRING:
+            return data.decode("ascii", errors="replace").rstrip("\x00")
+        if self.data_type == dt.UNICODE_STRING:
+            return data.decode("utf_16_le", errors="replace").rstrip("\x00")
+        return bytes(data)
+
+
+@dataclass(eq=False)
+class ObjectInfo:
+    """One index: a VAR (only sub 0), an ARRAY or a RECORD."""
+
+    index: int
+    name: str
+    kind: str                    # "VAR", "ARRAY", "RECORD"
+    subs: dict[int, Entry]
+
+
+def _parse_float_limits(eds_path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
+    """canopen only parses integer limits; REAL32/REAL64 LowLimit/HighLimit are read here."""
+    parser = RawConfigParser(inline_comment_prefixes=(";",))
+    parser.optionxform = str
+    parser.read(eds_path, encoding="utf-8")
+    limits: dict[tuple[int, int], tuple[float | None, float | None]] = {}
+    for section in parser.sections():
+        name = section.lower()
+        if len(name) == 4:
+            key = (int(name, 16), 0) if all(c in "0123456789abcdef" for c in name) else None
+        elif len(name) > 7 and name[4:7] == "sub":
+            try:
+                key = (int(name[:4], 16), int(name[7:], 16))
+            except ValueError:
+                key = None
+        else:
+            key = None
+        if key is None or not parser.has_option(section, "DataType"):
+            continue
+        if int(parser.get(section, "DataType"), 0) not in (dt.REAL32, dt.REAL64):
+            continue
+        low = parser.get(section, "LowLimit", fallback=None)
+        high = parser.get(section, "HighLimit", fallback=None)
+        try:
+            limits[key] = (float(low) if low not in (None, "") else None,
+                           float(high) if high not in (None, "") else None)
+        except ValueError as exc:
+            raise InputError(str(eds_path), f"[{section}] bad LowLimit/HighLimit: {exc}") from None
+    return limits
+
+
+def _entry_from(var: ODVariable, float_limits) -> Entry:
+    fmt = _STRUCT_FORMATS.get(var.data_type)
+    default = var.default
+    if default is None:
+        default = "" if var.data_type in (dt.VISIBLE_STRING, dt.UNICODE_STRING) else (
+            b"" if fmt is None else 0)
+    low, high = var.min, var.max
+    if (var.index, var.subindex) in float_limits:
+        low, high = float_limits[(var.index, var.subindex)]
+    return Entry(index=var.index, sub=var.subindex, name=var.name, data_type=var.data_type,
+                 access=(var.access_type or "rw").lower(), pdo_mappable=bool(var.pdo_mappable),
+                 default=default, low=low, high=high, fmt=fmt,
+                 size=struct.calcsize("<" + fmt) if fmt else None, value=default)
+
+
+class ObjectStore:
+    """All entries of the EDS, keyed by (index, sub) and by index."""
+
+    def __init__(self, eds_path: str | Path, node_id: int):
+        self.eds_path = Path(eds_path)
+        if not self.eds_path.is_file():
+            raise InputError(str(self.eds_path), "EDS file not found")
+        try:
+            od = import_od(str(self.eds_path), node_id)
+            float_limits = _parse_float_limits(self.eds_path)
+        except InputError:
+            raise
+        except Exception as exc:  # configparser / canopen errors -> one clear line
+            raise InputError(str(self.eds_path), f"cannot load EDS: {exc}") from None
+        self.objects: dict[int, ObjectInfo] = {}
+        self.entries: dict[tuple[int, int], Entry] = {}
+        for index in sorted(od.indices if hasattr(od, "indices") else od):
+            obj = od[index]
+            if isinstance(obj, ODVariable):
+                kind, variables = "VAR", [obj]
+            else:
+                kind = "ARRAY" if isinstance(obj, ODArray) else "RECORD"
+                assert isinstance(obj, (ODArray, ODRecord))
+                variables = [obj[s] for s in sorted(obj.subindices)]
+            subs: dict[int, Entry] = {}
+            for var in variables:
+                entry = _entry_from(var, float_limits)
+                subs[entry.sub] = entry
+                self.entries[(entry.index, entry.sub)] = entry
+            self.objects[index] = ObjectInfo(index=index, name=obj.name, kind=kind, subs=subs)
+
+    def __contains__(self, key: tuple[int, int]) -> bool:
+        return key in self.entries
+
+    def entry(self, index: int, sub: int = 0) -> Entry:
+        return self.entries[(index, sub)]
+
+    def value(self, index: int, sub: int = 0):
+        return self.entries[(index, sub)].value
+
+    def reset(self, lo: int, hi: int, keep: frozenset[int] = frozenset()) -> None:
+        """Set every entry with lo <= index <= hi (except `keep`) back to its EDS default."""
+        for (index, _sub), entry in self.entries.items():
+            if lo <= index <= hi and index not in keep:
+                entry.value = entry.default
+
+
+def type_range(data_type: int) -> tuple[int, int] | None:
+    """(min, max) representable by an integer data type, None for other types."""
+    return _TYPE_RANGES.get(data_type)

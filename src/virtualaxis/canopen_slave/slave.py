@@ -1,0 +1,552 @@
+"""CanopenSlave: the CiA 301 slave stack (one node) around an EDS-loaded object dictionary.
+
+Threading: python-can delivers frames on its Notifier thread, :meth:`CanopenSlave.receive` only enqueues.
+Everything else (SDO answers, PDOs, timers, application hooks) runs in the caller's thread inside
+:meth:`poll` / :meth:`on_sync` / :meth:`emcy`. A frame never raises out of ``poll``: malformed frames are
+counted (``counters``, OD 0x2100) and answered as a drive answers them; an unexpected exception while
+handling a frame is counted as ``internal_errors``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+import can
+
+from virtualaxis.canopen_slave import errors as ab
+from virtualaxis.canopen_slave.counters import COUNTERS_2100, abort_key, new_counters
+from virtualaxis.canopen_slave.emcy import EmcyProducer
+from virtualaxis.canopen_slave.errors import ABORT_CODES, SdoAbort
+from virtualaxis.canopen_slave.heartbeat import (
+    HEARTBEAT_BASE,
+    HeartbeatConsumer,
+    HeartbeatProducer,
+    NodeGuarding,
+)
+from virtualaxis.canopen_slave.nmt import (
+    COMMAND_STATES,
+    NMT_COB,
+    RESET_COMMUNICATION,
+    RESET_NODE,
+    NmtState,
+    parse_command,
+)
+from virtualaxis.canopen_slave.od import Entry, ObjectStore
+from virtualaxis.canopen_slave.pdo import PdoEngine
+from virtualaxis.canopen_slave.sdo_server import SdoServer
+from virtualaxis.canopen_slave.store import ParameterStore
+from virtualaxis.canopen_slave.sync import SyncConsumer
+
+#: receive queue limit; frames beyond it are dropped and counted as ``rx_overruns``
+RX_QUEUE_LIMIT = 4096
+#: objects kept through NMT reset communication (status, not parameters)
+_STATUS_OBJECTS = frozenset({0x1001, 0x1003})
+_NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchronous RPDO data
+DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
+
+
+class DeviceApplication(Protocol):
+    """The device application (the CiA 402 drive). Every hook is optional."""
+
+    def validate_write(self, index: int, sub: int, value: Any) -> None: ...
+    def after_write(self, index: int, sub: int, value: Any) -> None: ...
+    def before_read(self, index: int, sub: int) -> None: ...
+    def on_nmt_state(self, state: NmtState) -> None: ...
+    def on_communication_error(self, kind: str, detail: int) -> None: ...
+    def on_reset(self, application: bool) -> None: ...
+
+
+class _SlaveListener(can.Listener):
+    def __init__(self, slave: CanopenSlave):
+        self._slave = slave
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self._slave.receive(msg)
+
+    def on_error(self, exc: Exception) -> None:  # python-can calls this on a receive error; keep running
+        self._slave.counters["internal_errors"] += 1
+
+
+class CanopenSlave:
+    """One CANopen node served from an EDS. See docs/canopen-slave-api.md."""
+
+    def __init__(self, bus: can.BusABC, node_id: int, eds_path: str | Path, *,
+                 app: DeviceApplication | None = None, store_path: str | Path | None = None):
+        if not isinstance(node_id, int) or not 1 <= node_id <= 127:
+            raise ValueError(f"node id must be 1..127 (got {node_id!r})")
+        self.bus = bus
+        self.node_id = node_id
+        self.app = app
+        self.counters: dict[str, int] = new_counters()
+        self.od = ObjectStore(eds_path, node_id)
+        self.nmt_state = NmtState.INITIALISING
+        self._queue: deque[can.Message] = deque()
+        self._now = 0.0
+        self._sync_counters: list[int] = []
+        self._due_sync_rpdos: deque[list] = deque(maxlen=16)
+        self._applied_ahead = 0
+        self._handlers: dict[int, Callable[[can.Message, float], None]] = {}
+        self._in_error_reaction = False
+        self._hook_validate = getattr(app, "validate_write", None)
+        self._hook_after = getattr(app, "after_write", None)
+        self._hook_before_read = getattr(app, "before_read", None)
+        self._hook_nmt = getattr(app, "on_nmt_state", None)
+        self._hook_comm_error = getattr(app, "on_communication_error", None)
+        self._hook_reset = getattr(app, "on_reset", None)
+        self.store = ParameterStore(store_path, self.od)
+        self._power_on_values(0x0000, 0xFFFF)
+        self.sdo = SdoServer(self)
+        self.sync = SyncConsumer(self)
+        self.emcy_producer = EmcyProducer(self)
+        self.heartbeat = HeartbeatProducer(self)
+        self.heartbeat_consumer = HeartbeatConsumer(self)
+        self.guarding = NodeGuarding(self)
+        self.pdo = PdoEngine(self)     # last: builds the dispatch table
+        self.rebuild_dispatch()
+
+    # ================================================================== public API
+    def receive(self, msg: can.Message) -> None:
+        """Thread-safe: enqueue one received frame (called from python-can's Notifier thread)."""
+        if len(self._queue) >= RX_QUEUE_LIMIT:
+            self.counters["rx_overruns"] += 1
+            return
+        self._queue.append(msg)
+
+    def listener(self) -> can.Listener:
+        """A python-can Listener feeding :meth:`receive` (add it to a ``can.Notifier``)."""
+        return _SlaveListener(self)
+
+    def boot(self, now_s: float) -> None:
+        """Send the boot-up frame and enter PRE-OPERATIONAL."""
+        self._now = now_s
+        self.send(HEARTBEAT_BASE + self.node_id, b"\x00")
+        self.heartbeat.restart(now_s)
+        self._set_state(NmtState.PRE_OPERATIONAL)
+
+    def poll(self, now_s: float) -> list[int]:
+        """Handle queued frames and timers; returns the SYNC counters received since the last poll."""
+        self._now = now_s
+        queue = self._queue
+        counters = self.counters
+        if self.nmt_state == NmtState.INITIALISING:      # not booted yet: a node hears nothing
+            counters["frames_received"] += len(queue)
+            queue.clear()
+            return []
+        handlers = self._handlers
+        while queue:
+            msg = queue.popleft()
+            counters["frames_received"] += 1
+            if msg.is_error_frame or msg.is_extended_id:
+                continue
+            handler = handlers.get(msg.arbitration_id)
+            if handler is None:
+                continue
+            try:
+                handler(msg, now_s)
+            except Exception:  # noqa: BLE001 - the drive cycle must survive any frame
+                counters["internal_errors"] += 1
+        try:
+            self.heartbeat.poll(now_s)
+            if self.heartbeat_consumer.monitors:
+                self.heartbeat_consumer.poll(now_s)
+            self.guarding.poll(now_s)
+            if self.emcy_producer.pending:
+                self.emcy_producer.poll(now_s)
+            if self.sdo.state:
+                self.sdo.check_timeout(now_s)
+            if self.nmt_state == NmtState.OPERATIONAL:
+                self.pdo.poll(now_s)
+                if self.sync.timeout_s and self.sync.check_timeout(now_s):
+                    counters["sync_timeouts"] += 1
+                    self.emcy(0x8100, 0x10)
+                    self.communication_error("sync_timeout", 0)
+        except Exception:  # noqa: BLE001
+            counters["internal_errors"] += 1
+        return self._take_sync_counters()
+
+    def apply_sync_rpdos(self) -> None:
+        """Optional, before the application cycle of the oldest pending SYNC: apply the synchronous RPDOs
+        received before that SYNC now (``on_sync`` for that SYNC then only transmits)."""
+        due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+        self._applied_ahead += 1
+        if due and self.nmt_state == NmtState.OPERATIONAL:
+            try:
+                for rpdo, data in due:
+                    self.pdo.apply(rpdo, data)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
+
+    def on_sync(self, counter: int, now_s: float) -> None:
+        """Apply the synchronous RPDOs received before this SYNC, then send the TPDOs due at it."""
+        self._now = now_s
+        if self._applied_ahead:
+            self._applied_ahead -= 1
+            due = None
+        else:
+            due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+        if self.nmt_state != NmtState.OPERATIONAL:
+            return
+        try:
+            if due:
+                for rpdo, data in due:
+                    self.pdo.apply(rpdo, data)
+            if self.sync.window_open(now_s):
+                self.pdo.on_sync(counter, self.sync.counter_enabled, now_s)
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
+
+    def read(self, index: int, sub: int = 0):
+        """Internal read, no access checks (KeyError for an object not in the EDS)."""
+        if index == DIAGNOSTICS or index == ABORT_COUNTERS:
+            self._refresh_counters()
+        return self.od.entries[(index, sub)].value
+
+    def write(self, index: int, sub: int, value) -> None:
+        """Internal write, no access or limit checks; a changed value marks event-driven TPDOs."""
+        entry = self.od.entries[(index, sub)]
+        if entry.value != value:
+            entry.value = value
+            for tpdo in entry.tpdos:
+                tpdo.dirty = True
+            if index < 0x2000:
+                self._comm_after(index, sub)
+
+    def entry(self, index: int, sub: int = 0) -> Entry:
+        """The live entry (for a hot path: pass it to :meth:`write_entry` instead of looking it up)."""
+        return self.od.entries[(index, sub)]
+
+    def write_entry(self, entry: Entry, value) -> None:
+        """Like :meth:`write` for an application object, with the entry already looked up."""
+        if entry.value != value:
+            entry.value = value
+            for tpdo in entry.tpdos:
+                tpdo.dirty = True
+
+    def emcy(self, code: int, register_bits: int = 0, data: bytes = b"") -> None:
+        """Record and send an emergency: 0x1001 |= generic bit + register_bits, push 0x1003, 0x603F = code."""
+        entries = self.od.entries
+        register = entries[(0x1001, 0)]
+        self.write(0x1001, 0, (register.value | register_bits | (0x01 if code else 0)) & 0xFF)
+        if code:
+            self.emcy_producer.push_history(code)
+            if (0x603F, 0) in entries:
+                self.write(0x603F, 0, code & 0xFFFF)
+        if self.nmt_state in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            self.emcy_producer.produce(code, register.value, data, self._now)
+
+    def emcy_reset(self) -> None:
+        """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F)."""
+        self.write(0x1001, 0, 0)
+        if (0x603F, 0) in self.od.entries:
+            self.write(0x603F, 0, 0)
+        if self.nmt_state in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            self.emcy_producer.produce(0x0000, 0, b"", self._now)
+
+    # ================================================================== services' helpers
+    def send(self, cob_id: int, data: bytes | bytearray) -> None:
+        try:
+            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        except (can.CanError, OSError, ValueError):
+            self.counters["tx_errors"] += 1
+
+    def communication_error(self, kind: str, detail: int) -> None:
+        if self._hook_comm_error is not None:
+            try:
+                self._hook_comm_error(kind, detail)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
+
+    def error_behaviour(self) -> None:
+        """0x1029:1 reaction to a communication error (heartbeat / life guarding lost)."""
+        mode = self.od.value(0x1029, 1) if (0x1029, 1) in self.od.entries else 0
+        if mode == 0 and self.nmt_state == NmtState.OPERATIONAL:
+            self._set_state(NmtState.PRE_OPERATIONAL)
+        elif mode == 2:
+            self._set_state(NmtState.STOPPED)
+
+    def rebuild_dispatch(self) -> None:
+        """COB-ID -> handler table; rebuilt whenever a COB-ID or a monitored node changes."""
+        if not hasattr(self, "pdo"):
+            return
+        handlers: dict[int, Callable[[can.Message, float], None]] = {}
+        consumer = self.heartbeat_consumer
+        for cob in consumer.monitors:
+            handlers[cob] = self._on_heartbeat
+        for cob, rpdo in self.pdo.rpdo_by_cob.items():
+            handlers[cob] = _rpdo_handler(self, rpdo)
+        if not self.od.value(0x1005) & 0x80000000:
+            handlers[self.sync.cob_id] = self._on_sync_frame
+        handlers[self.sdo.rx_cob] = self._on_sdo
+        handlers[HEARTBEAT_BASE + self.node_id] = self._on_guard
+        handlers[NMT_COB] = self._on_nmt
+        self._handlers = handlers
+
+    def entry_size(self, index: int, sub: int) -> int | None:
+        entry = self.od.entries.get((index, sub))
+        return entry.size if entry is not None else None
+
+    # ================================================================== SDO object access
+    def _lookup(self, index: int, sub: int) -> Entry:
+        obj = self.od.objects.get(index)
+        if obj is None:
+            raise SdoAbort(ab.NO_OBJECT)
+        entry = obj.subs.get(sub)
+        if entry is None:
+            raise SdoAbort(ab.NO_SUBINDEX)
+        if index == 0x1003 and sub > obj.subs[0].value:
+            raise SdoAbort(ab.NO_DATA, "no error recorded at this sub-index")
+        return entry
+
+    def sdo_check_writable(self, index: int, sub: int) -> Entry:
+        entry = self._lookup(index, sub)
+        if not entry.writable:
+            raise SdoAbort(ab.WRITE_READ_ONLY)
+        return entry
+
+    def sdo_check_length(self, index: int, sub: int, size: int) -> None:
+        entry = self._lookup(index, sub)
+        if entry.size is not None:
+            if size > entry.size:
+                raise SdoAbort(ab.LENGTH_TOO_HIGH)
+            if size < entry.size:
+                raise SdoAbort(ab.LENGTH_TOO_LOW)
+
+    def sdo_upload(self, index: int, sub: int) -> bytes:
+        entry = self._lookup(index, sub)
+        if not entry.readable:
+            raise SdoAbort(ab.READ_WRITE_ONLY)
+        if index == DIAGNOSTICS or index == ABORT_COUNTERS:
+            self._refresh_counters()
+        if self._hook_before_read is not None:
+            self._call_app(self._hook_before_read, index, sub)
+        return entry.encode(entry.value)
+
+    def sdo_download(self, index: int, sub: int, data: bytes) -> None:
+        entry = self.sdo_check_writable(index, sub)
+        self.sdo_check_length(index, sub, len(data))
+        value = entry.decode(data)
+        if index == 0x1010 or index == 0x1011:
+            self.store.command(index, sub, value)
+            return
+        self._check_limits(entry, value)
+        if index == RESET_COUNTERS:
+            if value != 1:
+                raise SdoAbort(ab.INVALID_VALUE, "write 1 to reset the counters")
+            for key in self.counters:
+                self.counters[key] = 0
+            return
+        if index < 0x2000:
+            self._comm_validate(index, sub, value)
+        if self._hook_validate is not None:
+            self._call_app(self._hook_validate, index, sub, value)
+        self.write(index, sub, value) if index < 0x2000 else self.write_entry(entry, value)
+        if self._hook_after is not None:
+            self._call_app(self._hook_after, index, sub, entry.value)
+
+    def _call_app(self, hook, *args) -> None:
+        try:
+            hook(*args)
+        except SdoAbort:
+            raise
+        except Exception as exc:  # noqa: BLE001 - an application bug must not stop the drive
+            self.counters["internal_errors"] += 1
+            raise SdoAbort(ab.GENERAL_ERROR, str(exc)) from None
+
+    @staticmethod
+    def _check_limits(entry: Entry, value) -> None:
+        if isinstance(value, float) and not math.isfinite(value):
+            raise SdoAbort(ab.INVALID_VALUE, "not a finite number")
+        if entry.high is not None and value > entry.high:
+            raise SdoAbort(ab.VALUE_TOO_HIGH)
+        if entry.low is not None and value < entry.low:
+            raise SdoAbort(ab.VALUE_TOO_LOW)
+
+    def store_from_pdo(self, entry: Entry, value) -> None:
+        """An RPDO value: limits and the application's validate_write, then stored and after_write."""
+        try:
+            self._check_limits(entry, value)
+            if self._hook_validate is not None:
+                self._hook_validate(entry.index, entry.sub, value)
+        except SdoAbort:
+            self.counters["rpdo_values_refused"] += 1
+            return
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
+            return
+        if entry.value != value:
+            entry.value = value
+            for tpdo in entry.tpdos:
+                tpdo.dirty = True
+        if self._hook_after is not None:
+            try:
+                self._hook_after(entry.index, entry.sub, value)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
+
+    # ================================================================== communication objects
+    def _comm_validate(self, index: int, sub: int, value) -> None:
+        if self.pdo.owns(index):
+            self.pdo.validate_write(index, sub, value)
+        elif index in (0x1005, 0x1006, 0x1007, 0x1019):
+            self.sync.validate_write(index, sub, value)
+        elif index in (0x1003, 0x1014):
+            self.emcy_producer.validate_write(index, sub, value)
+        elif index == 0x1016 and sub > 0:
+            self.heartbeat_consumer.validate_write(index, sub, value)
+
+    def _comm_after(self, index: int, sub: int) -> None:
+        if not hasattr(self, "pdo"):
+            return
+        if self.pdo.owns(index):
+            self.pdo.after_write(index, sub)
+        elif index in (0x1005, 0x1006, 0x1007, 0x1019):
+            self.sync.after_write(index, sub)
+        elif index == 0x1003:
+            self.emcy_producer.after_write(index, sub)
+        elif index == 0x1016:
+            self.heartbeat_consumer.after_write(index, sub)
+        elif index == 0x1017:
+            self.heartbeat.restart(self._now)
+        elif index in (0x100C, 0x100D):
+            self.guarding.last_rtr_s = None if self.od.value(0x100C) == 0 else self.guarding.last_rtr_s
+
+    def _refresh_counters(self) -> None:
+        entries = self.od.entries
+        counters = self.counters
+        for sub, (key, _name) in enumerate(COUNTERS_2100, start=1):
+            entry = entries.get((DIAGNOSTICS, sub))
+            if entry is not None:
+                entry.value = counters[key] & 0xFFFFFFFF
+        for sub, code in enumerate(ABORT_CODES, start=1):
+            entry = entries.get((ABORT_COUNTERS, sub))
+            if entry is not None:
+                entry.value = counters[abort_key(code)] & 0xFFFFFFFF
+
+    def _power_on_values(self, lo: int, hi: int, keep: frozenset[int] = frozenset()) -> None:
+        self.od.reset(lo, hi, keep)
+        self.store.apply(lo, hi)
+        if not self.store.available:   # 0x1010/0x1011 read 0: "does not save / restore on command"
+            for index in (0x1010, 0x1011):
+                obj = self.od.objects.get(index)
+                if obj is not None:
+                    for sub, entry in obj.subs.items():
+                        if sub:
+                            entry.value = 0
+
+    # ================================================================== NMT
+    def _set_state(self, state: NmtState) -> None:
+        if state == self.nmt_state:
+            return
+        self.nmt_state = state
+        if state == NmtState.OPERATIONAL:
+            self.pdo.on_operational()
+            self.sync.last_sync_s = None        # SYNC monitoring restarts with the next SYNC
+            self.sync.timed_out = False
+        elif state == NmtState.STOPPED:
+            self.sdo.reset()
+        self._due_sync_rpdos.clear()
+        self._applied_ahead = 0
+        if self._hook_nmt is not None:
+            try:
+                self._hook_nmt(state)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
+
+    def _reset(self, application: bool) -> None:
+        self.nmt_state = NmtState.INITIALISING
+        if application:
+            self._power_on_values(0x0000, 0xFFFF)
+        else:
+            self._power_on_values(0x1000, 0x1FFF, keep=_STATUS_OBJECTS)
+        self.sdo.reset()
+        self.emcy_producer.reset()
+        self.guarding.reset()
+        self.sync.configure()
+        self.heartbeat_consumer.configure()
+        self._sync_counters = []
+        self._due_sync_rpdos.clear()
+        self._applied_ahead = 0
+        self.pdo.configure_all()
+        if self._hook_reset is not None:
+            try:
+                self._hook_reset(application)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
+        self.boot(self._now)
+
+    # ================================================================== frame handlers
+    def _on_nmt(self, msg: can.Message, _now_s: float) -> None:
+        kind, command = parse_command(msg.data, self.node_id)
+        if kind == "malformed":
+            self.counters["malformed_frames"] += 1
+        elif kind == "other_node":
+            self.counters["nmt_other_node_ignored"] += 1
+        elif command == RESET_NODE:
+            self._reset(application=True)
+        elif command == RESET_COMMUNICATION:
+            self._reset(application=False)
+        elif command in COMMAND_STATES:
+            self._set_state(COMMAND_STATES[command])
+        else:
+            self.counters["nmt_invalid_command"] += 1
+
+    def _on_sdo(self, msg: can.Message, now_s: float) -> None:
+        if msg.is_remote_frame:
+            self.counters["malformed_frames"] += 1
+            return
+        if self.nmt_state == NmtState.STOPPED:
+            self.counters["sdo_ignored_stopped"] += 1
+            return
+        self.sdo.on_frame(bytes(msg.data), now_s)
+
+    def _on_guard(self, msg: can.Message, now_s: float) -> None:
+        if msg.is_remote_frame:
+            self.guarding.on_rtr(now_s)
+        else:
+            self.counters["malformed_frames"] += 1   # a data frame on our own error-control COB-ID
+
+    def _on_heartbeat(self, msg: can.Message, now_s: float) -> None:
+        self.heartbeat_consumer.on_heartbeat(msg.arbitration_id, msg.data, now_s)
+
+    def _on_sync_frame(self, msg: can.Message, now_s: float) -> None:
+        counter = self.sync.check_frame(msg.data)
+        if counter is None or msg.is_remote_frame:
+            self.counters["sync_length_errors"] += 1
+            self.counters["malformed_frames"] += 1
+            self.emcy(0x8240, 0x10, bytes((len(msg.data),)))
+            return
+        self.counters["sync_received"] += 1
+        self.sync.last_sync_s = now_s
+        self.sync.timed_out = False
+        self._sync_counters.append(counter)
+        if self.nmt_state == NmtState.OPERATIONAL and self.pdo.sync_rpdos:
+            self._due_sync_rpdos.append(self.pdo.latch_sync_rpdos())
+        else:
+            self._due_sync_rpdos.append(_NOTHING_DUE)
+
+    def _take_sync_counters(self) -> list[int]:
+        out = self._sync_counters
+        if out:
+            self._sync_counters = []
+        else:
+            out = []
+        return out
+
+
+def _rpdo_handler(slave: CanopenSlave, rpdo) -> Callable[[can.Message, float], None]:
+    pdo = slave.pdo
+
+    def handle(msg: can.Message, now_s: float) -> None:
+        if slave.nmt_state != NmtState.OPERATIONAL:
+            slave.counters["pdo_ignored_nmt_state"] += 1
+            return
+        if msg.is_remote_frame:
+            slave.counters["malformed_frames"] += 1
+            return
+        pdo.on_rpdo(rpdo, bytes(msg.data), now_s)
+
+    return handle

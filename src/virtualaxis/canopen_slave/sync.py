@@ -1,0 +1,63 @@
+"""SYNC consumer: COB-ID 0x1005, communication cycle period 0x1006 (SYNC timeout = 1.5 periods -> EMCY
+0x8100), synchronous window 0x1007 and the SYNC counter (0x1019)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from virtualaxis.canopen_slave import errors as ab
+from virtualaxis.canopen_slave.errors import SdoAbort
+
+if TYPE_CHECKING:
+    from virtualaxis.canopen_slave.slave import CanopenSlave
+
+SYNC_GENERATE = 0x40000000
+SYNC_EXTENDED = 0x20000000
+
+
+class SyncConsumer:
+    def __init__(self, slave: CanopenSlave):
+        self.slave = slave
+        self.configure()
+        self.last_sync_s: float | None = None
+
+    def configure(self) -> None:
+        od = self.slave.od
+        self.cob_id = od.value(0x1005) & 0x7FF
+        self.window_s = od.value(0x1007) * 1e-6
+        self.timeout_s = 1.5 * od.value(0x1006) * 1e-6      # 0 = no SYNC monitoring
+        self.timed_out = False
+        overflow = od.value(0x1019) if (0x1019, 0) in od else 0
+        self.counter_enabled = overflow >= 2
+        self.expected_dlc = 1 if self.counter_enabled else 0
+
+    def validate_write(self, index: int, _sub: int, value: int) -> None:
+        if index == 0x1005 and value & (SYNC_GENERATE | SYNC_EXTENDED):
+            raise SdoAbort(ab.INVALID_VALUE, "this device is a SYNC consumer with an 11-bit COB-ID only")
+        if index == 0x1019:
+            if value == 1 or value > 240:
+                raise SdoAbort(ab.INVALID_VALUE, "SYNC counter overflow must be 0 or 2..240")
+            if self.slave.od.value(0x1006) != 0:
+                raise SdoAbort(ab.DEVICE_STATE, "0x1019 can only change while 0x1006 is 0")
+
+    def after_write(self, _index: int, _sub: int) -> None:
+        self.configure()
+        self.slave.rebuild_dispatch()
+
+    def check_frame(self, data: bytes) -> int | None:
+        """SYNC counter of a valid SYNC frame (0 without counter), None for a wrong length."""
+        if len(data) != self.expected_dlc:
+            return None
+        return data[0] if self.counter_enabled else 0
+
+    def check_timeout(self, now_s: float) -> bool:
+        """True once when SYNCs stop for 1.5 x 0x1006 (monitoring starts with the first SYNC)."""
+        if self.timeout_s > 0.0 and self.last_sync_s is not None and not self.timed_out and \
+                now_s - self.last_sync_s > self.timeout_s:
+            self.timed_out = True
+            return True
+        return False
+
+    def window_open(self, now_s: float) -> bool:
+        """True while synchronous PDOs may still be sent for the last SYNC (0x1007 = 0: always)."""
+        return self.window_s <= 0.0 or self.last_sync_s is None or now_s - self.last_sync_s <= self.window_s
