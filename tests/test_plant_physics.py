@@ -185,3 +185,16 @@ def test_voltage_saturates_when_the_dc_link_is_too_low():
     ok = simulate_profile(load_axis_config(SEED004.parent / "seed000-hust.toml"), "sine:stroke_mm=100,feed_mm_min=6000",
                           1.0, extras=True)["x"]
     assert ok["voltage_saturated"].max() == 0.0
+
+
+def test_switching_inverter_adds_current_ripple_but_tracks_like_the_averaged_one():
+    base = load_axis_config(SEED004.parent / "seed000-hust.toml")
+    avg = simulate_profile(base, "sine:stroke_mm=100,feed_mm_min=6000", 0.5, extras=True)["x"]
+    sw = simulate_profile(base.replace(inverter={"model": "svpwm"}), "sine:stroke_mm=100,feed_mm_min=6000", 0.5,
+                          extras=True)["x"]
+    assert avg["current_ripple_rms"].max() == 0.0
+    ripple = float(np.sqrt(np.mean(sw["current_ripple_rms"] ** 2)))
+    assert 0.005 < ripple < 0.05 * base.motor.rated_current_a
+    e_avg = avg["pos_meas"] - avg["pos_cmd"]
+    e_sw = sw["pos_meas"] - sw["pos_cmd"]
+    assert np.sqrt(np.mean(e_sw**2)) == pytest.approx(np.sqrt(np.mean(e_avg**2)), rel=0.01)
