@@ -1,0 +1,282 @@
+"""SYNC -> TPDO latency, missed cycles, SDO round trip and CPU share of the virtual CiA 402 drive.
+
+The drive runs in its own process (``virtualaxis serve``, real-time pacing) on a host-local
+``udp_multicast`` bus (hop_limit 0); this process is the master: it sends SYNC every period (plus a CSP
+target per axis, a slow sine so that the plant works) and timestamps the synchronous TPDO of every axis
+(TPDO2: statusword + position actual value; the other TPDOs are switched off, as a master would).
+
+    python benchmarks/bench_drive_latency.py                      # 60 s per case: 1 ms / 500 us, 1 / 2 axes
+    python benchmarks/bench_drive_latency.py --seconds 10 --cases 1ms:1
+    python benchmarks/bench_drive_latency.py --rt-priority 20     # serve under SCHED_FIFO
+
+Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
+lead error, thermal growth, an extra resonance; sensor noise). Latency = TPDO receive timestamp minus SYNC
+send timestamp (both ``time.time`` in this process, so the master's own receive path is included).
+A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after the next SYNC is counted as
+late. Writes a JSON beside the
+printed table (``--json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+from tqdm import tqdm
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+
+from virtualaxis.config import load_axis_config  # noqa: E402
+
+CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+
+
+def all_effects_config(path: Path) -> Path:
+    cfg = load_axis_config(REPO / "configs" / "seed000-hust.toml")
+    cfg = cfg.replace(
+        effects={
+            "lead_error_ppm": 20.0,
+            "lead_error_periodic_m": 2e-6,
+            "thermal_expansion_per_k": 11.5e-6,
+            "thermal_resistance_k_per_w": 0.05,
+            "thermal_time_constant_s": 600.0,
+            "resonance_frequency_hz": 180.0,
+            "resonance_mass_kg": 20.0,
+        },
+        sensors={"position_noise_m": 2e-8, "current_noise_a": 0.01},
+    )
+    path.write_text(cfg.to_toml(header="bench_drive_latency: seed000-hust with every plant effect on"))
+    return path
+
+
+class TpdoClock(can.Listener):
+    """Receive timestamps of the TPDOs per COB-ID."""
+
+    def __init__(self, cob_ids: list[int]):
+        self.times: dict[int, list[float]] = {c: [] for c in cob_ids}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        lst = self.times.get(msg.arbitration_id)
+        if lst is not None:
+            lst.append(msg.timestamp)
+
+
+def sdo_upload(bus: can.BusABC, node_id: int, index: int, sub: int, replies: list, event: threading.Event) -> None:
+    event.clear()
+    data = bytes([0x40, index & 0xFF, index >> 8, sub, 0, 0, 0, 0])
+    bus.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
+    if not event.wait(1.0):
+        raise RuntimeError("SDO timeout")
+
+
+class SdoReply(can.Listener):
+    def __init__(self, node_ids):
+        self.cobs = {0x580 + n for n in node_ids}
+        self.event = threading.Event()
+        self.last = None
+
+    def on_message_received(self, msg):
+        if msg.arbitration_id in self.cobs:
+            self.last = msg
+            self.event.set()
+
+
+def sdo(bus, reply: SdoReply, node_id: int, index: int, sub: int = 0, value: int | None = None, size: int = 4):
+    reply.event.clear()
+    if value is None:
+        data = bytes([0x40, index & 0xFF, index >> 8, sub, 0, 0, 0, 0])
+    else:
+        cmd = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        data = bytes([cmd, index & 0xFF, index >> 8, sub]) + int(value).to_bytes(4, "little", signed=value < 0)
+    bus.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
+    if not reply.event.wait(1.0):
+        raise RuntimeError(f"SDO timeout 0x{index:04X}:{sub}")
+    if reply.last.data[0] == 0x80:
+        raise RuntimeError(f"SDO abort 0x{int.from_bytes(reply.last.data[4:8], 'little'):08X} on 0x{index:04X}")
+    return int.from_bytes(reply.last.data[4:8], "little")
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int) -> dict:
+    spec = f"udp_multicast:239.74.163.2,port={port}"
+    args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60)]
+    for nid in range(1, n_axes + 1):
+        args += ["--axis", f"A{nid}={nid}:{config}"]
+    if rt_priority:
+        args += ["--rt-priority", str(rt_priority)]
+    proc = subprocess.Popen(
+        args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+    )
+    line = proc.stdout.readline()
+    if not line.startswith("ready:"):
+        proc.kill()
+        raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
+    bus = can.Bus(interface="udp_multicast", channel="239.74.163.2", port=port, hop_limit=0)
+    node_ids = list(range(1, n_axes + 1))
+    tpdo_cobs = [0x280 + n for n in node_ids]
+    clock = TpdoClock(tpdo_cobs)
+    reply = SdoReply(node_ids)
+    notifier = can.Notifier(bus, [clock, reply], timeout=0.05)
+    try:
+        # SDO round trip: expedited upload of the statusword
+        rtts = []
+        for _ in range(500):
+            t0 = time.perf_counter()
+            sdo(bus, reply, 1, 0x6041)
+            rtts.append(time.perf_counter() - t0)
+        for nid in node_ids:
+            sdo(bus, reply, nid, 0x6060, value=8, size=1)
+            sdo(bus, reply, nid, 0x6065, value=50_000)  # 50 mm: never trip during the benchmark
+            sdo(bus, reply, nid, 0x1401, 2, value=1, size=1)  # RPDO2 (CW + target) synchronous
+            sdo(bus, reply, nid, 0x1801, 2, value=1, size=1)  # TPDO2 (SW + position) on every SYNC
+            for tpdo, base in ((0x1800, 0x180), (0x1802, 0x380), (0x1803, 0x480)):  # only TPDO2 stays valid
+                sdo(bus, reply, nid, tpdo, 1, value=0x80000000 | (base + nid))
+            bus.send(can.Message(arbitration_id=0x000, data=bytes([0x01, nid]), is_extended_id=False))
+            for cw in (0x06, 0x07, 0x0F):
+                sdo(bus, reply, nid, 0x6040, value=cw, size=2)
+            state = sdo(bus, reply, nid, 0x6041) & 0x6F
+            if state != 0x27:
+                raise RuntimeError(f"node {nid} not enabled (statusword & 0x6F = 0x{state:02X})")
+        x0 = {
+            nid: int.from_bytes(sdo(bus, reply, nid, 0x6064).to_bytes(4, "little"), "little", signed=True)
+            for nid in node_ids
+        }
+        for lst in clock.times.values():
+            lst.clear()
+        n_sync = int(seconds / period_s)
+        sync_times = np.zeros(n_sync)
+        cpu0, wall0 = cpu_seconds(proc.pid), time.perf_counter()
+        t_next = time.perf_counter() + 0.01
+        sync_msg = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+        with tqdm(
+            total=n_sync, desc=f"SYNC {period_s * 1e6:.0f} us, {n_axes} axis", unit="sync", mininterval=1, leave=False
+        ) as bar:
+            for k in range(n_sync):
+                while True:
+                    left = t_next - time.perf_counter()
+                    if left <= 0:
+                        break
+                    time.sleep(left - 3e-4 if left > 4e-4 else 0)
+                for nid in node_ids:  # target for the next cycle: 20 mm sine at 0.5 Hz
+                    target = x0[nid] + int(20_000 * np.sin(2 * np.pi * 0.5 * k * period_s))
+                    bus.send(
+                        can.Message(
+                            arbitration_id=0x300 + nid,
+                            data=(0x0F).to_bytes(2, "little") + target.to_bytes(4, "little", signed=True),
+                            is_extended_id=False,
+                        )
+                    )
+                sync_times[k] = time.time()
+                bus.send(sync_msg)
+                t_next += period_s
+                if k % 1000 == 0:
+                    bar.update(1000 if k else 1)
+        time.sleep(0.2)
+        cpu1, wall1 = cpu_seconds(proc.pid), time.perf_counter()
+        result = {
+            "sync_period_us": period_s * 1e6,
+            "axes": n_axes,
+            "seconds": seconds,
+            "syncs": n_sync,
+            "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
+        }
+        for nid, cob in zip(node_ids, tpdo_cobs, strict=True):
+            times = np.array(clock.times[cob])
+            n_tpdo = len(times)
+            if n_tpdo == n_sync:  # one TPDO per SYNC, in order (the bus keeps the order): pair them
+                lat = (times - sync_times) * 1e6
+            else:  # some were never sent: pair each SYNC with the first TPDO after it (an estimate)
+                idx = np.minimum(np.searchsorted(times, sync_times), max(n_tpdo - 1, 0))
+                lat = (times[idx] - sync_times) * 1e6 if n_tpdo else np.array([])
+            result[f"node{nid}"] = {
+                "tpdos": int(n_tpdo),
+                "missed_cycles": int(n_sync - n_tpdo),  # SYNCs that got no TPDO at all
+                "late_tpdos": int(np.count_nonzero(lat > period_s * 1e6)),  # arrived after the next SYNC
+                "latency_us_p50": float(np.percentile(lat, 50)) if len(lat) else None,
+                "latency_us_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+                "latency_us_max": float(lat.max()) if len(lat) else None,
+            }
+        result["sdo_rtt_us_p50"] = float(np.percentile(rtts, 50) * 1e6)
+        result["sdo_rtt_us_p99"] = float(np.percentile(rtts, 99) * 1e6)
+    finally:
+        notifier.stop()
+        bus.shutdown()
+        proc.terminate()
+        out, _ = proc.communicate(timeout=20)
+    result["serve_report"] = out.strip().splitlines()[-1] if out.strip() else ""
+    return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--cases", default="1ms:1,1ms:2,500us:1,500us:2", help="period:axes,...")
+    ap.add_argument("--rt-priority", type=int, default=0)
+    ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_drive_latency.json"))
+    args = ap.parse_args()
+    cases = []
+    for item in args.cases.split(","):
+        period, axes = item.split(":")
+        period_s = float(period[:-2]) * 1e-3 if period.endswith("ms") else float(period[:-2]) * 1e-6
+        cases.append((period_s, int(axes)))
+    if args.rt_priority:  # the master too, so that its SYNC timing is not the bottleneck
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+    with tempfile.TemporaryDirectory() as tmp:
+        config = all_effects_config(Path(tmp) / "all-effects.toml")
+        results = []
+        for i, (period_s, n_axes) in enumerate(cases):
+            results.append(
+                run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i, args.rt_priority)
+            )
+    machine = {
+        "nproc": os.cpu_count(),
+        "cpu": _cpu_model(),
+        "python": platform.python_version(),
+        "load_average_at_end": os.getloadavg(),
+    }
+    print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
+    print(
+        f"{'SYNC':>7} {'axes':>4} {'node':>4} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} "
+        f"{'SDO p50 us':>10} {'CPU':>6}"
+    )
+    for r in results:
+        for nid in range(1, r["axes"] + 1):
+            n = r[f"node{nid}"]
+            print(
+                f"{r['sync_period_us']:>5.0f}us {r['axes']:>4} {nid:>4} {n['latency_us_p50']:>8.0f} "
+                f"{n['latency_us_p99']:>8.0f} {n['latency_us_max']:>9.0f} {n['missed_cycles']:>7} {n['late_tpdos']:>6} "
+                f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}%"
+            )
+    Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results}, indent=2))
+    print(f"wrote {args.json}")
+    return 0
+
+
+def _cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+        for line in out.splitlines():
+            if line.startswith("Model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1339 @@
+"""The CiA 402 drive around an :class:`~virtualaxis.sim.AxisSimulator`: the one drive API.
+
+:class:`Drive` runs the power drive state machine, the modes of operation (PP, PV, HM, CSP, CSV, CST),
+the monitoring (following error, software limits, target/velocity reached, standstill, motor temperature,
+DC link) and the fault handling (fault reaction, EMCY, fault buffer), one position-loop cycle at a time.
+Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
+(:mod:`virtualaxis.drive.canopen_app`) mirrors them into the slave's object dictionary, and services
+(Modbus, MQTT, conformance, fault injection) use the named API: :attr:`Drive.state`,
+:meth:`Drive.get_parameter` / :meth:`Drive.set_parameter`, :meth:`Drive.inject_fault` /
+:meth:`Drive.clear_fault`, :attr:`Drive.faults`, :meth:`Drive.add_observer`. See docs/drive-api.md.
+
+Thread safety: every public method takes the drive's lock; observers are called in the thread that caused
+the change (normally the runtime thread) and must not block.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from virtualaxis.config import AxisConfig
+from virtualaxis.drive import homing as hm
+from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
+from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults
+from virtualaxis.drive.profiles import (
+    JerkFilter,
+    LinearInterpolator,
+    PositionProfile,
+    VelocityRamp,
+    WindowTimer,
+)
+from virtualaxis.drive.settings import drive_settings
+from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
+from virtualaxis.drive.statemachine import (
+    STATE_BITS,
+    TARGET_STATE,
+    Cia402State,
+    Transition,
+    decode,
+    transition_for,
+)
+from virtualaxis.drive.units import PositionScaling
+from virtualaxis.sim import AxisSimulator, ControlMode
+from virtualaxis.sim import layout as L
+
+S = Cia402State
+DEFAULT_EDS = Path(__file__).resolve().parents[3] / "eds" / "virtualaxis.eds"
+
+# SDO abort codes used by the drive's own checks
+ABORT_READ_ONLY = 0x06010002
+ABORT_VALUE_INVALID = 0x06090030
+ABORT_VALUE_TOO_HIGH = 0x06090031
+ABORT_VALUE_TOO_LOW = 0x06090032
+ABORT_DEVICE_STATE = 0x08000022
+ABORT_NO_OBJECT = 0x06020000
+
+PP, PV, HM, CSP, CSV, CST = 1, 3, 6, 8, 9, 10
+POSITION_MODES = (PP, HM, CSP)
+
+# objects whose change recomputes the cached monitoring parameters (_refresh_params)
+_MONITOR_PARAMETER_INDICES = frozenset(
+    {
+        0x6065,
+        0x6066,
+        0x2006,
+        0x2007,
+        0x6067,
+        0x6068,
+        0x606D,
+        0x606E,
+        0x606F,
+        0x6070,
+        0x200A,
+        0x200B,
+        0x6075,
+        0x6076,
+        0x608F,
+        0x6091,
+        0x6092,
+    }
+)
+
+# objects that are two names for one value (manufacturer alias -> CiA 402 object)
+ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
+ALIASES_BACK = {v: k for k, v in ALIASES.items()}
+
+MOTOR_AMBIENT_C = 20.0
+MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
+MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
+
+
+class ObjectAccessError(Exception):
+    """A refused object access; ``code`` is the SDO abort code a CANopen master sees."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+class Drive:
+    """One CiA 402 servo axis. ``cycle_s`` = the position-loop cycle of the config."""
+
+    def __init__(
+        self,
+        cfg: AxisConfig,
+        *,
+        name: str | None = None,
+        eds_path: str | Path | None = DEFAULT_EDS,
+        seed: int | None = None,
+        initial_position_m: float = 0.0,
+        discrete=None,
+    ):
+        self.cfg = cfg
+        self.name = name or cfg.axis.name
+        self.settings = drive_settings(cfg)
+        self.sim = AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=discrete)
+        # compile the kernel now (a cold numba cache takes seconds), not in the first SYNC of a running bus
+        AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=self.sim.dm).advance(1)
+        self.cycle_s = cfg.control.position_cycle_s
+        self._lock = threading.RLock()
+        self._eds_defaults = eds_defaults(eds_path) if eds_path and Path(eds_path).exists() else {}
+        self._observers: list[Callable[[str, DriveState], None]] = []
+        self._changed: set[tuple[int, int]] = set()
+        self.emcy_sink: Callable[[int, int, bytes], None] | None = None  # (code, register bits, data)
+        self.emcy_reset_sink: Callable[[], None] | None = None
+        self.counters = {
+            "illegal_controlword": 0,
+            "overruns": 0,
+            "targets_clamped": 0,
+            "faults_raised": 0,
+            "cycles": 0,
+            "fault_resets_refused": 0,
+        }
+        self._reset_all()
+
+    # ================================================================================ object table
+    def derived_objects(self) -> dict[tuple[int, int], int | float]:
+        """Objects whose values come from the axis config (written at boot and on NMT reset node)."""
+        cfg, st = self.cfg, self.settings
+        c, mot = cfg.control, cfg.motor
+        force = cfg.actuator.kind == "force"
+        lead = self._lead_m()
+        unit = st.position_unit_m
+        rated_torque = mot.rated_torque_nm or (mot.torque_constant_nm_per_a * mot.rated_current_a)
+        if force:
+            rated_torque = cfg.actuator.force_limit_n / 3 if cfg.actuator.force_limit_n > 0 else 1000.0
+        i_lim = c.current_limit_a if c.current_limit_a > 0 else 3.0 * mot.rated_current_a
+        ff_mode = 2 if c.torque_ff_factor > 0 else (1 if c.velocity_ff_factor > 0 else 0)
+        enc = cfg.sensors.motor_encoder_counts_per_rev or (1 << 20)
+        out: dict[tuple[int, int], int | float] = {
+            (0x2000, 0): c.kv_1_per_s * 60.0 / 1000.0,
+            (0x2001, 0): float(c.velocity_ff_factor),
+            (0x2002, 0): ff_mode,
+            (0x2003, 0): float(c.velocity_kp_n_s_per_m if force else c.speed_kp_nm_s_per_rad),
+            (0x2004, 0): c.speed_ti_s * 1000.0,
+            (0x2012, 0): 1 if st.software_limit_reaction == "fault" else 0,
+            (0x6075, 0): int(round(mot.rated_current_a * 1000)),
+            (0x6076, 0): int(round(rated_torque * 1000)),
+            (0x6073, 0): clamp_to_dtype(i_lim / mot.rated_current_a * 1000, "u16"),
+            (0x6072, 0): clamp_to_dtype(i_lim / mot.rated_current_a * 1000, "u16"),
+            (0x608F, 1): int(enc),
+            (0x608F, 2): 1,
+            (0x6091, 1): 1,
+            (0x6091, 2): 1,
+            (0x6092, 1): int(round(lead / unit)),
+            (0x6092, 2): 1,
+            (0x607D, 1): clamp_to_dtype(cfg.limits.travel_min_m / unit, "i32"),
+            (0x607D, 2): clamp_to_dtype(cfg.limits.travel_max_m / unit, "i32"),
+            (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
+            (0x6080, 0): int(round(c.speed_limit_rpm or mot.rated_speed_rpm * 1.5)),
+            (0x6502, 0): sum(MODE_BITS.values()),
+        }
+        if st.following_error_tolerance_m is not None:
+            out[(0x6065, 0)] = clamp_to_dtype(st.following_error_tolerance_m / unit, "u32")
+        if st.following_error_time_ms is not None:
+            out[(0x6066, 0)] = st.following_error_time_ms
+        if st.positioning_window_m is not None:
+            out[(0x6067, 0)] = clamp_to_dtype(st.positioning_window_m / unit, "u32")
+        if st.positioning_time_ms is not None:
+            out[(0x6068, 0)] = st.positioning_time_ms
+        return out
+
+    def _lead_m(self) -> float:
+        """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
+        return self.cfg.mechanics.lead_m if self.cfg.mechanics.lead_m > 0 else 0.01
+
+    def _reset_all(self) -> None:
+        """Power-on state: objects to defaults (spec <- EDS <- config), state machine to SWITCH ON DISABLED."""
+        with self._lock:
+            self.objects: dict[tuple[int, int], int | float] = {s.key: s.default for s in SPECS.values()}
+            self.objects.update({k: v for k, v in self._eds_defaults.items() if k in SPECS})
+            self.objects.update(self.derived_objects())
+            for alias, target in ALIASES.items():
+                self.objects[alias] = self.objects[target]
+            self._changed = set(self.objects)
+            self._zero_m = 0.0  # plant position that reads as position 0 (shifted by homing)
+            self._faults: list[FaultRecord] = []
+            self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
+            self._fault_pending_reset = False
+            self._state = S.NOT_READY_TO_SWITCH_ON
+            self._cw = 0
+            self._mode = 0
+            self._power = False
+            self._stop: dict | None = None  # active stop ramp
+            self._demand_m = self.sim.state.position_m
+            self._demand_v = 0.0
+            self._last_vff = 0.0
+            self._target_reached = False
+            self._internal_limit = False
+            self._homed = False
+            self._warning = False
+            self._alarm = 0
+            self._motor_rise_k = 0.0
+            self._pp_ack = False
+            self._pp_pending: float | None = None
+            self._pp_target_m = self._demand_m
+            self._pp_bit4 = False
+            self._homing: hm.HomingRun | None = None
+            self._homing_started = False
+            self._fe_timer = WindowTimer()
+            self._fe_exceeded = False
+            self._tr_timer = WindowTimer()
+            self._vz_timer = WindowTimer()
+            self._ss_timer = WindowTimer()
+            self._rest_timer = WindowTimer()
+            self._profile = PositionProfile(self.cycle_s, self._demand_m)
+            self._jerk = JerkFilter()
+            self._jerk.reset(self._demand_m, 1)
+            self._vramp = VelocityRamp(self.cycle_s)
+            self._interp = LinearInterpolator()
+            self._interp.reset(self._demand_m)
+            self._prev_actual_m = self._demand_m
+            self._fe_m = 0.0
+            self._index_seen_m: float | None = None
+            self._update_scaling()
+            self._apply_gains()
+            self.sim.enable(False)
+            self._smode = self.sim.mode
+            self._params_dirty = True
+            self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+            self._axis = self.sim.state
+            self._refresh_params()
+            # transition 0 + 1 (self-test done): switch on disabled
+            self._set_state(S.SWITCH_ON_DISABLED)
+            self._publish_outputs()
+
+    def power_on_reset(self) -> None:
+        """NMT reset node: application objects back to defaults, state machine restarted; the axis stays
+        where it is (the plant is not reset)."""
+        with self._lock:
+            self._reset_all()
+
+    def read_object(self, index: int, sub: int = 0) -> int | float:
+        with self._lock:
+            key = ALIASES.get((index, sub), (index, sub))
+            if key not in self.objects:
+                raise ObjectAccessError(ABORT_NO_OBJECT, f"0x{index:04X}:{sub} is not a drive object")
+            return self.objects[key]
+
+    def check_object_write(self, index: int, sub: int, value) -> None:
+        """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
+        key = ALIASES.get((index, sub), (index, sub))
+        spec = SPECS.get(key)
+        if spec is None:
+            raise ObjectAccessError(ABORT_NO_OBJECT, f"0x{index:04X}:{sub} is not a drive object")
+        if spec.access == "ro":
+            raise ObjectAccessError(ABORT_READ_ONLY, f"0x{index:04X}:{sub} {spec.name} is read-only")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{index:04X}:{sub} needs a number")
+        if spec.dtype != "f32" and value != int(value):
+            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{index:04X}:{sub} needs an integer")
+        lo, hi = DTYPE_RANGES[spec.dtype]
+        if value > hi:
+            raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi}")
+        if value < lo:
+            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo}")
+        ranges = {
+            (0x605A, 0): (0, 8),
+            (0x605B, 0): (0, 1),
+            (0x605C, 0): (0, 1),
+            (0x605D, 0): (1, 3),
+            (0x605E, 0): (0, 2),
+            (0x6007, 0): (0, 3),
+            (0x2002, 0): (0, 2),
+            (0x2012, 0): (0, 1),
+            (0x60C2, 2): (-6, 0),
+        }
+        if key in ranges:
+            lo2, hi2 = ranges[key]
+            if value > hi2:
+                raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}")
+            if value < lo2:
+                raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo2}")
+        if (
+            key == (0x6060, 0)
+            and value != 0
+            and (value not in MODE_BITS or not MODE_BITS[value] & self.objects[(0x6502, 0)])
+        ):
+            raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
+        if key == (0x6086, 0) and value not in (0, 3):
+            raise ObjectAccessError(ABORT_VALUE_INVALID, "motion profile type must be 0 (trapezoid) or 3 (jerk)")
+        if key == (0x6098, 0):
+            if value not in hm.SUPPORTED_METHODS:
+                raise ObjectAccessError(ABORT_VALUE_INVALID, f"homing method {value} is not supported")
+            if self._homing is not None and self._homing.status in (
+                hm.HomingStatus.IN_PROGRESS,
+                hm.HomingStatus.RETURNING,
+            ):
+                raise ObjectAccessError(ABORT_DEVICE_STATE, "homing method cannot change while homing")
+        if key[0] in (0x608F, 0x6091, 0x6092):
+            if value <= 0:
+                raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be > 0")
+            if self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
+                raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
+        if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
+            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
+        if key == (0x2010, 0) and value != 0 and value not in FAULT_TABLE:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{value:04X} is not a known fault code")
+
+    def write_object(self, index: int, sub: int, value, *, checked: bool = False) -> None:
+        """Write an object as a master would (checked, then applied with its reaction)."""
+        with self._lock:
+            if not checked:
+                self.check_object_write(index, sub, value)
+            key = ALIASES.get((index, sub), (index, sub))
+            spec = SPECS[key]
+            value = float(value) if spec.dtype == "f32" else int(value)
+            self._store(key, value)
+            if key[0] in _MONITOR_PARAMETER_INDICES:
+                self._params_dirty = True
+            self._react(key, value)
+
+    def load_objects(self, values: dict[tuple[int, int], int | float]) -> None:
+        """Take parameter values (e.g. the slave's OD after boot: EDS defaults or restored values) without
+        the reactions of a master write; scaling and loop parameters are recomputed."""
+        with self._lock:
+            for key, value in values.items():
+                spec = SPECS.get(ALIASES.get(key, key))
+                if spec is None or spec.access == "ro" or key in ((0x6040, 0), (0x6060, 0)):
+                    continue
+                self._store(spec.key, float(value) if spec.dtype == "f32" else int(value))
+            self._update_scaling()
+            self._apply_gains()
+            self._params_dirty = True
+            self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+
+    def take_changes(self) -> list[tuple[int, int, int | float]]:
+        """Objects changed since the last call (the CANopen application mirrors them into the OD)."""
+        with self._lock:
+            if not self._changed:
+                return []
+            out = [(k[0], k[1], self.objects[k]) for k in self._changed]
+            self._changed = set()
+            return out
+
+    def _store(self, key: tuple[int, int], value) -> None:
+        if self.objects.get(key) != value:
+            self.objects[key] = value
+            self._changed.add(key)
+            alias = ALIASES_BACK.get(key)
+            if alias is not None:
+                self.objects[alias] = value
+                self._changed.add(alias)
+
+    def _obj(self, index: int, sub: int = 0):
+        return self.objects[(index, sub)]
+
+    # ================================================================================ reactions
+    def _react(self, key: tuple[int, int], value) -> None:
+        index = key[0]
+        if index == 0x6040:
+            self._on_controlword(int(value))
+        elif index == 0x6060:
+            self._on_mode(int(value))
+        elif index == 0x607A:
+            self._on_target_position(int(value))
+        elif index in (0x60FF, 0x60B1) and self._mode == CSV:
+            self._on_target_velocity()
+        elif index in (0x608F, 0x6091, 0x6092):
+            self._update_scaling()
+        elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073):
+            self._apply_gains()
+        elif index == 0x2010:
+            if value == 0:
+                self.clear_fault()
+            else:
+                self.inject_fault(int(value))
+        elif index == 0x2011:
+            self.sim.set_external_force(float(value))
+
+    def _update_scaling(self) -> None:
+        o = self.objects
+        self.scaling = PositionScaling(
+            lead_m=self._lead_m(),
+            feed_units=int(o[(0x6092, 1)]),
+            feed_shaft_revs=int(o[(0x6092, 2)]),
+            encoder_increments=int(o[(0x608F, 1)]),
+            encoder_motor_revs=int(o[(0x608F, 2)]),
+            gear_motor_revs=int(o[(0x6091, 1)]),
+            gear_shaft_revs=int(o[(0x6091, 2)]),
+        )
+        self._u = self.scaling.metres_per_unit
+
+    def _apply_gains(self) -> None:
+        """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
+        o, pr, c = self.objects, self.sim.pr, self.cfg.control
+        pr[L.P_KV] = float(o[(0x2000, 0)]) * 1000.0 / 60.0
+        mode = int(o[(0x2002, 0)])
+        pr[L.P_KFF] = float(o[(0x2001, 0)]) if mode >= 1 else 0.0
+        pr[L.P_KTFF] = (c.torque_ff_factor or 1.0) if mode == 2 else 0.0
+        kp = float(o[(0x2003, 0)])
+        if kp > 0:
+            pr[L.P_KPW] = kp
+        pr[L.P_TIW] = float(o[(0x2004, 0)]) / 1000.0
+        if self.cfg.actuator.kind == "pmsm":
+            rated_a = float(o[(0x6075, 0)]) / 1000.0
+            lim_current = float(o[(0x6073, 0)]) / 1000.0 * rated_a
+            kt = pr[L.P_KT]
+            rated_nm = float(o[(0x6076, 0)]) / 1000.0
+            lim_torque_as_current = float(o[(0x6072, 0)]) / 1000.0 * rated_nm / kt if kt > 0 else lim_current
+            pr[L.P_ILIM] = max(0.0, min(lim_current, lim_torque_as_current))
+
+    # ================================================================================ state machine
+    def _set_state(self, new: Cia402State) -> None:
+        old = self._state
+        self._state = new
+        if new != old:
+            self._update_statusword()
+            self._notify("state")
+
+    def _on_controlword(self, cw: int) -> None:
+        old_cw = self._cw
+        self._cw = cw
+        # fault reset: rising edge of bit 7
+        if cw & 0x80 and not old_cw & 0x80:
+            if self._state == S.FAULT:
+                self._fault_reset()
+                return
+        if self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
+            self._mode_controlword(old_cw, cw)
+            return
+        command = decode(cw)
+        tr = transition_for(self._state, command)
+        if tr == Transition.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
+            tr = Transition.ILLEGAL
+        if tr == Transition.ILLEGAL and cw != old_cw:
+            self.counters["illegal_controlword"] += 1
+            self._store((0x2110, 1), clamp_to_dtype(self.counters["illegal_controlword"], "u32"))
+        elif tr not in (Transition.HOLD, Transition.IGNORED):
+            self._do_transition(tr)
+        self._mode_controlword(old_cw, cw)
+        self._update_statusword()
+
+    def _do_transition(self, tr: Transition) -> None:
+        target = TARGET_STATE[tr]
+        if tr in (Transition.T4, Transition.T3_4, Transition.T16):
+            self._stop = None
+            if not self._power:
+                self._power_on()
+            self._enter_mode(self._mode)
+            self._set_state(target)
+        elif tr in (Transition.T5, Transition.T8):
+            option = int(self._obj(0x605C if tr == Transition.T5 else 0x605B))
+            if option == 1 and self._power:
+                self._start_stop("slow", then=target)  # state changes once stopped
+            else:
+                self._power_off()
+                self._set_state(target)
+        elif tr == Transition.T11:
+            option = int(self._obj(0x605A))
+            kind = {
+                0: "coast",
+                1: "slow",
+                2: "quick",
+                3: "current",
+                4: "current",
+                5: "slow",
+                6: "quick",
+                7: "current",
+                8: "current",
+            }[option]
+            self._set_state(S.QUICK_STOP_ACTIVE)
+            if kind == "coast":
+                self._power_off()
+                self._set_state(S.SWITCH_ON_DISABLED)
+            else:
+                self._start_stop(kind, then=S.SWITCH_ON_DISABLED if option <= 4 else None)
+        else:  # T2, T3, T6, T7, T9, T10, T12: no motion involved (T9/T12 coast)
+            if tr in (Transition.T9, Transition.T12):
+                self._power_off()
+            self._set_state(target)
+
+    def _set_sim_mode(self, mode: ControlMode) -> None:
+        if mode != self._smode:
+            self.sim.set_mode(mode)
+            self._smode = mode
+
+    def _power_on(self) -> None:
+        self._demand_m = self.sim.state.position_m - self._zero_m
+        self._demand_v = 0.0
+        self._last_vff = 0.0
+        self._set_sim_mode(ControlMode.POSITION)
+        self.sim.set_position_setpoint(self._demand_m + self._zero_m, 0.0, 0.0)
+        self.sim.enable(True)
+        self._power = True
+
+    def _power_off(self) -> None:
+        self.sim.enable(False)
+        self._power = False
+        self._stop = None
+        self._demand_v = 0.0
+        self._homing = None
+
+    def _start_stop(self, kind: str, then: Cia402State | None) -> None:
+        """Decelerate: 'slow' (0x6084), 'quick' (0x6085), 'current' (speed loop at its limit), 'coast'."""
+        if kind == "coast":
+            self._power_off()
+            if then is not None:
+                self._set_state(then)
+            return
+        position_control = self._smode == ControlMode.POSITION
+        if position_control:
+            v0 = self._demand_v
+            p0 = self._demand_m
+        else:
+            v0 = self._axis.velocity_m_s
+            p0 = self._axis.position_m - self._zero_m
+        decel_obj = 0x6084 if kind == "slow" else 0x6085
+        decel = max(float(self._obj(decel_obj)) * self._u, 1e-6)
+        self._stop = {
+            "kind": kind,
+            "then": then,
+            "decel": decel,
+            "v": v0,
+            "p": p0,
+            "t": 0.0,
+            "position": position_control and kind != "current",
+        }
+        if not self._stop["position"]:
+            self._set_sim_mode(ControlMode.VELOCITY)
+            self._vramp.velocity_m_s = v0
+
+    def _run_stop(self) -> None:
+        s = self._stop
+        dt = self.cycle_s
+        s["t"] += dt
+        if s["kind"] == "current":
+            self.sim.set_velocity_setpoint(0.0)
+            self._demand_v = 0.0
+            done = abs(self._axis.velocity_m_s) < max(float(self._obj(0x606F)) * self._u, 1e-4)
+        elif s["position"]:
+            v = s["v"]
+            dv = s["decel"] * dt
+            v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
+            s["v"] = v
+            s["p"] += v * dt
+            self._set_position(s["p"], v)
+            done = v == 0.0
+        else:
+            v = self._vramp.step(0.0, s["decel"], s["decel"])
+            self._demand_v = v
+            self.sim.set_velocity_setpoint(v)
+            done = v == 0.0 and abs(self._axis.velocity_m_s) < max(float(self._obj(0x606F)) * self._u, 1e-4)
+        if not done and s["t"] < 10.0:
+            return
+        # stopped: hold position, then the state change the stop was for
+        self._stop = None
+        if not s["position"]:
+            self._demand_m = self._axis.position_m - self._zero_m
+        self._set_sim_mode(ControlMode.POSITION)
+        self._set_position(self._demand_m, 0.0)
+        then = s["then"]
+        if self._state == S.FAULT_REACTION_ACTIVE:
+            self._power_off()
+            self._set_state(S.FAULT)
+        elif then is not None:
+            self._power_off()
+            self._set_state(then)
+        else:  # quick stop 5..8: stay in quick stop active, holding position
+            self._enter_mode_idle_hold()
+
+    def _enter_mode_idle_hold(self) -> None:
+        self._profile.reset(self._demand_m)
+        self._jerk.reset(self._demand_m, 1)
+        self._interp.reset(self._demand_m)
+
+    # ================================================================================ faults
+    def _raise_fault(
+        self, code: int, value: int = 0, *, injected: bool = False, cause: str = "", emit: bool = True
+    ) -> None:
+        info = fault_info(code)
+        rec = FaultRecord(code, info.fault_number, int(value), info.text, self.sim.time_s, injected)
+        self._faults.insert(0, rec)
+        del self._faults[FAULT_BUFFER_LENGTH:]
+        self.counters["faults_raised"] += 1
+        self._store((0x2110, 4), clamp_to_dtype(self.counters["faults_raised"], "u32"))
+        self._publish_fault_buffer()
+        if cause:
+            self._causes[code] = cause
+        self._store((0x603F, 0), code)
+        if emit and self.emcy_sink is not None:
+            self.emcy_sink(code, info.register_bits, struct.pack("<i", clamp_to_dtype(value, "i32"))[:4] + b"\x00")
+        if self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+            was_moving = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
+            self._set_state(S.FAULT_REACTION_ACTIVE)
+            option = int(self._obj(0x605E))
+            kind = {0: "coast", 1: "slow", 2: "quick", 3: "current", 4: "current"}.get(option, "quick")
+            if not was_moving or kind == "coast":
+                self._power_off()
+                self._set_state(S.FAULT)
+            else:
+                self._homing = None
+                self._start_stop(kind, then=S.FAULT)
+        self._notify("fault")  # after the reaction has started: the snapshot shows the fault state
+
+    def _publish_fault_buffer(self) -> None:
+        for i in range(FAULT_BUFFER_LENGTH):
+            rec = self._faults[i] if i < len(self._faults) else None
+            self._store((0x2030, i + 1), rec.fault_number if rec else 0)
+            self._store((0x2032, i + 1), rec.emcy_code if rec else 0)
+            self._store((0x2033, i + 1), clamp_to_dtype(rec.value, "i32") if rec else 0)
+
+    def _fault_reset(self) -> None:
+        if self._causes:
+            self.counters["fault_resets_refused"] += 1
+            return
+        self._faults = [
+            FaultRecord(f.emcy_code, f.fault_number, f.value, f.text, f.time_s, f.injected, True) for f in self._faults
+        ]
+        self._fe_timer = WindowTimer()
+        self._fe_exceeded = False
+        self._store((0x603F, 0), 0)
+        if self.emcy_reset_sink is not None:
+            self.emcy_reset_sink()
+        self._set_state(S.SWITCH_ON_DISABLED)
+        self._notify("fault_cleared")
+
+    def inject_fault(self, code: int, value: int = 0) -> None:
+        """Raise a fault with an EMCY code (HIL fault injection); its cause persists until clear_fault()."""
+        with self._lock:
+            if not 0 < int(code) <= 0xFFFF:
+                raise ValueError(f"fault code must be 0x0001..0xFFFF (got {code})")
+            self._raise_fault(int(code), value, injected=True, cause="injected")
+
+    def clear_fault(self) -> None:
+        """Remove injected causes and acknowledge (like CW bit 7): FAULT -> SWITCH ON DISABLED if no cause
+        remains."""
+        with self._lock:
+            self._causes = {k: v for k, v in self._causes.items() if v != "injected"}
+            if self._state == S.FAULT:
+                self._fault_reset()
+
+    @property
+    def faults(self) -> tuple[FaultRecord, ...]:
+        with self._lock:
+            return tuple(self._faults)
+
+    def communication_error(self, kind: str, detail: int = 0) -> None:
+        """React per 0x6007 (abort connection option) to a lost master (heartbeat, RPDO timeout, bus off)."""
+        with self._lock:
+            code = {
+                "heartbeat_lost": 0x8130,
+                "life_guarding": 0x8130,
+                "rpdo_timeout": 0x8250,
+                "bus_off": 0x8140,
+            }.get(kind)
+            if code is None:
+                return
+            option = int(self._obj(0x6007))
+            if option == 1:
+                # the CiA 301 stack has sent the EMCY for this event already
+                self._raise_fault(code, detail, emit=False)
+            elif option == 2 and self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+                self._power_off()
+                self._set_state(S.SWITCH_ON_DISABLED)
+            elif option == 3 and self._state == S.OPERATION_ENABLED:
+                self._do_transition(Transition.T11)
+
+    # ================================================================================ modes
+    def _on_mode(self, mode: int) -> None:
+        if mode == self._mode:
+            return
+        self._mode = mode
+        self._store((0x6061, 0), mode)
+        if self._state == S.OPERATION_ENABLED and self._stop is None:
+            self._enter_mode(mode)
+        self._update_statusword()
+        self._notify("mode")
+
+    def _enter_mode(self, mode: int) -> None:
+        """Start a mode from the present demand (bumpless)."""
+        ax = self._axis
+        if self._smode != ControlMode.POSITION or not self._power:
+            self._demand_m = ax.position_m - self._zero_m
+        p = self._demand_m
+        self._last_vff = 0.0
+        self._profile.reset(p, 0.0)
+        self._jerk.reset(p, 1)
+        self._interp.reset(p)
+        self._pp_target_m = p
+        self._pp_pending = None
+        self._pp_ack = False
+        self._target_reached = False
+        self._tr_timer = WindowTimer()
+        self._homing = None
+        self._homing_started = False
+        if mode in (PV, CSV):
+            self._vramp.velocity_m_s = ax.velocity_m_s if self._power else 0.0
+            self._interp_v = LinearInterpolator()
+            self._interp_v.reset(self._vramp.velocity_m_s)
+            self._set_sim_mode(ControlMode.VELOCITY)
+            self.sim.set_velocity_setpoint(self._vramp.velocity_m_s)
+            if mode == CSV:
+                self._on_target_velocity()
+        elif mode == CST:
+            self._set_sim_mode(ControlMode.TORQUE)
+        else:
+            self._set_sim_mode(ControlMode.POSITION)
+            self.sim.set_position_setpoint(p + self._zero_m, 0.0, 0.0)
+
+    def _interp_cycles(self) -> int:
+        value = int(self._obj(0x60C2, 1))
+        exp = int(self._obj(0x60C2, 2))
+        period = value * 10.0**exp
+        return max(1, int(round(period / self.cycle_s)))
+
+    def _limits_m(self) -> tuple[float, float] | None:
+        lo, hi = int(self._obj(0x607D, 1)), int(self._obj(0x607D, 2))
+        if lo >= hi:
+            return None
+        return lo * self._u, hi * self._u
+
+    def _check_limit(self, target_m: float, raw_value: int) -> float | None:
+        """Apply 0x607D to a target: clamped target (bit 11), or None after a fault (0x2012 = 1)."""
+        lim = self._limits_m()
+        if lim is None or lim[0] <= target_m <= lim[1]:
+            self._internal_limit = False
+            return target_m
+        self.counters["targets_clamped"] += 1
+        self._store((0x2110, 3), clamp_to_dtype(self.counters["targets_clamped"], "u32"))
+        if int(self._obj(0x2012)) == 1:
+            self._raise_fault(0x8612, raw_value)
+            return None
+        self._internal_limit = True
+        return min(max(target_m, lim[0]), lim[1])
+
+    def _on_target_position(self, value: int) -> None:
+        if self._mode == CSP and self._state == S.OPERATION_ENABLED and self._stop is None:
+            target = self._check_limit(value * self._u, value)
+            if target is not None:
+                self._interp.new_target(target, self._interp_cycles())
+
+    def _on_target_velocity(self) -> None:
+        if self._state == S.OPERATION_ENABLED and self._stop is None and hasattr(self, "_interp_v"):
+            v = (int(self._obj(0x60FF)) + int(self._obj(0x60B1))) * self._u
+            vmax = float(self._obj(0x607F)) * self._u
+            v = max(-vmax, min(vmax, v))
+            self._interp_v.new_target(v, self._interp_cycles())
+
+    def _mode_controlword(self, old_cw: int, cw: int) -> None:
+        """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt)."""
+        if self._state != S.OPERATION_ENABLED or self._stop is not None:
+            self._pp_bit4 = bool(cw & 0x10)
+            return
+        rising4 = bool(cw & 0x10) and not old_cw & 0x10
+        if self._mode == PP:
+            if rising4:
+                if not self._pp_ack or cw & 0x20:
+                    value = int(self._obj(0x607A))
+                    base_units = self._pp_pending if self._pp_pending is not None else self._pp_target_m
+                    if cw & 0x40:  # relative to the last target
+                        target = base_units + value * self._u
+                    else:
+                        target = value * self._u
+                    target_l = self._check_limit(target, value)
+                    if target_l is not None:
+                        if cw & 0x20 or self._profile.done and self._jerk.settled(self._profile.position_m):
+                            self._pp_target_m = target_l
+                            self._pp_pending = None
+                            self._start_pp_move()
+                        else:
+                            self._pp_pending = target_l
+                        self._pp_ack = True
+                        self._target_reached = False
+                        self._tr_timer = WindowTimer()
+            elif not cw & 0x10 and self._pp_pending is None:
+                self._pp_ack = False
+        elif self._mode == HM:
+            if rising4:
+                self._start_homing()
+            elif (
+                not cw & 0x10
+                and self._homing is not None
+                and self._homing.status in (hm.HomingStatus.IN_PROGRESS, hm.HomingStatus.RETURNING)
+            ):
+                self._homing = None  # bit 4 dropped: homing interrupted
+                self._homing_started = False
+                self._profile.set_target(self._profile.position_m, 1, 1, self._homing_accel())
+        self._pp_bit4 = bool(cw & 0x10)
+
+    def _start_pp_move(self) -> None:
+        o = self.objects
+        jerk_on = int(o[(0x6086, 0)]) == 3 and float(o[(0x60A4, 1)]) > 0
+        if jerk_on and self._jerk.settled(self._profile.position_m) and self._profile.done:
+            t_j = float(o[(0x6083, 0)]) / float(o[(0x60A4, 1)])
+            self._jerk.reset(self._profile.position_m, max(1, int(round(t_j / self.cycle_s))))
+        elif not jerk_on and self._jerk.n != 1 and self._jerk.settled(self._profile.position_m):
+            self._jerk.reset(self._profile.position_m, 1)
+
+    def _pp_limits(self) -> tuple[float, float, float]:
+        o, u = self.objects, self._u
+        v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
+        return v, float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+
+    def _halt_decel(self) -> float:
+        option = int(self._obj(0x605D))
+        return float(self._obj(0x6085 if option >= 2 else 0x6084)) * self._u
+
+    def _homing_accel(self) -> float:
+        return max(float(self._obj(0x609A)) * self._u, 1e-6)
+
+    def _run_mode(self) -> None:
+        mode, dt = self._mode, self.cycle_s
+        halt = bool(self._cw & 0x100)
+        if mode in (PP, HM, 0):
+            if mode == PP:
+                v, a, d = self._pp_limits()
+                if halt:
+                    dh = self._halt_decel()
+                    pv = self._profile.velocity_m_s
+                    stop_at = self._profile.position_m + pv * abs(pv) / (2 * dh)
+                    self._profile.set_target(stop_at, max(abs(pv), 1e-9), a, dh)
+                else:
+                    self._profile.set_target(self._pp_target_m, v, a, d)
+            elif mode == HM:
+                self._run_homing(halt)
+            else:
+                self._profile.set_target(self._profile.position_m, 1.0, 1.0, 1.0)
+            p, _ = self._profile.step()
+            pf = self._jerk.step(p)
+            vff = (pf - self._demand_m) / dt
+            if (
+                mode == PP
+                and not halt
+                and self._pp_pending is not None
+                and self._profile.done
+                and self._jerk.settled(p)
+            ):
+                self._pp_target_m = self._pp_pending
+                self._pp_pending = None
+                self._start_pp_move()
+                if not self._cw & 0x10:
+                    self._pp_ack = False
+            self._set_position(pf, vff)
+        elif mode == CSP:
+            p, slope = self._interp.step()
+            vff = slope / dt + int(self._obj(0x60B1)) * self._u
+            self._set_position(p, vff)
+        elif mode == PV:
+            target = int(self._obj(0x60FF)) * self._u
+            vmax = float(self._obj(0x607F)) * self._u
+            target = max(-vmax, min(vmax, target))
+            target = self._velocity_limit(target)
+            if halt:
+                v = self._vramp.step(0.0, self._halt_decel(), self._halt_decel())
+            else:
+                v = self._vramp.step(target, float(self._obj(0x6083)) * self._u, float(self._obj(0x6084)) * self._u)
+            self._demand_v = v
+            self.sim.set_velocity_setpoint(v)
+        elif mode == CSV:
+            v, _ = self._interp_v.step()
+            v = self._velocity_limit(v)
+            self._demand_v = v
+            self.sim.set_velocity_setpoint(v)
+        elif mode == CST:
+            rated_nm = float(self._obj(0x6076)) / 1000.0
+            t = (int(self._obj(0x6071)) + int(self._obj(0x60B2))) / 1000.0 * rated_nm
+            t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
+            self._internal_limit = abs(t) > t_max
+            t = max(-t_max, min(t_max, t))
+            if self._velocity_limit(math.copysign(1.0, t) if t else 0.0) == 0.0 and t != 0.0:
+                t = 0.0
+            self.sim.set_torque_setpoint(t)
+            self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
+
+    def _velocity_limit(self, v: float) -> float:
+        """Velocity modes: no motion outward beyond a software limit (bit 11)."""
+        lim = self._limits_m()
+        if lim is None:
+            return v
+        x = self._axis.position_m - self._zero_m
+        if (x >= lim[1] and v > 0) or (x <= lim[0] and v < 0):
+            self._internal_limit = True
+            return 0.0
+        if self._mode in (PV, CSV):
+            self._internal_limit = False
+        return v
+
+    def _set_position(self, p: float, vff: float) -> None:
+        acc = (vff - self._last_vff) / self.cycle_s
+        self._last_vff = vff
+        self._demand_m, self._demand_v = p, vff
+        self.sim.set_position_setpoint(p + self._zero_m, vff, acc)
+
+    # ================================================================================ homing
+    def _switches(self, x_plant_m: float, method: int | None = None) -> tuple[bool, bool, bool]:
+        half = self.cfg.axis.stroke_m / 2
+        inset = self.settings.limit_switch_inset_m
+        neg = x_plant_m <= -half + inset
+        pos = x_plant_m >= half - inset
+        h = self.settings.home_switch_position_m
+        home = x_plant_m <= h if method in (21, 22) else x_plant_m >= h
+        return neg, pos, home
+
+    def _start_homing(self) -> None:
+        method = int(self._obj(0x6098))
+        x = self._axis.position_m
+        neg, pos, home = self._switches(x, method)
+        phases = hm.method_phases(method, neg, pos, home)
+        if phases is None:
+            self._homing = hm.HomingRun(method, [], x, status=hm.HomingStatus.ERROR, error="unsupported method")
+            return
+        self._homing = hm.HomingRun(method, phases, x)
+        self._homing_started = True
+        self._homed = False
+        self._profile.reset(self._demand_m, 0.0)
+        self._jerk.reset(self._demand_m, 1)
+        if not phases:
+            self._homing.home_m = x
+            self._finish_homing()
+
+    def _run_homing(self, halt: bool) -> None:
+        run = self._homing
+        acc = self._homing_accel()
+        if run is None or run.status in (hm.HomingStatus.ATTAINED, hm.HomingStatus.ERROR):
+            self._profile.set_target(
+                self._profile.position_m if self._profile.velocity_m_s == 0 else self._profile.target_m,
+                1.0,
+                acc,
+                acc,
+            )
+            return
+        if halt:
+            pv = self._profile.velocity_m_s
+            self._profile.set_target(self._profile.position_m + pv * abs(pv) / (2 * acc), max(abs(pv), 1e-9), acc, acc)
+            self._homing = None  # halted: interrupted
+            return
+        x_plant = self._axis.position_m
+        if run.status == hm.HomingStatus.RETURNING:
+            self._profile.set_target(run.home_m - self._zero_m, self.objects[(0x6099, 2)] * self._u, acc, acc)
+            if self._profile.done and abs(self._axis.velocity_m_s) < 1e-4:
+                self._finish_homing()
+            return
+        phase = run.phase
+        fast = float(self._obj(0x6099, 1)) * self._u
+        slow = float(self._obj(0x6099, 2)) * self._u
+        speed = fast if phase.fast else slow
+        far = phase.direction * 10.0 * max(self.cfg.axis.stroke_m, 0.1)
+        self._profile.set_target(self._profile.position_m + far, speed, acc, acc)
+        neg, pos, home = self._switches(x_plant, run.method)
+        hit = False
+        latched = x_plant
+        if phase.signal == "index":
+            period = self._lead_m() * int(self._obj(0x6091, 2)) / int(self._obj(0x6091, 1))
+            crossing = hm.index_crossed(self._prev_actual_m, x_plant, self.settings.index_pulse_offset_m, period)
+            if crossing is not None and (crossing - self._prev_actual_m) * phase.direction > 0:
+                hit, latched = True, crossing
+        else:
+            value = {"neg": neg, "pos": pos, "home": home}[phase.signal]
+            hit = value == phase.value
+        # an unexpected limit switch in the direction of travel is a homing error
+        if not hit and (
+            (phase.direction > 0 and pos and phase.signal != "pos")
+            or (phase.direction < 0 and neg and phase.signal != "neg")
+        ):
+            run.status = hm.HomingStatus.ERROR
+            run.error = "limit switch reached"
+            pv = self._profile.velocity_m_s
+            self._profile.set_target(self._profile.position_m + pv * abs(pv) / (2 * acc), max(abs(pv), 1e-9), acc, acc)
+            return
+        if hit:
+            run.phase_index += 1
+            if run.phase is None:
+                run.home_m = latched
+                run.status = hm.HomingStatus.RETURNING
+
+    def _finish_homing(self) -> None:
+        run = self._homing
+        home_offset_m = int(self._obj(0x607C)) * self._u
+        # shift the position reference: the home point reads as the home offset
+        old_zero = self._zero_m
+        self._zero_m = run.home_m - home_offset_m
+        shift = self._zero_m - old_zero
+        self._demand_m -= shift
+        self._profile.reset(self._profile.position_m - shift, 0.0)
+        self._jerk.reset(self._profile.position_m, 1)
+        self._pp_target_m = self._profile.position_m
+        run.status = hm.HomingStatus.ATTAINED
+        self._homed = True
+        self._notify("homed")
+
+    # ================================================================================ cycle
+    def step(self, n_cycles: int = 1) -> None:
+        """Run ``n_cycles`` drive cycles (one position-loop cycle each)."""
+        for _ in range(n_cycles):
+            with self._lock:
+                self._cycle()
+
+    def _cycle(self) -> None:
+        dt = self.cycle_s
+        if self._power:
+            if self._stop is not None:
+                self._run_stop()
+            elif self._state == S.OPERATION_ENABLED:
+                self._run_mode()
+            elif self._state == S.QUICK_STOP_ACTIVE:
+                self._set_sim_mode(ControlMode.POSITION)
+                self._set_position(self._demand_m, 0.0)
+        self.sim.advance(1)
+        self._prev_actual_m = self._axis.position_m
+        ax = self._axis = self.sim.state
+        self.counters["cycles"] += 1
+        if not self._power:
+            self._demand_m = ax.position_m - self._zero_m
+            self._profile.reset(self._demand_m)
+            self._interp.reset(self._demand_m)
+        if self._params_dirty:
+            self._refresh_params()
+        self._monitor(ax, dt)
+        self._publish_outputs()
+
+    def _refresh_params(self) -> None:
+        """Monitoring parameters in SI, recomputed only after an object write (not every cycle)."""
+        o, u = self.objects, self._u
+        vdc_nom = self.cfg.inverter.dc_link_v
+        window = int(o[(0x6065, 0)])
+        self._pc = _Params(
+            fe_window_m=math.inf if window == 0xFFFFFFFF else window * u,
+            fe_time_s=int(o[(0x6066, 0)]) / 1000.0,
+            standstill_window_m=int(o[(0x2006, 0)]) * u,
+            standstill_time_s=int(o[(0x2007, 0)]) / 1000.0,
+            position_window_m=int(o[(0x6067, 0)]) * u,
+            position_time_s=int(o[(0x6068, 0)]) / 1000.0,
+            velocity_window_m_s=int(o[(0x606D, 0)]) * u,
+            velocity_time_s=int(o[(0x606E, 0)]) / 1000.0,
+            velocity_threshold_m_s=int(o[(0x606F, 0)]) * u,
+            velocity_threshold_time_s=int(o[(0x6070, 0)]) / 1000.0,
+            temperature_alarm_c=float(o[(0x200A, 0)]),
+            temperature_fault_c=float(o[(0x200B, 0)]),
+            dc_over_v=self.settings.dc_link_overvoltage_v or 1.25 * vdc_nom,
+            dc_under_v=self.settings.dc_link_undervoltage_v or 0.70 * vdc_nom,
+            rated_current_a=self.cfg.motor.rated_current_a,
+            pmsm=self.cfg.actuator.kind == "pmsm",
+            inv_u=1.0 / u,
+            rated_nm=float(o[(0x6076, 0)]) / 1000.0,
+            rated_a=float(o[(0x6075, 0)]) / 1000.0,
+        )
+        self._params_dirty = False
+
+    def _monitor(self, ax, dt: float) -> None:
+        pc = self._pc
+        fe_m = ax.following_error_m
+        in_position_control = (
+            self._power
+            and self._smode == ControlMode.POSITION
+            and (self._state is S.OPERATION_ENABLED or self._state is S.QUICK_STOP_ACTIVE)
+        )
+        # following error 0x6065 / 0x6066 (position control only)
+        if in_position_control:
+            self._fe_exceeded = self._fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
+            if self._fe_exceeded:
+                self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
+        elif self._fe_timer.held_s:
+            self._fe_timer.held_s = 0.0
+        # standstill monitoring (p2542/p2543): demand at rest for 0x2007 ms, |FE| > 0x2006 -> following error
+        if in_position_control and self._demand_v == 0.0 and self._stop is None:
+            at_rest = self._rest_timer.update(True, dt, pc.standstill_time_s)
+            if at_rest and abs(fe_m) > pc.standstill_window_m and self._state is S.OPERATION_ENABLED:
+                self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
+        elif self._rest_timer.held_s:
+            self._rest_timer.held_s = 0.0
+        # target reached / velocity reached / speed zero
+        mode = self._mode
+        x = ax.position_m - self._zero_m
+        if mode == CSP:
+            cond = abs(self._interp.end - x) <= pc.position_window_m and self._interp.i >= self._interp.n
+            self._target_reached = self._tr_timer.update(cond, dt, pc.position_time_s)
+        elif mode == PP:
+            if self._cw & 0x100 and self._profile.velocity_m_s == 0.0:  # halted
+                self._target_reached = True
+            else:
+                cond = (
+                    self._profile.done
+                    and self._pp_pending is None
+                    and self._jerk.settled(self._profile.position_m)
+                    and abs(self._pp_target_m - x) <= pc.position_window_m
+                )
+                self._target_reached = self._tr_timer.update(cond, dt, pc.position_time_s)
+        elif mode == PV:
+            target = int(self.objects[(0x60FF, 0)]) * self._u if not self._cw & 0x100 else 0.0
+            cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
+            self._target_reached = self._tr_timer.update(cond, dt, pc.velocity_time_s)
+        elif mode == HM:
+            self._target_reached = self._homing is None or self._homing.status in (
+                hm.HomingStatus.ATTAINED,
+                hm.HomingStatus.ERROR,
+            )
+        else:
+            self._target_reached = False
+        self._speed_zero = self._vz_timer.update(
+            abs(ax.velocity_m_s) <= pc.velocity_threshold_m_s, dt, pc.velocity_threshold_time_s
+        )
+        # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
+        if pc.pmsm:
+            i2 = ax.current_q_a * ax.current_q_a + ax.current_d_a * ax.current_d_a
+            rise_ss = MOTOR_RISE_AT_RATED_K * i2 / (pc.rated_current_a * pc.rated_current_a)
+            self._motor_rise_k += dt / MOTOR_THERMAL_TAU_S * (rise_ss - self._motor_rise_k)
+        temp = MOTOR_AMBIENT_C + self._motor_rise_k
+        self._alarm = 7910 if temp >= pc.temperature_alarm_c else 0
+        if temp >= pc.temperature_fault_c:
+            if 0x4310 not in self._causes:
+                self._raise_fault(0x4310, int(temp * 10), cause="motor temperature")
+        elif self._causes.get(0x4310) == "motor temperature":
+            del self._causes[0x4310]
+        # DC link
+        vdc = ax.dc_link_v
+        if vdc > pc.dc_over_v or vdc < pc.dc_under_v or self._causes:
+            for code, bad in ((0x3210, vdc > pc.dc_over_v), (0x3220, vdc < pc.dc_under_v)):
+                if bad and code not in self._causes:
+                    self._raise_fault(code, int(vdc * 1000), cause="dc link")
+                elif not bad and self._causes.get(code) == "dc link":
+                    del self._causes[code]
+        self._warning = self._alarm != 0
+
+    # ================================================================================ outputs
+    def _update_statusword(self) -> None:
+        sw = STATE_BITS[self._state] | 0x10 | 0x200  # voltage enabled, remote
+        if self._warning or self._alarm:
+            sw |= 0x80
+        if self._target_reached:
+            sw |= 0x400
+        if self._internal_limit or (self._power and self._axis.current_limited):
+            sw |= 0x800
+        if self._state == S.OPERATION_ENABLED:
+            mode = self._mode
+            if mode == PP:
+                sw |= 0x1000 if self._pp_ack else 0
+                sw |= 0x2000 if self._fe_timer.held_s > 0 and self._fe_exceeded else 0
+            elif mode == PV:
+                sw |= 0x1000 if self._speed_zero_flag() else 0
+            elif mode == HM:
+                # bits 13/12/10: idle or interrupted 0/0/1 (0/1/1 once homed), in progress 0/0/0,
+                # attained 0/1/1, error 1/0/0 (1/0/1 at standstill)
+                run = self._homing
+                sw &= ~0x3400
+                if run is None:
+                    sw |= 0x1400 if self._homed else 0x400
+                elif run.status == hm.HomingStatus.ATTAINED:
+                    sw |= 0x1400
+                elif run.status == hm.HomingStatus.ERROR:
+                    sw |= 0x2000 | (0x400 if abs(self._axis.velocity_m_s) < 1e-4 else 0)
+            elif mode in (CSP, CSV, CST):
+                sw |= 0x1000  # drive follows the command value
+                if mode == CSP and self._fe_exceeded:
+                    sw |= 0x2000
+        elif self._state == S.FAULT and self._faults and self._faults[0].emcy_code == 0x8611:
+            sw |= 0x2000
+        self._store((0x6041, 0), sw)
+
+    def _speed_zero_flag(self) -> bool:
+        return bool(getattr(self, "_speed_zero", False))
+
+    def _publish_outputs(self) -> None:
+        ax, pc, o = self._axis, self._pc, self.objects
+        store = self._store
+        self._update_statusword()
+        inv_u = pc.inv_u
+        x = ax.position_m - self._zero_m
+        store((0x6061, 0), self._mode)
+        store((0x6062, 0), _i32(self._demand_m * inv_u))
+        store((0x6063, 0), _i32(x * self.scaling.increments_per_metre))
+        store((0x6064, 0), _i32(x * inv_u))
+        store((0x606B, 0), _i32(self._demand_v * inv_u))
+        store((0x606C, 0), _i32(ax.velocity_m_s * inv_u))
+        torque_pm = _i16(ax.torque_nm / pc.rated_nm * 1000.0) if pc.rated_nm else 0
+        store((0x6077, 0), torque_pm)
+        store((0x6078, 0), _i16(ax.current_q_a / pc.rated_a * 1000.0) if pc.rated_a else 0)
+        if self._mode != CST:
+            store((0x6074, 0), torque_pm)
+        store((0x6079, 0), clamp_to_dtype(ax.dc_link_v * 1000, "u32"))
+        fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0
+        self._fe_m = fe
+        store((0x60F4, 0), _i32(fe * inv_u))
+        neg, pos, home = self._switches(ax.position_m, int(o[(0x6098, 0)]))
+        store((0x60FD, 0), (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0))
+        store((0x2020, 0), round(MOTOR_AMBIENT_C + self._motor_rise_k, 2))
+        store((0x2031, 0), self._alarm)
+        store((0x2110, 5), self.counters["cycles"] & 0xFFFFFFFF)
+
+    def record_overrun(self, n: int = 1) -> None:
+        """The runtime reports cycles that started late (shown in 0x2110:2 and the counters)."""
+        with self._lock:
+            self.counters["overruns"] += n
+            self._store((0x2110, 2), clamp_to_dtype(self.counters["overruns"], "u32"))
+
+    # ================================================================================ public API
+    @property
+    def cia402_state(self) -> Cia402State:
+        return self._state
+
+    @property
+    def state(self) -> DriveState:
+        with self._lock:
+            o, _u, ax = self.objects, self._u, self._axis
+            return DriveState(
+                name=self.name,
+                time_s=ax.time_s,
+                cycles=self.counters["cycles"],
+                cia402_state=self._state.value,
+                mode=self._mode,
+                mode_name=MODE_NAMES.get(self._mode, str(self._mode)),
+                controlword=self._cw,
+                statusword=int(o[(0x6041, 0)]),
+                position_demand_m=self._demand_m,
+                position_actual_m=ax.position_m - self._zero_m,
+                table_position_m=ax.table_position_m,
+                velocity_demand_m_s=self._demand_v,
+                velocity_actual_m_s=ax.velocity_m_s,
+                torque_nm=ax.torque_nm,
+                current_a=ax.current_q_a,
+                following_error_m=self._fe_m,
+                dc_link_v=ax.dc_link_v,
+                motor_temperature_c=MOTOR_AMBIENT_C + self._motor_rise_k,
+                target_reached=bool(int(o[(0x6041, 0)]) & 0x400),
+                internal_limit_active=bool(int(o[(0x6041, 0)]) & 0x800),
+                warning=bool(int(o[(0x6041, 0)]) & 0x80),
+                homed=self._homed,
+                digital_inputs=int(o[(0x60FD, 0)]),
+                fault_active=self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE),
+                error_code=int(o[(0x603F, 0)]),
+                faults=tuple(self._faults),
+                alarm_number=self._alarm,
+            )
+
+    def parameter_names(self) -> list[str]:
+        return sorted(PARAMETERS)
+
+    def _param(self, name: str):
+        spec = PARAMETERS.get(name)
+        if spec is None:
+            import difflib
+
+            hint = difflib.get_close_matches(name, list(PARAMETERS), n=1)
+            raise KeyError(f"unknown drive parameter {name!r}" + (f" (did you mean {hint[0]}?)" if hint else ""))
+        return spec
+
+    def _scale(self, spec) -> float:
+        if spec.scale == "pos":
+            return self._u
+        if spec.scale == "torque_nm":
+            return float(self.objects[(0x6076, 0)]) / 1e6  # per mille of rated mN m -> N m
+        if spec.scale == "current_a":
+            return float(self.objects[(0x6075, 0)]) / 1e6
+        return 1.0
+
+    def get_parameter(self, name: str) -> float:
+        """A named parameter in SI units (see :data:`virtualaxis.drive.snapshot.PARAMETERS`)."""
+        with self._lock:
+            spec = self._param(name)
+            return float(self.objects[(spec.index, spec.sub)]) * self._scale(spec)
+
+    def set_parameter(self, name: str, value: float) -> None:
+        """Set a named parameter (SI units); refused values raise :class:`ObjectAccessError`."""
+        with self._lock:
+            spec = self._param(name)
+            if name == "software_limit_reaction" and isinstance(value, str):
+                value = {"clamp": 0, "fault": 1}.get(value, -1)
+            raw = float(value) / self._scale(spec)
+            dtype = SPECS[(spec.index, spec.sub)].dtype
+            if dtype != "f32":
+                raw = int(round(raw))
+            self.write_object(spec.index, spec.sub, raw)
+
+    def add_observer(self, callback: Callable[[str, DriveState], None]) -> None:
+        """``callback(event, state)`` on "state", "mode", "fault", "fault_cleared", "homed"."""
+        with self._lock:
+            self._observers.append(callback)
+
+    def remove_observer(self, callback: Callable[[str, DriveState], None]) -> None:
+        with self._lock:
+            if callback in self._observers:
+                self._observers.remove(callback)
+
+    def _notify(self, event: str) -> None:
+        if not self._observers:
+            return
+        snap = self.state
+        for cb in list(self._observers):
+            cb(event, snap)
+
+    def set_controlword(self, cw: int) -> None:
+        self.write_object(0x6040, 0, cw)
+
+
+@dataclass(frozen=True, slots=True)
+class _Params:
+    fe_window_m: float
+    fe_time_s: float
+    standstill_window_m: float
+    standstill_time_s: float
+    position_window_m: float
+    position_time_s: float
+    velocity_window_m_s: float
+    velocity_time_s: float
+    velocity_threshold_m_s: float
+    velocity_threshold_time_s: float
+    temperature_alarm_c: float
+    temperature_fault_c: float
+    dc_over_v: float
+    dc_under_v: float
+    rated_current_a: float
+    pmsm: bool
+    inv_u: float
+    rated_nm: float
+    rated_a: float
+
+
+def _i32(x: float) -> int:
+    v = int(round(x))
+    return -0x80000000 if v < -0x80000000 else 0x7FFFFFFF if v > 0x7FFFFFFF else v
+
+
+def _i16(x: float) -> int:
+    v = int(round(x))
+    return -0x8000 if v < -0x8000 else 0x7FFF if v > 0x7FFF else v

@@ -1,0 +1,76 @@
+"""Fault codes (CiA 402 EMCY codes with Siemens-style fault numbers) and the fault buffer.
+
+The buffer mirrors SINAMICS r0945 (fault code), r0947 (fault number) and r0949 (fault value): the
+latest 8 faults, newest first. Fault numbers marked "inferred" in :data:`FAULT_TABLE` are reasonable
+choices, not documented SINAMICS assignments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class FaultInfo:
+    emcy_code: int
+    fault_number: int  # Siemens-style F number (r0947)
+    text: str
+    register_bits: int  # 0x1001 bits besides bit 0: 1 current, 2 voltage, 3 temperature, 4 communication,
+    # 5 device profile, 7 manufacturer
+    documented: bool  # False: the fault number is inferred
+
+
+FAULT_TABLE: dict[int, FaultInfo] = {
+    f.emcy_code: f
+    for f in (
+        FaultInfo(0x2310, 30001, "over-current (power unit)", 0x02, True),
+        FaultInfo(0x3210, 30002, "DC-link over-voltage", 0x04, True),
+        FaultInfo(0x3220, 30003, "DC-link under-voltage", 0x04, True),
+        FaultInfo(0x4210, 30004, "power unit over-temperature", 0x08, True),
+        FaultInfo(0x4310, 7011, "motor over-temperature", 0x08, True),
+        FaultInfo(0x7305, 31100, "position sensor (encoder 1) signal fault", 0x80, False),
+        FaultInfo(0x7320, 31110, "position sensor error", 0x80, False),
+        FaultInfo(0x8110, 8700, "CAN overrun (objects lost)", 0x10, False),
+        FaultInfo(0x8130, 8700, "life guard / heartbeat error", 0x10, False),
+        FaultInfo(0x8140, 8700, "recovered from bus off", 0x10, False),
+        FaultInfo(0x8210, 8700, "PDO not processed due to length error", 0x10, False),
+        FaultInfo(0x8250, 8702, "RPDO timeout", 0x10, False),
+        FaultInfo(0x8611, 7452, "following error too high", 0x20, False),
+        FaultInfo(0x8612, 7491, "reference limit (software limit) exceeded", 0x20, False),
+        FaultInfo(0x5530, 1000, "internal software error", 0x80, False),
+    )
+}
+
+FAULT_BUFFER_LENGTH = 8
+
+
+def fault_info(emcy_code: int) -> FaultInfo:
+    """The table entry for a code; unknown codes are accepted as generic manufacturer faults."""
+    info = FAULT_TABLE.get(emcy_code)
+    if info is not None:
+        return info
+    return FaultInfo(emcy_code, 1000, f"fault 0x{emcy_code:04X}", 0x80, False)
+
+
+@dataclass(frozen=True)
+class FaultRecord:
+    """One entry of the fault buffer."""
+
+    emcy_code: int  # r0945
+    fault_number: int  # r0947
+    value: int  # r0949: fault value (e.g. following error in position units)
+    text: str
+    time_s: float  # drive time when raised
+    injected: bool  # raised by inject_fault (HIL fault injection)
+    acknowledged: bool = False
+
+    def as_dict(self) -> dict:
+        return {
+            "emcy_code": f"0x{self.emcy_code:04X}",
+            "fault_number": f"F{self.fault_number:05d}",
+            "value": self.value,
+            "text": self.text,
+            "time_s": self.time_s,
+            "injected": self.injected,
+            "acknowledged": self.acknowledged,
+        }

@@ -1,0 +1,92 @@
+"""Axes on a bus: a drive, its CiA 402 application and its CiA 301 slave, built from an axis config."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+
+from virtualaxis.canopen_slave import CanopenSlave
+from virtualaxis.config import AxisConfig, ConfigError, load_axis_config
+from virtualaxis.drive.canopen_app import Cia402Application
+from virtualaxis.drive.core import DEFAULT_EDS, Drive
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+DEFAULT_CONFIG = REPO_ROOT / "configs" / "seed000-hust.toml"
+
+
+@dataclass(frozen=True)
+class AxisSpec:
+    """``NAME=ID:CONFIG`` of ``virtualaxis serve --axis``."""
+
+    name: str
+    node_id: int
+    config: Path
+
+    @staticmethod
+    def parse(text: str) -> AxisSpec:
+        if "=" not in text or ":" not in text.split("=", 1)[1]:
+            raise ConfigError("--axis", text, "expected NAME=ID:CONFIG, e.g. X=1:configs/seed000-hust.toml")
+        name, rest = text.split("=", 1)
+        node, config = rest.split(":", 1)
+        try:
+            node_id = int(node, 0)
+        except ValueError:
+            raise ConfigError("--axis", text, f"node id {node!r} is not an integer") from None
+        if not 1 <= node_id <= 127:
+            raise ConfigError("--axis", text, f"node id must be 1..127 (got {node_id})")
+        if not name:
+            raise ConfigError("--axis", text, "axis name is empty")
+        return AxisSpec(name, node_id, Path(config))
+
+
+class AxisNode:
+    """One axis served on a bus (call :meth:`boot` once the bus listener is running)."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        node_id: int,
+        cfg: AxisConfig,
+        *,
+        name: str | None = None,
+        eds_path: str | Path = DEFAULT_EDS,
+        store_path: str | Path | None = None,
+        seed: int | None = None,
+        initial_position_m: float = 0.0,
+        discrete=None,
+    ):
+        self.name = name or cfg.axis.name
+        self.node_id = node_id
+        self.drive = Drive(
+            cfg,
+            name=self.name,
+            eds_path=eds_path,
+            seed=seed,
+            initial_position_m=initial_position_m,
+            discrete=discrete,
+        )
+        self.app = Cia402Application(self.drive)
+        self.slave = CanopenSlave(bus, node_id, eds_path, app=self.app, store_path=store_path)
+        self.app.attach(self.slave)
+
+    def sync_cycles(self) -> int:
+        """Drive cycles per SYNC in lockstep: 0x1006 (communication cycle) / position cycle, at least 1."""
+        period_us = self.slave.read(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else 0
+        if not period_us:
+            return 1
+        return max(1, int(round(period_us * 1e-6 / self.drive.cycle_s)))
+
+
+def build_axes(bus: can.BusABC, specs: list[AxisSpec], *, eds_path: str | Path = DEFAULT_EDS) -> list[AxisNode]:
+    """Axes from ``--axis`` specs; node ids must be unique."""
+    seen: dict[int, str] = {}
+    axes = []
+    for spec in specs:
+        if spec.node_id in seen:
+            raise ConfigError("--axis", spec.name, f"node id {spec.node_id} already used by axis {seen[spec.node_id]}")
+        seen[spec.node_id] = spec.name
+        cfg = load_axis_config(spec.config)
+        axes.append(AxisNode(bus, spec.node_id, cfg, name=spec.name, eds_path=eds_path))
+    return axes

@@ -1,0 +1,73 @@
+"""Opening a python-can bus from an ``INTERFACE:CHANNEL[,key=value...]`` string.
+
+- ``socketcan:vcan0`` (the default): kernel SocketCAN; a missing interface gives an error that says how
+  to create a virtual one and how to use ``udp_multicast`` instead.
+- ``virtual:NAME``: python-can's in-process bus (tests, ``virtualaxis demo``).
+- ``udp_multicast:GROUP``: python-can's host-local bus across processes; always opened with
+  ``hop_limit=0`` (frames never leave the host) unless the string says otherwise
+  (``udp_multicast:239.74.163.2,hop_limit=1,port=43113``). Needs the ``msgpack`` package.
+- any other python-can interface name is passed through (``pcan:PCAN_USBBUS1,bitrate=1000000``).
+"""
+
+from __future__ import annotations
+
+import can
+
+DEFAULT_BUS = "socketcan:vcan0"
+DEFAULT_UDP_GROUP = "239.74.163.2"
+
+VCAN_HELP = (
+    "create it with 'sudo ip link add dev {ch} type vcan; sudo ip link set up {ch}' "
+    "(modprobe vcan first if needed), or use a host-local bus without kernel CAN: "
+    "--can udp_multicast:" + DEFAULT_UDP_GROUP
+)
+
+
+class BusOpenError(Exception):
+    """The bus could not be opened; the message says why and what to do."""
+
+
+def parse_bus_spec(spec: str) -> tuple[str, str, dict]:
+    """``"iface:channel,k=v"`` -> (iface, channel, options); values are int where they look like ints."""
+    if not spec or ":" not in spec:
+        raise BusOpenError(
+            f"bus {spec!r}: expected INTERFACE:CHANNEL, e.g. socketcan:vcan0, virtual:demo, "
+            f"udp_multicast:{DEFAULT_UDP_GROUP}"
+        )
+    interface, rest = spec.split(":", 1)
+    parts = rest.split(",")
+    channel = parts[0]
+    options: dict = {}
+    for part in parts[1:]:
+        if "=" not in part:
+            raise BusOpenError(f"bus {spec!r}: option {part!r} is not key=value")
+        key, value = part.split("=", 1)
+        try:
+            options[key.strip()] = int(value, 0)
+        except ValueError:
+            options[key.strip()] = value.strip()
+    return interface.strip(), channel.strip(), options
+
+
+def open_bus(spec: str = DEFAULT_BUS, *, receive_own_messages: bool = False) -> can.BusABC:
+    """Open the bus a spec names (see module doc)."""
+    interface, channel, options = parse_bus_spec(spec)
+    if interface == "udp_multicast":
+        options.setdefault("hop_limit", 0)
+        channel = channel or DEFAULT_UDP_GROUP
+    if interface == "virtual" and not channel:
+        channel = "virtualaxis"
+    try:
+        return can.Bus(interface=interface, channel=channel, receive_own_messages=receive_own_messages, **options)
+    except can.CanInterfaceNotImplementedError as exc:
+        if interface == "socketcan":
+            raise BusOpenError(
+                f"bus {spec!r}: SocketCAN is not available here ({exc}); " + VCAN_HELP.format(ch=channel or "vcan0")
+            ) from None
+        raise BusOpenError(f"bus {spec!r}: interface not available ({exc})") from None
+    except (OSError, can.CanError, ValueError) as exc:
+        if interface == "socketcan":
+            raise BusOpenError(
+                f"bus {spec!r}: cannot open {channel!r} ({exc}); " + VCAN_HELP.format(ch=channel or "vcan0")
+            ) from None
+        raise BusOpenError(f"bus {spec!r}: cannot open ({exc})") from None
