@@ -11,6 +11,7 @@ import argparse
 import importlib
 import sys
 
+from virtualaxis.cli.errors import CliError
 from virtualaxis.config.errors import ConfigError, InputError
 
 # module names in virtualaxis.cli; a command whose optional dependency is missing is skipped
@@ -26,10 +27,6 @@ COMMANDS = (
     "diagnose",
     "gap_bench",
 )
-
-
-class CliError(Exception):
-    """A user-facing error with a one-line message."""
 
 
 def build_parser() -> argparse.ArgumentParser:
