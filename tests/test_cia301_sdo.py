@@ -3,6 +3,7 @@ segmented, block download and block upload (with CRC, protocol switch and sequen
 
 from __future__ import annotations
 
+import queue
 import struct
 import time
 
@@ -34,6 +35,10 @@ def raw(rig, frame: bytes, expect: int = 1, timeout_s: float = 1.0) -> list[byte
     before = len(rig.sniffer.of(TX))
     rig.send(RX, frame.ljust(8, b"\x00"))
     got = rig.sniffer.wait_for(TX, before + expect, timeout_s)
+    # The master's own SDO client hears these answers too, on its notifier thread, possibly after the sniffer:
+    # let them arrive and drop them, so a later client request cannot take a stale answer for its own.
+    time.sleep(0.05)
+    rig.node.sdo.responses = queue.Queue()
     return [d for _t, d in got[before:]]
 
 
