@@ -6,13 +6,25 @@ current-loop voltage is applied one PWM period after it is computed (computation
 advanced with exact zero-order-hold matrices per contact/stick mode (see :mod:`virtualaxis.plant.discrete`).
 
 Everything here is allocation-free: the caller owns every array (see :mod:`virtualaxis.sim.layout`).
+
+Speed (benchmarks/bench_plant.py; BENCHMARKS.md "Plant kernel speed-up"): :func:`run_cycles` is compiled
+without the NRT (``_nrt=False``): it allocates nothing, and with the NRT every array handed to an inlined helper
+cost atomic reference-count calls in the hot loop (the largest single cost). Parameters are read into locals
+once per call; the mechanical step of the six-body model (12 states) runs as ``<4 x double>`` fused
+multiply-adds on transposed mode tables (:func:`_zoh_12`; any other size takes :func:`_zoh_generic`); the
+cogging and periodic lead-error sines advance by a rotation recurrence re-seeded from ``math.sin``/``math.cos``
+at every position-loop sample (:func:`sin_cos_step`). None of this changes the model: results agree with the
+plain loops to round-off.
 """
 
 from __future__ import annotations
 
 import math
 
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from virtualaxis.control.loops import clamp, pi_step, quantise
 from virtualaxis.sim.layout import (
@@ -154,18 +166,25 @@ SQRT3 = math.sqrt(3.0)
 
 
 @njit(cache=True, fastmath=True)
-def blend_tables(pr, st, ad, bd, krow, crow, wad, wbd, wk, wc):
-    """Interpolate the mode tables linearly at the present nut position (once per position cycle)."""
+def blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc):
+    """Interpolate the mode tables linearly at the present nut position (once per position cycle).
+
+    The tables come transposed, ``adt[g, m, c, r] = Ad[g, m, r, c]`` and ``bdt[g, m, c, r] = Bd[g, m, r, c]``,
+    so that the step ``z <- Ad z + Bd u`` reads each column contiguously (vectorisable across rows).
+    """
     ngrid = int(pr[P_NGRID])
     if ngrid == 1:
-        for m in range(ad.shape[1]):
-            for r in range(ad.shape[2]):
-                for c in range(ad.shape[3]):
-                    wad[m, r, c] = ad[0, m, r, c]
-                for c in range(bd.shape[3]):
-                    wbd[m, r, c] = bd[0, m, r, c]
-        wk[:] = krow[0]
-        wc[:] = crow[0]
+        for m in range(adt.shape[1]):
+            for c in range(adt.shape[2]):
+                for r in range(adt.shape[3]):
+                    wat[m, c, r] = adt[0, m, c, r]
+            for c in range(bdt.shape[2]):
+                for r in range(bdt.shape[3]):
+                    wbt[m, c, r] = bdt[0, m, c, r]
+        for m in range(krow.shape[1]):
+            for c in range(krow.shape[2]):
+                wk[m, c] = krow[0, m, c]
+                wc[m, c] = crow[0, m, c]
         return
     nut = pr[P_NUT_OFF] + st[Z0 + int(pr[P_TABLE])]
     f = (nut - pr[P_GRID_LO]) / pr[P_GRID_STEP]
@@ -178,12 +197,13 @@ def blend_tables(pr, st, ad, bd, krow, crow, wad, wbd, wk, wc):
         i = ngrid - 2
     w = f - i
     w0 = 1.0 - w
-    for m in range(ad.shape[1]):
-        for r in range(ad.shape[2]):
-            for c in range(ad.shape[3]):
-                wad[m, r, c] = w0 * ad[i, m, r, c] + w * ad[i + 1, m, r, c]
-            for c in range(bd.shape[3]):
-                wbd[m, r, c] = w0 * bd[i, m, r, c] + w * bd[i + 1, m, r, c]
+    for m in range(adt.shape[1]):
+        for c in range(adt.shape[2]):
+            for r in range(adt.shape[3]):
+                wat[m, c, r] = w0 * adt[i, m, c, r] + w * adt[i + 1, m, c, r]
+        for c in range(bdt.shape[2]):
+            for r in range(bdt.shape[3]):
+                wbt[m, c, r] = w0 * bdt[i, m, c, r] + w * bdt[i + 1, m, c, r]
     for m in range(krow.shape[1]):
         for c in range(krow.shape[2]):
             wk[m, c] = w0 * krow[i, m, c] + w * krow[i + 1, m, c]
@@ -216,6 +236,17 @@ def motor_speed(pr, st, mvec):
 
 
 @njit(cache=True, fastmath=True, inline="always")
+def _dot_state(vec, z, offset, n):
+    """sum_i vec[i] z[offset + i]: motor angle (offset 0) or speed (offset n) when the motor is not one body.
+    Only called in branches that are rare in the hot loop: passing arrays to an inlined function costs
+    reference-count calls there."""
+    s = 0.0
+    for i in range(n):
+        s += vec[i] * z[offset + i]
+    return s
+
+
+@njit(cache=True, fastmath=True, inline="always")
 def _feedback_position(pr, st, ring):
     """Position feedback of the position loop at the table [m], delayed by the measurement dead time."""
     nd = int(pr[P_NDEAD])
@@ -227,31 +258,6 @@ def _feedback_position(pr, st, ring):
             return quantise(ring[j, 0], pr[P_QENC]) * r
         return quantise(ring[j, 1], pr[P_QSCALE])
     return quantise(ring[j, 1], pr[P_QSCALE])
-
-
-@njit(cache=True, fastmath=True, inline="always")
-def _speed_sample_coordinate(pr, st, mvec):
-    """The quantity whose difference the speed loop measures: motor angle [rad] (pmsm) or position [m]."""
-    if pr[P_FORCE_ACT] == 0.0:
-        return quantise(motor_angle(pr, st, mvec), pr[P_QENC])
-    if pr[P_FB] == 0.0 and pr[P_R] > 0.0:
-        return quantise(motor_angle(pr, st, mvec), pr[P_QENC]) * pr[P_R]
-    return quantise(st[Z0 + int(pr[P_TABLE])], pr[P_QSCALE])
-
-
-@njit(cache=True, fastmath=True, inline="always")
-def _kinematic_offset(pr, st):
-    """Offset of the nut's kinematic position: lead error (cumulative, periodic) and thermal growth [m]."""
-    sb = int(pr[P_SCREW])
-    if sb < 0:
-        return 0.0
-    theta = st[Z0 + sb]
-    off = pr[P_LEAD_PPM] * 1e-6 * pr[P_R] * theta
-    if pr[P_LEAD_PER_A] != 0.0:
-        off += pr[P_LEAD_PER_A] * math.sin(theta + pr[P_LEAD_PER_PH])
-    if pr[P_TH_ALPHA] != 0.0:
-        off += pr[P_TH_ALPHA] * st[S_TEMP] * (pr[P_NUT_OFF] + st[Z0 + int(pr[P_TABLE])])
-    return off
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -375,34 +381,151 @@ def _electrical_svpwm(pr, st, ud, uq, wm, theta_e0, h):
     return torque_int / h
 
 
+@njit(cache=True)
+def stribeck_cut_ratio(stribeck_n, coulomb_min_n, exponent):
+    """Velocity ratio |v|/v_s beyond which F_s exp(-(|v|/v_s)^delta) < 2^-54 F_c, i.e. less than half an ulp of
+    the Coulomb force, so that F_c + (Stribeck term) == F_c exactly and the kernel may skip the ``exp``.
+    ``inf`` (never skip) when there is no Coulomb force to absorb the term. Computed from ``pr`` at every call,
+    so parameters changed between calls are honoured."""
+    if stribeck_n <= 0.0 or coulomb_min_n <= 0.0 or exponent <= 0.0:
+        return math.inf
+    x = 54.0 * math.log(2.0) + math.log(stribeck_n / coulomb_min_n) + 1.0  # one unit of margin in the exponent
+    return max(x, 0.0) ** (1.0 / exponent)
+
+
+SIN_STEP_MAX_RAD = 0.2  # largest angle increment the rotation recurrence of :func:`sin_cos_step` takes
+
+
 @njit(cache=True, fastmath=True, inline="always")
-def _mech_step(pr, st, z, wad, wbd, wk, wc, gtab, avec, ztmp, u, actuator):
+def sin_cos_step(x, x_prev, s_prev, c_prev, exact):
+    """(sin x, cos x) from the values at ``x_prev`` by one rotation through ``d = x - x_prev``, with sin d and
+    cos d - 1 from their Taylor series (truncation < 1e-17 for |d| <= 0.2 rad). Falls back to ``math.sin`` /
+    ``math.cos`` when ``exact`` is set or the increment is larger. The kernel re-seeds with ``exact`` at every
+    position-loop sample, so at most one cycle of recurrence round-off (~1e-14) accumulates."""
+    d = x - x_prev
+    if exact or not abs(d) <= SIN_STEP_MAX_RAD:
+        return math.sin(x), math.cos(x)
+    d2 = d * d
+    sd = d * (1.0 - d2 / 6.0 * (1.0 - d2 / 20.0 * (1.0 - d2 / 42.0 * (1.0 - d2 / 72.0 * (1.0 - d2 / 110.0)))))
+    cm1 = -0.5 * d2 * (1.0 - d2 / 12.0 * (1.0 - d2 / 30.0 * (1.0 - d2 / 56.0 * (1.0 - d2 / 90.0
+                                                                                  * (1.0 - d2 / 132.0)))))
+    return s_prev + (s_prev * cm1 + c_prev * sd), c_prev + (c_prev * cm1 - s_prev * sd)
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _zoh_generic(at, bt, m, z, ztmp, s, u0, u1, u2, u3):
+    """``z <- Ad z + Bd u`` for any state size, with the transposed tables of :func:`blend_tables`."""
+    for r in range(s):
+        ztmp[r] = bt[m, 0, r] * u0 + bt[m, 1, r] * u1 + bt[m, 2, r] * u2 + bt[m, 3, r] * u3
+    for c in range(s):
+        zc = z[c]
+        for r in range(s):  # contiguous column of Ad: vectorises
+            ztmp[r] += at[m, c, r] * zc
+    for r in range(s):
+        z[r] = ztmp[r]
+
+
+@intrinsic
+def _zoh_12(typingctx, at, bt, m, z, u0, u1, u2, u3):
+    """``z <- Ad z + Bd u`` for 12 states (six bodies) in ``<4 x double>`` fused multiply-adds: three vectors of
+    four rows, columns of the transposed tables ``at[m, c, :]`` (4, 12, 12) and ``bt[m, k, :]`` (4, 4, 12), which
+    must be C-contiguous; ``z`` must be contiguous (12,). Numba turns LLVM's SLP vectoriser off by default
+    (NUMBA_SLP_VECTORIZE=0), so the vector code is written here. Four independent partial sums per row group
+    keep the dependency chains short; the same products as :func:`_zoh_generic`, added in a different order
+    (round-off)."""
+    for arr in (at, bt, z):
+        if not (isinstance(arr, types.Array) and arr.dtype == types.float64 and arr.layout in "CA"):
+            return None
+    if at.layout != "C" or bt.layout != "C" or at.ndim != 3 or bt.ndim != 3 or z.ndim != 1:
+        return None
+    sig = types.void(at, bt, m, z, u0, u1, u2, u3)
+
+    def codegen(context, builder, signature, args):
+        f64, i32, i64 = ir.DoubleType(), ir.IntType(32), ir.IntType(64)
+        v4 = ir.VectorType(f64, 4)
+        undef4 = ir.Constant(v4, ir.Undefined)
+        fma = cgutils.get_or_insert_function(builder.module, ir.FunctionType(v4, [v4, v4, v4]), "llvm.fma.v4f64")
+        at_data = context.make_array(signature.args[0])(context, builder, args[0]).data
+        bt_data = context.make_array(signature.args[1])(context, builder, args[1]).data
+        z_data = context.make_array(signature.args[3])(context, builder, args[3]).data
+        m64 = context.cast(builder, args[2], signature.args[2], types.int64)
+        us = args[4:]
+
+        def vptr(base, idx):
+            return builder.bitcast(builder.gep(base, [idx]), v4.as_pointer())
+
+        def lane(vec, i):
+            return builder.shuffle_vector(vec, undef4, ir.Constant(ir.VectorType(i32, 4), [i] * 4))
+
+        def broadcast(x):
+            return lane(builder.insert_element(undef4, x, ir.Constant(i32, 0)), 0)
+
+        a0 = builder.mul(m64, ir.Constant(i64, 144))
+        b0 = builder.mul(m64, ir.Constant(i64, 48))
+        zv = [builder.load(vptr(z_data, ir.Constant(i64, 4 * g)), align=8) for g in range(3)]
+        part = [[None] * 4 for _ in range(3)]
+
+        def mac(slot, g, base, offset, xb):
+            col = builder.load(vptr(base, builder.add(offset, ir.Constant(i64, 4 * g))), align=8)
+            prev = part[g][slot]
+            part[g][slot] = builder.fmul(col, xb) if prev is None else builder.call(fma, [col, xb, prev])
+
+        for c in range(12):
+            zb = lane(zv[c // 4], c % 4)
+            for g in range(3):
+                mac(c // 4, g, at_data, builder.add(a0, ir.Constant(i64, 12 * c)), zb)
+        for k in (0, 2, 1, 3):  # actuator and external force first: friction and contact come from this step
+            ub = broadcast(us[k])
+            for g in range(3):
+                mac(3, g, bt_data, builder.add(b0, ir.Constant(i64, 12 * k)), ub)
+        for g in range(3):
+            p = part[g]
+            acc = builder.fadd(builder.fadd(p[0], p[1]), builder.fadd(p[2], p[3]))
+            builder.store(acc, vptr(z_data, ir.Constant(i64, 4 * g)), align=8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stuck, d_dir, temp, lead_sc):
     """One mechanical step with backlash mode and stick/slip friction (Karnopp-type switch).
 
     Stuck: the table rows are frozen (no creep); the friction force is whatever holds the table, until the
     net force exceeds the break-away force F_c + F_s. Sliding: the friction force follows the Stribeck curve,
     and a velocity sign change within a step sticks the table (no chatter).
+
+    ``mp`` holds the mechanical parameters (see :func:`run_cycles`); ``lead_sc`` = (angle, sin, cos, exact) of
+    the periodic lead error's phase at the previous step (see :func:`sin_cos_step`). Returns the new (stuck,
+    direction, temperature rise, friction force, contact force, contact-gap flag, lead_sc).
     """
-    n = int(pr[P_NDOF])
+    (n, tb, sb, has_contact, bl, half, kc, lead_k, lead_a, lead_ph, th_alpha, nut_off, fric, fc_pos, fc_neg, fs,
+     vs, dl, fv, strib_cut, th_gain, th_r) = mp
     s = 2 * n
-    tb = int(pr[P_TABLE])
     # --- contact (backlash) mode
     cg = 0
     ucontact = 0.0
     cforce = 0.0
-    if pr[P_HAS_CONTACT] != 0.0:
-        kin = _kinematic_offset(pr, st)
+    if has_contact:
+        # kinematic offset of the nut: lead error (cumulative, periodic) and thermal growth [m]
+        kin = 0.0
+        if sb >= 0:
+            theta = z[sb]
+            kin = lead_k * theta
+            if lead_a != 0.0:
+                xl = theta + lead_ph
+                sl, cl = sin_cos_step(xl, lead_sc[0], lead_sc[1], lead_sc[2], lead_sc[3])
+                lead_sc = (xl, sl, cl, False)
+                kin += lead_a * sl
+            if th_alpha != 0.0:
+                kin += th_alpha * temp * (nut_off + z[tb])
         delta = kin
-        ddelta = 0.0
         for i in range(n):
-            delta += avec[i] * st[Z0 + i]
-            ddelta += avec[i] * st[Z0 + n + i]
-        kc = pr[P_KC]
-        if pr[P_BL] == 0.0:
+            delta += avec[i] * z[i]
+        if not bl:
             ucontact = kc * kin
             cforce = kc * delta
         else:
-            half = pr[P_BL_HALF]
             if delta > half:
                 ucontact = kc * (kin - half)
                 cforce = kc * (delta - half)
@@ -411,30 +534,25 @@ def _mech_step(pr, st, z, wad, wbd, wk, wc, gtab, avec, ztmp, u, actuator):
                 cforce = kc * (delta + half)
             else:
                 cg = 1
-    st[S_CONTACT_F] = cforce
-    st[S_CONTACT_MODE] = cg
-    u[0] = actuator
-    u[2] = st[S_F_EXT]
-    u[3] = ucontact
     # --- friction
     stuck = 0
     ffric = 0.0
-    v_old = st[Z0 + n + tb]
-    if pr[P_FRIC] != 0.0:
-        if st[S_STUCK] != 0.0:
-            fnet = gtab[0] * u[0] + gtab[2] * u[2] + gtab[3] * u[3]
+    v_old = z[n + tb]
+    if fric:
+        if was_stuck:
+            fnet = gtab[0] * actuator + gtab[2] * f_ext + gtab[3] * ucontact
             for i in range(n):
-                fnet -= wk[cg, i] * st[Z0 + i] + wc[cg, i] * st[Z0 + n + i]
+                fnet -= wk[cg, i] * z[i] + wc[cg, i] * z[n + i]
             if fnet >= 0.0:
-                brk = pr[P_FC_POS] + pr[P_FS]
+                brk = fc_pos + fs
             else:
-                brk = pr[P_FC_NEG] + pr[P_FS]
+                brk = fc_neg + fs
             if abs(fnet) <= brk:
                 stuck = 1
                 ffric = -fnet
             else:
                 d = 1.0 if fnet > 0.0 else -1.0
-                st[S_DIR] = d
+                d_dir = d
                 ffric = -d * brk
         else:
             v = v_old
@@ -443,55 +561,54 @@ def _mech_step(pr, st, z, wad, wbd, wk, wc, gtab, avec, ztmp, u, actuator):
             elif v < 0.0:
                 d = -1.0
             else:
-                d = st[S_DIR]
-            fc = pr[P_FC_POS] if d > 0.0 else pr[P_FC_NEG]
+                d = d_dir
+            fc = fc_pos if d > 0.0 else fc_neg
             av = abs(v)
             strib = 0.0
-            if pr[P_FS] != 0.0:
-                ratio = av / pr[P_VS]
-                dl = pr[P_DELTA]
-                if dl == 1.0:
-                    strib = pr[P_FS] * math.exp(-ratio)
-                elif dl == 2.0:
-                    strib = pr[P_FS] * math.exp(-ratio * ratio)
-                else:
-                    strib = pr[P_FS] * math.exp(-(ratio**dl))
-            ffric = -d * (fc + strib) - pr[P_FV] * v
-    u[1] = 0.0 if stuck else ffric
-    st[S_F_FRIC] = ffric
+            if fs != 0.0:
+                ratio = av / vs
+                # beyond strib_cut the Stribeck term is below half an ulp of F_c: F_c + it == F_c exactly
+                if ratio < strib_cut:
+                    if dl == 1.0:
+                        strib = fs * math.exp(-ratio)
+                    elif dl == 2.0:
+                        strib = fs * math.exp(-ratio * ratio)
+                    else:
+                        strib = fs * math.exp(-(ratio**dl))
+            ffric = -d * (fc + strib) - fv * v
+    u1 = 0.0 if stuck else ffric
     mode = cg + 2 * stuck
-    u0, u1, u2, u3 = u[0], u[1], u[2], u[3]
-    for r in range(s):
-        acc = wbd[mode, r, 0] * u0 + wbd[mode, r, 1] * u1 + wbd[mode, r, 2] * u2 + wbd[mode, r, 3] * u3
-        for c in range(s):
-            acc += wad[mode, r, c] * z[c]
-        ztmp[r] = acc
-    for r in range(s):
-        z[r] = ztmp[r]
-    if pr[P_FRIC] != 0.0:
+    if s == 12:
+        _zoh_12(at, bt, mode, z, actuator, u1, f_ext, ucontact)
+    else:
+        _zoh_generic(at, bt, mode, z, ztmp, s, actuator, u1, f_ext, ucontact)
+    if fric:
         if stuck:
-            st[S_STUCK] = 1.0
-            st[Z0 + n + tb] = 0.0
+            was_stuck = True
+            z[n + tb] = 0.0
         else:
-            v_new = st[Z0 + n + tb]
-            d = st[S_DIR]
+            v_new = z[n + tb]
+            d = d_dir
             if v_old != 0.0:
                 d = 1.0 if v_old > 0.0 else -1.0
             if v_new * d <= 0.0:
                 # velocity reversed within the step: the table sticks
-                st[Z0 + n + tb] = 0.0
-                st[S_STUCK] = 1.0
+                z[n + tb] = 0.0
+                was_stuck = True
             else:
-                st[S_STUCK] = 0.0
-                st[S_DIR] = d
+                was_stuck = False
+                d_dir = d
     # thermal growth of the screw, driven by friction power
-    if pr[P_TH_ALPHA] != 0.0:
-        p = abs(ffric * st[Z0 + n + tb]) if not stuck else 0.0
-        st[S_TEMP] += pr[P_HM] / pr[P_TH_TAU] * (pr[P_TH_R] * p - st[S_TEMP])
+    if th_alpha != 0.0:
+        p = abs(ffric * z[n + tb]) if not stuck else 0.0
+        temp += th_gain * (th_r * p - temp)
+    return was_stuck, d_dir, temp, ffric, cforce, cg, lead_sc
 
 
-@njit(cache=True, fastmath=True)
-def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk, wc, ztmp, u,
+# _nrt=False: no reference counting (and no allocation possible) in the hot loop; every array is owned by the
+# caller for the duration of the call.
+@njit(cache=True, fastmath=True, _nrt=False)
+def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, wk, wc, ztmp,
                cmd_pos, cmd_vel, cmd_acc, cmd_aux, f_ext, noise, out):
     """Run ``len(cmd_pos)`` position-loop cycles. Row ``j`` of ``out`` holds the signals at the start of
     cycle ``j`` (the position-loop sampling instant), before the cycle is simulated.
@@ -531,8 +648,28 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
     vsat = st[S_VSAT]
     t_now = st[S_T]
     ri = int(st[S_RING])
+    # mechanical parameters (read once per call: the hot loop stores into st and ring, which the compiler must
+    # assume may alias pr) and states held in locals
+    mp = (n, tb, int(pr[P_SCREW]), pr[P_HAS_CONTACT] != 0.0, pr[P_BL] != 0.0, pr[P_BL_HALF], pr[P_KC],
+          pr[P_LEAD_PPM] * 1e-6 * pr[P_R], pr[P_LEAD_PER_A], pr[P_LEAD_PER_PH], pr[P_TH_ALPHA], pr[P_NUT_OFF],
+          pr[P_FRIC] != 0.0, pr[P_FC_POS], pr[P_FC_NEG], pr[P_FS], pr[P_VS], pr[P_DELTA], pr[P_FV],
+          stribeck_cut_ratio(pr[P_FS], min(pr[P_FC_POS], pr[P_FC_NEG]), pr[P_DELTA]),
+          pr[P_HM] / pr[P_TH_TAU] if pr[P_TH_ALPHA] != 0.0 else 0.0, pr[P_TH_R])
+    was_stuck = st[S_STUCK] != 0.0
+    d_dir = st[S_DIR]
+    temp = st[S_TEMP]
+    ffric = st[S_F_FRIC]
+    cforce = st[S_CONTACT_F]
+    cgap = int(st[S_CONTACT_MODE])
+    x_cog, s_cog, c_cog = 0.0, 0.0, 1.0
+    midx = int(pr[P_MOTOR_IDX])
+    qenc, qscale, r_lead = pr[P_QENC], pr[P_QSCALE], pr[P_R]
+    fb_motor = pr[P_FB] == 0.0 and r_lead > 0.0
     for j in range(ncyc):
-        blend_tables(pr, st, ad, bd, krow, crow, wad, wbd, wk, wc)
+        blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc)
+        # the sin recurrences restart from exact values at every position-loop sample
+        cog_exact = True
+        lead_sc = (0.0, 0.0, 1.0, True)
         mode = int(st[S_MODE])
         enabled = st[S_ENABLED] != 0.0
         st[S_F_EXT] = f_ext[j]
@@ -560,7 +697,8 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
         out[j, O_POS_CMD] = cmd_pos[j]
         out[j, O_POS_MEAS] = quantise(x_tab + pr[P_NOISE_POS] * noise[j, 0], pr[P_QSCALE])
         out[j, O_POS_FB] = fb
-        out[j, O_MOTOR_POS] = quantise(motor_angle(pr, st, mvec), pr[P_QENC])
+        th_m = zview[midx] if midx >= 0 else _dot_state(mvec, zview, 0, n)
+        out[j, O_MOTOR_POS] = quantise(th_m, pr[P_QENC])
         out[j, O_VEL] = zview[n + tb]
         if force_act:
             out[j, O_TORQUE] = f_act
@@ -576,20 +714,34 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
         out[j, O_CURRENT_D] = i_d
         out[j, O_VOLT_Q] = uq_app
         out[j, O_VOLT_D] = ud_app
-        out[j, O_FRICTION] = st[S_F_FRIC]
-        out[j, O_STUCK] = st[S_STUCK]
-        out[j, O_CONTACT_F] = st[S_CONTACT_F]
-        out[j, O_MOTOR_SPEED] = motor_speed(pr, st, mvec)
+        out[j, O_FRICTION] = ffric
+        out[j, O_STUCK] = 1.0 if was_stuck else 0.0
+        out[j, O_CONTACT_F] = cforce
+        out[j, O_MOTOR_SPEED] = zview[n + midx] if midx >= 0 else _dot_state(mvec, zview, n, n)
         out[j, O_TABLE_TRUE] = x_tab
-        out[j, O_TEMP] = st[S_TEMP]
+        out[j, O_TEMP] = temp
         out[j, O_AIRGAP] = torque_act
         vsat_any = 0.0
         ilim_any = 0.0
         energy = 0.0
         # ---- current cycles within this position cycle
-        for k in range(npos):
-            if k % nspd == 0:
-                coord = _speed_sample_coordinate(pr, st, mvec)
+        kspd = 0
+        for _k in range(npos):
+            # motor angle [rad] and speed [rad/s] at the start of this current cycle
+            if midx >= 0:
+                th_m = zview[midx]
+                wm = zview[n + midx]
+            else:
+                th_m = _dot_state(mvec, zview, 0, n)
+                wm = _dot_state(mvec, zview, n, n)
+            if kspd == 0:
+                # the quantity whose difference the speed loop measures: motor angle [rad] (pmsm) or position [m]
+                if not force_act:
+                    coord = quantise(th_m, qenc)
+                elif fb_motor:
+                    coord = quantise(th_m, qenc) * r_lead
+                else:
+                    coord = quantise(zview[tb], qscale)
                 if st[S_SPD_INIT] == 0.0:
                     theta_prev = coord
                     st[S_SPD_INIT] = 1.0
@@ -615,7 +767,9 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
                 else:
                     iq_ref = 0.0
                     int_w = 0.0
-            wm = motor_speed(pr, st, mvec)
+            kspd += 1
+            if kspd == nspd:
+                kspd = 0
             if force_act:
                 # force actuator: first-order force loop
                 if enabled:
@@ -663,7 +817,7 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
                     if svpwm:
                         st[S_ID] = i_d
                         st[S_IQ] = i_q
-                        th_e = pp * motor_angle(pr, st, mvec)
+                        th_e = pp * th_m
                         torque = _electrical_svpwm(pr, st, ud_app, uq_app, wm, th_e, hc)
                         i_d = st[S_ID]
                         i_q = st[S_IQ]
@@ -676,17 +830,23 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
                     i_q = 0.0
                     torque = 0.0
                 if cog_a != 0.0:
-                    torque += cog_a * math.sin(cog_n * motor_angle(pr, st, mvec) + cog_ph)
+                    xc = cog_n * th_m + cog_ph
+                    s_cog, c_cog = sin_cos_step(xc, x_cog, s_cog, c_cog, cog_exact)
+                    x_cog = xc
+                    cog_exact = False
+                    torque += cog_a * s_cog
                 actuator = torque
             torque_act = actuator
+            fx = f_ext[j]
             for _ in range(nsub):
-                _mech_step(pr, st, zview, wad, wbd, wk, wc, gtab, avec, ztmp, u, actuator)
+                was_stuck, d_dir, temp, ffric, cforce, cgap, lead_sc = _mech_step(
+                    mp, zview, wat, wbt, wk, wc, gtab, avec, ztmp, actuator, fx, was_stuck, d_dir, temp, lead_sc)
             t_now += hc
             # feedback ring buffer (motor angle, table position) at the current-loop rate
             ri += 1
             if ri >= RING_SIZE:
                 ri = 0
-            ring[ri, 0] = motor_angle(pr, st, mvec)
+            ring[ri, 0] = zview[midx] if midx >= 0 else _dot_state(mvec, zview, 0, n)
             ring[ri, 1] = zview[tb]
         out[j, O_VSAT] = vsat_any
         out[j, O_ILIM] = ilim_any
@@ -703,4 +863,10 @@ def run_cycles(st, pr, ad, bd, krow, crow, gtab, avec, mvec, ring, wad, wbd, wk,
     st[S_VSAT] = vsat
     st[S_T] = t_now
     st[S_RING] = ri
+    st[S_STUCK] = 1.0 if was_stuck else 0.0
+    st[S_DIR] = d_dir
+    st[S_TEMP] = temp
+    st[S_F_FRIC] = ffric
+    st[S_CONTACT_F] = cforce
+    st[S_CONTACT_MODE] = cgap
     return ncyc

@@ -165,12 +165,14 @@ class AxisSimulator:
         s = 2 * n
         self.st = np.zeros(L.Z0 + s)
         self.ring = np.zeros((L.RING_SIZE, 2))
-        self.wad = np.zeros((4, s, s))
-        self.wbd = np.zeros((4, s, 4))
+        self.wat = np.zeros((4, s, s))  # blended Ad per mode, transposed: wat[m, c, r] = Ad[m, r, c]
+        self.wbt = np.zeros((4, 4, s))  # blended Bd per mode, transposed
         self.wk = np.zeros((2, n))
         self.wc = np.zeros((2, n))
         self.ztmp = np.zeros(s)
-        self.u = np.zeros(4)
+        # the mode tables transposed per grid point and mode (column-wise step in the kernel)
+        self._adt = np.ascontiguousarray(np.swapaxes(self.dm.ad, 2, 3))
+        self._bdt = np.ascontiguousarray(np.swapaxes(self.dm.bd, 2, 3))
         self._rng = np.random.default_rng(cfg.simulation.seed if seed is None else seed)
         # one-cycle buffers of the step API
         self._one = {k: np.zeros(1) for k in ("pos", "vel", "acc", "aux", "fext")}
@@ -253,8 +255,8 @@ class AxisSimulator:
 
     def _run(self, pos, vel, acc, aux, fext, noise, out) -> None:
         d = self.dm
-        run_cycles(self.st, self.pr, d.ad, d.bd, d.table_k_row, d.table_c_row, d.table_g_row, d.contact_vector,
-                   d.motor_angle_vector, self.ring, self.wad, self.wbd, self.wk, self.wc, self.ztmp, self.u,
+        run_cycles(self.st, self.pr, self._adt, self._bdt, d.table_k_row, d.table_c_row, d.table_g_row,
+                   d.contact_vector, d.motor_angle_vector, self.ring, self.wat, self.wbt, self.wk, self.wc, self.ztmp,
                    pos, vel, acc, aux, fext, noise, out)
 
     @property
