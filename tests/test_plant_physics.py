@@ -198,3 +198,25 @@ def test_switching_inverter_adds_current_ripple_but_tracks_like_the_averaged_one
     e_avg = avg["pos_meas"] - avg["pos_cmd"]
     e_sw = sw["pos_meas"] - sw["pos_cmd"]
     assert np.sqrt(np.mean(e_sw**2)) == pytest.approx(np.sqrt(np.mean(e_avg**2)), rel=0.01)
+
+
+def test_loop_gains_changed_while_running_take_effect():
+    """A P-only speed loop leaves a load-dependent position error; the PI loop removes it. Switching T_n at run
+    time (as the drive does for 0x2004) must change the behaviour, not just a stored number."""
+    cfg = config_with({"friction": {"enabled": False}, "backlash": {"enabled": False},
+                       "motor": {"cogging_amplitude_nm": 0.0}})
+
+    def static_error(ti_s):
+        sim = AxisSimulator(cfg)
+        sim.enable(True)
+        sim.set_position_setpoint(0.0)
+        sim.set_external_force(1000.0)
+        sim.set_loop_gains(speed_ti_s=ti_s)
+        sim.advance(1500)
+        return sim.state.following_error_m
+
+    r = cfg.mechanics.lead_m / (2 * math.pi)
+    p_only = static_error(0.0)
+    torque = 1000.0 * r
+    assert p_only == pytest.approx(-torque / cfg.control.speed_kp_nm_s_per_rad / cfg.control.kv_1_per_s * r, rel=0.05)
+    assert abs(static_error(cfg.control.speed_ti_s)) < 0.01 * abs(p_only)

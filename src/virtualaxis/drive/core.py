@@ -45,7 +45,6 @@ from virtualaxis.drive.statemachine import (
 )
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.sim import AxisSimulator, ControlMode
-from virtualaxis.sim import layout as L
 
 S = Cia402State
 DEFAULT_EDS = Path(__file__).resolve().parents[3] / "eds" / "virtualaxis.eds"
@@ -407,22 +406,23 @@ class Drive:
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
-        o, pr, c = self.objects, self.sim.pr, self.cfg.control
-        pr[L.P_KV] = float(o[(0x2000, 0)]) * 1000.0 / 60.0
+        o, c = self.objects, self.cfg.control
         mode = int(o[(0x2002, 0)])
-        pr[L.P_KFF] = float(o[(0x2001, 0)]) if mode >= 1 else 0.0
-        pr[L.P_KTFF] = (c.torque_ff_factor or 1.0) if mode == 2 else 0.0
         kp = float(o[(0x2003, 0)])
-        if kp > 0:
-            pr[L.P_KPW] = kp
-        pr[L.P_TIW] = float(o[(0x2004, 0)]) / 1000.0
+        self.sim.set_loop_gains(
+            kv_per_s=float(o[(0x2000, 0)]) * 1000.0 / 60.0,
+            velocity_ff_factor=float(o[(0x2001, 0)]) if mode >= 1 else 0.0,
+            torque_ff_factor=(c.torque_ff_factor or 1.0) if mode == 2 else 0.0,
+            speed_kp=kp if kp > 0 else None,
+            speed_ti_s=float(o[(0x2004, 0)]) / 1000.0,
+        )
         if self.cfg.actuator.kind == "pmsm":
             rated_a = float(o[(0x6075, 0)]) / 1000.0
             lim_current = float(o[(0x6073, 0)]) / 1000.0 * rated_a
-            kt = pr[L.P_KT]
+            kt = self.sim.torque_constant_nm_per_a
             rated_nm = float(o[(0x6076, 0)]) / 1000.0
             lim_torque_as_current = float(o[(0x6072, 0)]) / 1000.0 * rated_nm / kt if kt > 0 else lim_current
-            pr[L.P_ILIM] = max(0.0, min(lim_current, lim_torque_as_current))
+            self.sim.set_loop_gains(current_limit=max(0.0, min(lim_current, lim_torque_as_current)))
 
     # ================================================================================ state machine
     def _set_state(self, new: Cia402State) -> None:

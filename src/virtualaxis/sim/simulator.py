@@ -181,6 +181,10 @@ class AxisSimulator:
         self._last = np.zeros(L.N_OUT)
         self._velocity_setpoint = 0.0
         self._torque_setpoint = 0.0
+        self._force_actuator = bool(self.pr[L.P_FORCE_ACT] != 0)
+        self._motor_index = int(self.pr[L.P_MOTOR_IDX])
+        self._motor_vector = [float(x) for x in self.dm.motor_angle_vector]
+        self._dc_link_v = float(cfg.inverter.dc_link_v)
         self.reset(initial_position_m)
 
     # ----------------------------------------------------------------------------------------- state
@@ -265,30 +269,72 @@ class AxisSimulator:
 
     @property
     def state(self) -> AxisState:
-        st, n, tb = self.st, self.dm.n, self.dm.table_body
-        from virtualaxis.sim.kernel import motor_angle, motor_speed
-
-        force = self.pr[L.P_FORCE_ACT] != 0
+        st = self.st.tolist()  # one conversion; plain floats from here on (the drive reads this every cycle)
+        n, tb = self.dm.n, self.dm.table_body
+        force = self._force_actuator
+        z0 = L.Z0
+        if self._motor_index >= 0:
+            angle = st[z0 + self._motor_index]
+            speed = st[z0 + n + self._motor_index]
+        else:
+            mv = self._motor_vector
+            angle = sum(mv[i] * st[z0 + i] for i in range(n))
+            speed = sum(mv[i] * st[z0 + n + i] for i in range(n))
         return AxisState(
-            time_s=float(st[L.S_T]),
-            position_m=float(st[L.S_POS_FB]) if st[L.S_T] > 0 else float(self._last[L.O_POS_FB]),
-            table_position_m=float(st[L.Z0 + tb]),
-            motor_angle_rad=float(motor_angle(self.pr, st, self.dm.motor_angle_vector)),
-            motor_speed_rad_s=float(motor_speed(self.pr, st, self.dm.motor_angle_vector)),
-            velocity_m_s=float(st[L.Z0 + n + tb]),
-            torque_nm=float(st[L.S_TORQUE]),
-            current_q_a=0.0 if force else float(st[L.S_IQ]),
-            current_d_a=0.0 if force else float(st[L.S_ID]),
-            voltage_q_v=float(st[L.S_UQ_APP]),
-            voltage_d_v=float(st[L.S_UD_APP]),
-            following_error_m=float(st[L.S_FE]),
-            dc_link_v=float(self.cfg.inverter.dc_link_v),
+            time_s=st[L.S_T],
+            position_m=st[L.S_POS_FB] if st[L.S_T] > 0 else float(self._last[L.O_POS_FB]),
+            table_position_m=st[z0 + tb],
+            motor_angle_rad=angle,
+            motor_speed_rad_s=speed,
+            velocity_m_s=st[z0 + n + tb],
+            torque_nm=st[L.S_TORQUE],
+            current_q_a=0.0 if force else st[L.S_IQ],
+            current_d_a=0.0 if force else st[L.S_ID],
+            voltage_q_v=st[L.S_UQ_APP],
+            voltage_d_v=st[L.S_UD_APP],
+            following_error_m=st[L.S_FE],
+            dc_link_v=self._dc_link_v,
             current_limited=bool(st[L.S_ILIM]),
             voltage_saturated=bool(st[L.S_VSAT]),
-            friction_force_n=float(st[L.S_F_FRIC]),
+            friction_force_n=st[L.S_F_FRIC],
             stuck=bool(st[L.S_STUCK]),
-            screw_temperature_rise_k=float(st[L.S_TEMP]),
+            screw_temperature_rise_k=st[L.S_TEMP],
         )
+
+    # ----------------------------------------------------------------------------------------- gains
+    def set_loop_gains(
+        self,
+        *,
+        kv_per_s: float | None = None,
+        velocity_ff_factor: float | None = None,
+        torque_ff_factor: float | None = None,
+        speed_kp: float | None = None,
+        speed_ti_s: float | None = None,
+        current_limit: float | None = None,
+    ) -> None:
+        """Change control-loop parameters while running (the drive's 0x2000-0x2004, 0x6072/0x6073).
+
+        ``speed_kp`` is N m s/rad (pmsm) or N s/m (force actuator); ``speed_ti_s`` = 0 makes the speed loop P
+        only; ``current_limit`` is A (pmsm) or N (force actuator). Derived kernel constants are updated too.
+        """
+        pr = self.pr
+        if kv_per_s is not None:
+            pr[L.P_KV] = kv_per_s
+        if velocity_ff_factor is not None:
+            pr[L.P_KFF] = velocity_ff_factor
+        if torque_ff_factor is not None:
+            pr[L.P_KTFF] = torque_ff_factor
+        if speed_kp is not None:
+            pr[L.P_KPW] = speed_kp
+        if speed_ti_s is not None:
+            pr[L.P_TIW] = speed_ti_s
+            pr[L.P_GI_W] = integral_gain_per_sample(self.cfg.control.speed_cycle_s, speed_ti_s)
+        if current_limit is not None:
+            pr[L.P_ILIM] = current_limit
+
+    @property
+    def torque_constant_nm_per_a(self) -> float:
+        return float(self.pr[L.P_KT])
 
     # ----------------------------------------------------------------------------------------- batch
     def run_arrays(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, fext: np.ndarray,
