@@ -1,0 +1,176 @@
+"""A data set of traces of one axis, the simulation on their commands, and residual metrics.
+
+The nominal model is simulated on each trace's own command (and known external force) with the
+sensor noise switched off (the expected response). Residuals are ``measured - simulated`` in every
+channel both carry. Channel weights for fitting are ``1 / sigma_c`` with
+``sigma_c = max(noise_c, 0.1 * rms_c)``: the noise floor of the channel (from the high-frequency part
+of its residual) but never less than a tenth of its baseline gap, so that every channel with a real
+gap counts about equally and channels with only noise barely count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig
+from virtualaxis.diagnosis.trace import Trace
+
+SimulateFn = Callable[..., dict]
+
+
+def default_simulate(cfg: AxisConfig, t_s: np.ndarray, pos_cmd_m: np.ndarray, force_ext_n=None, seed: int = 0):
+    """The project's batch simulator (imported lazily so the diagnosis imports without it)."""
+    from virtualaxis.sim import simulate_command
+
+    return simulate_command(cfg, t_s, pos_cmd_m, force_ext_n=force_ext_n, seed=seed)
+
+
+def noiseless(cfg: AxisConfig) -> AxisConfig:
+    """The expected response: sensor noise off (quantisation stays, it is deterministic)."""
+    s = cfg.sensors
+    if s.position_noise_m == 0 and s.current_noise_a == 0:
+        return cfg
+    return cfg.replace(sensors={"position_noise_m": 0.0, "current_noise_a": 0.0})
+
+
+@dataclass
+class TraceData:
+    """What a fit worker needs of one trace (plain arrays: cheap to pickle)."""
+
+    name: str
+    t: np.ndarray
+    pos_cmd: np.ndarray
+    force_ext: np.ndarray | None
+    measured: dict[str, np.ndarray]
+    overrides: dict = field(default_factory=dict)  # config sections overridden for this trace
+
+    @classmethod
+    def from_trace(cls, tr: Trace, overrides: dict | None = None) -> TraceData:
+        return cls(tr.name, tr.t, tr.pos_cmd, tr.force_ext, {c: tr.columns[c] for c in tr.channels()},
+                   overrides or {})
+
+
+def simulate_trace(cfg: AxisConfig, td: TraceData, simulate: SimulateFn) -> dict[str, np.ndarray]:
+    """Model prediction for the measured channels of one trace."""
+    c = cfg.replace(**td.overrides) if td.overrides else cfg
+    out = simulate(noiseless(c), td.t, td.pos_cmd, td.force_ext, 0)
+    pred = {}
+    for ch in td.measured:
+        x = out.get(ch)
+        if x is None:
+            continue
+        x = np.asarray(x, dtype=float)
+        if x.shape == td.t.shape and np.isfinite(x).all():
+            pred[ch] = x
+    return pred
+
+
+def residuals(td: TraceData, pred: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {ch: td.measured[ch] - pred[ch] for ch in pred}
+
+
+def channel_metrics(r: np.ndarray) -> dict[str, float]:
+    return {"rmse": float(np.sqrt(np.mean(r**2))), "mae": float(np.mean(np.abs(r))), "max": float(np.max(np.abs(r)))}
+
+
+def pooled_metrics(res_list: list[dict[str, np.ndarray]]) -> dict[str, dict[str, float]]:
+    """Per channel rmse / mae / max over several traces."""
+    out: dict[str, dict[str, float]] = {}
+    chans = sorted({c for r in res_list for c in r})
+    for ch in chans:
+        x = np.concatenate([r[ch] for r in res_list if ch in r])
+        out[ch] = channel_metrics(x)
+    return out
+
+
+def noise_floor(r: np.ndarray) -> float:
+    """White-noise sigma from second differences (robust, insensitive to a smooth gap)."""
+    if r.size < 8:
+        return 0.0
+    d2 = np.diff(r, 2)
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
+
+
+def correlation_time(r: np.ndarray, max_lag: int = 2000) -> float:
+    """Integrated autocorrelation time in samples (>= 1): n / tau independent samples."""
+    x = r - r.mean()
+    n = x.size
+    if n < 16 or not np.any(x):
+        return 1.0
+    m = min(max_lag, n // 2)
+    f = np.fft.rfft(x, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[: m + 1]
+    ac = ac / ac[0]
+    neg = np.flatnonzero(ac <= 0)
+    stop = int(neg[0]) if neg.size else m + 1
+    return float(max(1.0, 1.0 + 2.0 * np.sum(ac[1:stop])))
+
+
+@dataclass
+class Weights:
+    sigma: dict[str, float]
+    n_eff_fraction: dict[str, float]  # n_eff / n per channel
+
+    @classmethod
+    def from_residuals(cls, res_list: list[dict[str, np.ndarray]]) -> Weights:
+        sigma, frac = {}, {}
+        chans = sorted({c for r in res_list for c in r})
+        for ch in chans:
+            rs = [r[ch] for r in res_list if ch in r]
+            x = np.concatenate(rs)
+            rms = float(np.sqrt(np.mean(x**2)))
+            noise = float(np.median([noise_floor(r) for r in rs]))
+            sigma[ch] = max(noise, 0.1 * rms, 1e-300)
+            taus = [correlation_time(r) for r in rs]
+            frac[ch] = float(1.0 / max(np.mean(taus), 1.0))
+        return cls(sigma, frac)
+
+
+def weighted_ssr(res_list: list[dict[str, np.ndarray]], w: Weights) -> dict[str, float]:
+    """Per channel sum of squares in units of sigma_c."""
+    out: dict[str, float] = {}
+    for r in res_list:
+        for ch, x in r.items():
+            if ch in w.sigma:
+                out[ch] = out.get(ch, 0.0) + float(np.sum((x / w.sigma[ch]) ** 2))
+    return out
+
+
+def sample_counts(res_list: list[dict[str, np.ndarray]]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in res_list:
+        for ch, x in r.items():
+            out[ch] = out.get(ch, 0) + x.size
+    return out
+
+
+def info_criterion_delta(
+    before: dict[str, float], after: dict[str, float], counts: dict[str, int], w: Weights, n_params: int
+) -> float:
+    """BIC difference (after - before) with effective (decorrelated) sample counts; < 0 pays its way."""
+    delta = 0.0
+    n_eff_total = 0.0
+    for ch, b in before.items():
+        a = after.get(ch, b)
+        n_eff = max(1.0, counts[ch] * w.n_eff_fraction.get(ch, 1.0))
+        n_eff_total += n_eff
+        delta += n_eff * math.log(max(a, 1e-300) / max(b, 1e-300))
+    return float(delta + n_params * math.log(max(n_eff_total, 2.0)))
+
+
+def split_by_condition(traces: list[Trace]) -> tuple[list[int], list[int]]:
+    """Fit on the slowest and the fastest trace, hold out the rest (seed 000's split). With fewer than
+    three traces there is nothing to hold out in between: 2 -> fit the first, hold out the second."""
+    n = len(traces)
+    if n == 1:
+        return [0], []
+    if n == 2:
+        return [0], [1]
+    speeds = [t.max_speed_m_s() for t in traces]
+    order = list(np.argsort(speeds, kind="stable"))
+    fit = sorted({int(order[0]), int(order[-1])})
+    return fit, [i for i in range(n) if i not in fit]

@@ -1,0 +1,442 @@
+"""The library of candidate unmodelled effects.
+
+Each :class:`Effect` is a plant component with physically bounded parameters. ``params(cfg)`` gives
+the parameters with bounds and a typical ("realistic") size for the axis at hand; ``apply(cfg,
+values)`` maps values onto an :class:`~virtualaxis.config.AxisConfig` (through ``cfg.replace``);
+``applicable(cfg)`` says whether the effect exists on this kind of axis (no backlash or cogging on a
+rigid force-driven axis); ``signature`` says in words where its gap should lie (the numbers are
+checked by comparing localisations, see :mod:`virtualaxis.diagnosis.fit`).
+
+Values are fitted in internal coordinates ``u``: ``value = typical * u`` (``scale = "lin"``) or
+``value = typical * exp(u)`` (``"log"``), so that every parameter is of order one for the optimiser.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig
+
+STEEL_EXPANSION_PER_K = 11.5e-6
+
+
+@dataclass(frozen=True)
+class Param:
+    """One fitted parameter: ``key`` is the config key (``section.key``) or a derived quantity."""
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    typical: float
+    scale: str = "lin"  # "lin" | "log"
+    nominal: float = 0.0  # the value in the nominal config (for the report)
+    shape: bool = False  # a shape parameter (taken from the start point while screening, fitted later)
+
+    def to_internal(self, value: float) -> float:
+        if self.scale == "log":
+            return math.log(max(value, 1e-300) / self.typical)
+        return value / self.typical
+
+    def from_internal(self, u: float) -> float:
+        v = self.typical * math.exp(u) if self.scale == "log" else self.typical * u
+        return min(max(v, self.lower), self.upper)
+
+    def internal_bounds(self) -> tuple[float, float]:
+        return self.to_internal(self.lower), self.to_internal(self.upper)
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    description: str
+    signature: str
+    params: Callable[[AxisConfig], list[Param]]
+    apply: Callable[[AxisConfig, dict[str, float]], AxisConfig]
+    applicable: Callable[[AxisConfig], str | None]  # None = applicable, else the reason why not
+    starts: Callable[[AxisConfig, dict], list[dict[str, float]]] = field(default=lambda cfg, hints: [])
+    #: parameters that are compared in the gap bench (truth key -> fitted name)
+    truth_keys: tuple[tuple[str, str], ...] = ()
+
+
+def _has_screw(cfg: AxisConfig) -> str | None:
+    if cfg.mechanics.model == "rigid":
+        return "a rigid single-mass axis has no screw/nut elasticity"
+    return None
+
+
+def _has_lead(cfg: AxisConfig) -> str | None:
+    if not cfg.mechanics.lead_m > 0:
+        return "a direct drive has no screw lead"
+    return None
+
+
+def _has_motor(cfg: AxisConfig) -> str | None:
+    if cfg.actuator.kind != "pmsm":
+        return "a force-driven axis has no motor angle for cogging"
+    return None
+
+
+def _always(cfg: AxisConfig) -> str | None:
+    return None
+
+
+def _friction_on(cfg: AxisConfig, changes: dict) -> AxisConfig:
+    return cfg.replace(friction={"enabled": True, **changes})
+
+
+def _fc_neg(cfg: AxisConfig) -> float:
+    f = cfg.friction
+    if not f.enabled:
+        return 0.0
+    return f.coulomb_negative_n if f.coulomb_negative_n >= 0 else f.coulomb_n
+
+
+def _fc(cfg: AxisConfig) -> float:
+    return cfg.friction.coulomb_n if cfg.friction.enabled else 0.0
+
+
+def _force_scale(cfg: AxisConfig) -> float:
+    """A force of the order of the axis' rated drive force [N], for bounds."""
+    if cfg.actuator.kind == "pmsm" and cfg.mechanics.lead_m > 0:
+        tq = cfg.motor.rated_torque_nm or cfg.motor.rated_current_a * max(cfg.motor.torque_constant_nm_per_a, 0.1)
+        return tq * 2 * math.pi / cfg.mechanics.lead_m
+    if cfg.actuator.force_limit_n > 0:
+        return cfg.actuator.force_limit_n
+    return 20.0 * cfg.mechanics.table_mass_kg * 9.81  # 20 g worth of force
+
+
+# ---------------------------------------------------------------- backlash
+def _backlash_params(cfg):
+    g0 = cfg.backlash.gap_m if cfg.backlash.enabled else 0.0
+    return [Param("gap_m", "m", 0.0, 300e-6, 20e-6, nominal=g0)]
+
+
+def _backlash_apply(cfg, v):
+    return cfg.replace(backlash={"enabled": bool(v["gap_m"] > 0), "gap_m": float(v["gap_m"])})
+
+
+def _backlash_starts(cfg, hints):
+    return [{"gap_m": (cfg.backlash.gap_m if cfg.backlash.enabled else 0.0) + 10e-6}]
+
+
+# ---------------------------------------------------------------- friction
+def _coulomb_params(cfg):
+    fs = _force_scale(cfg)
+    return [Param("coulomb_n", "N", 0.0, 0.3 * fs, max(0.02 * fs, 10.0), nominal=_fc(cfg))]
+
+
+def _coulomb_apply(cfg, v):
+    f = cfg.friction
+    changes: dict = {"coulomb_n": v["coulomb_n"]}
+    if f.enabled and f.coulomb_negative_n >= 0 and f.coulomb_n > 0:
+        changes["coulomb_negative_n"] = f.coulomb_negative_n * v["coulomb_n"] / f.coulomb_n
+    return _friction_on(cfg, changes)
+
+
+def _coulomb_starts(cfg, hints):
+    p = _coulomb_params(cfg)[0]
+    return [{"coulomb_n": _fc(cfg) + p.typical}]
+
+
+def _stribeck_params(cfg):
+    fs = _force_scale(cfg)
+    f = cfg.friction
+    return [
+        Param("stribeck_n", "N", 0.0, 0.3 * fs, max(0.02 * fs, 10.0), nominal=f.stribeck_n if f.enabled else 0.0),
+        Param("stribeck_velocity_m_s", "m/s", 1e-4, 0.05, 2e-3, scale="log", nominal=f.stribeck_velocity_m_s,
+              shape=True),
+    ]
+
+
+def _stribeck_apply(cfg, v):
+    return _friction_on(cfg, {"stribeck_n": v["stribeck_n"], "stribeck_velocity_m_s": v["stribeck_velocity_m_s"]})
+
+
+def _stribeck_starts(cfg, hints):
+    p = _stribeck_params(cfg)[0]
+    return [{"stribeck_n": p.nominal + p.typical, "stribeck_velocity_m_s": vs} for vs in (5e-4, 3e-3, 1.5e-2)]
+
+
+def _viscous_params(cfg):
+    fs = _force_scale(cfg)
+    vmax = cfg.limits.max_velocity_m_s
+    typ = max(0.02 * fs / vmax, 50.0)
+    f = cfg.friction
+    return [Param("viscous_n_s_per_m", "N s/m", 0.0, 0.5 * fs / vmax, typ,
+                  nominal=f.viscous_n_s_per_m if f.enabled else 0.0)]
+
+
+def _viscous_apply(cfg, v):
+    return _friction_on(cfg, {"viscous_n_s_per_m": v["viscous_n_s_per_m"]})
+
+
+def _viscous_starts(cfg, hints):
+    p = _viscous_params(cfg)[0]
+    return [{"viscous_n_s_per_m": p.nominal + p.typical}]
+
+
+def _asym_params(cfg):
+    fs = _force_scale(cfg)
+    typ = max(0.02 * fs, 10.0)
+    return [
+        Param("coulomb_n", "N", 0.0, 0.3 * fs, typ, nominal=_fc(cfg)),
+        Param("coulomb_negative_n", "N", 0.0, 0.3 * fs, typ, nominal=_fc_neg(cfg)),
+    ]
+
+
+def _asym_apply(cfg, v):
+    return _friction_on(cfg, {"coulomb_n": v["coulomb_n"], "coulomb_negative_n": v["coulomb_negative_n"]})
+
+
+def _asym_starts(cfg, hints):
+    fc, fcn = _fc(cfg), _fc_neg(cfg)
+    typ = _asym_params(cfg)[0].typical
+    return [{"coulomb_n": fc + typ, "coulomb_negative_n": fcn + typ}]
+
+
+# ---------------------------------------------------------------- inertia
+def _mass_params(cfg):
+    m0 = cfg.mechanics.table_mass_kg
+    return [Param("table_mass_kg", "kg", 0.1 * m0, 5.0 * m0, m0, nominal=m0)]
+
+
+def _mass_apply(cfg, v):
+    return cfg.replace(mechanics={"table_mass_kg": v["table_mass_kg"]})
+
+
+def _mass_starts(cfg, hints):
+    m0 = cfg.mechanics.table_mass_kg
+    return [{"table_mass_kg": m0 * 1.2}]
+
+
+# ---------------------------------------------------------------- stiffness
+_STIFFNESS_KEYS = (
+    "bearing_axial_stiffness_n_per_m",
+    "support_axial_stiffness_n_per_m",
+    "nut_contact_stiffness_n_per_m",
+    "equivalent_torsional_stiffness_nm_per_rad",
+)
+
+
+def _compliance_params(cfg):
+    return [Param("axial_stiffness_scale", "1", 0.02, 2.0, 1.0, scale="log", nominal=1.0)]
+
+
+def _compliance_apply(cfg, v):
+    k = v["axial_stiffness_scale"]
+    m = cfg.mechanics
+    return cfg.replace(mechanics={key: getattr(m, key) * k for key in _STIFFNESS_KEYS})
+
+
+def _compliance_starts(cfg, hints):
+    return [{"axial_stiffness_scale": 0.5}]
+
+
+# ---------------------------------------------------------------- extra mode
+def _resonance_params(cfg):
+    m0 = cfg.mechanics.table_mass_kg
+    e = cfg.effects
+    return [
+        Param("resonance_frequency_hz", "Hz", 3.0, 400.0, 50.0, scale="log", nominal=e.resonance_frequency_hz,
+              shape=True),
+        Param("resonance_mass_kg", "kg", 0.01 * m0, 2.0 * m0, 0.1 * m0, scale="log", nominal=e.resonance_mass_kg),
+        Param("resonance_damping_ratio", "1", 0.003, 0.5, 0.05, scale="log", nominal=e.resonance_damping_ratio,
+              shape=True),
+    ]
+
+
+def _resonance_apply(cfg, v):
+    return cfg.replace(effects={k: v[k] for k in ("resonance_frequency_hz", "resonance_mass_kg",
+                                                    "resonance_damping_ratio")})
+
+
+def _resonance_starts(cfg, hints):
+    m0 = cfg.mechanics.table_mass_kg
+    peaks = [f for f in hints.get("peaks_hz", []) if 3.0 <= f <= 400.0][:3] or [20.0, 60.0]
+    return [{"resonance_frequency_hz": f, "resonance_mass_kg": 0.1 * m0, "resonance_damping_ratio": 0.05}
+            for f in peaks]
+
+
+# ---------------------------------------------------------------- lead error
+def _lead_params(cfg):
+    e = cfg.effects
+    return [
+        Param("lead_error_ppm", "um/m", -500.0, 500.0, 30.0, nominal=e.lead_error_ppm),
+        Param("periodic_cos_m", "m", -50e-6, 50e-6, 3e-6,
+              nominal=e.lead_error_periodic_m * math.cos(e.lead_error_periodic_phase_rad)),
+        Param("periodic_sin_m", "m", -50e-6, 50e-6, 3e-6,
+              nominal=e.lead_error_periodic_m * math.sin(e.lead_error_periodic_phase_rad)),
+    ]
+
+
+def _lead_apply(cfg, v):
+    amp = math.hypot(v["periodic_cos_m"], v["periodic_sin_m"])
+    ph = math.atan2(v["periodic_sin_m"], v["periodic_cos_m"])
+    return cfg.replace(effects={"lead_error_ppm": v["lead_error_ppm"], "lead_error_periodic_m": amp,
+                                "lead_error_periodic_phase_rad": ph})
+
+
+def _lead_starts(cfg, hints):
+    p = _lead_params(cfg)
+    return [{"lead_error_ppm": p[0].nominal + 30.0, "periodic_cos_m": p[1].nominal + 2e-6,
+             "periodic_sin_m": p[2].nominal + 2e-6}]
+
+
+# ---------------------------------------------------------------- torque ripple
+def _ripple_params(cfg):
+    mo = cfg.motor
+    tq = mo.rated_torque_nm or mo.rated_current_a * max(mo.torque_constant_nm_per_a, 0.1)
+    c0 = mo.cogging_amplitude_nm * math.cos(mo.cogging_phase_rad)
+    s0 = mo.cogging_amplitude_nm * math.sin(mo.cogging_phase_rad)
+    return [
+        Param("cogging_cos_nm", "N m", -0.2 * tq, 0.2 * tq, 0.01 * tq, nominal=c0),
+        Param("cogging_sin_nm", "N m", -0.2 * tq, 0.2 * tq, 0.01 * tq, nominal=s0),
+        Param("cogging_periods_per_rev", "1/rev", 1.0, 200.0, 1.0, nominal=mo.cogging_periods_per_rev),
+    ]
+
+
+def _ripple_apply(cfg, v):
+    amp = math.hypot(v["cogging_cos_nm"], v["cogging_sin_nm"])
+    ph = math.atan2(v["cogging_sin_nm"], v["cogging_cos_nm"])
+    return cfg.replace(motor={"cogging_amplitude_nm": amp, "cogging_phase_rad": ph,
+                              "cogging_periods_per_rev": float(round(v["cogging_periods_per_rev"]))})
+
+
+def _ripple_starts(cfg, hints):
+    orders = hints.get("angle_orders", []) or [cfg.motor.cogging_periods_per_rev or 2 * cfg.motor.pole_pairs * 3]
+    typ = _ripple_params(cfg)[0].typical
+    p = _ripple_params(cfg)
+    return [{"cogging_cos_nm": p[0].nominal + typ, "cogging_sin_nm": p[1].nominal + typ,
+             "cogging_periods_per_rev": float(n)} for n in orders[:3]]
+
+
+# ---------------------------------------------------------------- delay, thermal
+def _delay_params(cfg):
+    return [Param("dead_time_s", "s", 0.0, 0.02, 1e-3, nominal=cfg.sensors.dead_time_s)]
+
+
+def _delay_apply(cfg, v):
+    return cfg.replace(sensors={"dead_time_s": v["dead_time_s"]})
+
+
+def _delay_starts(cfg, hints):
+    dt = cfg.control.position_cycle_s
+    return [{"dead_time_s": cfg.sensors.dead_time_s + max(dt, 1e-3)}]
+
+
+def _thermal_params(cfg):
+    e = cfg.effects
+    return [
+        Param("initial_temperature_rise_k", "K", -30.0, 30.0, 2.0, nominal=e.initial_temperature_rise_k),
+        Param("thermal_resistance_k_per_w", "K/W", 0.0, 5.0, 0.1, nominal=e.thermal_resistance_k_per_w),
+    ]
+
+
+def _thermal_apply(cfg, v):
+    alpha = cfg.effects.thermal_expansion_per_k or STEEL_EXPANSION_PER_K
+    return cfg.replace(effects={"thermal_expansion_per_k": alpha,
+                                "initial_temperature_rise_k": v["initial_temperature_rise_k"],
+                                "thermal_resistance_k_per_w": v["thermal_resistance_k_per_w"]})
+
+
+def _thermal_starts(cfg, hints):
+    e = cfg.effects
+    return [{"initial_temperature_rise_k": e.initial_temperature_rise_k + 2.0,
+             "thermal_resistance_k_per_w": e.thermal_resistance_k_per_w + 0.1}]
+
+
+EFFECTS: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect("backlash", "dead zone at the nut contact (lost motion on reversal)",
+               "reversal phase; position channels; step-like lost motion after each direction change",
+               _backlash_params, _backlash_apply, _has_screw, _backlash_starts, (("backlash.gap_m", "gap_m"),)),
+        Effect("coulomb_friction", "Coulomb friction force different from the model",
+               "force/torque channel, sign of velocity (reversal, low speed); in position at reversals",
+               _coulomb_params, _coulomb_apply, _always, _coulomb_starts, (("friction.coulomb_n", "coulomb_n"),)),
+        Effect("stribeck_friction", "Stribeck (static over sliding) friction at low speed",
+               "low-speed bin and reversals, force channel; decays within a few mm/s",
+               _stribeck_params, _stribeck_apply, _always, _stribeck_starts,
+               (("friction.stribeck_n", "stribeck_n"),)),
+        Effect("viscous_friction", "viscous friction different from the model",
+               "grows with speed; high-speed bins of the force channel, velocity-shaped",
+               _viscous_params, _viscous_apply, _always, _viscous_starts,
+               (("friction.viscous_n_s_per_m", "viscous_n_s_per_m"),)),
+        Effect("friction_asymmetry", "Coulomb friction that differs between the directions",
+               "direction: one direction carries more residual; force offset by direction",
+               _asym_params, _asym_apply, _always, _asym_starts,
+               (("friction.coulomb_n", "coulomb_n"), ("friction.coulomb_negative_n", "coulomb_negative_n"))),
+        Effect("mass_error", "moving mass (inertia) different from the model",
+               "acceleration phase, force channel proportional to the command acceleration",
+               _mass_params, _mass_apply, _always, _mass_starts, (("mechanics.table_mass_kg", "table_mass_kg"),)),
+        Effect("axial_compliance", "axial stiffness (bearings, support, nut) lower than modelled, "
+               "position dependent through K_as(x)",
+               "position channel of the linear scale, grows with force; stroke-position dependent",
+               _compliance_params, _compliance_apply, _has_screw, _compliance_starts,
+               (("axial_stiffness_scale", "axial_stiffness_scale"),)),
+        Effect("resonance", "an unmodelled structural mode on the table",
+               "a peak in the residual spectrum, excited at acceleration changes",
+               _resonance_params, _resonance_apply, _always, _resonance_starts,
+               (("effects.resonance_frequency_hz", "resonance_frequency_hz"),)),
+        Effect("lead_error", "screw pitch error: cumulative (ppm) and periodic per revolution",
+               "linear-scale position only, a function of stroke position; periodic with the lead",
+               _lead_params, _lead_apply, _has_lead, _lead_starts,
+               (("effects.lead_error_ppm", "lead_error_ppm"),)),
+        Effect("torque_ripple", "cogging / torque ripple periodic in the motor angle",
+               "torque/current channel at (periods per rev) x motor speed; frequency grows with speed",
+               _ripple_params, _ripple_apply, _has_motor, _ripple_starts,
+               (("motor.cogging_amplitude_nm", "cogging_amplitude_nm"),)),
+        Effect("time_delay", "measurement / loop dead time",
+               "position error proportional to speed, phase lag growing with frequency",
+               _delay_params, _delay_apply, _always, _delay_starts, (("sensors.dead_time_s", "dead_time_s"),)),
+        Effect("thermal_drift", "screw thermal expansion (initial temperature and friction heating)",
+               "linear-scale position, grows with stroke position and with time",
+               _thermal_params, _thermal_apply, _has_lead, _thermal_starts,
+               (("effects.initial_temperature_rise_k", "initial_temperature_rise_k"),)),
+    )
+}
+
+#: parameters that are chosen by search, not by the least-squares fit
+DISCRETE_PARAMS = {"cogging_periods_per_rev"}
+
+
+def derived_values(effect: str, values: dict[str, float]) -> dict[str, float]:
+    """Report-friendly values (amplitude/phase instead of cos/sin components)."""
+    out = dict(values)
+    if effect == "lead_error":
+        out["lead_error_periodic_m"] = math.hypot(values["periodic_cos_m"], values["periodic_sin_m"])
+        out["lead_error_periodic_phase_rad"] = math.atan2(values["periodic_sin_m"], values["periodic_cos_m"])
+    if effect == "torque_ripple":
+        out["cogging_amplitude_nm"] = math.hypot(values["cogging_cos_nm"], values["cogging_sin_nm"])
+        out["cogging_phase_rad"] = math.atan2(values["cogging_sin_nm"], values["cogging_cos_nm"])
+    return out
+
+
+def applicable_effects(cfg: AxisConfig, names: list[str] | None = None) -> tuple[list[Effect], dict[str, str]]:
+    """Effects of the library that exist on this axis, and the reasons for the others."""
+    chosen = [EFFECTS[n] for n in (names or list(EFFECTS))]
+    ok, skipped = [], {}
+    for e in chosen:
+        why = e.applicable(cfg)
+        if why is None:
+            ok.append(e)
+        else:
+            skipped[e.name] = why
+    return ok, skipped
+
+
+def angle_orders_hint(motor_angle_rad: np.ndarray, effort_residual: np.ndarray, max_order: int = 120) -> list[int]:
+    """Dominant harmonic orders of an effort residual over the motor angle (for cogging starts)."""
+    if motor_angle_rad.size < 64 or np.ptp(motor_angle_rad) < 2 * math.pi:
+        return []
+    order = np.argsort(motor_angle_rad)
+    th = motor_angle_rad[order]
+    r = effort_residual[order] - np.mean(effort_residual)
+    orders = np.arange(1, max_order + 1)
+    amp = np.array([abs(np.sum(r * np.exp(-1j * n * th))) for n in orders])
+    return [int(orders[i]) for i in np.argsort(-amp)[:3]]

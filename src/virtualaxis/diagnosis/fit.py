@@ -1,0 +1,584 @@
+"""Fitting candidate effects and choosing among them by forward selection.
+
+One candidate fit (:func:`fit_candidate`, a top-level function so that it runs in a process pool or
+on Dask workers): starting values from the effect's ``starts`` (some informed by the localisation,
+e.g. spectral peaks for a resonance) are screened with one simulation each; the best start is refined
+with ``scipy.optimize.least_squares`` (trust-region reflective, bounds, finite-difference Jacobian)
+on the weighted residuals of the *fit* traces; ``method="de"`` uses ``differential_evolution``
+instead (slow, for multi-modal cases). The fitted model is then simulated on the *held-out* traces.
+
+Selection (:func:`select_effects`): every applicable effect is fitted on top of the current model;
+a candidate pays its way when (1) the BIC with decorrelated sample counts falls on the held-out
+traces, (2) the held-out weighted residual energy falls by at least ``min_gain`` and (3) the part of
+the residual its correction explains lies where the gap lies (signature overlap). The best paying
+candidate is accepted, the model updated, and the remaining candidates are fitted again on top of it,
+until none pays. Nothing accepted -> "no significant effect".
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+from scipy.ndimage import uniform_filter1d
+
+from virtualaxis.config import AxisConfig
+from virtualaxis.diagnosis import effects as fx
+from virtualaxis.diagnosis.data import (
+    SimulateFn,
+    TraceData,
+    Weights,
+    info_criterion_delta,
+    pooled_metrics,
+    residuals,
+    sample_counts,
+    simulate_trace,
+    weighted_ssr,
+)
+from virtualaxis.diagnosis.where import Localisation, MotionScale, localise, signature_overlap
+
+
+@dataclass
+class FitSettings:
+    max_nfev: int = 4  # least-squares function evaluations in refinement (Jacobians come on top)
+    max_samples_per_trace: int = 4000  # fit residuals are decimated to at most this many per channel
+    method: str = "gn"  # "gn" (Gauss-Newton, lsq_linear steps) | "lsq" (least_squares) | "de" (diff. evolution)
+    max_iter: int = 5  # Gauss-Newton iterations
+    min_gain: float = 0.10  # held-out weighted residual energy must fall by 10 % of what is left ...
+    min_gain_total: float = 0.02  # ... and by 2 % of the nominal model's (no fitting of leftovers)
+    min_screen_gain: float = 0.03  # a candidate must explain 3 % of the fit residual to be refined
+    refine_top: int = 4  # candidates refined (and judged on held-out data) per round
+    min_signature_overlap: float = 0.5
+    max_channel_loss: float = -0.25  # no measured channel may get more than 25 % worse (energy) held out
+    max_rounds: int = 4
+    jacobian_step: float = 0.15  # secant step in internal units (15 % of the typical size)
+    smoothing_s: float = 0.003  # fit residuals are averaged over 3 ms (impact/chatter detail is not
+    #                             reproducible sample by sample; first zero of the filter at 333 Hz)
+    parsimony: float = 0.05  # a candidate with fewer parameters wins if it leaves at most 5 % more energy
+
+
+@dataclass
+class FitJob:
+    """Everything a worker needs (picklable)."""
+
+    effect: str
+    cfg: AxisConfig
+    traces: list[TraceData]
+    fit_idx: list[int]
+    holdout_idx: list[int]
+    weights: Weights
+    hints: dict
+    settings: FitSettings
+    simulate: SimulateFn
+    stage: str = "screen"  # "screen" | "refine"
+    base_preds: dict = field(default_factory=dict)  # trace index -> current model prediction
+    start: dict = field(default_factory=dict)  # refine: the screening estimate
+    target: Localisation | None = None  # where the current residual lies
+    target_channel: str = ""
+
+
+@dataclass
+class CandidateResult:
+    effect: str
+    values: dict[str, float]
+    stderr: dict[str, float]
+    fit_ssr: dict[str, float]
+    holdout_ssr: dict[str, float]
+    fit_metrics: dict[str, dict[str, float]]
+    holdout_metrics: dict[str, dict[str, float]]
+    signature_overlap: float
+    n_sims: int
+    seconds: float
+    at_bound: list[str] = field(default_factory=list)
+    error: str = ""
+    stage: str = "screen"
+    screen_gain: float = 0.0  # fraction of the weighted fit residual energy explained (screening)
+
+
+class _Model:
+    """Maps internal parameter vectors to configs and weighted residual vectors."""
+
+    def __init__(self, job: FitJob):
+        self.job = job
+        self.effect = fx.EFFECTS[job.effect]
+        self.params = self.effect.params(job.cfg)
+        self.fixed: dict[str, float] = {}
+        self.free = [p for p in self.params if p.name not in fx.DISCRETE_PARAMS]
+        self.n_sims = 0
+        self.decim = []
+        self._cache: dict[bytes, np.ndarray] = {}
+        self.smooth = []
+        for i in job.fit_idx:
+            n = job.traces[i].t.size
+            self.decim.append(max(1, int(math.ceil(n / job.settings.max_samples_per_trace))))
+            dt = float(job.traces[i].t[1] - job.traces[i].t[0])
+            self.smooth.append(max(1, int(round(job.settings.smoothing_s / dt))))
+
+    def nominal_values(self) -> dict[str, float]:
+        return {p.name: min(max(p.nominal, p.lower), p.upper) for p in self.params}
+
+    def values(self, u: np.ndarray) -> dict[str, float]:
+        v = {p.name: p.from_internal(float(x)) for p, x in zip(self.free, u, strict=True)}
+        v.update(self.fixed)
+        return v
+
+    def cfg(self, u: np.ndarray) -> AxisConfig:
+        return self.effect.apply(self.job.cfg, self.values(u))
+
+    def predict(self, cfg: AxisConfig, idx: list[int]) -> list[dict[str, np.ndarray]]:
+        out = []
+        for i in idx:
+            out.append(simulate_trace(cfg, self.job.traces[i], self.job.simulate))
+            self.n_sims += 1
+        return out
+
+    def stack(self, preds: list[dict[str, np.ndarray]]) -> np.ndarray:
+        """Weighted, decimated residual vector of the fit traces."""
+        w = self.job.weights
+        parts = []
+        for k, (i, pred) in enumerate(zip(self.job.fit_idx, preds, strict=True)):
+            td = self.job.traces[i]
+            d = self.decim[k]
+            for ch in sorted(td.measured):
+                if ch in pred and ch in w.sigma:
+                    r = uniform_filter1d(td.measured[ch] - pred[ch], self.smooth[k])
+                    parts.append(r[::d] / w.sigma[ch] * math.sqrt(d))
+        return np.concatenate(parts) if parts else np.zeros(1)
+
+    def residual_of_values(self, values: dict[str, float]) -> np.ndarray | None:
+        try:
+            vec = self.stack(self.predict(self.effect.apply(self.job.cfg, values), self.job.fit_idx))
+        except Exception:  # a config the simulator or the schema rejects
+            return None
+        return vec if np.all(np.isfinite(vec)) else None
+
+    def residual_vector(self, u: np.ndarray) -> np.ndarray:
+        key = np.asarray(u, dtype=float).tobytes()
+        if key not in self._cache:
+            r = self.residual_of_values(self.values(u))
+            self._cache[key] = r if r is not None else np.full(self.size, 1e3)
+        return self._cache[key]
+
+    def secant_jacobian(self, u: np.ndarray) -> np.ndarray:
+        """Finite differences with a large step (the simulated response is not smooth at small scales)."""
+        f0 = self.residual_vector(u)
+        lo, hi = self.bounds()
+        cols = []
+        for j in range(u.size):
+            h = self.job.settings.jacobian_step * max(1.0, abs(u[j])) if self.free[j].scale == "lin" \
+                else self.job.settings.jacobian_step
+            if u[j] + h > hi[j]:
+                h = -h
+            uj = u.copy()
+            uj[j] += h
+            cols.append((self.residual_vector(uj) - f0) / h)
+        return np.column_stack(cols)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return (np.array([p.internal_bounds()[0] for p in self.free]),
+                np.array([p.internal_bounds()[1] for p in self.free]))
+
+    def internal(self, values: dict[str, float]) -> np.ndarray:
+        lo, hi = self.bounds()
+        u = np.array([p.to_internal(min(max(values[p.name], p.lower), p.upper)) for p in self.free])
+        return np.clip(u, lo, hi)
+
+
+def screen(job: FitJob, model: _Model) -> tuple[dict[str, float], float, float]:
+    """One secant Gauss-Newton step from the current model per start point: the columns are the
+    responses to each amplitude parameter moved to its start value (shape parameters at the start's
+    values); a bounded linear least-squares fit of those columns to the residual gives the estimate.
+    Returns (values, explained fraction of the residual energy, cost)."""
+    base = model.stack([job.base_preds[i] for i in job.fit_idx])
+    model.size = base.size
+    r0 = float(base @ base)
+    nominal = model.nominal_values()
+    best: tuple[dict[str, float], float, float] = (nominal, 0.0, r0)
+    for st in model.effect.starts(job.cfg, job.hints) or [{}]:
+        anchor = {**nominal, **st}
+        shape = {p.name: anchor[p.name] for p in model.params if p.shape or p.name in fx.DISCRETE_PARAMS}
+        amp = [p for p in model.free if not p.shape and anchor[p.name] != nominal[p.name]]
+        if not amp:
+            continue
+        cols, lo, hi = [], [], []
+        for p in amp:
+            vals = {**nominal, **shape, p.name: anchor[p.name]}
+            r = model.residual_of_values(vals)
+            if r is None:
+                continue
+            cols.append(base - r)  # the model change this column makes (weighted)
+            d = anchor[p.name] - nominal[p.name]
+            a, b = (p.lower - nominal[p.name]) / d, (p.upper - nominal[p.name]) / d
+            lo.append(min(a, b))
+            hi.append(max(a, b))
+        if not cols:
+            continue
+        a_mat = np.column_stack(cols)
+        sol = optimize.lsq_linear(a_mat, base, bounds=(np.array(lo), np.array(hi)))
+        resid = base - a_mat @ sol.x
+        cost = float(resid @ resid)
+        if cost < best[2]:
+            vals = {**nominal, **shape}
+            for p, alpha in zip(amp, sol.x, strict=False):
+                vals[p.name] = float(min(max(nominal[p.name] + alpha * (anchor[p.name] - nominal[p.name]),
+                                             p.lower), p.upper))
+            best = (vals, 1.0 - cost / max(r0, 1e-300), cost)
+    return best
+
+
+def gauss_newton(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int):
+    """Bounded Gauss-Newton with a secant Jacobian: each step solves the linearised problem with
+    ``scipy.optimize.lsq_linear`` inside the bounds, then backtracks (1, 1/2, 1/4) until the cost falls."""
+    u = u0.copy()
+    f = model.residual_vector(u)
+    cost = float(f @ f)
+    jac = None
+    for _ in range(max_iter):
+        jac = model.secant_jacobian(u)
+        step = optimize.lsq_linear(jac, -f, bounds=(lo - u, hi - u + 1e-12)).x
+        moved = False
+        for lam in (1.0, 0.5, 0.25):
+            un = np.clip(u + lam * step, lo, hi)
+            fn = model.residual_vector(un)
+            cn = float(fn @ fn)
+            if cn < cost:
+                u, f, cost, moved = un, fn, cn, True
+                break
+        if not moved or float(np.max(np.abs(lam * step))) < 1e-3:
+            break
+    return u, jac
+
+
+def fit_candidate(job: FitJob) -> CandidateResult:
+    """Screen (stage "screen") or refine and judge on held-out data (stage "refine") one effect."""
+    t0 = time.perf_counter()
+    model = _Model(job)
+    if job.stage == "screen":
+        values, gain, _ = screen(job, model)
+        return CandidateResult(job.effect, values, {}, {}, {}, {}, {}, float("nan"), model.n_sims,
+                               time.perf_counter() - t0, stage="screen", screen_gain=gain)
+    start = {**model.nominal_values(), **job.start}
+    model.fixed = {k: v for k, v in start.items() if k in fx.DISCRETE_PARAMS}
+    base = model.stack([job.base_preds[i] for i in job.fit_idx])
+    model.size = base.size
+    u0 = model.internal(start)
+    lo, hi = model.bounds()
+    # keep the start strictly inside the bounds for the trust-region method
+    u0 = np.clip(u0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    jac = None
+    if job.settings.method == "de":
+        res = optimize.differential_evolution(
+            lambda u: float(np.sum(model.residual_vector(u) ** 2)), list(zip(lo, hi, strict=True)),
+            x0=u0, maxiter=6, popsize=5, polish=False, seed=0, tol=1e-3,
+        )
+        u_hat = res.x
+    elif job.settings.method == "lsq":
+        res = optimize.least_squares(
+            model.residual_vector, u0, jac=lambda u: model.secant_jacobian(u), bounds=(lo, hi), method="trf",
+            x_scale=1.0, max_nfev=job.settings.max_nfev, xtol=1e-3, ftol=1e-3,
+        )
+        u_hat, jac = res.x, res.jac
+    else:
+        u_hat, jac = gauss_newton(model, u0, lo, hi, job.settings.max_iter)
+    r0 = model.residual_vector(u0)
+    if float(r0 @ r0) < float(model.residual_vector(u_hat) @ model.residual_vector(u_hat)):
+        u_hat = u0  # never worse than the screening estimate
+    values = model.values(u_hat)
+    cfg_hat = model.cfg(u_hat)
+    # uncertainty: cov = s^2 (J^T J)^-1, inflated by the residual correlation time (n / n_eff)
+    stderr = {p.name: float("nan") for p in model.free}
+    if jac is None:
+        jac = model.secant_jacobian(u_hat)
+    rvec = model.residual_vector(u_hat)
+    m, k = rvec.size, len(model.free)
+    s2 = float(rvec @ rvec) / max(m - k, 1)
+    infl = 1.0 / max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
+    cov = np.linalg.pinv(jac.T @ jac) * s2 * infl
+    for j, p in enumerate(model.free):
+        su = math.sqrt(max(cov[j, j], 0.0))
+        dv = p.typical if p.scale == "lin" else values[p.name]
+        stderr[p.name] = float(su * dv)
+    at_bound = [p.name for p, x, a, b in zip(model.free, u_hat, lo, hi, strict=True)
+                if abs(x - a) < 1e-6 * max(1, abs(a)) or abs(x - b) < 1e-6 * max(1, abs(b))]
+    fit_pred = model.predict(cfg_hat, job.fit_idx)
+    hold_pred = model.predict(cfg_hat, job.holdout_idx)
+    fit_res = [residuals(job.traces[i], p) for i, p in zip(job.fit_idx, fit_pred, strict=True)]
+    hold_res = [residuals(job.traces[i], p) for i, p in zip(job.holdout_idx, hold_pred, strict=True)]
+    overlap = float("nan")
+    if job.target is not None and job.target_channel:
+        items = []
+        for i, pa in zip(job.fit_idx + job.holdout_idx, fit_pred + hold_pred, strict=True):
+            td, pb = job.traces[i], job.base_preds.get(i, {})
+            ch = job.target_channel
+            if ch in pa and ch in pb:
+                items.append((td.name, td.t, td.pos_cmd, {ch: pa[ch] - pb[ch]}))
+        if items:
+            overlap = signature_overlap(localise(items, job.target.scale), job.target, job.target_channel)
+    return CandidateResult(
+        effect=job.effect, values=values, stderr=stderr,
+        fit_ssr=weighted_ssr(fit_res, job.weights), holdout_ssr=weighted_ssr(hold_res, job.weights),
+        fit_metrics=pooled_metrics(fit_res), holdout_metrics=pooled_metrics(hold_res) if hold_res else {},
+        signature_overlap=overlap, n_sims=model.n_sims, seconds=time.perf_counter() - t0, at_bound=at_bound,
+        stage="refine",
+    )
+
+
+def _safe_fit(job: FitJob) -> CandidateResult:
+    try:
+        return fit_candidate(job)
+    except Exception as exc:  # one failing candidate must not sink the diagnosis
+        return CandidateResult(job.effect, {}, {}, {}, {}, {}, {}, float("nan"), 0, 0.0,
+                               error=f"{type(exc).__name__}: {exc}", stage=job.stage)
+
+
+# ------------------------------------------------------------------------------------------- runners
+class Runner:
+    """Runs candidate fits: in-process (jobs=1), a local process pool, or a Dask cluster."""
+
+    def __init__(self, jobs: int = 1, scheduler: str | None = None):
+        self.jobs = max(1, int(jobs))
+        self.scheduler = scheduler
+        self._pool = None
+        self._client = None
+        if scheduler:
+            try:
+                from dask.distributed import Client
+            except ImportError as exc:
+                raise ImportError(
+                    "--scheduler needs the optional dependency dask[distributed] "
+                    "(pip install 'virtualaxis[dask]')"
+                ) from exc
+            self._client = Client(scheduler)
+        elif self.jobs > 1:
+            import multiprocessing as mp
+
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=mp.get_context("fork"))
+
+    def map(self, jobs: list[FitJob], progress: Callable[[CandidateResult], None] | None = None):
+        results: list[CandidateResult] = []
+        if self._client is not None:
+            from dask.distributed import as_completed as dask_completed
+
+            futs = [self._client.submit(_safe_fit, j, pure=False) for j in jobs]
+            for f in dask_completed(futs):
+                r = f.result()
+                results.append(r)
+                if progress:
+                    progress(r)
+        elif self._pool is not None:
+            futs = [self._pool.submit(_safe_fit, j) for j in jobs]
+            for f in as_completed(futs):
+                r = f.result()
+                results.append(r)
+                if progress:
+                    progress(r)
+        else:
+            for j in jobs:
+                r = _safe_fit(j)
+                results.append(r)
+                if progress:
+                    progress(r)
+        order = {j.effect: k for k, j in enumerate(jobs)}
+        return sorted(results, key=lambda r: order[r.effect])
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+        if self._client is not None:
+            self._client.close()
+
+
+# ------------------------------------------------------------------------------------------- selection
+@dataclass
+class Step:
+    """One accepted effect and the cumulative state after it."""
+
+    effect: str
+    values: dict[str, float]
+    stderr: dict[str, float]
+    cfg: AxisConfig
+    fit_metrics: dict
+    holdout_metrics: dict
+
+
+@dataclass
+class Selection:
+    rounds: list[list[dict]]  # per round, each candidate's scores
+    accepted: list[Step]
+    skipped: dict[str, str]
+    final_cfg: AxisConfig
+    seconds_fitting: float
+    n_sims: int
+
+
+def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit: dict, counts_hold: dict,
+          w: Weights, n_params: int) -> dict:
+    """Held-out gain and information-criterion change of one candidate."""
+    use_hold = bool(before_hold)
+    b, a, cnt = (before_hold, cand.holdout_ssr, counts_hold) if use_hold else (before_fit, cand.fit_ssr, counts_fit)
+    if cand.error or not a:
+        return {"gain": 0.0, "ic_delta": math.inf, "judged_on": "holdout" if use_hold else "fit"}
+    tot_b = sum(b.values())
+    tot_a = sum(a.get(ch, v) for ch, v in b.items())
+    gain = 1.0 - tot_a / max(tot_b, 1e-300)
+    fit_gain = 1.0 - sum(cand.fit_ssr.get(ch, v) for ch, v in before_fit.items()) / max(sum(before_fit.values()),
+                                                                                         1e-300)
+    per_ch = {ch: 1.0 - a.get(ch, v) / max(v, 1e-300) for ch, v in b.items()}
+    return {
+        "gain": float(gain), "fit_gain": float(fit_gain), "gain_per_channel": per_ch,
+        "ic_delta": info_criterion_delta(b, a, cnt, w, n_params), "judged_on": "holdout" if use_hold else "fit",
+    }
+
+
+def select_effects(
+    cfg: AxisConfig,
+    traces: list[TraceData],
+    fit_idx: list[int],
+    holdout_idx: list[int],
+    simulate: SimulateFn,
+    runner: Runner,
+    settings: FitSettings | None = None,
+    effect_names: list[str] | None = None,
+    progress: Callable[[str], None] | None = None,
+    weights: Weights | None = None,
+    hint_fn: Callable[[AxisConfig, list[dict]], dict] | None = None,
+) -> Selection:
+    settings = settings or FitSettings()
+    cands, skipped = fx.applicable_effects(cfg, effect_names)
+    remaining = [e.name for e in cands]
+    cur = cfg
+    accepted: list[Step] = []
+    rounds: list[list[dict]] = []
+    t0 = time.perf_counter()
+    n_sims = 0
+    all_idx = fit_idx + holdout_idx
+    scale = MotionScale.from_commands([(traces[i].t, traces[i].pos_cmd) for i in all_idx])
+    first_gain: dict[str, float] = {}
+    w = weights
+    nominal_hold = 0.0
+    for rnd in range(settings.max_rounds):
+        if not remaining:
+            break
+        preds = {i: simulate_trace(cur, traces[i], simulate) for i in all_idx}
+        n_sims += len(all_idx)
+        res = {i: residuals(traces[i], preds[i]) for i in all_idx}
+        if w is None:  # weights from the nominal residual, kept for all rounds (comparable costs)
+            w = Weights.from_residuals([res[i] for i in fit_idx])
+        before_fit = weighted_ssr([res[i] for i in fit_idx], w)
+        before_hold = weighted_ssr([res[i] for i in holdout_idx], w)
+        if rnd == 0:
+            nominal_hold = sum((before_hold or weighted_ssr([res[i] for i in fit_idx], w)).values())
+        left = sum((before_hold or weighted_ssr([res[i] for i in fit_idx], w)).values()) / max(nominal_hold, 1e-300)
+        counts_fit = sample_counts([res[i] for i in fit_idx])
+        counts_hold = sample_counts([res[i] for i in holdout_idx])
+        # the channel that carries most of the (weighted) gap: signatures are compared there
+        target_ch = max(before_fit, key=lambda c: before_fit[c] / max(counts_fit[c], 1)) if before_fit else ""
+        target = localise([(traces[i].name, traces[i].t, traces[i].pos_cmd, res[i]) for i in all_idx], scale)
+        hints = hint_fn(cur, [res[i] for i in all_idx]) if hint_fn else {}
+        hints.setdefault("peaks_hz", _spectral_peaks(target, target_ch))
+        if rnd > 0:  # only candidates that explained something on their own are tried on top
+            remaining = [n for n in remaining if first_gain.get(n, 0.0) > settings.min_screen_gain / 3]
+            if not remaining:
+                break
+        common = dict(cfg=cur, traces=traces, fit_idx=fit_idx, holdout_idx=holdout_idx, weights=w, hints=hints,
+                      settings=settings, simulate=simulate, base_preds=preds, target=target,
+                      target_channel=target_ch)
+        if progress:
+            progress(f"round {rnd + 1}: screening {len(remaining)} candidates")
+        screened = runner.map([FitJob(n, stage="screen", **common) for n in remaining],
+                              progress=(lambda r: progress(f"screened {r.effect}")) if progress else None)
+        for r in screened:
+            n_sims += r.n_sims
+            if rnd == 0:
+                first_gain[r.effect] = r.screen_gain
+        order = sorted(screened, key=lambda r: -r.screen_gain)
+        to_refine = [r for r in order if r.screen_gain >= settings.min_screen_gain and not r.error]
+        to_refine = to_refine[: settings.refine_top]
+        if progress:
+            progress(f"round {rnd + 1}: refining {len(to_refine)} candidates")
+        refined = runner.map([FitJob(r.effect, stage="refine", start=r.values, **common) for r in to_refine],
+                             progress=(lambda r: progress(f"refined {r.effect}")) if progress else None)
+        refined_by = {r.effect: r for r in refined}
+        scored = []
+        for r0 in order:
+            r = refined_by.get(r0.effect)
+            if r is None:
+                scored.append({"result": r0, "score": {"gain": 0.0, "fit_gain": r0.screen_gain, "ic_delta": math.inf,
+                                                       "judged_on": "screening"},
+                               "pays": False, "signature_ok": True, "screen_gain": r0.screen_gain})
+                continue
+            r.screen_gain = r0.screen_gain
+            n_sims += r.n_sims
+            n_par = len([p for p in fx.EFFECTS[r.effect].params(cur) if p.name not in fx.DISCRETE_PARAMS])
+            s = score(r, before_fit, before_hold, counts_fit, counts_hold, w, n_par)
+            sig_ok = not (r.signature_overlap < settings.min_signature_overlap)
+            s["gain_of_nominal"] = s["gain"] * left
+            worst = min(s.get("gain_per_channel", {}).values(), default=0.0)
+            s["worst_channel_gain"] = worst
+            pays = (s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
+                    and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
+                    and sig_ok and not r.error)
+            scored.append({"result": r, "score": s, "pays": pays, "signature_ok": sig_ok,
+                           "screen_gain": r0.screen_gain})
+        scored.sort(key=lambda d: (not d["pays"], d["score"]["ic_delta"], -d["screen_gain"]))
+        _parsimony(scored, cur, settings.parsimony)
+        rounds.append(scored)
+        best = scored[0] if scored and scored[0]["pays"] else None
+        if best is None:
+            break
+        r = best["result"]
+        cur = fx.EFFECTS[r.effect].apply(cur, r.values)
+        accepted.append(Step(r.effect, r.values, r.stderr, cur, r.fit_metrics, r.holdout_metrics))
+        remaining = [n for n in remaining if n != r.effect and not _conflicts(n, r.effect)]
+    return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims)
+
+
+# effects that change the same config keys cannot both be accepted
+_SAME_KEYS = {
+    frozenset({"coulomb_friction", "friction_asymmetry"}),
+}
+
+
+def _conflicts(a: str, b: str) -> bool:
+    return frozenset({a, b}) in _SAME_KEYS
+
+
+def _parsimony(scored: list[dict], cur: AxisConfig, tolerance: float) -> None:
+    """Among paying candidates, move a simpler one (fewer parameters) to the front when it leaves at
+    most ``tolerance`` more held-out residual energy than the best (nested effects such as Coulomb
+    friction inside friction asymmetry must not win by a parameter that buys nothing)."""
+    paying = [d for d in scored if d["pays"]]
+    if len(paying) < 2:
+        return
+
+    def k(d: dict) -> int:
+        return len([p for p in fx.EFFECTS[d["result"].effect].params(cur) if p.name not in fx.DISCRETE_PARAMS])
+
+    best = paying[0]
+    left_best = 1.0 - best["score"]["gain"]
+    simpler = [d for d in paying[1:] if k(d) < k(best) and 1.0 - d["score"]["gain"] <= (1 + tolerance) * left_best]
+    if simpler:
+        choice = min(simpler, key=lambda d: (k(d), d["score"]["ic_delta"]))
+        scored.remove(choice)
+        scored.insert(0, choice)
+        choice["parsimony"] = f"preferred over {best['result'].effect} (fewer parameters, as good held out)"
+
+
+def _spectral_peaks(loc: Localisation, channel: str) -> list[float]:
+    sp = loc.spectra.get(channel)
+    if not sp:
+        return []
+    f = np.asarray(sp["f_hz"])
+    p = np.asarray(sp["psd"])
+    m = (f > 3.0) & (f < 400.0)
+    if not m.any():
+        return []
+    f, p = f[m], p[m]
+    idx = [i for i in range(1, len(p) - 1) if p[i] >= p[i - 1] and p[i] >= p[i + 1]]
+    idx.sort(key=lambda i: -p[i])
+    return [float(f[i]) for i in idx[:3]]

@@ -1,0 +1,295 @@
+"""The whole diagnosis: traces in, report dict and calibrated config out."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig, ControlParams
+from virtualaxis.config.errors import InputError
+from virtualaxis.diagnosis import effects as fx
+from virtualaxis.diagnosis.data import (
+    SimulateFn,
+    TraceData,
+    default_simulate,
+    pooled_metrics,
+    residuals,
+    simulate_trace,
+    split_by_condition,
+)
+from virtualaxis.diagnosis.fit import FitSettings, Runner, select_effects
+from virtualaxis.diagnosis.hybrid import fit_hybrid
+from virtualaxis.diagnosis.trace import CHANNEL_UNITS, Trace, check_units, read_trace
+from virtualaxis.diagnosis.where import localise
+
+NO_EFFECT = "no significant effect"
+_CONTROL_KEYS = {f.name for f in dataclasses.fields(ControlParams)}
+
+
+def load_traces(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str]) -> tuple[list[Trace], list[int],
+                                                                                              list[int], list[str]]:
+    """Read and check all traces; decide the fit / held-out split."""
+    notes: list[str] = []
+    traces = [read_trace(p, cfg.axis.name) for p in list(fit_paths) + list(holdout_paths)]
+    for tr in traces:
+        check_units(tr, cfg)
+    dts = {round(tr.dt_s, 12) for tr in traces}
+    if len(dts) > 1:
+        notes.append(f"traces have different sample periods {sorted(dts)} s; each is simulated on its own grid")
+    names = [tr.name for tr in traces]
+    for i, n in enumerate(names):
+        if n in names[:i]:
+            traces[i].name = f"{n}#{i}"
+    if holdout_paths:
+        fit_idx = list(range(len(fit_paths)))
+        hold_idx = list(range(len(fit_paths), len(traces)))
+    else:
+        fit_idx, hold_idx = split_by_condition(traces)
+        if hold_idx:
+            notes.append(
+                "no --holdout given: fitting on " + ", ".join(traces[i].name for i in fit_idx)
+                + " (slowest and fastest), holding out " + ", ".join(traces[i].name for i in hold_idx)
+            )
+        else:
+            notes.append("a single trace: no held-out data, candidates are judged on the fit trace (with the "
+                         "information-criterion penalty only)")
+    return traces, fit_idx, hold_idx, notes
+
+
+def trace_overrides(tr: Trace) -> dict:
+    """Config overrides from the sidecar: a ``[controller]`` table with ``control.*`` keys (the gains of a
+    controller that is not the config's)."""
+    ctrl = tr.metadata.get("controller")
+    if not isinstance(ctrl, dict):
+        return {}
+    known = {k: v for k, v in ctrl.items() if k in _CONTROL_KEYS}
+    unknown = [k for k in ctrl if k not in _CONTROL_KEYS]
+    if unknown:
+        tr.warnings.append(f"sidecar [controller] keys not used (not control.* config keys): {', '.join(unknown)}")
+    if known:
+        tr.warnings.append(f"sidecar [controller] overrides control.{', control.'.join(known)} for this trace")
+    return {"control": known} if known else {}
+
+
+def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray]) -> None:
+    """An encoder's zero is arbitrary: shift measured motor_pos to the model's at the first sample."""
+    if "motor_pos" in td.measured and "motor_pos" in pred:
+        off = float(np.median(td.measured["motor_pos"][:10] - pred["motor_pos"][:10]))
+        if abs(off) > 1e-3:
+            td.measured["motor_pos"] = td.measured["motor_pos"] - off
+            tr.warnings.append(f"motor_pos offset of {off:.4g} rad removed (encoder zero)")
+
+
+def _hints(cfg: AxisConfig, traces: list[TraceData]) -> Callable:
+    def hint_fn(cur: AxisConfig, res_list: list[dict]) -> dict:
+        orders: list[int] = []
+        for td, r in zip(traces, res_list, strict=False):
+            eff = r.get("torque_meas", r.get("current_q"))
+            mp = td.measured.get("motor_pos")
+            if eff is not None and mp is not None:
+                orders = fx.angle_orders_hint(mp, eff)
+                if orders:
+                    break
+        return {"angle_orders": orders}
+
+    return hint_fn
+
+
+def run_diagnosis(
+    cfg: AxisConfig,
+    fit_paths: list[str],
+    holdout_paths: list[str] | None = None,
+    *,
+    simulate: SimulateFn = default_simulate,
+    jobs: int = 1,
+    scheduler: str | None = None,
+    settings: FitSettings | None = None,
+    effect_names: list[str] | None = None,
+    progress: Callable[[str], None] | None = None,
+    hybrid: bool = True,
+) -> dict:
+    """Run the diagnosis. Returns the report dict; ``report["_calibrated_cfg"]`` is the calibrated config
+    and ``report["_plots"]`` arrays for the plots (both removed before writing JSON)."""
+    timing: dict[str, float] = {}
+    t_start = time.perf_counter()
+    traces, fit_idx, hold_idx, notes = load_traces(cfg, fit_paths, holdout_paths or [])
+    if effect_names:
+        unknown = [n for n in effect_names if n not in fx.EFFECTS]
+        if unknown:
+            raise InputError("--effects", f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECTS)}")
+    tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
+    timing["read_s"] = time.perf_counter() - t_start
+    # baseline
+    t0 = time.perf_counter()
+    base_pred = [simulate_trace(cfg, td, simulate) for td in tds]
+    for td, tr, p in zip(tds, traces, base_pred, strict=True):
+        _align_motor_angle(td, tr, p)
+        missing = [c for c in td.measured if c not in p]
+        if missing:
+            tr.warnings.append(f"channels not produced by the model of this axis, ignored: {', '.join(missing)}")
+            for c in missing:
+                td.measured.pop(c)
+        if not td.measured:
+            raise InputError(tr.path, "none of its channels can be compared with the model of this axis")
+    base_res = [residuals(td, p) for td, p in zip(tds, base_pred, strict=True)]
+    timing["baseline_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    loc = localise([(td.name, td.t, td.pos_cmd, r) for td, r in zip(tds, base_res, strict=True)])
+    timing["localise_s"] = time.perf_counter() - t0
+    # selection
+    runner = Runner(jobs=jobs, scheduler=scheduler)
+    try:
+        sel = select_effects(cfg, tds, fit_idx, hold_idx, simulate, runner, settings, effect_names, progress,
+                             hint_fn=_hints(cfg, tds))
+    finally:
+        runner.close()
+    timing["fitting_s"] = sel.seconds_fitting
+    # cumulative metrics with the full model, step by step
+    t0 = time.perf_counter()
+    cumulative = []
+    prev_fit = pooled_metrics([base_res[i] for i in fit_idx])
+    prev_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
+    final_res = base_res
+    final_pred = base_pred
+    for step in sel.accepted:
+        preds = [simulate_trace(step.cfg, td, simulate) for td in tds]
+        res = [residuals(td, p) for td, p in zip(tds, preds, strict=True)]
+        fm = pooled_metrics([res[i] for i in fit_idx])
+        hm = pooled_metrics([res[i] for i in hold_idx]) if hold_idx else {}
+        cumulative.append({"after": step.effect, "fit_before": prev_fit, "fit_after": fm,
+                           "heldout_before": prev_hold, "heldout_after": hm})
+        prev_fit, prev_hold = fm, hm
+        final_res, final_pred = res, preds
+    timing["verify_s"] = time.perf_counter() - t0
+    # hybrid
+    t0 = time.perf_counter()
+    hyb = None
+    if hybrid:
+        chans = sorted({c for r in final_res for c in r})
+        items = [(td.t, td.pos_cmd, p, r) for td, p, r in zip(tds, final_pred, final_res, strict=True)]
+        hyb = fit_hybrid([items[i] for i in fit_idx], [items[i] for i in hold_idx], chans)
+    timing["hybrid_s"] = time.perf_counter() - t0
+    timing["total_s"] = time.perf_counter() - t_start
+    report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
+    report["_calibrated_cfg"] = sel.final_cfg
+    report["_base_cfg"] = cfg
+    report["_plots"] = {"tds": tds, "base_res": base_res, "final_res": final_res, "loc": loc,
+                        "fit_idx": fit_idx, "hold_idx": hold_idx}
+    return report
+
+
+def _param_table(effect: str, cfg: AxisConfig, values: dict, stderr: dict) -> dict:
+    params = {p.name: p for p in fx.EFFECTS[effect].params(cfg)}
+    out = {}
+    for name, v in fx.derived_values(effect, values).items():
+        p = params.get(name)
+        out[name] = {
+            "value": float(v),
+            "stderr": float(stderr.get(name, float("nan"))),
+            "unit": p.unit if p else "",
+            "nominal": float(p.nominal) if p else None,
+            "bounds": [p.lower, p.upper] if p else None,
+        }
+    return out
+
+
+def _rmse(m: dict) -> dict:
+    return {ch: v["rmse"] for ch, v in m.items()}
+
+
+def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing) -> dict:
+    base_fit = pooled_metrics([base_res[i] for i in fit_idx])
+    base_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
+    baseline = pooled_metrics(base_res)
+    for ch in baseline:
+        baseline[ch]["unit"] = CHANNEL_UNITS.get(ch, "")
+    accepted_names = [s.effect for s in sel.accepted]
+    # one entry per effect: from the round where it was accepted, else its first-round (stand-alone) fit
+    entries: dict[str, dict] = {}
+    for rnd, scored in enumerate(sel.rounds):
+        for d in scored:
+            r, s = d["result"], d["score"]
+            name = r.effect
+            accepted_here = rnd < len(sel.accepted) and sel.accepted[rnd].effect == name
+            if name in entries and not accepted_here:
+                continue
+            # the state before this round
+            if rnd == 0:
+                fb, hb = base_fit, base_hold
+            else:
+                fb, hb = cumulative[rnd - 1]["fit_after"], cumulative[rnd - 1]["heldout_after"]
+            model_cfg = cfg if rnd == 0 else sel.accepted[rnd - 1].cfg
+            entries[name] = {
+                "name": name,
+                "description": fx.EFFECTS[name].description,
+                "signature": fx.EFFECTS[name].signature,
+                "params": _param_table(name, model_cfg, r.values, r.stderr) if r.values else {},
+                "params_at_bound": r.at_bound,
+                "accepted": accepted_here,
+                "round": rnd + 1,
+                "fit": {"rmse_before": _rmse(fb), "rmse_after": _rmse(r.fit_metrics), "metrics_after": r.fit_metrics,
+                        "gain": s.get("fit_gain", 0.0)},
+                "heldout": {"rmse_before": _rmse(hb), "rmse_after": _rmse(r.holdout_metrics),
+                            "metrics_after": r.holdout_metrics, "gain": s["gain"],
+                            "gain_per_channel": s.get("gain_per_channel", {})},
+                "judged_on": s["judged_on"],
+                "ic_delta": s["ic_delta"],
+                "signature_overlap": r.signature_overlap,
+                "pays_its_way": d["pays"],
+                "stage": r.stage,
+                "screen_gain": d.get("screen_gain", 0.0),
+                "n_simulations": r.n_sims,
+                "seconds": r.seconds,
+                "error": r.error,
+            }
+    ranked = [entries[n] for n in accepted_names] + sorted(
+        (e for n, e in entries.items() if n not in accepted_names), key=lambda e: e["ic_delta"])
+    for k, e in enumerate(ranked):
+        e["rank"] = k + 1
+    where = [e for e in loc.entries]
+    summary = {ch: [{"dimension": e["dimension"], "bin": e["bin"], "share": e["share"],
+                     "concentration": e["share"] / e["time_fraction"]} for e in loc.concentrations(ch)[:5]]
+               for ch in baseline}
+    spectra = {ch: {k: v for k, v in sp.items() if k not in ("f_hz", "psd")} for ch, sp in loc.spectra.items()}
+    conclusion = " + ".join(accepted_names) if accepted_names else NO_EFFECT
+    final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
+    final_hold = cumulative[-1]["heldout_after"] if cumulative else base_hold
+    return {
+        "format": "virtualaxis-gap-diagnosis/1",
+        "config": cfg.path,
+        "axis": cfg.axis.name,
+        "axis_model": {"mechanics": cfg.mechanics.model, "actuator": cfg.actuator.kind},
+        "traces": [
+            {"name": tr.name, "path": tr.path, "role": "fit" if i in fit_idx else "holdout", "samples": int(tr.t.size),
+             "sample_period_s": tr.dt_s, "channels": sorted(tds[i].measured), "warnings": tr.warnings,
+             "metadata": {k: v for k, v in tr.metadata.items() if isinstance(v, (str, int, float, bool))}}
+            for i, tr in enumerate(traces)
+        ],
+        "warnings": notes + [f"{tr.name}: {w}" for tr in traces for w in tr.warnings],
+        "baseline": baseline,
+        "baseline_fit": base_fit,
+        "baseline_heldout": base_hold,
+        "where": where,
+        "where_summary": summary,
+        "spectra": spectra,
+        "conclusion": conclusion,
+        "accepted": accepted_names,
+        "effects": ranked,
+        "not_applicable": sel.skipped,
+        "cumulative": cumulative,
+        "final": {"fit": final_fit, "heldout": final_hold,
+                  "heldout_rmse_ratio": {ch: base_hold[ch]["rmse"] / max(final_hold[ch]["rmse"], 1e-300)
+                                         for ch in final_hold if ch in base_hold}},
+        "hybrid": hyb,
+        "timing": {**timing, "simulations": sel.n_sims},
+    }
+
+
+def write_outputs(report: dict, out_dir: str | Path) -> dict[str, Path]:
+    from virtualaxis.diagnosis.report import write_report
+
+    return write_report(report, Path(out_dir))

@@ -1,0 +1,345 @@
+"""Reading and validating measured traces (``../shared/docs/trace-format.md``).
+
+A trace is one CSV file with a header row, SI units. :func:`read_trace` returns a :class:`Trace` on a
+uniform time grid or raises :class:`~virtualaxis.config.errors.InputError` naming the file, the row
+(the line number in the file, the header being line 1) and the column. Problems that can be repaired
+safely (timing jitter, a few isolated NaNs, a motor-angle offset) are repaired and recorded in
+``Trace.warnings`` so that the report says what was done.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from virtualaxis.config.errors import InputError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+POSITION_COLUMNS = ("pos_meas", "pos_fb", "motor_pos")
+OPTIONAL_COLUMNS = ("vel_meas", "torque_meas", "current_q", "force_drive", "force_ext")
+KNOWN_COLUMNS = ("t", "pos_cmd", *POSITION_COLUMNS, *OPTIONAL_COLUMNS)
+#: channels compared with the simulation (force_ext is an input, pos_cmd the command)
+RESIDUAL_CHANNELS = ("pos_meas", "pos_fb", "motor_pos", "vel_meas", "torque_meas", "current_q", "force_drive")
+CHANNEL_UNITS = {
+    "pos_meas": "m",
+    "pos_fb": "m",
+    "motor_pos": "rad",
+    "vel_meas": "m/s",
+    "torque_meas": "N m",
+    "current_q": "A",
+    "force_drive": "N",
+}
+
+# a jitter below this fraction of the sample period is accepted without resampling
+_JITTER_TOLERANCE = 1e-6
+# a time step above this multiple of the median period is a gap
+_GAP_FACTOR = 1.5
+# isolated NaN runs up to this many samples are interpolated (with a warning)
+_MAX_NAN_RUN = 3
+
+
+@dataclass
+class Trace:
+    """One measured run on a uniform time grid (``t`` starts where the file starts)."""
+
+    name: str
+    path: str
+    t: np.ndarray
+    columns: dict[str, np.ndarray]
+    metadata: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def dt_s(self) -> float:
+        return float(self.t[1] - self.t[0]) if self.t.size > 1 else 0.0
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    @property
+    def pos_cmd(self) -> np.ndarray:
+        return self.columns["pos_cmd"]
+
+    @property
+    def force_ext(self) -> np.ndarray | None:
+        return self.columns.get("force_ext")
+
+    def channels(self) -> list[str]:
+        """Measured channels that can be compared with the simulation."""
+        return [c for c in RESIDUAL_CHANNELS if c in self.columns]
+
+    def max_speed_m_s(self) -> float:
+        v = np.gradient(self.pos_cmd, self.t) if self.t.size > 2 else np.zeros(1)
+        return float(np.max(np.abs(v)))
+
+
+def _err(path: str, msg: str, row: int | None = None, column: str | None = None) -> InputError:
+    return InputError(path, msg, row, column)
+
+
+def _parse_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    try:
+        fh = path.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise _err(str(path), "file not found") from None
+    except OSError as exc:
+        raise _err(str(path), f"cannot read ({exc.strerror})") from None
+    with fh:
+        reader = csv.reader(fh)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise _err(str(path), "empty file (a header row is required)", 1) from None
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise _err(str(path), f"not a readable CSV file ({exc})", 1) from None
+        header = [h.strip() for h in header]
+        if len(set(header)) != len(header):
+            dup = next(h for h in header if header.count(h) > 1)
+            raise _err(str(path), "duplicate column name", 1, dup)
+        rows: list[list[float]] = []
+        try:
+            for line_no, rec in enumerate(reader, start=2):
+                if not rec or all(not x.strip() for x in rec):
+                    continue
+                if len(rec) != len(header):
+                    raise _err(str(path), f"has {len(rec)} fields, the header has {len(header)}", line_no)
+                vals = []
+                for col, x in zip(header, rec, strict=True):
+                    s = x.strip()
+                    if col not in KNOWN_COLUMNS:
+                        vals.append(math.nan)  # extra columns are kept only as names; values ignored
+                        continue
+                    try:
+                        vals.append(float(s) if s else math.nan)
+                    except ValueError:
+                        raise _err(str(path), f"not a number: {s!r}", line_no, col) from None
+                rows.append(vals)
+        except (csv.Error, UnicodeDecodeError) as exc:
+            raise _err(str(path), f"not a readable CSV file ({exc})") from None
+    if not rows:
+        raise _err(str(path), "no data rows")
+    return header, np.asarray(rows, dtype=float)
+
+
+def read_sidecar(csv_path: Path) -> dict:
+    """The optional ``<name>.toml`` metadata beside a trace (axis, controller, notes)."""
+    side = csv_path.with_suffix(".toml")
+    if not side.exists():
+        return {}
+    try:
+        return tomllib.loads(side.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise _err(str(side), f"sidecar metadata is not valid TOML: {exc}") from None
+
+
+def sidecar_axis_name(meta: dict) -> str | None:
+    ax = meta.get("axis")
+    if isinstance(ax, str):
+        return ax
+    if isinstance(ax, dict) and isinstance(ax.get("name"), str):
+        return ax["name"]
+    return None
+
+
+def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: list[str]) -> np.ndarray:
+    bad = ~np.isfinite(x)
+    if not bad.any():
+        return x
+    idx = np.flatnonzero(bad)
+    if name in ("t", "pos_cmd") or bad.all():
+        raise _err(path, "missing value (NaN or empty)", int(idx[0]) + 2, name)
+    # run lengths
+    starts = idx[np.r_[True, np.diff(idx) > 1]]
+    ends = idx[np.r_[np.diff(idx) > 1, True]]
+    longest = int(np.max(ends - starts + 1))
+    if longest > _MAX_NAN_RUN or idx.size > 0.01 * x.size:
+        k = int(np.argmax(ends - starts + 1))
+        raise _err(
+            path,
+            f"{idx.size} missing values (NaN or empty), longest run {longest} samples; "
+            f"at most {_MAX_NAN_RUN} in a row and 1 % in all are interpolated",
+            int(starts[k]) + 2,
+            name,
+        )
+    good = ~bad
+    y = x.copy()
+    y[bad] = np.interp(t[bad], t[good], x[good])
+    warnings.append(f"{name}: {idx.size} missing values interpolated (first at row {int(idx[0]) + 2})")
+    return y
+
+
+def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
+    """Read, validate and regularise one trace. ``axis_name``: the config's ``axis.name`` (checked
+    against the sidecar metadata)."""
+    p = Path(path)
+    sp = str(p)
+    header, data = _parse_csv(p)
+    for col in ("t", "pos_cmd"):
+        if col not in header:
+            raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)})", 1, col)
+    if not any(c in header for c in POSITION_COLUMNS):
+        raise _err(sp, "needs at least one of the columns pos_meas, pos_fb, motor_pos", 1)
+    if data.shape[0] < 16:
+        raise _err(sp, f"only {data.shape[0]} data rows (at least 16 needed)")
+    warnings: list[str] = []
+    cols = {h: data[:, i] for i, h in enumerate(header) if h in KNOWN_COLUMNS}
+    extra = [h for h in header if h not in KNOWN_COLUMNS]
+    if extra:
+        warnings.append(f"extra columns ignored: {', '.join(extra)}")
+    t = cols["t"]
+    _fill_nans(sp, "t", t, t, warnings)
+    dt = np.diff(t)
+    nonmono = np.flatnonzero(dt <= 0)
+    if nonmono.size:
+        i = int(nonmono[0]) + 1
+        raise _err(sp, f"time is not increasing ({float(t[i - 1])!r} then {float(t[i])!r})", i + 2, "t")
+    dt_med = float(np.median(dt))
+    gaps = np.flatnonzero(dt > _GAP_FACTOR * dt_med)
+    if gaps.size:
+        i = int(gaps[0]) + 1
+        raise _err(
+            sp,
+            f"time gap of {dt[i - 1]:.6g} s (sample period {dt_med:.6g} s) between rows {i + 1} and {i + 2}",
+            i + 2,
+            "t",
+        )
+    for name in list(cols):
+        if name != "t":
+            cols[name] = _fill_nans(sp, name, t, cols[name], warnings)
+    meta = read_sidecar(p)
+    side_axis = sidecar_axis_name(meta)
+    if axis_name and side_axis and side_axis != axis_name:
+        raise _err(
+            str(p.with_suffix(".toml")),
+            f"trace belongs to axis '{side_axis}', the config is for axis '{axis_name}'",
+            None,
+            "axis",
+        )
+    jitter = float(np.max(np.abs(dt - dt_med))) / dt_med
+    if jitter > _JITTER_TOLERANCE:
+        n = int(round((t[-1] - t[0]) / dt_med)) + 1
+        tu = t[0] + dt_med * np.arange(n)
+        tu = tu[tu <= t[-1] + 1e-12 * abs(t[-1])]
+        for name in list(cols):
+            if name != "t":
+                cols[name] = np.interp(tu, t, cols[name])
+        warnings.append(
+            f"time jitter up to {100 * jitter:.2g} % of the {dt_med * 1e3:.4g} ms period: "
+            f"resampled linearly onto a uniform grid ({tu.size} samples)"
+        )
+        t = tu
+    cols["t"] = t
+    columns = {k: v for k, v in cols.items() if k != "t"}
+    tr = Trace(name=p.stem, path=sp, t=t - t[0], columns=columns, metadata=meta, warnings=warnings)
+    tr.metadata.setdefault("t0_s", float(t[0]))
+    return tr
+
+
+def _first_row(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0]) + 2
+
+
+def check_units(trace: Trace, cfg) -> None:
+    """Unit and plausibility checks against the axis config. Raises InputError for values that are
+    clearly in the wrong unit or from another axis; records milder findings as warnings."""
+    sp = trace.path
+    stroke = float(cfg.axis.stroke_m)
+    travel = max(abs(cfg.limits.travel_min_m), abs(cfg.limits.travel_max_m))
+    pos_limit = max(2.0 * stroke, 1.0) if travel > 1e6 else max(2.0 * travel, 2.0 * stroke)
+    cmd = trace.pos_cmd
+    for col in ("pos_cmd", "pos_meas", "pos_fb"):
+        x = trace.columns.get(col)
+        if x is None:
+            continue
+        bad = np.abs(x) > pos_limit
+        if bad.any():
+            v = float(x[np.flatnonzero(bad)[0]])
+            raise _err(
+                sp,
+                f"position {v:g} m is not plausible for axis '{cfg.axis.name}' (stroke {stroke:g} m); "
+                "positions must be in metres (is it mm?)",
+                _first_row(bad),
+                col,
+            )
+    span = float(np.ptp(cmd))
+    if span > 0:
+        for col in ("pos_meas", "pos_fb"):
+            x = trace.columns.get(col)
+            if x is None:
+                continue
+            ratio = float(np.ptp(x)) / span
+            if not 0.5 < ratio < 2.0:
+                raise _err(
+                    sp,
+                    f"travels {ratio:.3g} times as far as pos_cmd: not the same unit or not the same axis",
+                    None,
+                    col,
+                )
+        mp = trace.columns.get("motor_pos")
+        if mp is not None:
+            lead = cfg.mechanics.lead_m
+            if lead > 0:
+                expect = 2 * math.pi / lead
+                slope = float(np.polyfit(cmd, mp, 1)[0])
+                if not 0.8 < abs(slope) / expect < 1.25:
+                    raise _err(
+                        sp,
+                        f"motor_pos turns {abs(slope):.4g} rad per metre of pos_cmd, the config's lead "
+                        f"{lead:g} m gives {expect:.4g} rad/m: motor_pos must be in rad, or the trace is "
+                        "from another axis",
+                        None,
+                        "motor_pos",
+                    )
+                if slope < 0:
+                    trace.warnings.append("motor_pos turns negatively with pos_cmd: sign flipped")
+                    trace.columns["motor_pos"] = -mp
+    vmax_cmd = trace.max_speed_m_s()
+    if vmax_cmd > 3.0 * cfg.limits.max_velocity_m_s:
+        raise _err(
+            sp,
+            f"command speed {vmax_cmd:.3g} m/s is over 3 x the axis limit {cfg.limits.max_velocity_m_s:g} m/s"
+            " (wrong time unit, or a trace of another axis)",
+            None,
+            "pos_cmd",
+        )
+    vel = trace.columns.get("vel_meas")
+    if vel is not None and vmax_cmd > 0:
+        ratio = float(np.max(np.abs(vel))) / vmax_cmd
+        if ratio > 20 or ratio < 0.05:
+            raise _err(sp, f"peaks at {ratio:.3g} times the command speed: not in m/s", None, "vel_meas")
+    tq = trace.columns.get("torque_meas")
+    if tq is not None and cfg.actuator.kind == "pmsm":
+        ref = cfg.motor.rated_torque_nm or cfg.motor.rated_current_a * max(cfg.motor.torque_constant_nm_per_a, 0.1)
+        bad = np.abs(tq) > 20 * ref
+        if bad.any():
+            raise _err(
+                sp, f"torque {float(tq[bad][0]):g} N m is over 20 x the rated torque {ref:g} N m (unit?)",
+                _first_row(bad), "torque_meas",
+            )
+    iq = trace.columns.get("current_q")
+    if iq is not None:
+        bad = np.abs(iq) > 20 * cfg.motor.rated_current_a
+        if bad.any():
+            raise _err(
+                sp, f"current {float(iq[bad][0]):g} A is over 20 x the rated current (unit?)", _first_row(bad),
+                "current_q",
+            )
+
+
+def write_trace(path: str | Path, columns: dict[str, np.ndarray], order: tuple[str, ...] = KNOWN_COLUMNS) -> None:
+    """Write a trace CSV (used by the gap bench). Columns that are all-NaN are left out."""
+    names = [c for c in order if c in columns and np.isfinite(np.asarray(columns[c])).any()]
+    data = np.column_stack([np.asarray(columns[c], dtype=float) for c in names])
+    with Path(path).open("w", encoding="utf-8", newline="") as fh:
+        fh.write(",".join(names) + "\n")
+        np.savetxt(fh, data, delimiter=",", fmt="%.10g")
