@@ -12,6 +12,7 @@ import numpy as np
 from virtualaxis.config import AxisConfig, ControlParams
 from virtualaxis.config.errors import InputError
 from virtualaxis.diagnosis import effects as fx
+from virtualaxis.diagnosis.contour import contour_report
 from virtualaxis.diagnosis.data import (
     SimulateFn,
     TraceData,
@@ -175,6 +176,7 @@ def run_diagnosis(
     timing["hybrid_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
+    report["contour"] = contour_report(tds, {"nominal": base_pred, "calibrated": final_pred})
     report["_calibrated_cfg"] = sel.final_cfg
     report["_base_cfg"] = cfg
     report["_plots"] = {"tds": tds, "base_res": base_res, "final_res": final_res, "loc": loc,

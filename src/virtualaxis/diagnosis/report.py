@@ -178,6 +178,15 @@ def report_html(report: dict) -> str:
         parts.append("<h2>How far the gap shrinks (cumulative)</h2>" + _table(
             rows, ["after adding", "channel", "fit RMSE before", "fit RMSE after", "held-out RMSE before",
                    "held-out RMSE after", "held-out mean |e|", "held-out max |e|"]))
+    if report.get("contour"):
+        rows = []
+        for c in report["contour"]:
+            for label, m in c["models"].items():
+                rows.append([" / ".join(c["traces"]), label, _g(c["measured_max_m"]), _g(m["predicted_max_m"]),
+                             _g(m["prediction_error_max_m"]), _g(m["prediction_error_rms_m"])])
+        parts.append("<h2>Contour error of two-axis moves (seed 000 Table 4) [m]</h2>" + _table(
+            rows, ["X / Y traces", "model", "measured max", "predicted max", "prediction error max",
+                   "prediction error RMS"]))
     hyb = report.get("hybrid")
     if hyb:
         rows = []
