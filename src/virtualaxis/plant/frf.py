@@ -50,7 +50,6 @@ def mechanical_frf(cfg: AxisConfig, freq_hz: np.ndarray, nut_position_m: float) 
     c = damping_matrix(mech, structural_damping_coefficient(cfg), True)
     g = mech.input_matrix()[:, U_ACTUATOR]
     w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    n = mech.n
     speed = np.zeros(len(w), complex)
     pos = np.zeros(len(w), complex)
     mvec = mech.motor_angle_vector
@@ -60,7 +59,6 @@ def mechanical_frf(cfg: AxisConfig, freq_hz: np.ndarray, nut_position_m: float) 
         pos[i] = q[mech.table_body]
         speed[i] = 1j * wi * (mvec @ q)
     unit_in = "N" if cfg.actuator.kind == "force" else "N m"
-    _ = n
     return {
         "mechanics_speed": Frf("actuator -> motor speed", np.asarray(freq_hz), speed, f"rad/s per {unit_in}"),
         "mechanics_position": Frf("actuator -> table position", np.asarray(freq_hz), pos, f"m per {unit_in}"),
@@ -80,21 +78,17 @@ def loop_frfs(cfg: AxisConfig, freq_hz: np.ndarray, nut_position_m: float) -> di
         p_speed = s * mech["mechanics_position"].response
         kp = c.velocity_kp_n_s_per_m
         g_cur = 1.0 / (1.0 + s * cfg.actuator.force_lag_s) * np.exp(-s * c.current_cycle_s)
-        g_pos_per_speed = 1.0
     else:
         p_speed = mech["mechanics_speed"].response
         kp = c.speed_kp_nm_s_per_rad
         wc = c.current_kp_v_per_a / cfg.motor.lq_h
         g_cur = wc / (s + wc) * np.exp(-1.5 * s * c.current_cycle_s)
-        g_pos_per_speed = r
     ctrl = kp * (1 + (1 / (s * c.speed_ti_s) if c.speed_ti_s > 0 else 0))
     open_speed = ctrl * g_cur * p_speed * np.exp(-s * c.speed_cycle_s)
     closed_speed = ctrl * g_cur * p_speed / (1 + open_speed)
-    # position: table position per motor-speed reference, through the speed loop and the mechanics
+    # position: table position per speed reference, through the speed loop and the mechanics
     x_per_speed = np.divide(mech["mechanics_position"].response, p_speed, out=np.zeros_like(s), where=p_speed != 0)
-    if force:
-        x_per_speed = 1 / s * np.ones_like(s)
-    plant_pos = closed_speed * x_per_speed / g_pos_per_speed * g_pos_per_speed
+    plant_pos = closed_speed * x_per_speed
     kv = c.kv_1_per_s
     delay_pos = np.exp(-s * c.position_cycle_s)
     gain = (1.0 / r) if not force else 1.0  # table error -> speed reference

@@ -191,7 +191,6 @@ class AxisSimulator:
     def reset(self, position_m: float = 0.0) -> None:
         """Put the axis at rest at ``position_m`` (table), disabled, position mode."""
         self.st[:] = 0.0
-        n = self.dm.n
         r = self.pr[L.P_R]
         names = self.dm.body_names
         for i, name in enumerate(names):
@@ -210,7 +209,6 @@ class AxisSimulator:
         self._last[L.O_POS_MEAS] = position_m
         self._last[L.O_POS_CMD] = position_m
         self._one["pos"][0] = position_m
-        _ = n
 
     def enable(self, on: bool = True) -> None:
         self.st[L.S_ENABLED] = 1.0 if on else 0.0
