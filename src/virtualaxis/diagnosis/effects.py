@@ -255,11 +255,27 @@ def _resonance_apply(cfg, v):
                                                     "resonance_damping_ratio")})
 
 
+# coarse frequency scan for the mode: log-spaced, neighbours 1.3x apart (the screening step then
+# picks the frequency whose response explains most of the residual; refinement polishes it). A mode
+# inside a closed loop rarely shows as a clean peak of one channel's residual spectrum, so spectral
+# peaks (of every measured channel) are only extra start points, not the only ones.
+_RESONANCE_SCAN_HZ = tuple(float(4.0 * 1.3**k) for k in range(17))  # 4 .. ~266 Hz
+_RESONANCE_MIN_RATIO = 1.08  # start frequencies closer than this to an earlier one are dropped
+
+
+def _resonance_start_frequencies(hints) -> list[float]:
+    peaks = [float(f) for f in list(hints.get("peaks_hz", []))[:3] + list(hints.get("peaks_all_hz", []))]
+    out: list[float] = []
+    for f in peaks + list(_RESONANCE_SCAN_HZ):
+        if 3.0 <= f <= 400.0 and all(max(f, g) / min(f, g) >= _RESONANCE_MIN_RATIO for g in out):
+            out.append(f)
+    return out
+
+
 def _resonance_starts(cfg, hints):
     m0 = cfg.mechanics.table_mass_kg
-    peaks = [f for f in hints.get("peaks_hz", []) if 3.0 <= f <= 400.0][:3] or [20.0, 60.0]
     return [{"resonance_frequency_hz": f, "resonance_mass_kg": 0.1 * m0, "resonance_damping_ratio": 0.05}
-            for f in peaks]
+            for f in _resonance_start_frequencies(hints)]
 
 
 # ---------------------------------------------------------------- lead error

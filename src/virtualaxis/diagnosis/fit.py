@@ -481,6 +481,8 @@ def select_effects(
         target = localise([(traces[i].name, traces[i].t, traces[i].pos_cmd, res[i]) for i in all_idx], scale)
         hints = hint_fn(cur, [res[i] for i in all_idx]) if hint_fn else {}
         hints.setdefault("peaks_hz", _spectral_peaks(target, target_ch))
+        hints.setdefault("peaks_all_hz", [f for ch in sorted(target.spectra) if ch != target_ch
+                                          for f in _spectral_peaks(target, ch)[:2]])
         if rnd > 0:  # only candidates that explained something on their own are tried on top
             remaining = [n for n in remaining if first_gain.get(n, 0.0) > settings.min_screen_gain / 3]
             if not remaining:
