@@ -12,20 +12,11 @@ import pytest
 
 from virtualaxis.canopen_slave import CanopenSlave
 from virtualaxis.canopen_slave import errors as ab
-from virtualaxis.canopen_slave.testing import EDS_PATH, MasterRig
+from virtualaxis.canopen_slave.testing import EDS_PATH, MasterRig, wait_until
 from virtualaxis.config.errors import InputError
 
 NODE = 13
 EMCY = 0x80 + NODE
-
-
-def wait_until(predicate, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
 
 
 def test_emcy_frame_error_register_and_history():

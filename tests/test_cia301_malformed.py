@@ -6,18 +6,9 @@ import random
 import struct
 import time
 
-from virtualaxis.canopen_slave.testing import MasterRig, RecordingApp
+from virtualaxis.canopen_slave.testing import MasterRig, RecordingApp, wait_until
 
 NODE = 17
-
-
-def wait_until(predicate, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
 
 
 def test_wrong_dlc_frames_are_counted_and_ignored():

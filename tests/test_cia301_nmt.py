@@ -10,7 +10,7 @@ import canopen
 import pytest
 
 from virtualaxis.canopen_slave import NmtState
-from virtualaxis.canopen_slave.testing import MasterRig, RecordingApp
+from virtualaxis.canopen_slave.testing import MasterRig, RecordingApp, wait_until
 
 NODE = 9
 HB = 0x700 + NODE
@@ -24,15 +24,6 @@ def rig(tmp_path):
         app.slave = r.slave
         r.app = app
         yield r
-
-
-def wait_until(predicate, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
 
 
 def test_boot_up_and_pre_operational(rig):

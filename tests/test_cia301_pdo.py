@@ -14,6 +14,7 @@ import pytest
 
 from virtualaxis.canopen_slave import errors as ab
 from virtualaxis.canopen_slave.testing import MasterRig, RecordingApp
+from virtualaxis.canopen_slave.testing import wait_until as _wait_until
 
 NODE = 11
 TPDO1, TPDO2, TPDO3, TPDO4 = (0x180 + NODE, 0x280 + NODE, 0x380 + NODE, 0x480 + NODE)
@@ -42,12 +43,7 @@ def rig():
 
 
 def wait_until(predicate, timeout_s: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.002)
-    return predicate()
+    return _wait_until(predicate, timeout_s, poll_s=0.002)
 
 
 def operational(rig):

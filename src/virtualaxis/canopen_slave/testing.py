@@ -25,6 +25,16 @@ from virtualaxis.canopen_slave.slave import CanopenSlave
 EDS_PATH = Path(__file__).resolve().parents[3] / "eds" / "virtualaxis.eds"   # = DEFAULT_EDS_PATH
 
 
+def wait_until(predicate, timeout_s: float = 2.0, poll_s: float = 0.005) -> bool:
+    """Poll ``predicate`` until it is true or ``timeout_s`` has passed; returns its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
 class SlaveRunner:
     """Runs ``poll`` / ``on_sync`` of one slave in a background thread every ``period_s``."""
 
