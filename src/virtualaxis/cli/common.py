@@ -23,13 +23,19 @@ def progress(total: int, desc: str):
         bar.close()
 
 
-def parse_float_list(text: str, name: str) -> list[float]:
-    from virtualaxis.cli.main import CliError
+def parse_float_list(text: str, name: str, hint: str = "") -> list[float]:
+    """'0.1,0.5,0.9' -> [0.1, 0.5, 0.9]; a CliError naming the option on an empty item, text or NaN/inf."""
+    import math
 
-    try:
-        vals = [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise CliError(f"{name}: expected comma-separated numbers, got '{text}'") from None
-    if not vals:
-        raise CliError(f"{name}: no values given")
+    from virtualaxis.cli.errors import CliError
+
+    vals = []
+    for item in (x.strip() for x in text.split(",")):
+        try:
+            v = float(item)
+        except ValueError:
+            raise CliError(f"{name}: not a number: {item!r}{hint}") from None
+        if not math.isfinite(v):
+            raise CliError(f"{name}: not a finite number: {item!r}")
+        vals.append(v)
     return vals

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from virtualaxis.cli.common import parse_float_list
 from virtualaxis.config import load_axis_config
 from virtualaxis.rcsa.fe_shaft import fe_natural_frequencies_hz
 from virtualaxis.rcsa.identify import predict_modes
@@ -22,16 +23,7 @@ def parse_positions(text: str | None, what: str = "--positions") -> list[float]:
 
     if text is None:
         return []
-    out = []
-    for item in text.split(","):
-        item = item.strip()
-        try:
-            v = float(item)
-        except ValueError:
-            raise CliError(f"{what}: not a number: {item!r} (give metres, e.g. 0.6,0.8,1.0)") from None
-        if not math.isfinite(v):
-            raise CliError(f"{what}: not a finite number: {item!r}")
-        out.append(v)
+    out = parse_float_list(text, what, hint=" (give metres, e.g. 0.6,0.8,1.0)")
     if len(set(out)) != len(out):
         raise CliError(f"{what}: duplicate position")
     return out
