@@ -8,14 +8,12 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.plant.modal import modal_analysis
 from virtualaxis.sim.batch import simulate_command
-from virtualaxis.sim.profiles import scurve_rest_to_rest
+from virtualaxis.sim.profiles import parse_profile, sample_profile, scurve_rest_to_rest
 
 # Seed 000 Table 3, analytical/hybrid MAE [um] and RE [%]; the measured tracking-error magnitude the paper
 # divides by is MAE / RE (RE = absolute error / measured value).
@@ -131,13 +129,10 @@ def feed_sweep_study(cfg: AxisConfig, feeds_mm_min=(1000, 2000, 3000, 4000, 5000
     rows = []
     cyc = cfg.control.position_cycle_s
     for feed in feeds_mm_min:
-        amp = stroke_mm / 2000.0
-        w = feed / 60000.0 / amp
-        dur = periods * 2 * math.pi / w
+        prof = parse_profile(f"sine:stroke_mm={stroke_mm:g},feed_mm_min={feed:g}")
+        dur = periods * prof.natural_duration_s
         t = np.arange(int(round(dur / cyc)) + 1) * cyc
-        pos = amp * (1 - np.cos(w * t))
-        vel = amp * w * np.sin(w * t)
-        acc = amp * w * w * np.cos(w * t)
+        pos, vel, acc = sample_profile(prof, t, dur)["x"]
         tr = simulate_command(cfg, t, pos, vel_cmd_m_s=vel, acc_cmd_m_s2=acc)
         err = tr["pos_meas"] - tr["pos_cmd"]
         paper = SEED000_TABLE3.get(int(feed), {})
@@ -167,10 +162,8 @@ def inverter_study(cfg: AxisConfig, feeds_mm_min=(1000, 6000), duration_s: float
     rows = []
     cyc = cfg.control.position_cycle_s
     for feed in feeds_mm_min:
-        amp = 0.05
-        w = feed / 60000.0 / amp
         t = np.arange(int(round(duration_s / cyc)) + 1) * cyc
-        pos, vel, acc = amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
+        pos, vel, acc = sample_profile(parse_profile(f"sine:stroke_mm=100,feed_mm_min={feed:g}"), t, duration_s)["x"]
         res = {}
         for model in ("averaged", "svpwm"):
             c = cfg.replace(inverter={"model": model})
