@@ -58,9 +58,11 @@ def main() -> None:
     med = s["param_rel_error_median"]
     print(f"parameter recovery: median relative error {100 * med:.1f} %, within 15 %: "
           f"{100 * s['param_within_15pct']:.0f} %" if not math.isnan(med) else "parameter recovery: -")
-    print("held-out RMSE shrink per case (best channel / pos_meas):")
+    print("held-out RMSE shrink per case: best channel / pos_meas / truth model on the best channel (the noise")
+    print("floor's limit) / share of the removable gap closed on the best channel:")
     for k, v in s["heldout_shrink_best_channel"].items():
-        print(f"  {k:40s} {100 * v:6.1f} %  {100 * s['heldout_shrink_position'][k]:6.1f} %")
+        print(f"  {k:24s} {100 * v:6.1f} %  {100 * s['heldout_shrink_position'][k]:6.1f} %  "
+              f"{100 * s['heldout_shrink_truth_model'][k]:6.1f} %  {100 * s['heldout_gap_closed'][k]:6.1f} %")
     print(f"wrote {Path(a.out) / 'bench.json'}")
 
 

@@ -65,6 +65,8 @@ def run(args: argparse.Namespace) -> int:
         if args.scheduler and "dask" in str(exc):
             raise CliError(str(exc)) from None
         raise
+    except ConnectionError as exc:
+        raise CliError(str(exc)) from None
     finally:
         for b in bars:
             b.close()

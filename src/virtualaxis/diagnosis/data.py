@@ -3,9 +3,11 @@
 The nominal model is simulated on each trace's own command (and known external force) with the
 sensor noise switched off (the expected response). Residuals are ``measured - simulated`` in every
 channel both carry. Channel weights for fitting are ``1 / sigma_c`` with
-``sigma_c = max(noise_c, 0.1 * rms_c)``: the noise floor of the channel (from the high-frequency part
-of its residual) but never less than a tenth of its baseline gap, so that every channel with a real
-gap counts about equally and channels with only noise barely count.
+``sigma_c = max(noise_c, 0.1 * rms_c, q_c / sqrt(12))``: the noise floor of the channel (from the
+high-frequency part of its residual) but never less than a tenth of its baseline gap, so that every
+channel with a real gap counts about equally and channels with only noise barely count, and never less
+than the quantisation noise of a channel recorded on a grid of step ``q_c`` (an encoder count: a
+residual of the size of one count is which side of a count edge the model lands on, not information).
 """
 
 from __future__ import annotations
@@ -110,24 +112,52 @@ def correlation_time(r: np.ndarray, max_lag: int = 2000) -> float:
     return float(max(1.0, 1.0 + 2.0 * np.sum(ac[1:stop])))
 
 
+def quantum(x: np.ndarray) -> float:
+    """The step of a channel recorded on a grid (encoder counts, scale resolution, a fixed number of
+    decimals), or 0.0 when its values are not on one: the smallest step between distinct values, kept
+    only when (almost) every other step is an integer multiple of it."""
+    u = np.unique(np.asarray(x, dtype=float)[np.isfinite(x)])
+    if u.size < 3:
+        return 0.0
+    d = np.diff(u)
+    q = float(d.min())
+    if q <= 1e-12 * max(float(np.max(np.abs(u))), 1e-300):
+        return 0.0
+    k = d / q
+    return q if float(np.quantile(np.abs(k - np.round(k)), 0.9)) < 0.02 else 0.0
+
+
 @dataclass
 class Weights:
     sigma: dict[str, float]
     n_eff_fraction: dict[str, float]  # n_eff / n per channel
+    quantum: dict[str, float] = field(default_factory=dict)  # grid step of quantised channels
 
     @classmethod
-    def from_residuals(cls, res_list: list[dict[str, np.ndarray]]) -> Weights:
+    def from_residuals(cls, res_list: list[dict[str, np.ndarray]],
+                       quanta: dict[str, float] | None = None) -> Weights:
+        """``quanta``: the grid step of quantised measured channels (see :func:`quantum`)."""
         sigma, frac = {}, {}
+        quanta = dict(quanta or {})
         chans = sorted({c for r in res_list for c in r})
         for ch in chans:
             rs = [r[ch] for r in res_list if ch in r]
             x = np.concatenate(rs)
             rms = float(np.sqrt(np.mean(x**2)))
             noise = float(np.median([noise_floor(r) for r in rs]))
-            sigma[ch] = max(noise, 0.1 * rms, 1e-300)
+            sigma[ch] = max(noise, 0.1 * rms, quanta.get(ch, 0.0) / math.sqrt(12.0), 1e-300)
             taus = [correlation_time(r) for r in rs]
             frac[ch] = float(1.0 / max(np.mean(taus), 1.0))
-        return cls(sigma, frac)
+        return cls(sigma, frac, {c: q for c, q in quanta.items() if c in sigma})
+
+
+def channel_quanta(traces: list[TraceData]) -> dict[str, float]:
+    """Grid step per measured channel over several traces (the largest seen; 0.0 = not quantised)."""
+    out: dict[str, float] = {}
+    for td in traces:
+        for ch, x in td.measured.items():
+            out[ch] = max(out.get(ch, 0.0), quantum(x))
+    return out
 
 
 def weighted_ssr(res_list: list[dict[str, np.ndarray]], w: Weights) -> dict[str, float]:

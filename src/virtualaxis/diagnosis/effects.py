@@ -13,6 +13,7 @@ Values are fitted in internal coordinates ``u``: ``value = typical * u`` (``scal
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -419,6 +420,46 @@ EFFECTS: dict[str, Effect] = {
 
 #: parameters that are chosen by search, not by the least-squares fit
 DISCRETE_PARAMS = {"cogging_periods_per_rev"}
+
+#: separator of effect and parameter in the parameter names of a combined effect ("backlash/gap_m")
+JOINT_SEP = "/"
+
+
+def is_discrete(param_name: str) -> bool:
+    return param_name.rsplit(JOINT_SEP, 1)[-1] in DISCRETE_PARAMS
+
+
+def effect_of(name: str) -> Effect:
+    """An effect of the library by name, or several joined by "+" as one effect (a joint refit of
+    accepted effects: parameters named ``effect/param``, applied in the order given)."""
+    if name in EFFECTS:
+        return EFFECTS[name]
+    parts = tuple(name.split("+"))
+    unknown = [p for p in parts if p not in EFFECTS]
+    if len(parts) < 2 or unknown:
+        raise KeyError(f"unknown effect {name!r}")
+    return _combined(parts)
+
+
+def _combined(parts: tuple[str, ...]) -> Effect:
+    def params(cfg: AxisConfig) -> list[Param]:
+        return [dataclasses.replace(p, name=f"{e}{JOINT_SEP}{p.name}") for e in parts for p in EFFECTS[e].params(cfg)]
+
+    def apply(cfg: AxisConfig, v: dict[str, float]) -> AxisConfig:
+        for e, vals in split_joint(v).items():
+            cfg = EFFECTS[e].apply(cfg, vals)
+        return cfg
+
+    return Effect("+".join(parts), "joint refit of " + ", ".join(parts), "", params, apply, _always)
+
+
+def split_joint(values: dict[str, float]) -> dict[str, dict[str, float]]:
+    """``{"a/x": 1, "b/y": 2}`` -> ``{"a": {"x": 1}, "b": {"y": 2}}`` (insertion order kept)."""
+    out: dict[str, dict[str, float]] = {}
+    for k, v in values.items():
+        e, _, p = k.partition(JOINT_SEP)
+        out.setdefault(e, {})[p] = v
+    return out
 
 
 def derived_values(effect: str, values: dict[str, float]) -> dict[str, float]:

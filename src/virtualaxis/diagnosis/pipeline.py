@@ -248,6 +248,13 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "seconds": r.seconds,
                 "error": r.error,
             }
+    joint = sel.joint
+    if joint and joint["accepted"]:  # the accepted effects' parameters are the jointly refitted ones
+        for n in accepted_names:
+            e = entries[n]
+            e["params_sequential"] = e["params"]
+            e["params"] = _param_table(n, cfg, joint["joint_values"][n], joint["joint_stderr"].get(n, {}))
+            e["refit"] = "joint"
     ranked = [entries[n] for n in accepted_names] + sorted(
         (e for n, e in entries.items() if n not in accepted_names), key=lambda e: e["ic_delta"])
     for k, e in enumerate(ranked):
@@ -282,6 +289,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
         "accepted": accepted_names,
         "effects": ranked,
         "not_applicable": sel.skipped,
+        "joint_refit": joint,
         "cumulative": cumulative,
         "final": {"fit": final_fit, "heldout": final_hold,
                   "heldout_rmse_ratio": {ch: base_hold[ch]["rmse"] / max(final_hold[ch]["rmse"], 1e-300)

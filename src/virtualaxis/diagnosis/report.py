@@ -167,6 +167,16 @@ def report_html(report: dict) -> str:
                      _g(e["ic_delta"]), _g(e["signature_overlap"]), ps])
     parts.append("<h2>Candidate effects</h2>" + _table(
         rows, ["rank", "effect", "accepted", "held-out reduction", "ΔBIC", "signature overlap", "parameters"]))
+    jr = report.get("joint_refit")
+    if jr:
+        rows = [[e, "; ".join(f"{k} = {_g(v)}" for k, v in jr["sequential_values"][e].items()),
+                 "; ".join(f"{k} = {_g(v)}" for k, v in jr["joint_values"].get(e, {}).items())] for e in jr["effects"]]
+        verdict = ("kept (lower fit cost, held-out cost not higher)" if jr["accepted"]
+                   else "not kept (it did not lower the fit cost without raising the held-out cost)")
+        parts.append(f"<h2>Joint refit of the accepted effects: {verdict}</h2>"
+                     f"<p>weighted cost fit {_g(jr['fit_cost_sequential'])} → {_g(jr['fit_cost_joint'])}, held out "
+                     f"{_g(jr['heldout_cost_sequential'])} → {_g(jr['heldout_cost_joint'])}</p>"
+                     + _table(rows, ["effect", "forward selection", "joint refit"]))
     if report["cumulative"]:
         rows = []
         for c in report["cumulative"]:
