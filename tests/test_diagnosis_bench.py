@@ -112,3 +112,23 @@ def test_cli_scheduler_without_dask_is_a_clear_error(tmp_path, capsys, monkeypat
 
 def test_no_effect_constant():
     assert NO_EFFECT == "no significant effect"
+
+
+@pytest.mark.slow
+def test_a_withheld_pair_is_found_and_refitted_jointly(tmp_path):
+    """Backlash + Coulomb friction withheld together (quick traces): both are found; the joint refit
+    is reported with its costs and, where kept, its values are the ones the report gives."""
+    bench = run_bench(tmp_path, seed=3, case_names=["backlash+coulomb"], quick=True, jobs=2)
+    ev = bench["cases"][0]
+    assert set(ev["accepted"]) == {"backlash", "coulomb_friction"}, ev
+    rep = json.loads((tmp_path / "backlash+coulomb" / "diagnosis" / "report.json").read_text())
+    jr = rep["joint_refit"]
+    assert jr["effects"] == rep["accepted"]
+    assert jr["accepted"] == (jr["fit_cost_joint"] < jr["fit_cost_sequential"]
+                              and jr["heldout_cost_joint"] <= jr["heldout_cost_sequential"])
+    kept = jr["joint_values"] if jr["accepted"] else jr["sequential_values"]
+    for e in rep["effects"]:
+        if e["accepted"]:
+            assert {k: v["value"] for k, v in e["params"].items()} == pytest.approx(kept[e["name"]])
+    for key, rec in ev["param_recovery"].items():
+        assert rec["rel_error"] < 0.2, (key, rec)

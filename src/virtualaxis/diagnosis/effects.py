@@ -421,6 +421,19 @@ EFFECTS: dict[str, Effect] = {
 #: parameters that are chosen by search, not by the least-squares fit
 DISCRETE_PARAMS = {"cogging_periods_per_rev"}
 
+def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
+    """The simpler effect a fitted one reduces to, with its start values, or None: friction asymmetry whose
+    two directions agree within their uncertainty (2 sigma, at least 3 % of their mean) is Coulomb
+    friction."""
+    if effect == "friction_asymmetry":
+        a, b = values["coulomb_n"], values["coulomb_negative_n"]
+        sa, sb = stderr.get("coulomb_n", math.nan), stderr.get("coulomb_negative_n", math.nan)
+        sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
+        if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
+            return "coulomb_friction", {"coulomb_n": 0.5 * (a + b)}
+    return None
+
+
 #: separator of effect and parameter in the parameter names of a combined effect ("backlash/gap_m")
 JOINT_SEP = "/"
 

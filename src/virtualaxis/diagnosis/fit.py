@@ -53,6 +53,7 @@ class FitSettings:
     polish_nfev: int = 24  # simulations of the derivative-free polish after Gauss-Newton (0 = none),
     #                        plus 12 for every further parameter
     joint_refit: bool = True  # refit all accepted effects together at the end
+    pattern_nfev: int = 12  # simulations per parameter of the coarse-to-fine compass search after the polish
     min_gain: float = 0.10  # held-out weighted residual energy must fall by 10 % of what is left ...
     min_gain_total: float = 0.02  # ... and by 2 % of the nominal model's (no fitting of leftovers)
     min_screen_gain: float = 0.03  # a candidate must explain 3 % of the fit residual to be refined
@@ -258,7 +259,8 @@ def gauss_newton(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, 
     return u, jac
 
 
-def polish(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int) -> np.ndarray:
+def polish(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nfev: int,
+           pattern_nfev: int = 0) -> np.ndarray:
     """Derivative-free refinement of the Gauss-Newton result: bounded Powell (Brent line searches along
     each parameter) on the weighted cost, inside a trust region around it (a factor 4.5 either way for
     log-scaled parameters; for linear ones one typical size or the distance from zero, whichever is
@@ -279,7 +281,40 @@ def polish(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_nf
     res = optimize.minimize(cost, u0, method="Powell", bounds=list(zip(lo_t, hi_t, strict=True)),
                             options={"xtol": 0.01, "ftol": 1e-4, "maxfev": max_nfev})
     u = np.clip(res.x, lo_t, hi_t)
-    return u if cost(u) < 1.0 else u0
+    u = u if cost(u) < 1.0 else u0
+    if pattern_nfev > 0:
+        u = pattern_search(cost, u, lo_t, hi_t, [1.0 if p.scale == "log" else max(abs(float(x)), 1.0)
+                                                 for p, x in zip(model.free, u, strict=True)], pattern_nfev)
+    return u
+
+
+def pattern_search(cost: Callable[[np.ndarray], float], u0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   scale: list[float], max_nfev: int, steps: tuple[float, ...] = (0.2, 0.07, 0.025)) -> np.ndarray:
+    """Coarse-to-fine compass search: try +-step x scale along each parameter, move on improvement,
+    refine the step when nothing improves. Brent's line searches assume one minimum per line; on a cost
+    with roughness (chaotic stick-slip or count-edge detail) they can settle in a dip away from the broad
+    basin, which the coarse steps see past."""
+    u = u0.copy()
+    c = cost(u)
+    n = 0
+    for step in steps:
+        improved = True
+        while improved and n < max_nfev:
+            improved = False
+            for j in range(u.size):
+                for sgn in (1.0, -1.0):
+                    if n >= max_nfev:
+                        break
+                    v = u.copy()
+                    v[j] = min(max(v[j] + sgn * step * scale[j], lo[j]), hi[j])
+                    if v[j] == u[j]:
+                        continue
+                    cv = cost(v)
+                    n += 1
+                    if cv < c:
+                        u, c, improved = v, cv, True
+                        break
+    return u
 
 
 def fit_candidate(job: FitJob) -> CandidateResult:
@@ -314,7 +349,8 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     else:
         u_hat, jac = gauss_newton(model, u0, lo, hi, job.settings.max_iter)
         if job.settings.polish_nfev > 0:
-            u_pol = polish(model, u_hat, lo, hi, job.settings.polish_nfev + 12 * (len(model.free) - 1))
+            u_pol = polish(model, u_hat, lo, hi, job.settings.polish_nfev + 12 * (len(model.free) - 1),
+                           job.settings.pattern_nfev * len(model.free))
             if not np.array_equal(u_pol, u_hat):
                 u_hat, jac = u_pol, None
     r0 = model.residual_vector(u0)
@@ -472,6 +508,21 @@ def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit
     }
 
 
+def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fit: dict, before_hold: dict,
+           counts_fit: dict, counts_hold: dict, w: Weights, left: float, settings: FitSettings) -> dict:
+    """Score one refined candidate and decide whether it pays its way (see the module docstring)."""
+    n_par = len([p for p in fx.EFFECTS[r.effect].params(cur) if not fx.is_discrete(p.name)])
+    s = score(r, before_fit, before_hold, counts_fit, counts_hold, w, n_par)
+    sig_ok = not (r.signature_overlap < settings.min_signature_overlap)
+    s["gain_of_nominal"] = s["gain"] * left
+    worst = min(s.get("gain_per_channel", {}).values(), default=0.0)
+    s["worst_channel_gain"] = worst
+    pays = (s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
+            and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
+            and sig_ok and not r.error)
+    return {"result": r, "score": s, "pays": pays, "signature_ok": sig_ok, "screen_gain": screen_gain}
+
+
 def select_effects(
     cfg: AxisConfig,
     traces: list[TraceData],
@@ -543,6 +594,8 @@ def select_effects(
         refined = runner.map([FitJob(r.effect, stage="refine", start=r.values, **common) for r in to_refine],
                              progress=(lambda r: progress(f"refined {r.effect}")) if progress else None)
         refined_by = {r.effect: r for r in refined}
+        ctx = dict(cur=cur, before_fit=before_fit, before_hold=before_hold, counts_fit=counts_fit,
+                   counts_hold=counts_hold, w=w, left=left, settings=settings)
         scored = []
         for r0 in order:
             r = refined_by.get(r0.effect)
@@ -553,19 +606,23 @@ def select_effects(
                 continue
             r.screen_gain = r0.screen_gain
             n_sims += r.n_sims
-            n_par = len([p for p in fx.EFFECTS[r.effect].params(cur) if not fx.is_discrete(p.name)])
-            s = score(r, before_fit, before_hold, counts_fit, counts_hold, w, n_par)
-            sig_ok = not (r.signature_overlap < settings.min_signature_overlap)
-            s["gain_of_nominal"] = s["gain"] * left
-            worst = min(s.get("gain_per_channel", {}).values(), default=0.0)
-            s["worst_channel_gain"] = worst
-            pays = (s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
-                    and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
-                    and sig_ok and not r.error)
-            scored.append({"result": r, "score": s, "pays": pays, "signature_ok": sig_ok,
-                           "screen_gain": r0.screen_gain})
+            scored.append(_judge(r, r0.screen_gain, **ctx))
         scored.sort(key=lambda d: (not d["pays"], d["score"]["ic_delta"], -d["screen_gain"]))
         _parsimony(scored, cur, settings.parsimony)
+        if scored and scored[0]["pays"]:  # a nested effect whose extra parameters buy nothing -> the simpler one
+            r = scored[0]["result"]
+            red = fx.reduce_nested(r.effect, r.values, r.stderr)
+            if red is not None and red[0] in remaining:
+                simple = runner.map([FitJob(red[0], stage="refine", start=red[1], **common)])[0]
+                n_sims += simple.n_sims
+                old = next((d for d in scored if d["result"].effect == red[0]), None)
+                d = _judge(simple, old["screen_gain"] if old else 0.0, **ctx)
+                if d["pays"]:
+                    if old is not None:
+                        scored.remove(old)
+                    d["parsimony"] = (f"preferred over {r.effect}: its fitted values agree within their "
+                                      "uncertainty, the nested effect explains the same")
+                    scored.insert(0, d)
         rounds.append(scored)
         best = scored[0] if scored and scored[0]["pays"] else None
         if best is None:
