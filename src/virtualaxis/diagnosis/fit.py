@@ -34,6 +34,7 @@ from virtualaxis.diagnosis.data import (
     TraceData,
     Weights,
     channel_quanta,
+    chaos_floor,
     info_criterion_delta,
     pooled_metrics,
     residuals,
@@ -487,6 +488,7 @@ class Selection:
     seconds_fitting: float
     n_sims: int
     joint: dict | None = None  # the joint refit of the accepted effects (see joint_refit)
+    weights: Weights | None = None  # the channel weights every cost of the selection used
 
 
 def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit: dict, counts_hold: dict,
@@ -556,7 +558,10 @@ def select_effects(
         n_sims += len(all_idx)
         res = {i: residuals(traces[i], preds[i]) for i in all_idx}
         if w is None:  # weights from the nominal residual, kept for all rounds (comparable costs)
-            w = Weights.from_residuals([res[i] for i in fit_idx], channel_quanta([traces[i] for i in all_idx]))
+            chaos = chaos_floor(cur, [traces[i] for i in fit_idx], simulate, [preds[i] for i in fit_idx])
+            n_sims += len(fit_idx)
+            w = Weights.from_residuals([res[i] for i in fit_idx], channel_quanta([traces[i] for i in all_idx]),
+                                       chaos)
         before_fit = weighted_ssr([res[i] for i in fit_idx], w)
         before_hold = weighted_ssr([res[i] for i in holdout_idx], w)
         if rnd == 0:
@@ -644,7 +649,7 @@ def select_effects(
             joint.pop("steps")
         if progress:
             progress("refined joint")
-    return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims, joint)
+    return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims, joint, w)
 
 
 def joint_refit(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], fit_idx: list[int],
