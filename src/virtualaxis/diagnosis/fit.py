@@ -55,6 +55,7 @@ class FitSettings:
     #                        plus 12 for every further parameter
     joint_refit: bool = True  # refit all accepted effects together at the end
     pattern_nfev: int = 12  # simulations per parameter of the coarse-to-fine compass search after the polish
+    alt_starts: int = 2  # refine also from the next-best screening starts with a different shape (resonance)
     min_gain: float = 0.10  # held-out weighted residual energy must fall by 10 % of what is left ...
     min_gain_total: float = 0.02  # ... and by 2 % of the nominal model's (no fitting of leftovers)
     min_screen_gain: float = 0.03  # a candidate must explain 3 % of the fit residual to be refined
@@ -84,6 +85,7 @@ class FitJob:
     stage: str = "screen"  # "screen" | "refine"
     base_preds: dict = field(default_factory=dict)  # trace index -> current model prediction
     start: dict = field(default_factory=dict)  # refine: the screening estimate
+    alt_starts: list[dict] = field(default_factory=list)  # refine: further starts (multi-modal shapes)
     target: Localisation | None = None  # where the current residual lies
     target_channel: str = ""
 
@@ -104,6 +106,7 @@ class CandidateResult:
     error: str = ""
     stage: str = "screen"
     screen_gain: float = 0.0  # fraction of the weighted fit residual energy explained (screening)
+    alternatives: list[dict] = field(default_factory=list)  # next-best screening starts (other shapes)
 
 
 class _Model:
@@ -205,6 +208,7 @@ def screen(job: FitJob, model: _Model) -> tuple[dict[str, float], float, float]:
     r0 = float(base @ base)
     nominal = model.nominal_values()
     best: tuple[dict[str, float], float, float] = (nominal, 0.0, r0)
+    tried = model.tried = []
     for st in model.effect.starts(job.cfg, job.hints) or [{}]:
         anchor = {**nominal, **st}
         shape = {p.name: anchor[p.name] for p in model.params if p.shape or fx.is_discrete(p.name)}
@@ -228,13 +232,32 @@ def screen(job: FitJob, model: _Model) -> tuple[dict[str, float], float, float]:
         sol = optimize.lsq_linear(a_mat, base, bounds=(np.array(lo), np.array(hi)))
         resid = base - a_mat @ sol.x
         cost = float(resid @ resid)
+        vals = {**nominal, **shape}
+        for p, alpha in zip(amp, sol.x, strict=False):
+            vals[p.name] = float(min(max(nominal[p.name] + alpha * (anchor[p.name] - nominal[p.name]),
+                                         p.lower), p.upper))
+        tried.append((cost, vals))
         if cost < best[2]:
-            vals = {**nominal, **shape}
-            for p, alpha in zip(amp, sol.x, strict=False):
-                vals[p.name] = float(min(max(nominal[p.name] + alpha * (anchor[p.name] - nominal[p.name]),
-                                             p.lower), p.upper))
             best = (vals, 1.0 - cost / max(r0, 1e-300), cost)
     return best
+
+
+def _alternative_starts(model: _Model, best: dict[str, float], n: int) -> list[dict[str, float]]:
+    """The next-best screening estimates whose shape parameters (a resonance's frequency, a Stribeck
+    velocity, a cogging order) differ by more than 15 % from the best's and from each other: a cost with
+    several basins over a shape parameter is refined from each, and the best fit is kept."""
+    shape = [p.name for p in model.params if p.shape or fx.is_discrete(p.name)]
+    if n <= 0 or not shape:
+        return []
+    chosen = [best]
+    out = []
+    for _, vals in sorted(getattr(model, "tried", []), key=lambda cv: cv[0]):
+        if len(out) >= n:
+            break
+        if all(any(abs(vals[k] - c[k]) > 0.15 * max(abs(c[k]), 1e-300) for k in shape) for c in chosen):
+            chosen.append(vals)
+            out.append(vals)
+    return out
 
 
 def gauss_newton(model: _Model, u0: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_iter: int):
@@ -324,8 +347,9 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     model = _Model(job)
     if job.stage == "screen":
         values, gain, _ = screen(job, model)
+        alts = _alternative_starts(model, values, job.settings.alt_starts)
         return CandidateResult(job.effect, values, {}, {}, {}, {}, {}, float("nan"), model.n_sims,
-                               time.perf_counter() - t0, stage="screen", screen_gain=gain)
+                               time.perf_counter() - t0, stage="screen", screen_gain=gain, alternatives=alts)
     start = {**model.nominal_values(), **job.start}
     model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
     base = model.stack([job.base_preds[i] for i in job.fit_idx])
@@ -348,15 +372,29 @@ def fit_candidate(job: FitJob) -> CandidateResult:
         )
         u_hat, jac = res.x, res.jac
     else:
-        u_hat, jac = gauss_newton(model, u0, lo, hi, job.settings.max_iter)
-        if job.settings.polish_nfev > 0:
-            u_pol = polish(model, u_hat, lo, hi, job.settings.polish_nfev + 12 * (len(model.free) - 1),
-                           job.settings.pattern_nfev * len(model.free))
-            if not np.array_equal(u_pol, u_hat):
-                u_hat, jac = u_pol, None
+        best_c = math.inf
+        for k, st in enumerate([job.start, *job.alt_starts]):
+            full = {**model.nominal_values(), **st}
+            model.fixed = {key: v for key, v in full.items() if fx.is_discrete(key)}
+            us = u0 if k == 0 else np.clip(model.internal(full), lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+            u_k, jac_k = gauss_newton(model, us, lo, hi, job.settings.max_iter)
+            if job.settings.polish_nfev > 0:
+                u_pol = polish(model, u_k, lo, hi, job.settings.polish_nfev + 12 * (len(model.free) - 1),
+                               job.settings.pattern_nfev * len(model.free))
+                if not np.array_equal(u_pol, u_k):
+                    u_k, jac_k = u_pol, None
+            f_k = model.residual_vector(u_k)
+            c_k = float(f_k @ f_k)
+            if c_k < best_c:
+                best_c, u_hat, jac, fixed = c_k, u_k, jac_k, dict(model.fixed)
+        model.fixed = fixed
+    fixed_hat = dict(model.fixed)
+    model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
     r0 = model.residual_vector(u0)
+    model.fixed = fixed_hat
     if float(r0 @ r0) < float(model.residual_vector(u_hat) @ model.residual_vector(u_hat)):
         u_hat = u0  # never worse than the screening estimate
+        model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
     values = model.values(u_hat)
     cfg_hat = model.cfg(u_hat)
     # uncertainty: cov = s^2 (J^T J)^-1, inflated by the residual correlation time (n / n_eff)
@@ -596,7 +634,8 @@ def select_effects(
         to_refine = to_refine[: settings.refine_top]
         if progress:
             progress(f"round {rnd + 1}: refining {len(to_refine)} candidates")
-        refined = runner.map([FitJob(r.effect, stage="refine", start=r.values, **common) for r in to_refine],
+        refined = runner.map([FitJob(r.effect, stage="refine", start=r.values, alt_starts=r.alternatives, **common)
+                              for r in to_refine],
                              progress=(lambda r: progress(f"refined {r.effect}")) if progress else None)
         refined_by = {r.effect: r for r in refined}
         ctx = dict(cur=cur, before_fit=before_fit, before_hold=before_hold, counts_fit=counts_fit,

@@ -154,6 +154,14 @@ def report_html(report: dict) -> str:
     parts.append("<h2>Baseline gap (nominal model)</h2>" + _table(
         [[ch, m["unit"], _g(m["rmse"]), _g(m["mae"]), _g(m["max"])] for ch, m in report["baseline"].items()],
         ["channel", "unit", "RMSE", "mean |e|", "max |e|"]))
+    cw = report.get("channel_weights") or {}
+    if cw:
+        parts.append("<h2>Channel weights</h2><p>Every cost divides a channel's residual by its sigma: the largest "
+                     "of its noise floor, a tenth of its baseline gap, its quantisation (grid step / &radic;12) and "
+                     "the model's own chaos (how much the prediction changes under a 1e-12 m change of the "
+                     "command).</p>" + _table(
+                         [[ch, _g(v["sigma"]), _g(v["quantum"]), _g(v["chaos"]), _g(v["n_eff_fraction"])]
+                          for ch, v in cw.items()], ["channel", "sigma", "grid step", "chaos", "n_eff / n"]))
     rows = []
     for ch, lst in report["where_summary"].items():
         for e in lst:
