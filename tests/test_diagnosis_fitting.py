@@ -102,3 +102,22 @@ def test_symmetric_friction_asymmetry_reduces_to_coulomb_friction():
     assert fx.reduce_nested("friction_asymmetry", {"coulomb_n": 48.6, "coulomb_negative_n": 95.7},
                             {"coulomb_n": 3.0, "coulomb_negative_n": 4.0}) is None
     assert fx.reduce_nested("coulomb_friction", {"coulomb_n": 50.0}, {"coulomb_n": 1.0}) is None
+
+
+def test_chaos_floor_is_the_models_own_irreproducible_part():
+    """The quantised, friction-stick seed 000 loop: an unmeasurably small change of the command changes the
+    current chatter by a sizeable fraction of its level; the same axis with ideal encoders and no stick
+    (no friction) answers with (almost) exactly the same prediction."""
+    from virtualaxis.diagnosis.data import chaos_floor, default_simulate
+
+    cfg = nominal_config("ballscrew")
+    t = np.arange(1500) * 1e-3
+    pos = 0.005 * (1 - np.cos(2 * math.pi * 1.0 * t))
+    td = TraceData("sine", t, pos, None, {"current_q": np.zeros_like(t), "pos_meas": np.zeros_like(t)})
+    chaotic = chaos_floor(cfg, [td], default_simulate)
+    ideal = cfg.replace(sensors={"motor_encoder_counts_per_rev": 0, "linear_scale_resolution_m": 0.0},
+                        friction={"enabled": False})
+    smooth = chaos_floor(ideal, [td], default_simulate)
+    assert chaotic["current_q"] > 0.01  # A
+    assert smooth["current_q"] < 1e-3 * chaotic["current_q"]
+    assert smooth["pos_meas"] < 1e-9  # m: a 1e-12 m command change moves the ideal table by ~1e-12 m
