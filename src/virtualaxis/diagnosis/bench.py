@@ -285,8 +285,8 @@ def summarise(results: list[dict]) -> dict:
     shrink_per_effect: dict[str, list[float]] = {}
     for r in eff:
         pos = [v for ch, v in r["heldout_rmse_shrink"].items() if ch in ("pos_meas", "pos_fb", "motor_pos")]
-        val = max(r["heldout_rmse_shrink"].values()) if r["heldout_rmse_shrink"] else 0.0
         best = max(r["heldout_rmse_shrink"], key=r["heldout_rmse_shrink"].get) if r["heldout_rmse_shrink"] else ""
+        val = r["heldout_rmse_shrink"][best] if best else 0.0
         truth_best = r.get("heldout_rmse_shrink_truth_model", {}).get(best, float("nan"))
         closed = r.get("heldout_gap_closed", {})
         shrink_per_effect[r["case"]] = [val, max(pos) if pos else float("nan"), truth_best,

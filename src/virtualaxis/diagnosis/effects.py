@@ -421,6 +421,7 @@ EFFECTS: dict[str, Effect] = {
 #: parameters that are chosen by search, not by the least-squares fit
 DISCRETE_PARAMS = {"cogging_periods_per_rev"}
 
+
 def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
     """The simpler effect a fitted one reduces to, with its start values, or None: friction asymmetry whose
     two directions agree within their uncertainty (2 sigma, at least 3 % of their mean) is Coulomb

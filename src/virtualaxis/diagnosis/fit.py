@@ -120,7 +120,8 @@ class _Model:
         self.free = [p for p in self.params if not fx.is_discrete(p.name)]
         self.n_sims = 0
         self.decim = []
-        self._cache: dict[bytes, np.ndarray] = {}
+        self._cache: dict[tuple, np.ndarray] = {}
+        self.tried: list[tuple[float, dict[str, float]]] = []  # screening: (cost, estimate) per start
         self.smooth = []
         for i in job.fit_idx:
             n = job.traces[i].t.size
@@ -167,7 +168,7 @@ class _Model:
         return vec if np.all(np.isfinite(vec)) else None
 
     def residual_vector(self, u: np.ndarray) -> np.ndarray:
-        key = np.asarray(u, dtype=float).tobytes()
+        key = (np.asarray(u, dtype=float).tobytes(), tuple(sorted(self.fixed.items())))
         if key not in self._cache:
             r = self.residual_of_values(self.values(u))
             self._cache[key] = r if r is not None else np.full(self.size, 1e3)
@@ -208,7 +209,6 @@ def screen(job: FitJob, model: _Model) -> tuple[dict[str, float], float, float]:
     r0 = float(base @ base)
     nominal = model.nominal_values()
     best: tuple[dict[str, float], float, float] = (nominal, 0.0, r0)
-    tried = model.tried = []
     for st in model.effect.starts(job.cfg, job.hints) or [{}]:
         anchor = {**nominal, **st}
         shape = {p.name: anchor[p.name] for p in model.params if p.shape or fx.is_discrete(p.name)}
@@ -236,7 +236,7 @@ def screen(job: FitJob, model: _Model) -> tuple[dict[str, float], float, float]:
         for p, alpha in zip(amp, sol.x, strict=False):
             vals[p.name] = float(min(max(nominal[p.name] + alpha * (anchor[p.name] - nominal[p.name]),
                                          p.lower), p.upper))
-        tried.append((cost, vals))
+        model.tried.append((cost, vals))
         if cost < best[2]:
             best = (vals, 1.0 - cost / max(r0, 1e-300), cost)
     return best
@@ -251,7 +251,7 @@ def _alternative_starts(model: _Model, best: dict[str, float], n: int) -> list[d
         return []
     chosen = [best]
     out = []
-    for _, vals in sorted(getattr(model, "tried", []), key=lambda cv: cv[0]):
+    for _, vals in sorted(model.tried, key=lambda cv: cv[0]):
         if len(out) >= n:
             break
         if all(any(abs(vals[k] - c[k]) > 0.15 * max(abs(c[k]), 1e-300) for k in shape) for c in chosen):
@@ -351,7 +351,8 @@ def fit_candidate(job: FitJob) -> CandidateResult:
         return CandidateResult(job.effect, values, {}, {}, {}, {}, {}, float("nan"), model.n_sims,
                                time.perf_counter() - t0, stage="screen", screen_gain=gain, alternatives=alts)
     start = {**model.nominal_values(), **job.start}
-    model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
+    fixed0 = {k: v for k, v in start.items() if fx.is_discrete(k)}
+    model.fixed = dict(fixed0)
     base = model.stack([job.base_preds[i] for i in job.fit_idx])
     model.size = base.size
     u0 = model.internal(start)
@@ -359,6 +360,7 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     # keep the start strictly inside the bounds for the trust-region method
     u0 = np.clip(u0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
     jac = None
+    fixed_hat = fixed0
     if job.settings.method == "de":
         res = optimize.differential_evolution(
             lambda u: float(np.sum(model.residual_vector(u) ** 2)), list(zip(lo, hi, strict=True)),
@@ -386,15 +388,12 @@ def fit_candidate(job: FitJob) -> CandidateResult:
             f_k = model.residual_vector(u_k)
             c_k = float(f_k @ f_k)
             if c_k < best_c:
-                best_c, u_hat, jac, fixed = c_k, u_k, jac_k, dict(model.fixed)
-        model.fixed = fixed
-    fixed_hat = dict(model.fixed)
-    model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
+                best_c, u_hat, jac, fixed_hat = c_k, u_k, jac_k, dict(model.fixed)
+    model.fixed = dict(fixed0)
     r0 = model.residual_vector(u0)
     model.fixed = fixed_hat
     if float(r0 @ r0) < float(model.residual_vector(u_hat) @ model.residual_vector(u_hat)):
-        u_hat = u0  # never worse than the screening estimate
-        model.fixed = {k: v for k, v in start.items() if fx.is_discrete(k)}
+        u_hat, model.fixed = u0, dict(fixed0)  # never worse than the screening estimate
     values = model.values(u_hat)
     cfg_hat = model.cfg(u_hat)
     # uncertainty: cov = s^2 (J^T J)^-1, inflated by the residual correlation time (n / n_eff)
@@ -548,10 +547,15 @@ def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit
     }
 
 
+def _n_free(effect: str, cfg: AxisConfig) -> int:
+    """Number of fitted (not discrete) parameters of an effect: what the information criterion counts."""
+    return len([p for p in fx.EFFECTS[effect].params(cfg) if not fx.is_discrete(p.name)])
+
+
 def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fit: dict, before_hold: dict,
            counts_fit: dict, counts_hold: dict, w: Weights, left: float, settings: FitSettings) -> dict:
     """Score one refined candidate and decide whether it pays its way (see the module docstring)."""
-    n_par = len([p for p in fx.EFFECTS[r.effect].params(cur) if not fx.is_discrete(p.name)])
+    n_par = _n_free(r.effect, cur)
     s = score(r, before_fit, before_hold, counts_fit, counts_hold, w, n_par)
     sig_ok = not (r.signature_overlap < settings.min_signature_overlap)
     s["gain_of_nominal"] = s["gain"] * left
@@ -755,7 +759,7 @@ def _parsimony(scored: list[dict], cur: AxisConfig, tolerance: float, absolute: 
         return
 
     def k(d: dict) -> int:
-        return len([p for p in fx.EFFECTS[d["result"].effect].params(cur) if not fx.is_discrete(p.name)])
+        return _n_free(d["result"].effect, cur)
 
     best = paying[0]
     left_best = 1.0 - best["score"]["gain"]
