@@ -437,10 +437,30 @@ def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float
 
 #: separator of effect and parameter in the parameter names of a combined effect ("backlash/gap_m")
 JOINT_SEP = "/"
+#: an effect pays its way only if it changes some parameter of the current model by at least this share
+MIN_RELATIVE_CHANGE = 0.05
 
 
 def is_discrete(param_name: str) -> bool:
     return param_name.rsplit(JOINT_SEP, 1)[-1] in DISCRETE_PARAMS
+
+
+def relative_change(effect: str, cfg: AxisConfig, values: dict[str, float]) -> float:
+    """Largest change of a fitted (continuous) parameter relative to its value in ``cfg``; ``inf`` where that
+    value is 0 and the fitted one is not (an effect the model did not have). A fit that only nudges values the
+    model already has — a Coulomb force of 40.03 N where the config says 40 N — is a calibration of noise or
+    of a small mismatch elsewhere, not a missing effect (:data:`MIN_RELATIVE_CHANGE`)."""
+    worst = 0.0
+    for p in effect_of(effect).params(cfg):
+        if is_discrete(p.name) or p.name not in values:
+            continue
+        v = float(values[p.name])
+        if p.nominal == 0.0:
+            if v != 0.0:
+                return math.inf
+            continue
+        worst = max(worst, abs(v - p.nominal) / abs(p.nominal))
+    return worst
 
 
 def effect_of(name: str) -> Effect:

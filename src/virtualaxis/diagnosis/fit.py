@@ -561,7 +561,9 @@ def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fi
     s["gain_of_nominal"] = s["gain"] * left
     worst = min(s.get("gain_per_channel", {}).values(), default=0.0)
     s["worst_channel_gain"] = worst
-    pays = (s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
+    change = fx.relative_change(r.effect, cur, r.values) if r.values else 0.0
+    s["relative_change"] = change if math.isfinite(change) else None  # None: the effect was absent (JSON-safe)
+    pays = (change >= fx.MIN_RELATIVE_CHANGE and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
             and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
             and sig_ok and not r.error)
     return {"result": r, "score": s, "pays": pays, "signature_ok": sig_ok, "screen_gain": screen_gain}

@@ -13,6 +13,7 @@ from virtualaxis.config import AxisConfig, ControlParams
 from virtualaxis.config.errors import InputError
 from virtualaxis.diagnosis import effects as fx
 from virtualaxis.diagnosis.contour import contour_report
+from virtualaxis.diagnosis.controller import check_controller
 from virtualaxis.diagnosis.data import (
     SimulateFn,
     TraceData,
@@ -70,10 +71,85 @@ def trace_overrides(tr: Trace) -> dict:
     known = {k: v for k, v in ctrl.items() if k in _CONTROL_KEYS}
     unknown = [k for k in ctrl if k not in _CONTROL_KEYS]
     if unknown:
-        tr.warnings.append(f"sidecar [controller] keys not used (not control.* config keys): {', '.join(unknown)}")
+        tr.warnings.append(f"sidecar [controller] keys not used (not control.* config keys): {', '.join(unknown)}"
+                           "; the controller check compares the trace with the config's control law instead")
     if known:
         tr.warnings.append(f"sidecar [controller] overrides control.{', control.'.join(known)} for this trace")
     return {"control": known} if known else {}
+
+
+#: the nominal model's residual with the identified controller must be below this fraction of the config
+#: controller's (geometric mean over channels) for the identified gains to be used: a guard against a failed
+#: identification, not the evidence (that is the replayed law). It cannot be strict: the withheld plant effect
+#: is in both residuals (bench-style check: P/P cascade with 90 N Coulomb friction where the config says
+#: 40 N, ratio 0.73; clean 0.04-0.10)
+CONTROLLER_CONFIRM_RATIO = 0.95
+
+
+def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData], simulate: SimulateFn) -> list[dict]:
+    """Replay the config's (or the sidecar's) control law on every trace with a controller output
+    (:mod:`virtualaxis.diagnosis.controller`). Where it clearly does not fit and a law identified from the trace
+    does, simulate the nominal model with both controllers and use the identified gains for that trace if its
+    residual is not larger (the evidence is the law, checked on measured signals only, which no plant effect
+    enters; the simulation guards against a failed identification). Returns ``report.json["controller_check"]``."""
+    out = []
+    for tr, td in zip(traces, tds, strict=True):
+        c0 = cfg.replace(**td.overrides) if td.overrides else cfg
+        chk = check_controller(c0, tr.name, tr.t, tr.pos_cmd, tr.columns)
+        if chk is None:
+            continue
+        if chk.used == "identified":
+            ctrl = {**td.overrides.get("control", {}), **chk.overrides["control"]}
+            trial = dataclasses.replace(td, overrides={**td.overrides, "control": ctrl})
+            ratio = _residual_ratio(td, simulate_trace(cfg, td, simulate), simulate_trace(cfg, trial, simulate))
+            chk.confirm_ratio = ratio
+            if ratio <= CONTROLLER_CONFIRM_RATIO:
+                td.overrides = trial.overrides
+            else:
+                chk.used = "config"
+                chk.note += (f"; not used: the nominal model's residual with it is {ratio:.2f} x the config "
+                             f"controller's")
+        if chk.note:
+            tr.warnings.append(chk.note)
+        out.append(chk.as_dict())
+    return out
+
+
+def with_identified_controller(cfg: AxisConfig, checks: list[dict], report: dict) -> AxisConfig:
+    """The calibrated config gets the identified controller when every checked trace used it and their gains
+    agree within 10 % (one controller ran them all, and it is not the config's): the virtual axis then runs
+    the real axis' controller. Traces with different sidecar controllers, or a mix, leave the config's."""
+    if not checks or any(c["used"] != "identified" for c in checks):
+        return cfg
+    ov = [c["overrides"] for c in checks]
+    keys = sorted(set(ov[0]))
+    if any(sorted(o) != keys for o in ov):
+        return cfg
+    merged = {}
+    for k in keys:
+        vals = np.array([float(o[k]) for o in ov])
+        if (vals == 0).any() and not (vals == 0).all():
+            return cfg  # P and PI speed loops mixed
+        if vals.min() > 0 and vals.max() / vals.min() > 1.1:
+            return cfg
+        merged[k] = float(np.median(vals))
+    report["calibrated_controller"] = merged
+    return cfg.replace(control=merged)
+
+
+def _residual_ratio(td: TraceData, pred_a: dict, pred_b: dict) -> float:
+    """Geometric mean over channels of rmse(b) / rmse(a) (motor angle left out when others exist: its zero is
+    arbitrary until aligned)."""
+    chans = [c for c in pred_a if c in pred_b and c in td.measured]
+    if len(chans) > 1:
+        chans = [c for c in chans if c != "motor_pos"]
+    logs = []
+    for c in chans:
+        ra = float(np.sqrt(np.mean((td.measured[c] - pred_a[c]) ** 2)))
+        rb = float(np.sqrt(np.mean((td.measured[c] - pred_b[c]) ** 2)))
+        if ra > 0 and rb > 0:
+            logs.append(np.log(rb / ra))
+    return float(np.exp(np.mean(logs))) if logs else 1.0
 
 
 def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray]) -> None:
@@ -124,6 +200,9 @@ def run_diagnosis(
             raise InputError("--effects", f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECTS)}")
     tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
     timing["read_s"] = time.perf_counter() - t_start
+    t0 = time.perf_counter()
+    controller_checks = check_controllers(cfg, traces, tds, simulate)
+    timing["controller_check_s"] = time.perf_counter() - t0
     # baseline
     t0 = time.perf_counter()
     base_pred = [simulate_trace(cfg, td, simulate) for td in tds]
@@ -176,8 +255,9 @@ def run_diagnosis(
     timing["hybrid_s"] = time.perf_counter() - t0
     timing["total_s"] = time.perf_counter() - t_start
     report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
+    report["controller_check"] = controller_checks
     report["contour"] = contour_report(tds, {"nominal": base_pred, "calibrated": final_pred})
-    report["_calibrated_cfg"] = sel.final_cfg
+    report["_calibrated_cfg"] = with_identified_controller(sel.final_cfg, controller_checks, report)
     report["_base_cfg"] = cfg
     report["_plots"] = {"tds": tds, "base_res": base_res, "final_res": final_res, "loc": loc,
                         "fit_idx": fit_idx, "hold_idx": hold_idx}
@@ -240,6 +320,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                             "gain_per_channel": s.get("gain_per_channel", {})},
                 "judged_on": s["judged_on"],
                 "ic_delta": s["ic_delta"],
+                "relative_change": s.get("relative_change"),
                 "signature_overlap": r.signature_overlap,
                 "pays_its_way": d["pays"],
                 "stage": r.stage,

@@ -136,6 +136,10 @@ def _g(x: float | None) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.4g}"
 
 
+def _change(x: float | None) -> str:
+    return "new" if x is None else f"{100 * x:.1f} %"
+
+
 def report_html(report: dict) -> str:
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>Gap diagnosis</title><style>"
@@ -154,6 +158,21 @@ def report_html(report: dict) -> str:
     parts.append("<h2>Baseline gap (nominal model)</h2>" + _table(
         [[ch, m["unit"], _g(m["rmse"]), _g(m["mae"]), _g(m["max"])] for ch, m in report["baseline"].items()],
         ["channel", "unit", "RMSE", "mean |e|", "max |e|"]))
+    cc = report.get("controller_check") or []
+    if cc:
+        def gains(g: dict) -> str:
+            ti = f"Ti {_g(g['ti_s'])} s" if g["ti_s"] > 0 else "P speed loop"
+            return f"Kv {_g(g['kv_per_s'])} 1/s, Kp {_g(g['kp'])}, {ti}, vel. ff {_g(g['velocity_ff'])}"
+
+        parts.append("<h2>Controller check</h2><p>The control law (config or sidecar) replayed on each trace's "
+                     "measured signals: share of the controller output's variance it leaves unexplained, and a law "
+                     "identified from the trace. Identified gains are used for a trace only where the configured "
+                     "law clearly does not fit (see docs/diagnosis.md).</p>" + _table(
+                         [[c["trace"], c["channel"], _g(c["unexplained_config"]), _g(c["unexplained_identified"]),
+                           gains(c["config_gains"]), gains(c["identified_gains"]), c["used"], c["note"]]
+                          for c in cc],
+                         ["trace", "output", "unexplained (config)", "unexplained (identified)", "config",
+                          "identified", "used", "note"]))
     cw = report.get("channel_weights") or {}
     if cw:
         parts.append("<h2>Channel weights</h2><p>Every cost divides a channel's residual by its sigma: the largest "
@@ -172,9 +191,10 @@ def report_html(report: dict) -> str:
     for e in report["effects"]:
         ps = "; ".join(f"{k} = {_g(v['value'])} ± {_g(v['stderr'])} {v['unit']}" for k, v in e["params"].items())
         rows.append([e["rank"], e["name"], "yes" if e["accepted"] else "no", f"{100 * e['heldout']['gain']:.1f} %",
-                     _g(e["ic_delta"]), _g(e["signature_overlap"]), ps])
+                     _g(e["ic_delta"]), _g(e["signature_overlap"]), _change(e.get("relative_change")), ps])
     parts.append("<h2>Candidate effects</h2>" + _table(
-        rows, ["rank", "effect", "accepted", "held-out reduction", "ΔBIC", "signature overlap", "parameters"]))
+        rows, ["rank", "effect", "accepted", "held-out reduction", "ΔBIC", "signature overlap", "change vs model",
+               "parameters"]))
     jr = report.get("joint_refit")
     if jr:
         rows = [[e, "; ".join(f"{k} = {_g(v)}" for k, v in jr["sequential_values"][e].items()),
@@ -236,7 +256,10 @@ def write_report(report: dict, out_dir: Path) -> dict[str, Path]:
                 if not isinstance(vals, dict):
                     continue
                 for k, v in vals.items():
-                    if a.get(sec, {}).get(k) != v:
+                    if a.get(sec, {}).get(k) != v and sec == "control":
+                        srcs[f"{sec}.{k}"] = ("gap diagnosis: controller identified from the traces (median over "
+                                              "traces, report.json controller_check)")
+                    elif a.get(sec, {}).get(k) != v:
                         srcs[f"{sec}.{k}"] = (f"gap diagnosis ({report['conclusion']}) fitted on "
                                               f"{', '.join(_fit_names(report))}")
         cfg = dataclasses.replace(cfg, sources=srcs)

@@ -1,0 +1,307 @@
+"""Is the trace's controller the one the config describes? Replay the control law on the measured signals.
+
+A controller maps measured signals to its output: the command, the position feedback and the speed
+measured from it go in, a force or torque comes out. That law needs no plant model, so it can be checked
+(and, when the config's is wrong, identified) from a trace alone, before anything is simulated. Without
+this check an axis run by another controller than the config's — another vendor's P/P cascade, other gains
+— shows the controller difference as a "gap", and the diagnosis would blame a plant effect for it.
+
+The law replayed is the config's cascade (`virtualaxis.control`, the compiled kernel) sampled at the trace's
+rate: at sample ``k`` the output is the speed controller's answer to the set-point of the previous
+position-loop sample::
+
+    E_k = g (Kv e_{k-1} + Kff vc_{k-1}) - w_k          speed error [rad/s at the motor, or m/s]
+    u_k = Kp E_k + Ki sum_{i<=k} E_i dt + Kt g ac_{k-1} + b
+
+``e`` following error [m] (command - position feedback), ``vc``/``ac`` command velocity/acceleration,
+``w_k`` the speed over the last sample (motor angle difference for a motor, feedback position for a force
+actuator), ``g`` the gear factor (2 pi / lead [rad/m], 1 for a force actuator), ``u`` motor torque [N m]
+or drive force [N], ``b`` the integrator's unknown initial state. ``Kp``: ``control.speed_kp_nm_s_per_rad``
+or ``velocity_kp_n_s_per_m``; ``Ki = Kp / speed_ti_s`` (0 for a P speed loop); ``Kt = torque_ff_factor x
+J_ref``. The check reports the share of the output's variance each law leaves unexplained; the identified
+gains replace the config's for that trace only when the config's law leaves a clearly larger share
+(:data:`SWITCH_RATIO`, :data:`SWITCH_MIN_UNEXPLAINED`). The speed loop runs faster than the trace is sampled,
+so this is an approximation; it is meant to tell "other controller" from "same controller", not to
+replace a controller's documentation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig
+
+#: use the identified law only if the config's leaves this many times its unexplained share ...
+SWITCH_RATIO = 3.0
+#: ... and at least this share of the controller output's variance unexplained
+SWITCH_MIN_UNEXPLAINED = 0.05
+#: warn (without switching) when the config's law leaves this share unexplained; an identified law must
+#: leave less than this to be used
+WARN_UNEXPLAINED = 0.2
+#: the check is inconclusive when the P term's dependence on the instant the speed is taken within one sample
+#: exceeds this share of the output's spread
+MAX_BLUR = 0.3
+
+
+@dataclass
+class ControllerCheck:
+    """Result for one trace (``report.json["controller_check"]``)."""
+
+    trace: str
+    channel: str
+    unexplained_config: float  # share of var(u) the config's law leaves
+    unexplained_identified: float  # share the identified law leaves
+    config_gains: dict[str, float]
+    identified_gains: dict[str, float]
+    used: str  # "config" | "identified"
+    overrides: dict = field(default_factory=dict)  # control.* keys used for this trace when "identified"
+    note: str = ""
+    resolution: float = 0.0  # P-term blur within one sample / spread of the output (<= MAX_BLUR: conclusive)
+    confirm_ratio: float | None = None  # nominal residual with the identified / with the config's controller
+
+    def as_dict(self) -> dict:
+        return {"trace": self.trace, "channel": self.channel, "unexplained_config": self.unexplained_config,
+                "unexplained_identified": self.unexplained_identified, "config_gains": self.config_gains,
+                "identified_gains": self.identified_gains, "used": self.used,
+                "overrides": self.overrides.get("control", {}), "resolution": self.resolution,
+                "confirm_ratio": self.confirm_ratio,
+                "note": self.note}
+
+
+def _gear_and_output(cfg: AxisConfig, cols: dict[str, np.ndarray]) -> tuple[float, str, np.ndarray] | None:
+    """Gear factor g [rad/m or 1], output channel name and output [N m or N]; None without an output channel."""
+    if cfg.actuator.kind == "force":
+        for ch in ("force_drive", "torque_meas"):
+            if ch in cols:
+                return 1.0, ch, cols[ch]
+        return None
+    lead = cfg.mechanics.lead_m
+    if lead <= 0:
+        return None
+    g = 2 * math.pi / lead
+    if "torque_meas" in cols:
+        return g, "torque_meas", cols["torque_meas"]
+    if "current_q" in cols:
+        mot = cfg.motor
+        psi = mot.flux_wb if mot.flux_wb > 0 else mot.torque_constant_nm_per_a / (1.5 * mot.pole_pairs)
+        return g, "current_q", cols["current_q"] * 1.5 * mot.pole_pairs * psi
+    return None
+
+
+def _feedback(cfg: AxisConfig, cols: dict[str, np.ndarray], g: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """(position feedback at the table [m], speed-loop coordinate [rad or m]) as the controller saw them."""
+    motor = cfg.actuator.kind != "force"
+    lead_ok = cfg.mechanics.lead_m > 0
+    scale = cols.get("pos_meas")
+    if lead_ok and "motor_pos" in cols:
+        enc = cols.get("pos_fb", cols["motor_pos"] / g)
+    else:
+        enc = cols.get("pos_fb")
+    fb = scale if cfg.control.position_feedback == "linear_scale" or not lead_ok else enc
+    if fb is None:
+        fb = scale if scale is not None else enc
+    if fb is None:
+        return None
+    if motor:
+        coord = cols["motor_pos"] if "motor_pos" in cols else (enc if enc is not None else fb) * g
+    else:
+        coord = fb if not lead_ok or enc is None else enc
+    return fb, coord
+
+
+def _config_gains(cfg: AxisConfig, g: float) -> dict[str, float]:
+    c = cfg.control
+    kp = c.velocity_kp_n_s_per_m if cfg.actuator.kind == "force" else c.speed_kp_nm_s_per_rad
+    if cfg.actuator.kind == "force":
+        jref = cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
+    else:
+        from virtualaxis.sim.simulator import reflected_inertia_kg_m2
+
+        jref = reflected_inertia_kg_m2(cfg)
+    return {"kp": kp, "ti_s": c.speed_ti_s, "kv_per_s": c.kv_1_per_s, "velocity_ff": c.velocity_ff_factor,
+            "torque_ff_x_jref": c.torque_ff_factor * jref, "jref": jref}
+
+
+@dataclass
+class _Signals:
+    u: np.ndarray  # output at samples 1..n-1
+    e: np.ndarray  # g e_{k-1}
+    vc: np.ndarray  # g vc_{k-1}
+    w: np.ndarray  # w_k: mean speed over the last sample (its sum is the angle travelled: the integral term)
+    w_end: np.ndarray  # speed at the end of the last sample (what the speed loop's P term last acted on)
+    ac: np.ndarray  # g ac_{k-1}
+    dt: float
+
+
+#: both sides of the law are averaged over this window [s] before comparing: the output sampled at one instant
+#: carries the speed loop's quantisation chatter (an encoder count per speed-loop cycle), which the law at the
+#: trace's rate cannot replay; the law is linear, so the same moving average on both sides keeps it exact
+SMOOTH_S = 0.01
+
+
+def _smoothed(sig: _Signals, n: int) -> _Signals:
+    if n <= 1:
+        return sig
+    k = np.ones(n) / n
+
+    def f(x):
+        return np.convolve(x, k, mode="valid")
+
+    return _Signals(u=f(sig.u), e=f(sig.e), vc=f(sig.vc), w=f(sig.w), w_end=f(sig.w_end), ac=f(sig.ac), dt=sig.dt)
+
+
+def _law(sig: _Signals, kp: float, ki: float, kv: float, kff: float) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of the law that are linear given (kv, kff): Kp E and Ki sum(E) dt."""
+    ref = kv * sig.e + kff * sig.vc
+    return kp * (ref - sig.w_end), ki * np.cumsum(ref - sig.w) * sig.dt
+
+
+def _unexplained(sig: _Signals, kp: float, ki: float, kv: float, kff: float, kt: float) -> tuple[float, float]:
+    """Share of var(u) left by the law with these gains (the offset b fitted); returns (share, b)."""
+    a, b = _law(sig, kp, ki, kv, kff)
+    r = sig.u - a - b - kt * sig.ac
+    off = float(np.mean(r))
+    var = float(np.var(sig.u))
+    return (float(np.var(r - off)) / var if var > 0 else 0.0), off
+
+
+#: optional terms of the law, added one at a time while each cuts the unexplained share by :data:`TERM_GAIN`
+OPTIONAL_TERMS = ("ki", "kff", "kt")
+TERM_GAIN = 0.9
+
+
+def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) -> tuple[float, dict[str, float]]:
+    """Least-squares gains of the law with Kp, Kv and the optional ``terms``; returns (unexplained share, gains).
+
+    On slow, smooth motion the following error is nearly proportional to the command velocity, so Kv and a
+    velocity feed-forward (or Kp and a torque feed-forward) trade off along the trace; the caller therefore
+    adds optional terms only while they pay their way (:func:`_select_law`)."""
+    from scipy.optimize import least_squares
+
+    names = ("kp", "kv", *terms)
+    usc = float(np.std(sig.u)) or 1.0
+
+    def parts(x):
+        v = dict(zip(names, x, strict=True))
+        p, i = _law(sig, v["kp"], v.get("ki", 0.0), v["kv"], v.get("kff", 0.0))
+        return v, sig.u - p - i - v.get("kt", 0.0) * sig.ac
+
+    def resid(x):
+        r = parts(x)[1]
+        return (r - np.mean(r)) / usc
+
+    kp0 = max(start["kp"], 1e-9)
+    x0 = {"kp": kp0, "kv": max(start["kv_per_s"], 1e-3), "ki": kp0 / start["ti_s"] if start["ti_s"] > 0 else 0.0,
+          "kff": start["velocity_ff"], "kt": start["torque_ff_x_jref"]}
+    lo = {"kp": 0.0, "kv": 0.0, "ki": 0.0, "kff": -2.0, "kt": -np.inf}
+    hi = {"kp": np.inf, "kv": np.inf, "ki": np.inf, "kff": 2.0, "kt": np.inf}
+    best = None
+    # two starts: the config's gains, and a P/P law from a linear regression of u on (g e, -w)
+    a = np.column_stack([sig.e, -sig.w_end, np.ones(sig.u.size)])
+    c = np.linalg.lstsq(a, sig.u, rcond=None)[0]
+    starts = [x0]
+    if c[1] > 0 and c[0] > 0:
+        starts.append({**x0, "kp": float(c[1]), "kv": float(c[0] / c[1]), "ki": 0.0, "kff": 0.0, "kt": 0.0})
+    for st in starts:
+        xs = np.array([min(max(st[n], lo[n]), hi[n]) for n in names], float)
+        sol = least_squares(resid, xs, bounds=([lo[n] for n in names], [hi[n] for n in names]), x_scale="jac",
+                            max_nfev=200)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    v, r = parts(best.x)
+    un = float(np.var(r)) / float(np.var(sig.u))
+    ki = float(v.get("ki", 0.0))
+    return un, {"kp": float(v["kp"]), "ti_s": float(v["kp"] / ki) if ki > 0 else 0.0, "kv_per_s": float(v["kv"]),
+                "velocity_ff": float(v.get("kff", 0.0)), "torque_ff_x_jref": float(v.get("kt", 0.0)),
+                "jref": start["jref"]}
+
+
+def _select_law(sig: _Signals, start: dict[str, float]) -> tuple[float, dict[str, float]]:
+    """P speed loop and position gain first; then forward selection of the optional terms."""
+    terms: tuple[str, ...] = ()
+    un, gains = _identify(sig, terms, start)
+    while True:
+        trials = [(*_identify(sig, (*terms, t), start), t) for t in OPTIONAL_TERMS if t not in terms]
+        if not trials:
+            return un, gains
+        u2, g2, t = min(trials, key=lambda x: x[0])
+        if u2 >= TERM_GAIN * un:
+            return un, gains
+        un, gains, terms = u2, g2, (*terms, t)
+
+
+def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndarray,
+                     cols: dict[str, np.ndarray]) -> ControllerCheck | None:
+    """Replay the config's control law on one trace and identify the law that fits it. None when the trace
+    has no controller output (force / torque / current) or no position feedback."""
+    go = _gear_and_output(cfg, cols)
+    if go is None or t.size < 200:
+        return None
+    g, ch, u = go
+    fbc = _feedback(cfg, cols, g)
+    if fbc is None:
+        return None
+    fb, coord = fbc
+    dt = float(t[1] - t[0])
+    vc = np.gradient(pos_cmd, dt)
+    ac = np.gradient(vc, dt)
+    e = pos_cmd - fb
+    # the speed coordinate is a motor angle [rad] for a motor, a position [m] for a force actuator
+    w = np.diff(coord) / dt
+    w_end = np.concatenate([w[:1], 1.5 * w[1:] - 0.5 * w[:-1]])  # second-order backward difference
+    sig = _Signals(u=u[1:], e=g * e[:-1], vc=g * vc[:-1], w=w, w_end=w_end, ac=g * ac[:-1], dt=dt)
+    sig = _smoothed(sig, max(1, int(round(SMOOTH_S / dt))))
+    finite = all(np.isfinite(x).all() for x in (sig.u, sig.e, sig.vc, sig.w))
+    if not finite or float(np.var(sig.u)) == 0.0:
+        return None
+    cg = _config_gains(cfg, g)
+    ki_cfg = cg["kp"] / cg["ti_s"] if cg["ti_s"] > 0 else 0.0
+    un_cfg, _ = _unexplained(sig, cg["kp"], ki_cfg, cg["kv_per_s"], cg["velocity_ff"], cg["torque_ff_x_jref"])
+    try:
+        un_id, gid = _select_law(sig, cg)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    cg = {k: float(v) for k, v in cg.items()}
+    # how much the P term depends on *when* in the sample the speed is taken: a speed loop much faster than
+    # the trace's sampling acts on a speed error far below the speed's change per sample, which the trace
+    # cannot resolve — then the replay says nothing either way
+    blur = max(cg["kp"], gid["kp"]) * float(np.std(sig.w_end - sig.w)) / float(np.std(sig.u))
+    conclusive = blur <= MAX_BLUR
+    switch = conclusive and un_cfg > SWITCH_MIN_UNEXPLAINED and un_cfg > SWITCH_RATIO * un_id \
+        and un_id < WARN_UNEXPLAINED and gid["kp"] > 0 and gid["kv_per_s"] > 0
+    chk = ControllerCheck(name, ch, float(un_cfg), float(un_id), cg, gid, "identified" if switch else "config",
+                          resolution=float(blur))
+    if not conclusive:
+        chk.note = (f"controller not checked: its speed loop is too fast for the trace's sampling (the output "
+                    f"depends on the speed within one sample by {blur:.0%} of its spread)")
+    elif switch:
+        chk.overrides = {"control": _to_config(cfg, gid)}
+        chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
+                    f"identified from the trace {un_id:.1%}: identified gains used for this trace "
+                    f"({_describe(cfg, gid)})")
+    elif un_cfg > WARN_UNEXPLAINED:
+        chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained (identified law: "
+                    f"{un_id:.0%}); the controller may differ from the config's, kept")
+    return chk
+
+
+def _share(x: float) -> str:
+    return f"{x:.0%}" if x < 10 else f"{x:.3g} x the variance"
+
+
+def _to_config(cfg: AxisConfig, gains: dict[str, float]) -> dict[str, float]:
+    kp_key = "velocity_kp_n_s_per_m" if cfg.actuator.kind == "force" else "speed_kp_nm_s_per_rad"
+    jref = gains["jref"]
+    return {kp_key: gains["kp"], "speed_ti_s": gains["ti_s"], "kv_per_s": gains["kv_per_s"],
+            "kv_1000_per_min": 0.0, "kv_per_min": 0.0, "velocity_ff_factor": max(gains["velocity_ff"], 0.0),
+            "torque_ff_factor": max(gains["torque_ff_x_jref"] / jref, 0.0) if jref > 0 else 0.0}
+
+
+def _describe(cfg: AxisConfig, gains: dict[str, float]) -> str:
+    unit = "N s/m" if cfg.actuator.kind == "force" else "N m s/rad"
+    ti = f"Ti {gains['ti_s'] * 1e3:.1f} ms" if gains["ti_s"] > 0 else "P speed loop"
+    return (f"Kv {gains['kv_per_s']:.3g} 1/s, Kp {gains['kp']:.4g} {unit}, {ti}, "
+            f"velocity feed-forward {gains['velocity_ff']:.2f}")
