@@ -129,3 +129,22 @@ def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effec
     assert cal.kv_1_per_s == pytest.approx(25.0, rel=0.03) and cal.speed_ti_s == 0.0
     assert cal.velocity_kp_n_s_per_m == pytest.approx(5000.0, rel=0.05)
     assert coul["calibrated_controller"]["kv_per_s"] == cal.kv_per_s
+
+
+def test_a_drive_force_on_a_motor_axis_is_its_torque_through_the_lead():
+    """A trace of a ball-screw axis may report the controller's force at the table instead of a torque: the
+    model's prediction is T 2 pi / lead, and the controller check reads it back as a torque."""
+    from virtualaxis.diagnosis.data import TraceData, default_simulate, simulate_trace
+    from virtualaxis.sim import simulate_command
+
+    cfg = nominal_config("ballscrew")
+    g = 2 * math.pi / cfg.mechanics.lead_m
+    t = np.arange(0, 2.0, 1e-3)
+    cmd = 0.02 * (1 - np.cos(2.0 * t))
+    res = simulate_command(cfg.replace(sensors={"current_noise_a": 0.0}), t, cmd, seed=0)
+    td = TraceData("x", t, cmd, None, {"motor_pos": res["motor_pos"], "force_drive": res["torque_meas"] * g})
+    pred = simulate_trace(cfg, td, default_simulate)
+    assert set(pred) == {"motor_pos", "force_drive"}
+    np.testing.assert_allclose(pred["force_drive"], td.measured["force_drive"], atol=1e-6 * g)
+    chk = check_controller(cfg, "x", t, cmd, td.measured)
+    assert chk is not None and chk.channel == "force_drive" and chk.used == "config"

@@ -39,6 +39,10 @@ class Case:
     truth_params: dict = field(default_factory=dict)  # {effect: {param: value}} expected from the fit
 
 
+#: the controller of the "rigid-pp-*" cases: P position loop, P velocity loop (the config has P/PI, Kv 40, Kp 8000)
+PP_CASCADE = {"kv_per_s": 25.0, "velocity_kp_n_s_per_m": 5000.0, "speed_ti_s": 0.0}
+
+
 def _case(name, axis, effects, truth, params):
     return Case(name, axis, tuple(effects), truth, params)
 
@@ -91,6 +95,12 @@ def all_cases() -> list[Case]:
         _case("rigid-viscous", "rigid", ["viscous_friction"], {"friction": {"viscous_n_s_per_m": 900.0}},
               {"viscous_friction": {"viscous_n_s_per_m": 900.0}}),
         _case("rigid-clean", "rigid", [], {}, {}),
+        # another controller than the config's (P/P cascade, other gains; the diagnosis is not told): the
+        # controller check must identify it, then the plant is judged (last, so the other cases keep their seeds)
+        _case("rigid-pp-clean", "rigid", [], {"control": dict(PP_CASCADE)}, {}),
+        _case("rigid-pp-coulomb", "rigid", ["coulomb_friction"],
+              {"control": dict(PP_CASCADE), "friction": {"coulomb_n": 90.0}},
+              {"coulomb_friction": {"coulomb_n": 90.0}}),
     ]
     return c
 

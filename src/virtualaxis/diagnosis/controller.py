@@ -84,6 +84,8 @@ def _gear_and_output(cfg: AxisConfig, cols: dict[str, np.ndarray]) -> tuple[floa
     g = 2 * math.pi / lead
     if "torque_meas" in cols:
         return g, "torque_meas", cols["torque_meas"]
+    if "force_drive" in cols:  # the drive force at the table: torque through the lead
+        return g, "force_drive", cols["force_drive"] / g
     if "current_q" in cols:
         mot = cfg.motor
         psi = mot.flux_wb if mot.flux_wb > 0 else mot.torque_constant_nm_per_a / (1.5 * mot.pole_pairs)
@@ -282,7 +284,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
                     f"identified from the trace {un_id:.1%}: identified gains used for this trace "
                     f"({_describe(cfg, gid)})")
-    elif un_cfg > WARN_UNEXPLAINED:
+    elif un_cfg > WARN_UNEXPLAINED and un_cfg > 2 * un_id:  # only when a clearly better law exists
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained (identified law: "
                     f"{un_id:.0%}); the controller may differ from the config's, kept")
     return chk

@@ -65,12 +65,23 @@ def simulate_trace(cfg: AxisConfig, td: TraceData, simulate: SimulateFn) -> dict
     pred = {}
     for ch in td.measured:
         x = out.get(ch)
+        if x is None and ch == "force_drive":
+            x = drive_force_of_torque(c, out)
         if x is None:
             continue
         x = np.asarray(x, dtype=float)
         if x.shape == td.t.shape and np.isfinite(x).all():
             pred[ch] = x
     return pred
+
+
+def drive_force_of_torque(cfg: AxisConfig, out: dict) -> np.ndarray | None:
+    """A motor axis reports torque; a trace of it may carry the axial drive force instead (a controller that
+    outputs force, torque expressed at the table): ``F = T 2 pi / lead`` (ideal screw). None for a force
+    actuator or a direct drive."""
+    if cfg.actuator.kind == "force" or cfg.mechanics.lead_m <= 0 or "torque_meas" not in out:
+        return None
+    return np.asarray(out["torque_meas"], dtype=float) * (2 * math.pi / cfg.mechanics.lead_m)
 
 
 def residuals(td: TraceData, pred: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
