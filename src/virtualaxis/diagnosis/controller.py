@@ -171,8 +171,12 @@ def _unexplained(sig: _Signals, kp: float, ki: float, kv: float, kff: float, kt:
 
 
 #: optional terms of the law, added one at a time while each cuts the unexplained share by :data:`TERM_GAIN`
+#: (relative)
 OPTIONAL_TERMS = ("ki", "kff", "kt")
 TERM_GAIN = 0.9
+#: ... and by at least this share of the output's variance (a law that already explains 99.99 % gains nothing
+#: from a 0.002 feed-forward that fits the last digits)
+TERM_MIN_ABS = 0.002
 
 
 def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) -> tuple[float, dict[str, float]]:
@@ -230,7 +234,7 @@ def _select_law(sig: _Signals, start: dict[str, float]) -> tuple[float, dict[str
         if not trials:
             return un, gains
         u2, g2, t = min(trials, key=lambda x: x[0])
-        if u2 >= TERM_GAIN * un:
+        if u2 >= TERM_GAIN * un or un - u2 < TERM_MIN_ABS:
             return un, gains
         un, gains, terms = u2, g2, (*terms, t)
 
