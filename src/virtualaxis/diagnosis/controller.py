@@ -182,46 +182,63 @@ TERM_MIN_ABS = 0.002
 def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) -> tuple[float, dict[str, float]]:
     """Least-squares gains of the law with Kp, Kv and the optional ``terms``; returns (unexplained share, gains).
 
-    On slow, smooth motion the following error is nearly proportional to the command velocity, so Kv and a
-    velocity feed-forward (or Kp and a torque feed-forward) trade off along the trace; the caller therefore
-    adds optional terms only while they pay their way (:func:`_select_law`)."""
-    from scipy.optimize import least_squares
+    Given Kv (and a velocity feed-forward) the law is linear in Kp, Ki, the torque feed-forward and the offset,
+    so only Kv (and Kff) are searched (``scipy.optimize.least_squares``) and the rest solved by bounded linear
+    least squares at every step (variable projection). On slow, smooth motion the following error is nearly
+    proportional to the command velocity, so Kv and a velocity feed-forward (or Kp and a torque feed-forward)
+    trade off along the trace; the caller therefore adds optional terms only while they pay their way
+    (:func:`_select_law`)."""
+    from scipy.optimize import least_squares, lsq_linear
 
-    names = ("kp", "kv", *terms)
     usc = float(np.std(sig.u)) or 1.0
+    ones = np.ones(sig.u.size)
 
-    def parts(x):
-        v = dict(zip(names, x, strict=True))
-        p, i = _law(sig, v["kp"], v.get("ki", 0.0), v["kv"], v.get("kff", 0.0))
-        return v, sig.u - p - i - v.get("kt", 0.0) * sig.ac
+    def linear(x):
+        kv, kff = x[0], (x[1] if "kff" in terms else 0.0)
+        ref = kv * sig.e + kff * sig.vc
+        cols = [ref - sig.w_end]
+        if "ki" in terms:
+            cols.append(np.cumsum(ref - sig.w) * sig.dt)
+        if "kt" in terms:
+            cols.append(sig.ac)
+        cols.append(ones)
+        a = np.column_stack(cols)
+        coef = np.linalg.lstsq(a, sig.u, rcond=None)[0]
+        nonneg = 2 if "ki" in terms else 1  # Kp and Ki are not negative
+        if (coef[:nonneg] < 0).any():
+            lo = [0.0] * nonneg + [-np.inf] * (a.shape[1] - nonneg)
+            coef = lsq_linear(a, sig.u, bounds=(lo, np.inf)).x
+        return coef, sig.u - a @ coef
 
     def resid(x):
-        r = parts(x)[1]
-        return (r - np.mean(r)) / usc
+        return linear(x)[1] / usc
 
-    kp0 = max(start["kp"], 1e-9)
-    x0 = {"kp": kp0, "kv": max(start["kv_per_s"], 1e-3), "ki": kp0 / start["ti_s"] if start["ti_s"] > 0 else 0.0,
-          "kff": start["velocity_ff"], "kt": start["torque_ff_x_jref"]}
-    lo = {"kp": 0.0, "kv": 0.0, "ki": 0.0, "kff": -2.0, "kt": -np.inf}
-    hi = {"kp": np.inf, "kv": np.inf, "ki": np.inf, "kff": 2.0, "kt": np.inf}
-    best = None
-    # two starts: the config's gains, and a P/P law from a linear regression of u on (g e, -w)
-    a = np.column_stack([sig.e, -sig.w_end, np.ones(sig.u.size)])
-    c = np.linalg.lstsq(a, sig.u, rcond=None)[0]
-    starts = [x0]
+    kv_lo, kv_hi = [0.0], [np.inf]
+    if "kff" in terms:
+        kv_lo.append(-2.0)
+        kv_hi.append(2.0)
+    starts = [max(start["kv_per_s"], 1e-3)]
+    # a P/P law from a linear regression of u on (g e, -w) gives a second start for Kv
+    c = np.linalg.lstsq(np.column_stack([sig.e, -sig.w_end, ones]), sig.u, rcond=None)[0]
     if c[1] > 0 and c[0] > 0:
-        starts.append({**x0, "kp": float(c[1]), "kv": float(c[0] / c[1]), "ki": 0.0, "kff": 0.0, "kt": 0.0})
-    for st in starts:
-        xs = np.array([min(max(st[n], lo[n]), hi[n]) for n in names], float)
-        sol = least_squares(resid, xs, bounds=([lo[n] for n in names], [hi[n] for n in names]), x_scale="jac",
-                            max_nfev=200)
+        starts.append(float(c[0] / c[1]))
+    best = None
+    for kv0 in starts:
+        x0 = [kv0] + ([min(max(start["velocity_ff"], -2.0), 2.0)] if "kff" in terms else [])
+        sol = least_squares(resid, x0, bounds=(kv_lo, kv_hi), x_scale="jac", max_nfev=100)
         if best is None or sol.cost < best.cost:
             best = sol
-    v, r = parts(best.x)
+    coef, r = linear(best.x)
+    kp = float(coef[0])
+    k = 1
+    ki = 0.0
+    if "ki" in terms:
+        ki = float(coef[k])
+        k += 1
+    kt = float(coef[k]) if "kt" in terms else 0.0
     un = float(np.var(r)) / float(np.var(sig.u))
-    ki = float(v.get("ki", 0.0))
-    return un, {"kp": float(v["kp"]), "ti_s": float(v["kp"] / ki) if ki > 0 else 0.0, "kv_per_s": float(v["kv"]),
-                "velocity_ff": float(v.get("kff", 0.0)), "torque_ff_x_jref": float(v.get("kt", 0.0)),
+    return un, {"kp": kp, "ti_s": kp / ki if ki > 0 else 0.0, "kv_per_s": float(best.x[0]),
+                "velocity_ff": float(best.x[1]) if "kff" in terms else 0.0, "torque_ff_x_jref": kt,
                 "jref": start["jref"]}
 
 
