@@ -66,7 +66,7 @@ def main() -> None:
     print(f"conclusion: {rep['conclusion']}")
     print(f"total wall time {wall:.1f} s")
     for k in ("read_s", "controller_check_s", "baseline_s", "localise_s", "fitting_s", "verify_s", "hybrid_s"):
-        print(f"  {k:12s} {tm[k]:7.1f} s")
+        print(f"  {k:18s} {tm[k]:7.1f} s")
     print(f"  simulations of a 20 s trace (or shorter fit segments): {tm['simulations']}")
     print(f"  one 20 s simulation in this run: {one_sim:.2f} s "
           f"(fitting = {tm['fitting_s'] / one_sim:.0f} x one simulation)")
