@@ -23,12 +23,13 @@ RIGID = Path(__file__).resolve().parents[1] / "configs" / "examples" / "rigid-fo
 
 
 def pp_cascade_trace(feed_mm_min: float, duration_s: float, *, kv=25.0, kp=5000.0, mass=80.0, coulomb=40.0,
-                     viscous=100.0, stroke=0.04, res=1e-7, seed=0) -> dict[str, np.ndarray]:
-    """Sine command of ``stroke`` at peak feed ``feed_mm_min``; returns the trace columns."""
+                     viscous=100.0, stroke=0.04, res=1e-7, seed=0, n_vel=10) -> dict[str, np.ndarray]:
+    """Sine command of ``stroke`` at peak feed ``feed_mm_min``; returns the trace columns. ``n_vel``: integration
+    steps per velocity-loop cycle (10: 8 kHz; 80: 1 kHz, the velocity loop at the trace's rate)."""
     rng = np.random.default_rng(seed)
     amp = stroke / 2
     w = feed_mm_min / 60e3 / amp
-    dt, n_sub, n_vel = 1.25e-5, 80, 10  # integration step; 1 ms position loop; 125 us velocity loop
+    dt, n_sub = 1.25e-5, 80  # integration step; 1 ms position loop
     n = int(round(duration_s * 1000)) + 1
     t = np.arange(n) * 1e-3
     cmd = amp * (1 - np.cos(w * t))
@@ -148,3 +149,23 @@ def test_a_drive_force_on_a_motor_axis_is_its_torque_through_the_lead():
     np.testing.assert_allclose(pred["force_drive"], td.measured["force_drive"], atol=1e-6 * g)
     chk = check_controller(cfg, "x", t, cmd, td.measured)
     assert chk is not None and chk.channel == "force_drive" and chk.used == "config"
+
+
+def test_a_speed_loop_at_the_traces_rate_is_recognised_from_the_configs_own_gains(tmp_path):
+    """Right gains, wrong timing: the config says an 8 kHz speed loop, the drive runs it at 1 kHz with the
+    position loop. The config's gains explain the force far better with the 1 kHz timing (no fitted freedom),
+    so the timing is changed for those traces and the clean case stays clean."""
+    cfg = load_axis_config(RIGID).replace(control={"velocity_kp_n_s_per_m": 5000.0, "speed_ti_s": 0.0,
+                                                   "kv_per_s": 25.0})
+    paths = []
+    for k, feed in enumerate((1500.0, 4000.0, 2500.0)):
+        p = tmp_path / f"F{int(feed)}.csv"
+        write_trace(p, pp_cascade_trace(feed, 4.0, seed=k, n_vel=80))
+        paths.append(str(p))
+    tr = read_trace(paths[1], cfg.axis.name)
+    chk = check_controller(cfg, tr.name, tr.t, tr.pos_cmd, tr.columns)
+    assert chk.used == "identified" and chk.overrides["control"] == {"speed_cycle_s": cfg.control.position_cycle_s}
+    assert chk.identified_gains["speed_loop"] == "at the trace's rate"
+    rep = run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False)
+    assert rep["accepted"] == []
+    assert any(c["used"] == "identified" for c in rep["controller_check"])

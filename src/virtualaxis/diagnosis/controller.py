@@ -170,6 +170,10 @@ def _unexplained(sig: _Signals, kp: float, ki: float, kv: float, kff: float, kt:
     return (float(np.var(r - off)) / var if var > 0 else 0.0), off
 
 
+#: the speed loop's timing relative to the trace: much faster (e.g. 8 kHz in a 1 kHz trace), or sampled at the
+#: trace's rate (both loops at 1 kHz)
+SPEED_LOOP_TIMING = {"fast": "faster than the trace", "sampled": "at the trace's rate"}
+
 #: optional terms of the law, added one at a time while each cuts the unexplained share by :data:`TERM_GAIN`
 #: (relative)
 OPTIONAL_TERMS = ("ki", "kff", "kt")
@@ -275,56 +279,105 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     # the speed coordinate is a motor angle [rad] for a motor, a position [m] for a force actuator
     w = np.diff(coord) / dt
     w_end = np.concatenate([w[:1], 1.5 * w[1:] - 0.5 * w[:-1]])  # second-order backward difference
-    sig = _Signals(u=u[1:], e=g * e[:-1], vc=g * vc[:-1], w=w, w_end=w_end, ac=g * ac[:-1], dt=dt)
-    sig = _smoothed(sig, max(1, int(round(SMOOTH_S / dt))))
-    finite = all(np.isfinite(x).all() for x in (sig.u, sig.e, sig.vc, sig.w))
-    if not finite or float(np.var(sig.u)) == 0.0:
+    nsm = max(1, int(round(SMOOTH_S / dt)))
+    # two timings of the speed loop: much faster than the trace (its P term acts on the speed at the end of
+    # the sample), or sampled at the trace's rate (output k answers the speed over the sample before k-1)
+    fast = _smoothed(_Signals(u=u[1:], e=g * e[:-1], vc=g * vc[:-1], w=w, w_end=w_end, ac=g * ac[:-1], dt=dt), nsm)
+    sampled = _smoothed(_Signals(u=u[2:], e=g * e[1:-1], vc=g * vc[1:-1], w=w[:-1], w_end=w[:-1], ac=g * ac[1:-1],
+                                 dt=dt), nsm)
+    finite = all(np.isfinite(x).all() for x in (fast.u, fast.e, fast.vc, fast.w))
+    if not finite or float(np.var(fast.u)) == 0.0:
         return None
+    cfg_sampled = cfg.control.speed_cycle_s >= 0.99 * dt
     cg = _config_gains(cfg, g)
     ki_cfg = cg["kp"] / cg["ti_s"] if cg["ti_s"] > 0 else 0.0
-    un_cfg, _ = _unexplained(sig, cg["kp"], ki_cfg, cg["kv_per_s"], cg["velocity_ff"], cg["torque_ff_x_jref"])
+    gains_cfg = (cg["kp"], ki_cfg, cg["kv_per_s"], cg["velocity_ff"], cg["torque_ff_x_jref"])
+    un_cfg, _ = _unexplained(sampled if cfg_sampled else fast, *gains_cfg)
+    # the config's own gains with the other timing of the speed loop: no fitted freedom, so a much better fit
+    # there is evidence about the timing alone
+    un_cfg_other, _ = _unexplained(fast if cfg_sampled else sampled, *gains_cfg)
+    cfg_timing = "sampled" if cfg_sampled else "fast"
+    timing = cfg_timing
+    if un_cfg_other * SWITCH_RATIO < un_cfg:
+        timing = "fast" if cfg_sampled else "sampled"
+    un_cfg_t = min(un_cfg, un_cfg_other)
+    sig = sampled if timing == "sampled" else fast
     try:
         un_id, gid = _select_law(sig, cg)
     except (ValueError, np.linalg.LinAlgError):
         return None
+    if un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id:
+        # the config's gains do not fit with either timing: its timing is no evidence, let the data choose
+        other = "fast" if timing == "sampled" else "sampled"
+        try:
+            un2, g2 = _select_law(fast if other == "fast" else sampled, cg)
+        except (ValueError, np.linalg.LinAlgError):
+            un2 = math.inf
+        if un2 * SWITCH_RATIO < un_id:
+            un_id, gid, timing = un2, g2, other
+    gid["speed_loop"] = SPEED_LOOP_TIMING[timing]
     cg = {k: float(v) for k, v in cg.items()}
+    cg["speed_loop"] = SPEED_LOOP_TIMING[cfg_timing]
     # how much the P term depends on *when* in the sample the speed is taken: a speed loop much faster than
     # the trace's sampling acts on a speed error far below the speed's change per sample, which the trace
-    # cannot resolve — then the replay says nothing either way
-    blur = max(cg["kp"], gid["kp"]) * float(np.std(sig.w_end - sig.w)) / float(np.std(sig.u))
+    # cannot resolve — then the replay says nothing either way (a loop at the trace's rate is resolved)
+    blur = 0.0
+    if timing == "fast":
+        blur = max(cg["kp"], gid["kp"]) * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u))
     conclusive = blur <= MAX_BLUR
-    switch = conclusive and un_cfg > SWITCH_MIN_UNEXPLAINED and un_cfg > SWITCH_RATIO * un_id \
+    switch = conclusive and un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id \
         and un_id < WARN_UNEXPLAINED and gid["kp"] > 0 and gid["kv_per_s"] > 0
-    chk = ControllerCheck(name, ch, float(un_cfg), float(un_id), cg, gid, "identified" if switch else "config",
-                          resolution=float(blur))
+    retimed = conclusive and timing != cfg_timing
+    chk = ControllerCheck(name, ch, float(un_cfg), float(un_id), cg, gid,
+                          "identified" if (switch or retimed) else "config", resolution=float(blur))
     if not conclusive:
         chk.note = (f"controller not checked: its speed loop is too fast for the trace's sampling (the output "
                     f"depends on the speed within one sample by {blur:.0%} of its spread)")
     elif switch:
-        chk.overrides = {"control": _to_config(cfg, gid)}
+        chk.overrides = {"control": _to_config(cfg, gid, dt)}
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
                     f"identified from the trace {un_id:.1%}: identified gains used for this trace "
                     f"({_describe(cfg, gid)})")
+    elif retimed:
+        chk.overrides = {"control": _retimed(cfg, timing, dt)}
+        chk.note = (f"the config's gains explain {ch} {un_cfg / max(un_cfg_other, 1e-300):.3g} x better with the speed "
+                    f"loop {SPEED_LOOP_TIMING[timing]} than {SPEED_LOOP_TIMING[cfg_timing]} (the config's "
+                    f"control.speed_cycle_s {cfg.control.speed_cycle_s:g} s): speed loop timing changed for this "
+                    f"trace ({', '.join(f'{k} = {v:g}' for k, v in chk.overrides['control'].items())})")
     elif un_cfg > WARN_UNEXPLAINED and un_cfg > 2 * un_id:  # only when a clearly better law exists
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained (identified law: "
                     f"{un_id:.0%}); the controller may differ from the config's, kept")
     return chk
 
 
+def _retimed(cfg: AxisConfig, timing: str, dt: float) -> dict[str, float]:
+    """control.speed_cycle_s for a speed loop at the trace's rate, or (from one at the trace's rate) the
+    current-loop multiple closest to 125 us (a common drive speed-loop cycle; the trace cannot tell which)."""
+    c = cfg.control
+    if timing == "sampled":
+        return {"speed_cycle_s": c.position_cycle_s if abs(c.position_cycle_s - dt) <= 0.01 * dt else dt}
+    n = max(1, round(125e-6 / c.current_cycle_s))
+    return {"speed_cycle_s": n * c.current_cycle_s}
+
+
 def _share(x: float) -> str:
     return f"{x:.0%}" if x < 10 else f"{x:.3g} x the variance"
 
 
-def _to_config(cfg: AxisConfig, gains: dict[str, float]) -> dict[str, float]:
+def _to_config(cfg: AxisConfig, gains: dict, dt: float) -> dict[str, float]:
     kp_key = "velocity_kp_n_s_per_m" if cfg.actuator.kind == "force" else "speed_kp_nm_s_per_rad"
     jref = gains["jref"]
-    return {kp_key: gains["kp"], "speed_ti_s": gains["ti_s"], "kv_per_s": gains["kv_per_s"],
+    out = {kp_key: gains["kp"], "speed_ti_s": gains["ti_s"], "kv_per_s": gains["kv_per_s"],
             "kv_1000_per_min": 0.0, "kv_per_min": 0.0, "velocity_ff_factor": max(gains["velocity_ff"], 0.0),
             "torque_ff_factor": max(gains["torque_ff_x_jref"] / jref, 0.0) if jref > 0 else 0.0}
+    timing = "sampled" if gains["speed_loop"] == SPEED_LOOP_TIMING["sampled"] else "fast"
+    if (timing == "sampled") != (cfg.control.speed_cycle_s >= 0.99 * dt):
+        out.update(_retimed(cfg, timing, dt))
+    return out
 
 
 def _describe(cfg: AxisConfig, gains: dict[str, float]) -> str:
     unit = "N s/m" if cfg.actuator.kind == "force" else "N m s/rad"
     ti = f"Ti {gains['ti_s'] * 1e3:.1f} ms" if gains["ti_s"] > 0 else "P speed loop"
     return (f"Kv {gains['kv_per_s']:.3g} 1/s, Kp {gains['kp']:.4g} {unit}, {ti}, "
-            f"velocity feed-forward {gains['velocity_ff']:.2f}")
+            f"velocity feed-forward {gains['velocity_ff']:.2f}, speed loop {gains['speed_loop']}")
