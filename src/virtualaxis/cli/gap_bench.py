@@ -50,8 +50,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bar.close()
     s = out["summary"]
-    print(f"top-1 {100 * s['top1_accuracy']:.0f} %, top-2 {100 * s['top2_accuracy']:.0f} %, "
-          f"false positives on clean cases {100 * s['false_positive_rate']:.0f} %, "
-          f"parameters within 15 %: {100 * s['param_within_15pct']:.0f} %")
+    def pct(x) -> str:  # "-" where the run had no case of that kind (NaN)
+        return "-" if x is None or x != x else f"{100 * x:.0f} %"
+
+    print(f"top-1 {pct(s['top1_accuracy'])}, top-2 {pct(s['top2_accuracy'])}, "
+          f"false positives on clean cases {pct(s['false_positive_rate'])}, "
+          f"parameters within 15 %: {pct(s['param_within_15pct'])}")
     print(f"wrote {Path(args.out) / 'bench.json'}")
     return 0

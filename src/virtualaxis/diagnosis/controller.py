@@ -306,8 +306,10 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
         un_id, gid = _select_law(sig, cg)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    if un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id:
+    blur_fast = max(cg["kp"], gid["kp"]) * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u))
+    if un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id and blur_fast <= MAX_BLUR:
         # the config's gains do not fit with either timing: its timing is no evidence, let the data choose
+        # (only where the two timings can be told apart: not for a speed loop far faster than the trace)
         other = "fast" if timing == "sampled" else "sampled"
         try:
             un2, g2 = _select_law(fast if other == "fast" else sampled, cg)
@@ -323,7 +325,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     # cannot resolve — then the replay says nothing either way (a loop at the trace's rate is resolved)
     blur = 0.0
     if timing == "fast":
-        blur = max(cg["kp"], gid["kp"]) * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u))
+        blur = max(blur_fast, gid["kp"] * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u)))
     conclusive = blur <= MAX_BLUR
     switch = conclusive and un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id \
         and un_id < WARN_UNEXPLAINED and gid["kp"] > 0 and gid["kv_per_s"] > 0
@@ -344,7 +346,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
                     f"loop {SPEED_LOOP_TIMING[timing]} than {SPEED_LOOP_TIMING[cfg_timing]} (the config's "
                     f"control.speed_cycle_s {cfg.control.speed_cycle_s:g} s): speed loop timing changed for this "
                     f"trace ({', '.join(f'{k} = {v:g}' for k, v in chk.overrides['control'].items())})")
-    elif un_cfg > WARN_UNEXPLAINED and un_cfg > 2 * un_id:  # only when a clearly better law exists
+    elif un_cfg > WARN_UNEXPLAINED and un_cfg > 2 * un_id and un_id < WARN_UNEXPLAINED:  # a good other law
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained (identified law: "
                     f"{un_id:.0%}); the controller may differ from the config's, kept")
     return chk
