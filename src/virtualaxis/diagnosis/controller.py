@@ -10,19 +10,24 @@ The law replayed is the config's cascade (`virtualaxis.control`, the compiled ke
 rate: at sample ``k`` the output is the speed controller's answer to the set-point of the previous
 position-loop sample::
 
-    E_k = g (Kv e_{k-1} + Kff vc_{k-1}) - w_k          speed error [rad/s at the motor, or m/s]
-    u_k = Kp E_k + Ki sum_{i<=k} E_i dt + Kt g ac_{k-1} + b
+    r_k = g (Kv e_{k-1} + Kff vc_{k-1})                speed set-point [rad/s at the motor, or m/s]
+    u_k = Kp (r_k - w_end_k) + Ki sum_{i<=k} (r_i - w_i) dt + Kt g ac_{k-1} + b
 
 ``e`` following error [m] (command - position feedback), ``vc``/``ac`` command velocity/acceleration,
 ``w_k`` the speed over the last sample (motor angle difference for a motor, feedback position for a force
-actuator), ``g`` the gear factor (2 pi / lead [rad/m], 1 for a force actuator), ``u`` motor torque [N m]
+actuator; its sum is the distance travelled, exact for the integral term), ``w_end_k`` the speed at the end of
+that sample (second-order backward difference: what a speed loop much faster than the trace last acted on);
+for a speed loop sampled at the trace's rate both are the speed over the sample before, ``w_{k-1}``.
+Both sides are averaged over :data:`SMOOTH_S` (linear law: the average keeps it exact).
+``g`` the gear factor (2 pi / lead [rad/m], 1 for a force actuator), ``u`` motor torque [N m]
 or drive force [N], ``b`` the integrator's unknown initial state. ``Kp``: ``control.speed_kp_nm_s_per_rad``
 or ``velocity_kp_n_s_per_m``; ``Ki = Kp / speed_ti_s`` (0 for a P speed loop); ``Kt = torque_ff_factor x
 J_ref``. The check reports the share of the output's variance each law leaves unexplained; the identified
 gains replace the config's for that trace only when the config's law leaves a clearly larger share
-(:data:`SWITCH_RATIO`, :data:`SWITCH_MIN_UNEXPLAINED`). The speed loop runs faster than the trace is sampled,
-so this is an approximation; it is meant to tell "other controller" from "same controller", not to
-replace a controller's documentation.
+(:data:`SWITCH_RATIO`, :data:`SWITCH_MIN_UNEXPLAINED`), and the check says it is inconclusive where the speed
+loop is far faster than the trace (:data:`MAX_BLUR`). It is meant to tell "other controller" from "same
+controller" and recover a P/P(I) cascade's gains and speed-loop timing, not to replace a controller's
+documentation.
 """
 
 from __future__ import annotations
