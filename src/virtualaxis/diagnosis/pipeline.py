@@ -95,7 +95,11 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
     out = []
     for tr, td in zip(traces, tds, strict=True):
         c0 = cfg.replace(**td.overrides) if td.overrides else cfg
-        chk = check_controller(c0, tr.name, tr.t, tr.pos_cmd, tr.columns)
+        try:
+            chk = check_controller(c0, tr.name, tr.t, tr.pos_cmd, tr.columns)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:  # a check, not a reason to stop
+            tr.warnings.append(f"controller check skipped: {exc}")
+            continue
         if chk is None:
             continue
         if chk.used == "identified":
