@@ -343,7 +343,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     elif switch:
         chk.overrides = {"control": _to_config(cfg, gid, dt)}
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
-                    f"identified from the trace {un_id:.1%}: identified gains used for this trace "
+                    f"identified from the trace {_share(un_id)}: identified gains used for this trace "
                     f"({_describe(cfg, gid)})")
     elif retimed:
         chk.overrides = {"control": _retimed(cfg, timing, dt)}
@@ -353,7 +353,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
                     f"trace ({', '.join(f'{k} = {v:g}' for k, v in chk.overrides['control'].items())})")
     elif un_cfg > WARN_UNEXPLAINED and un_cfg > 2 * un_id and un_id < WARN_UNEXPLAINED:  # a good other law
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained (identified law: "
-                    f"{un_id:.0%}); the controller may differ from the config's, kept")
+                    f"{_share(un_id)}); the controller may differ from the config's, kept")
     return chk
 
 
@@ -368,7 +368,9 @@ def _retimed(cfg: AxisConfig, timing: str, dt: float) -> dict[str, float]:
 
 
 def _share(x: float) -> str:
-    return f"{x:.0%}" if x < 10 else f"{x:.3g} x the variance"
+    if x >= 10:
+        return f"{x:.3g} x the variance"
+    return f"{x:.0%}" if x >= 0.01 else f"{100 * x:.2g} %"
 
 
 def _to_config(cfg: AxisConfig, gains: dict, dt: float) -> dict[str, float]:
