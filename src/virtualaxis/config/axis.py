@@ -161,6 +161,16 @@ class MotorParams:
     cogging_periods_per_rev: float = _p(0.0, check=">=0", doc="ripple periods per mechanical rev")
     cogging_phase_rad: float = _p(0.0, doc="ripple phase [rad]")
 
+    @property
+    def psi_wb(self) -> float:
+        """PM flux linkage [Wb]: ``flux_wb``, or derived from the torque constant (k_t = 1.5 p psi_pm)."""
+        return self.flux_wb if self.flux_wb > 0 else self.torque_constant_nm_per_a / (1.5 * self.pole_pairs)
+
+    @property
+    def kt_nm_per_a(self) -> float:
+        """Torque constant k_t = 1.5 p psi_pm [N m/A] (q-axis current to torque)."""
+        return 1.5 * self.pole_pairs * self.psi_wb
+
 
 @dataclass(frozen=True, kw_only=True)
 class InverterParams:

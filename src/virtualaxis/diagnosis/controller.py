@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from virtualaxis.config import AxisConfig
+from virtualaxis.plant.mechanics import feedforward_inertia
 
 #: use the identified law only if the config's leaves this many times its unexplained share ...
 SWITCH_RATIO = 3.0
@@ -92,9 +93,7 @@ def _gear_and_output(cfg: AxisConfig, cols: dict[str, np.ndarray]) -> tuple[floa
     if "force_drive" in cols:  # the drive force at the table: torque through the lead
         return g, "force_drive", cols["force_drive"] / g
     if "current_q" in cols:
-        mot = cfg.motor
-        psi = mot.flux_wb if mot.flux_wb > 0 else mot.torque_constant_nm_per_a / (1.5 * mot.pole_pairs)
-        return g, "current_q", cols["current_q"] * 1.5 * mot.pole_pairs * psi
+        return g, "current_q", cols["current_q"] * cfg.motor.kt_nm_per_a
     return None
 
 
@@ -119,15 +118,10 @@ def _feedback(cfg: AxisConfig, cols: dict[str, np.ndarray], g: float) -> tuple[n
     return fb, coord
 
 
-def _config_gains(cfg: AxisConfig, g: float) -> dict[str, float]:
+def _config_gains(cfg: AxisConfig) -> dict[str, float]:
     c = cfg.control
     kp = c.velocity_kp_n_s_per_m if cfg.actuator.kind == "force" else c.speed_kp_nm_s_per_rad
-    if cfg.actuator.kind == "force":
-        jref = cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
-    else:
-        from virtualaxis.sim.simulator import reflected_inertia_kg_m2
-
-        jref = reflected_inertia_kg_m2(cfg)
+    jref = feedforward_inertia(cfg)
     return {"kp": kp, "ti_s": c.speed_ti_s, "kv_per_s": c.kv_1_per_s, "velocity_ff": c.velocity_ff_factor,
             "torque_ff_x_jref": c.torque_ff_factor * jref, "jref": jref}
 
@@ -160,19 +154,17 @@ def _smoothed(sig: _Signals, n: int) -> _Signals:
     return _Signals(u=f(sig.u), e=f(sig.e), vc=f(sig.vc), w=f(sig.w), w_end=f(sig.w_end), ac=f(sig.ac), dt=sig.dt)
 
 
-def _law(sig: _Signals, kp: float, ki: float, kv: float, kff: float) -> tuple[np.ndarray, np.ndarray]:
-    """Columns of the law that are linear given (kv, kff): Kp E and Ki sum(E) dt."""
+def _law_columns(sig: _Signals, kv: float, kff: float) -> tuple[np.ndarray, np.ndarray]:
+    """The columns the law multiplies by Kp and by Ki, given (Kv, Kff): r - w_end and sum(r - w) dt."""
     ref = kv * sig.e + kff * sig.vc
-    return kp * (ref - sig.w_end), ki * np.cumsum(ref - sig.w) * sig.dt
+    return ref - sig.w_end, np.cumsum(ref - sig.w) * sig.dt
 
 
-def _unexplained(sig: _Signals, kp: float, ki: float, kv: float, kff: float, kt: float) -> tuple[float, float]:
-    """Share of var(u) left by the law with these gains (the offset b fitted); returns (share, b)."""
-    a, b = _law(sig, kp, ki, kv, kff)
-    r = sig.u - a - b - kt * sig.ac
-    off = float(np.mean(r))
+def _unexplained(sig: _Signals, kp: float, ki: float, kv: float, kff: float, kt: float) -> float:
+    """Share of var(u) left by the law with these gains (the offset b fitted: the variance ignores it)."""
+    p_col, i_col = _law_columns(sig, kv, kff)
     var = float(np.var(sig.u))
-    return (float(np.var(r - off)) / var if var > 0 else 0.0), off
+    return float(np.var(sig.u - kp * p_col - ki * i_col - kt * sig.ac)) / var if var > 0 else 0.0
 
 
 #: the speed loop's timing relative to the trace: much faster (e.g. 8 kHz in a 1 kHz trace), or sampled at the
@@ -203,11 +195,10 @@ def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) ->
     ones = np.ones(sig.u.size)
 
     def linear(x):
-        kv, kff = x[0], (x[1] if "kff" in terms else 0.0)
-        ref = kv * sig.e + kff * sig.vc
-        cols = [ref - sig.w_end]
+        p_col, i_col = _law_columns(sig, x[0], x[1] if "kff" in terms else 0.0)
+        cols = [p_col]
         if "ki" in terms:
-            cols.append(np.cumsum(ref - sig.w) * sig.dt)
+            cols.append(i_col)
         if "kt" in terms:
             cols.append(sig.ac)
         cols.append(ones)
@@ -294,13 +285,13 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     if not finite or float(np.var(fast.u)) == 0.0:
         return None
     cfg_sampled = cfg.control.speed_cycle_s >= 0.99 * dt
-    cg = _config_gains(cfg, g)
+    cg = _config_gains(cfg)
     ki_cfg = cg["kp"] / cg["ti_s"] if cg["ti_s"] > 0 else 0.0
     gains_cfg = (cg["kp"], ki_cfg, cg["kv_per_s"], cg["velocity_ff"], cg["torque_ff_x_jref"])
-    un_cfg, _ = _unexplained(sampled if cfg_sampled else fast, *gains_cfg)
+    un_cfg = _unexplained(sampled if cfg_sampled else fast, *gains_cfg)
     # the config's own gains with the other timing of the speed loop: no fitted freedom, so a much better fit
     # there is evidence about the timing alone
-    un_cfg_other, _ = _unexplained(fast if cfg_sampled else sampled, *gains_cfg)
+    un_cfg_other = _unexplained(fast if cfg_sampled else sampled, *gains_cfg)
     cfg_timing = "sampled" if cfg_sampled else "fast"
     timing = cfg_timing
     if un_cfg_other * SWITCH_RATIO < un_cfg:
@@ -311,7 +302,11 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
         un_id, gid = _select_law(sig, cg)
     except (ValueError, np.linalg.LinAlgError):
         return None
-    blur_fast = max(cg["kp"], gid["kp"]) * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u))
+    # how much the P term depends on *when* in the sample the speed is taken, per unit of Kp: a speed loop much
+    # faster than the trace's sampling acts on a speed error far below the speed's change per sample, which the
+    # trace cannot resolve — then the replay says nothing either way (a loop at the trace's rate is resolved)
+    blur_per_kp = float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u))
+    blur_fast = max(cg["kp"], gid["kp"]) * blur_per_kp
     if un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id and blur_fast <= MAX_BLUR:
         # the config's gains do not fit with either timing: its timing is no evidence, let the data choose
         # (only where the two timings can be told apart: not for a speed loop far faster than the trace)
@@ -325,28 +320,24 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     gid["speed_loop"] = SPEED_LOOP_TIMING[timing]
     cg = {k: float(v) for k, v in cg.items()}
     cg["speed_loop"] = SPEED_LOOP_TIMING[cfg_timing]
-    # how much the P term depends on *when* in the sample the speed is taken: a speed loop much faster than
-    # the trace's sampling acts on a speed error far below the speed's change per sample, which the trace
-    # cannot resolve — then the replay says nothing either way (a loop at the trace's rate is resolved)
-    blur = 0.0
-    if timing == "fast":
-        blur = max(blur_fast, gid["kp"] * float(np.std(fast.w_end - fast.w)) / float(np.std(fast.u)))
+    blur = max(blur_fast, gid["kp"] * blur_per_kp) if timing == "fast" else 0.0
     conclusive = blur <= MAX_BLUR
     switch = conclusive and un_cfg_t > SWITCH_MIN_UNEXPLAINED and un_cfg_t > SWITCH_RATIO * un_id \
         and un_id < WARN_UNEXPLAINED and gid["kp"] > 0 and gid["kv_per_s"] > 0
     retimed = conclusive and timing != cfg_timing
+    retime = _retimed(cfg, timing, dt) if timing != cfg_timing else {}  # the speed-cycle change, if any
     chk = ControllerCheck(name, ch, float(un_cfg), float(un_id), cg, gid,
                           "identified" if (switch or retimed) else "config", resolution=float(blur))
     if not conclusive:
         chk.note = (f"controller not checked: its speed loop is too fast for the trace's sampling (the output "
                     f"depends on the speed within one sample by {blur:.0%} of its spread)")
     elif switch:
-        chk.overrides = {"control": _to_config(cfg, gid, dt)}
+        chk.overrides = {"control": {**_to_config(cfg, gid), **retime}}
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
                     f"identified from the trace {_share(un_id)}: identified gains used for this trace "
                     f"({_describe(cfg, gid)})")
     elif retimed:
-        chk.overrides = {"control": _retimed(cfg, timing, dt)}
+        chk.overrides = {"control": retime}
         chk.note = (f"the config's gains explain {ch} {un_cfg / max(un_cfg_other, 1e-300):.3g} x better with the speed "
                     f"loop {SPEED_LOOP_TIMING[timing]} than {SPEED_LOOP_TIMING[cfg_timing]} (the config's "
                     f"control.speed_cycle_s {cfg.control.speed_cycle_s:g} s): speed loop timing changed for this "
@@ -373,16 +364,13 @@ def _share(x: float) -> str:
     return f"{x:.0%}" if x >= 0.01 else f"{100 * x:.2g} %"
 
 
-def _to_config(cfg: AxisConfig, gains: dict, dt: float) -> dict[str, float]:
+def _to_config(cfg: AxisConfig, gains: dict) -> dict[str, float]:
+    """control.* values of identified gains."""
     kp_key = "velocity_kp_n_s_per_m" if cfg.actuator.kind == "force" else "speed_kp_nm_s_per_rad"
     jref = gains["jref"]
-    out = {kp_key: gains["kp"], "speed_ti_s": gains["ti_s"], "kv_per_s": gains["kv_per_s"],
+    return {kp_key: gains["kp"], "speed_ti_s": gains["ti_s"], "kv_per_s": gains["kv_per_s"],
             "kv_1000_per_min": 0.0, "kv_per_min": 0.0, "velocity_ff_factor": max(gains["velocity_ff"], 0.0),
             "torque_ff_factor": max(gains["torque_ff_x_jref"] / jref, 0.0) if jref > 0 else 0.0}
-    timing = "sampled" if gains["speed_loop"] == SPEED_LOOP_TIMING["sampled"] else "fast"
-    if (timing == "sampled") != (cfg.control.speed_cycle_s >= 0.99 * dt):
-        out.update(_retimed(cfg, timing, dt))
-    return out
 
 
 def _describe(cfg: AxisConfig, gains: dict[str, float]) -> str:

@@ -145,7 +145,6 @@ class Weights:
     sigma: dict[str, float]
     n_eff_fraction: dict[str, float]  # n_eff / n per channel
     quantum: dict[str, float] = field(default_factory=dict)  # grid step of quantised channels
-
     chaos: dict[str, float] = field(default_factory=dict)  # non-reproducible part per channel (model's own)
 
     @classmethod

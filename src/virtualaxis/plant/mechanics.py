@@ -140,6 +140,14 @@ def reflected_inertia_kg_m2(cfg: AxisConfig) -> float:
     return m.motor_inertia_kg_m2 + m.coupling_inertia_kg_m2 + m.screw_end_inertia_kg_m2 + j_screw + moving * r * r
 
 
+def feedforward_inertia(cfg: AxisConfig) -> float:
+    """What the torque feed-forward multiplies the commanded acceleration by, in drive units: the reflected
+    inertia at the motor shaft [kg m^2], or the moving mass [kg] for a force actuator."""
+    if cfg.actuator.kind == "force":
+        return cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
+    return reflected_inertia_kg_m2(cfg)
+
+
 def build_mechanics(cfg: AxisConfig, nut_pos_m: float, *, support_scale: float = 1.0) -> Mechanics:
     """Assemble bodies and springs at one nut position (``support_scale`` scales the support stiffness)."""
     m = cfg.mechanics

@@ -58,8 +58,8 @@ class ReferenceAxis:
         self.mvec = self.mech.motor_angle_vector
         self.sb = self.mech.screw_body
         m = cfg.motor
-        self.psi = m.flux_wb if m.flux_wb > 0 else m.torque_constant_nm_per_a / (1.5 * m.pole_pairs)
-        self.kt = 1.5 * m.pole_pairs * self.psi
+        self.psi = m.psi_wb
+        self.kt = m.kt_nm_per_a
         self.r = cfg.mechanics.lead_m / (2 * math.pi)
         self.dm = discretise(cfg, cfg.control.current_cycle_s)  # only for the grid it shares with the kernel
 

@@ -14,7 +14,7 @@ import numpy as np
 from virtualaxis.config import AxisConfig
 from virtualaxis.control.loops import integral_gain_per_sample
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
-from virtualaxis.plant.mechanics import reflected_inertia_kg_m2
+from virtualaxis.plant.mechanics import feedforward_inertia
 from virtualaxis.sim import layout as L
 from virtualaxis.sim.kernel import run_cycles
 
@@ -65,9 +65,8 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_NPOS] = _ratio(c.position_cycle_s, hc)
     pr[L.P_NSUB] = cfg.simulation.mechanical_substeps
     pr[L.P_HM] = hc / cfg.simulation.mechanical_substeps
-    psi = mot.flux_wb if mot.flux_wb > 0 else mot.torque_constant_nm_per_a / (1.5 * mot.pole_pairs)
-    pr[L.P_PSI] = psi
-    pr[L.P_KT] = 1.5 * mot.pole_pairs * psi
+    pr[L.P_PSI] = mot.psi_wb
+    pr[L.P_KT] = mot.kt_nm_per_a
     pr[L.P_PP] = mot.pole_pairs
     pr[L.P_RS] = mot.rs_ohm
     pr[L.P_LD] = mot.ld_h
@@ -98,11 +97,7 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_KV] = c.kv_1_per_s
     pr[L.P_KFF] = c.velocity_ff_factor
     pr[L.P_KTFF] = c.torque_ff_factor
-    if force:
-        j_ref = m.table_mass_kg + m.nut_mass_kg + (reflected_inertia_kg_m2(cfg) / r**2 if r > 0 else 0.0) * 0.0
-        pr[L.P_JREF] = j_ref
-    else:
-        pr[L.P_JREF] = reflected_inertia_kg_m2(cfg)
+    pr[L.P_JREF] = feedforward_inertia(cfg)
     pr[L.P_R] = r
     pr[L.P_FB] = 1.0 if c.position_feedback == "linear_scale" else 0.0
     s = cfg.sensors
