@@ -71,6 +71,7 @@ def test_polish_reaches_the_minimum_where_a_secant_slope_is_mostly_roughness():
         free = [fx.Param("x", "1", 0.0, 10.0, 1.0)]
         job = SimpleNamespace(settings=F.FitSettings())
         secant_jacobian = F._Model.secant_jacobian  # the fitter's own finite differences
+        jacobian_steps = F._Model.jacobian_steps
 
         def __init__(self):
             self.calls = 0

@@ -30,6 +30,7 @@ from scipy.ndimage import uniform_filter1d
 from virtualaxis.config import AxisConfig
 from virtualaxis.diagnosis import effects as fx
 from virtualaxis.diagnosis.data import (
+    CHAOS_PERTURBATION_M,
     SimulateFn,
     TraceData,
     Weights,
@@ -174,20 +175,41 @@ class _Model:
             self._cache[key] = r if r is not None else np.full(self.size, 1e3)
         return self._cache[key]
 
+    def jacobian_steps(self, u: np.ndarray) -> np.ndarray:
+        """Secant step per free parameter in internal units (sign: towards the inside of the bounds)."""
+        _, hi = self.bounds()
+        h = np.array([self.job.settings.jacobian_step * (max(1.0, abs(x)) if p.scale == "lin" else 1.0)
+                      for p, x in zip(self.free, u, strict=True)])
+        return np.where(u + h > hi, -h, h)
+
     def secant_jacobian(self, u: np.ndarray) -> np.ndarray:
         """Finite differences with a large step (the simulated response is not smooth at small scales)."""
         f0 = self.residual_vector(u)
-        lo, hi = self.bounds()
         cols = []
-        for j in range(u.size):
-            h = self.job.settings.jacobian_step * max(1.0, abs(u[j])) if self.free[j].scale == "lin" \
-                else self.job.settings.jacobian_step
-            if u[j] + h > hi[j]:
-                h = -h
+        for j, h in enumerate(self.jacobian_steps(u)):
             uj = u.copy()
             uj[j] += h
             cols.append((self.residual_vector(uj) - f0) / h)
         return np.column_stack(cols)
+
+    def chaos_difference(self, u: np.ndarray, seed: int = 1) -> np.ndarray | None:
+        """How the weighted fit residual at ``u`` changes when the commands change by an unmeasurably small
+        white perturbation (``CHAOS_PERTURBATION_M``): one draw of the model's own chaos, at the size every
+        secant Jacobian column carries on top of the parameter's real effect. None if it cannot be simulated."""
+        rng = np.random.default_rng(seed)
+        cfg = self.cfg(u)
+        preds = []
+        try:
+            for i in self.job.fit_idx:
+                td = self.job.traces[i]
+                moved = TraceData(td.name, td.t, td.pos_cmd + rng.normal(0.0, CHAOS_PERTURBATION_M, td.t.size),
+                                  td.force_ext, td.measured, td.overrides)
+                preds.append(simulate_trace(cfg, moved, self.job.simulate))
+                self.n_sims += 1
+        except Exception:  # a config the simulator rejects: no correction
+            return None
+        d = self.stack(preds) - self.residual_vector(u)
+        return d if d.shape == (self.size,) and np.all(np.isfinite(d)) else None
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return (np.array([p.internal_bounds()[0] for p in self.free]),
@@ -341,6 +363,45 @@ def pattern_search(cost: Callable[[np.ndarray], float], u0: np.ndarray, lo: np.n
     return u
 
 
+#: a parameter direction counts as determined by the fit traces only when its response over one secant step
+#: exceeds the model's chaos by this share of one chaos draw's energy: that energy varies by about 11 % (1 sd)
+#: from draw to draw on the bench's ball-screw axis (6 draws each on the resonance and Stribeck cases; the chatter
+#: is bursty, far from the sqrt(2 / n) of white noise), so 0.25 is above 2 sd of it
+MIN_INFORMATION_OVER_CHAOS = 0.25
+
+
+def chaos_corrected_covariance(jac: np.ndarray, steps: np.ndarray, chaos_sq: float, s2_eff: float,
+                               min_over_chaos: float = MIN_INFORMATION_OVER_CHAOS) -> np.ndarray:
+    """Parameter covariance of a least-squares fit whose model is chaotic, in the Jacobian's units.
+
+    ``jac`` (m x k) holds secant columns ``(r(u + h_j e_j) - r(u)) / h_j`` (``steps`` = h). In a chaotic
+    model every simulation at a new parameter value is a fresh draw of the model's own chatter, so each
+    column carries, besides the parameter's real effect, the difference of two draws; ``chaos_sq`` is the
+    energy of one such difference (two draws at the same parameters). In step units (columns ``jac h``) the
+    expected chaos part of ``(J h)^T (J h)`` is ``c (I + 1 1^T)`` with ``c = chaos_sq / 2`` (all columns
+    share the draw at ``u``); it is subtracted, and ``cov = s2_eff A^-1`` on the directions whose remaining
+    information exceeds ``min_over_chaos * chaos_sq``. A parameter that loads on a direction below that is
+    *not determined* by the data: its variance is ``inf``. ``s2_eff``: residual variance per decorrelated
+    sample. Without chaos (``chaos_sq = 0``) this is ``s2_eff (J^T J)^-1``."""
+    k = jac.shape[1]
+    if k == 0:
+        return np.zeros((0, 0))
+    h = np.abs(np.asarray(steps, dtype=float))
+    js = jac * h
+    c = 0.5 * max(chaos_sq, 0.0)
+    info = js.T @ js - c * (np.eye(k) + np.ones((k, k)))
+    lam, vec = np.linalg.eigh(0.5 * (info + info.T))
+    floor = max(min_over_chaos * 2.0 * c, 1e-12 * max(float(np.max(np.abs(lam))), 1e-300))
+    ok = lam > floor
+    cov_s = (vec[:, ok] / lam[ok]) @ vec[:, ok].T * s2_eff
+    lost = np.sum(vec[:, ~ok] ** 2, axis=1)  # each parameter's loading on the undetermined directions
+    var = np.diag(cov_s).copy()
+    var[lost > 0.1] = math.inf
+    cov = cov_s * np.outer(h, h)
+    cov[np.diag_indices(k)] = var * h**2
+    return cov
+
+
 def fit_candidate(job: FitJob) -> CandidateResult:
     """Screen (stage "screen") or refine and judge on held-out data (stage "refine") one effect."""
     t0 = time.perf_counter()
@@ -396,17 +457,20 @@ def fit_candidate(job: FitJob) -> CandidateResult:
         u_hat, model.fixed = u0, dict(fixed0)  # never worse than the screening estimate
     values = model.values(u_hat)
     cfg_hat = model.cfg(u_hat)
-    # uncertainty: cov = s^2 (J^T J)^-1, inflated by the residual correlation time (n / n_eff)
-    stderr = {p.name: float("nan") for p in model.free}
+    # uncertainty: cov = s^2 (J^T J)^-1, inflated by the residual correlation time (n / n_eff), with the part
+    # of J^T J that is the model's own chaos taken out (see chaos_corrected_covariance)
     if jac is None:
         jac = model.secant_jacobian(u_hat)
     rvec = model.residual_vector(u_hat)
     m, k = rvec.size, len(model.free)
     s2 = float(rvec @ rvec) / max(m - k, 1)
-    infl = 1.0 / max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
-    cov = np.linalg.pinv(jac.T @ jac) * s2 * infl
+    n_eff_frac = max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
+    chaos = model.chaos_difference(u_hat)
+    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), float(chaos @ chaos) if chaos is not None
+                                       else 0.0, s2 / n_eff_frac)
+    stderr = {}
     for j, p in enumerate(model.free):
-        su = math.sqrt(max(cov[j, j], 0.0))
+        su = math.sqrt(max(cov_u[j, j], 0.0)) if math.isfinite(cov_u[j, j]) else math.inf
         dv = p.typical if p.scale == "lin" else values[p.name]
         stderr[p.name] = float(su * dv)
     at_bound = [p.name for p, x, a, b in zip(model.free, u_hat, lo, hi, strict=True)

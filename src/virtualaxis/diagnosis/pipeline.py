@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -273,9 +274,12 @@ def _param_table(effect: str, cfg: AxisConfig, values: dict, stderr: dict) -> di
     out = {}
     for name, v in fx.derived_values(effect, values).items():
         p = params.get(name)
+        se = float(stderr.get(name, float("nan")))
         out[name] = {
             "value": float(v),
-            "stderr": float(stderr.get(name, float("nan"))),
+            "stderr": se,
+            # False: the fit traces' response to it is at the level of the model's own chaos (stderr null)
+            "determined": se != math.inf,
             "unit": p.unit if p else "",
             "nominal": float(p.nominal) if p else None,
             "bounds": [p.lower, p.upper] if p else None,
@@ -350,6 +354,14 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                for ch in baseline}
     spectra = {ch: {k: v for k, v in sp.items() if k not in ("f_hz", "psd")} for ch, sp in loc.spectra.items()}
     conclusion = " + ".join(accepted_names) if accepted_names else NO_EFFECT
+    for n in accepted_names:
+        loose = [k for k, v in entries[n]["params"].items() if not v["determined"]]
+        if loose:
+            notes = notes + [
+                f"{n}: {', '.join(loose)} not determined by the fit traces (their response to it is at the level of "
+                "the model's own chaos); the value is the best of a broad basin and the effect is accepted on its "
+                "held-out gain. Record a fit trace that excites it (a mode: a sine sweep through its band; "
+                "a Stribeck velocity: slow reversals) to pin it down"]
     final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
     final_hold = cumulative[-1]["heldout_after"] if cumulative else base_hold
     return {

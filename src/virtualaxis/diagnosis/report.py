@@ -189,7 +189,9 @@ def report_html(report: dict) -> str:
         rows, ["channel", "dimension", "bin", "share of residual energy", "share / share of samples"]))
     rows = []
     for e in report["effects"]:
-        ps = "; ".join(f"{k} = {_g(v['value'])} ± {_g(v['stderr'])} {v['unit']}" for k, v in e["params"].items())
+        ps = "; ".join(f"{k} = {_g(v['value'])} {v['unit']} " + (f"± {_g(v['stderr'])}" if v.get("determined", True)
+                                                                  else "(not determined by the fit traces)")
+                       for k, v in e["params"].items())
         rows.append([e["rank"], e["name"], "yes" if e["accepted"] else "no", f"{100 * e['heldout']['gain']:.1f} %",
                      _g(e["ic_delta"]), _g(e["signature_overlap"]), _change(e.get("relative_change")), ps])
     parts.append("<h2>Candidate effects</h2>" + _table(
