@@ -4,6 +4,7 @@ Prints top-1 / top-2 identification accuracy, the false-positive rate on clean c
 error and the held-out RMSE shrink per effect, and writes DIR/bench.json.
 
     python benchmarks/bench_gap.py --out /tmp/gap_bench [--seed 0] [--jobs 2] [--quick] [--cases a,b]
+    python benchmarks/bench_gap.py --out /tmp/gap_bench --rescore   # score a finished bench again
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from virtualaxis.diagnosis.bench import run_bench
+from virtualaxis.diagnosis.bench import rescore_bench, run_bench
 
 
 def _cpu() -> str:
@@ -29,6 +30,13 @@ def _cpu() -> str:
     return f"{os.cpu_count()} cores, {model}"
 
 
+def _se(v: dict) -> str:
+    if not v.get("determined", True):
+        return "not determined"
+    se = v.get("stderr")
+    return "-" if se is None or math.isnan(se) else f"{se:.3g}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default="/tmp/gap_bench")
@@ -36,19 +44,25 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--cases", default=None)
+    ap.add_argument("--rescore", action="store_true", help="score the bench in --out again, without diagnosing")
     a = ap.parse_args()
     names = a.cases.split(",") if a.cases else None
     t0 = time.perf_counter()
 
     def progress(ev: dict) -> None:
-        rec = "; ".join(f"{k} {v['fitted']:.4g} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         pos = ev["heldout_rmse_shrink"].get("pos_meas", float("nan"))
         print(f"{ev['case']:20s} truth={'+'.join(ev['truth']) or '-':30s} found={'+'.join(ev['accepted']) or '-':30s}"
               f" top1={int(ev['top1'])} pos_meas held-out RMSE -{100 * pos:.0f} % | {rec} | {ev['seconds']:.0f} s",
               flush=True)
 
-    out = run_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs, progress=progress)
+    if a.rescore:
+        out = rescore_bench(Path(a.out))
+        for ev in out["cases"]:
+            progress(ev)
+    else:
+        out = run_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs, progress=progress)
     s = out["summary"]
     print(f"\nmachine: {_cpu()}; wall time {time.perf_counter() - t0:.0f} s")
     print(f"effect cases {s['n_effect_cases']}, clean cases {s['n_clean_cases']}")
@@ -58,6 +72,10 @@ def main() -> None:
     med = s["param_rel_error_median"]
     print(f"parameter recovery: median relative error {100 * med:.1f} %, within 15 %: "
           f"{100 * s['param_within_15pct']:.0f} %" if not math.isnan(med) else "parameter recovery: -")
+    if s.get("param_n_with_stderr"):
+        print(f"reported uncertainty: true value within 2 standard errors for {100 * s['param_within_2_stderr']:.0f} % "
+              f"of {s['param_n_with_stderr']} parameters; {s['param_n_undetermined']} reported as not determined "
+              "by the fit traces")
     print("held-out RMSE shrink per case: best channel / pos_meas / truth model on the best channel (the noise")
     print("floor's limit) / share of the removable gap closed on the best channel:")
     for k, v in s["heldout_shrink_best_channel"].items():

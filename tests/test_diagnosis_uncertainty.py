@@ -50,3 +50,18 @@ def test_a_parameter_buried_in_chaos_is_not_determined():
     assert cov[1, 1] == math.inf
     # the classical formula claims it is known to a few percent of one secant step
     assert math.sqrt(np.linalg.inv(jac.T @ jac)[1, 1]) < 0.1 * h[1]
+
+
+def test_amplitude_and_phase_errors_follow_from_the_components():
+    from virtualaxis.diagnosis.effects import derived_stderr
+
+    rng = np.random.default_rng(3)
+    c, s, sc, ss = 0.3, 0.4, 0.01, 0.02
+    cc, sn = c + sc * rng.normal(size=200000), s + ss * rng.normal(size=200000)
+    out = derived_stderr("torque_ripple", {"cogging_cos_nm": c, "cogging_sin_nm": s},
+                         {"cogging_cos_nm": sc, "cogging_sin_nm": ss})
+    assert abs(out["cogging_amplitude_nm"] / np.std(np.hypot(cc, sn)) - 1) < 0.03
+    assert abs(out["cogging_phase_rad"] / np.std(np.arctan2(sn, cc)) - 1) < 0.03
+    loose = derived_stderr("torque_ripple", {"cogging_cos_nm": c, "cogging_sin_nm": s},
+                           {"cogging_cos_nm": math.inf, "cogging_sin_nm": ss})
+    assert loose["cogging_amplitude_nm"] == math.inf and loose["cogging_phase_rad"] == math.inf

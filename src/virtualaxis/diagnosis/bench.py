@@ -233,8 +233,13 @@ def evaluate_case(meta: dict, report: dict, truth_metrics: dict | None = None) -
         for pname, true_v in meta["truth_params"][e["name"]].items():
             vals = derived_values(e["name"], {k: v["value"] for k, v in e["params"].items()})
             if pname in vals and true_v:
-                rec[f"{e['name']}.{pname}"] = {"true": true_v, "fitted": vals[pname],
-                                               "rel_error": abs(vals[pname] - true_v) / abs(true_v)}
+                se = e["params"].get(pname, {}).get("stderr")
+                determined = e["params"].get(pname, {}).get("determined", True)
+                se = float(se) if se is not None and determined else math.nan
+                err = abs(vals[pname] - true_v)
+                rec[f"{e['name']}.{pname}"] = {"true": true_v, "fitted": vals[pname], "rel_error": err / abs(true_v),
+                                               "stderr": se, "determined": bool(determined),
+                                               "error_in_stderr": err / se if se > 0 else math.nan}
     hold = report["baseline_heldout"] or report["baseline_fit"]
     fin = report["final"]["heldout"] or report["final"]["fit"]
     shrink = {ch: 1.0 - fin[ch]["rmse"] / hold[ch]["rmse"] for ch in fin if ch in hold and hold[ch]["rmse"] > 0}
@@ -288,10 +293,32 @@ def run_bench(out_dir: Path, seed: int = 0, case_names: list[str] | None = None,
     return out
 
 
+def rescore_bench(out_dir: Path, simulate=None) -> dict:
+    """Score a finished bench again from its files (``CASE/truth.json``, ``CASE/diagnosis/report.json``) with
+    the current scoring, without diagnosing again (only the truth model is simulated); rewrites bench.json."""
+    from virtualaxis.diagnosis.report import report_json
+
+    old = json.loads((out_dir / "bench.json").read_text(encoding="utf-8"))
+    cases = {c.name: c for c in all_cases()}
+    results = []
+    for r in old["cases"]:
+        cdir = out_dir / r["case"]
+        meta = json.loads((cdir / "truth.json").read_text(encoding="utf-8"))
+        rep = json.loads((cdir / "diagnosis" / "report.json").read_text(encoding="utf-8"))
+        results.append(evaluate_case(meta, rep, truth_model_metrics(cases[r["case"]], meta, simulate)))
+    summary = summarise(results)
+    summary["seconds"] = old["summary"].get("seconds", math.nan)
+    out = {"seed": old["seed"], "quick": old["quick"], "summary": summary, "cases": results}
+    (out_dir / "bench.json").write_text(report_json(out), encoding="utf-8")
+    return out
+
+
 def summarise(results: list[dict]) -> dict:
     eff = [r for r in results if r["truth"]]
     clean = [r for r in results if not r["truth"]]
     recs = [v["rel_error"] for r in eff for v in r["param_recovery"].values()]
+    zs = [v["error_in_stderr"] for r in eff for v in r["param_recovery"].values()
+          if math.isfinite(v.get("error_in_stderr", math.nan))]
     shrink_per_effect: dict[str, list[float]] = {}
     for r in eff:
         pos = [v for ch, v in r["heldout_rmse_shrink"].items() if ch in ("pos_meas", "pos_fb", "motor_pos")]
@@ -310,6 +337,12 @@ def summarise(results: list[dict]) -> dict:
         "false_positive_rate": float(np.mean([r["false_positive"] for r in clean])) if clean else float("nan"),
         "param_rel_error_median": float(np.median(recs)) if recs else float("nan"),
         "param_within_15pct": float(np.mean([x <= 0.15 for x in recs])) if recs else float("nan"),
+        # honesty of the reported uncertainty: of the parameters reported as determined, the share whose true
+        # value lies within 2 standard errors; and how many were reported as not determined by the fit traces
+        "param_within_2_stderr": float(np.mean([z <= 2.0 for z in zs])) if zs else float("nan"),
+        "param_n_with_stderr": len(zs),
+        "param_n_undetermined": sum(1 for r in eff for v in r["param_recovery"].values()
+                                    if not v.get("determined", True)),
         "heldout_shrink_best_channel": {k: v[0] for k, v in shrink_per_effect.items()},
         "heldout_shrink_position": {k: v[1] for k, v in shrink_per_effect.items()},
         # on the best channel: the shrink the truth model itself would give, and the share of that

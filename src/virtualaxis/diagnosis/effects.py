@@ -508,6 +508,27 @@ def derived_values(effect: str, values: dict[str, float]) -> dict[str, float]:
     return out
 
 
+_POLAR = {"lead_error": ("periodic_cos_m", "periodic_sin_m", "lead_error_periodic_m", "lead_error_periodic_phase_rad"),
+          "torque_ripple": ("cogging_cos_nm", "cogging_sin_nm", "cogging_amplitude_nm", "cogging_phase_rad")}
+
+
+def derived_stderr(effect: str, values: dict[str, float], stderr: dict[str, float]) -> dict[str, float]:
+    """Standard errors of :func:`derived_values` (first order, the two components taken as uncorrelated):
+    amplitude ``A = hypot(c, s)``: ``sqrt((c sc)^2 + (s ss)^2) / A``; phase: ``sqrt((s sc)^2 + (c ss)^2) / A^2``."""
+    out = dict(stderr)
+    if effect in _POLAR and all(k in values for k in _POLAR[effect][:2]):
+        kc, ks, ka, kp = _POLAR[effect]
+        c, s_ = values[kc], values[ks]
+        sc, ss = stderr.get(kc, math.nan), stderr.get(ks, math.nan)
+        a = math.hypot(c, s_)
+        if math.inf in (sc, ss):  # a component not determined: neither is the amplitude nor the phase
+            out[ka] = out[kp] = math.inf
+        elif a > 0:
+            out[ka] = math.hypot(c * sc, s_ * ss) / a
+            out[kp] = math.hypot(s_ * sc, c * ss) / a**2
+    return out
+
+
 def applicable_effects(cfg: AxisConfig, names: list[str] | None = None) -> tuple[list[Effect], dict[str, str]]:
     """Effects of the library that exist on this axis, and the reasons for the others."""
     chosen = [EFFECTS[n] for n in (names or list(EFFECTS))]

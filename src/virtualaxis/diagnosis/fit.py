@@ -175,18 +175,20 @@ class _Model:
             self._cache[key] = r if r is not None else np.full(self.size, 1e3)
         return self._cache[key]
 
-    def jacobian_steps(self, u: np.ndarray) -> np.ndarray:
-        """Secant step per free parameter in internal units (sign: towards the inside of the bounds)."""
-        _, hi = self.bounds()
-        h = np.array([self.job.settings.jacobian_step * (max(1.0, abs(x)) if p.scale == "lin" else 1.0)
-                      for p, x in zip(self.free, u, strict=True)])
-        return np.where(u + h > hi, -h, h)
+    def jacobian_steps(self, u: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """Secant step per free parameter in internal units, ``scale`` x the settings' step (sign: towards the
+        inside of the bounds; shortened to the room there is)."""
+        lo, hi = self.bounds()
+        h = scale * np.array([self.job.settings.jacobian_step * (max(1.0, abs(x)) if p.scale == "lin" else 1.0)
+                              for p, x in zip(self.free, u, strict=True)])
+        up, down = hi - u, u - lo
+        return np.where(u + h <= hi, h, np.where(u - h >= lo, -h, np.where(up >= down, up, -down)))
 
-    def secant_jacobian(self, u: np.ndarray) -> np.ndarray:
+    def secant_jacobian(self, u: np.ndarray, scale: float = 1.0) -> np.ndarray:
         """Finite differences with a large step (the simulated response is not smooth at small scales)."""
         f0 = self.residual_vector(u)
         cols = []
-        for j, h in enumerate(self.jacobian_steps(u)):
+        for j, h in enumerate(self.jacobian_steps(u, scale)):
             uj = u.copy()
             uj[j] += h
             cols.append((self.residual_vector(uj) - f0) / h)
@@ -368,6 +370,8 @@ def pattern_search(cost: Callable[[np.ndarray], float], u0: np.ndarray, lo: np.n
 #: from draw to draw on the bench's ball-screw axis (6 draws each on the resonance and Stribeck cases; the chatter
 #: is bursty, far from the sqrt(2 / n) of white noise), so 0.25 is above 2 sd of it
 MIN_INFORMATION_OVER_CHAOS = 0.25
+#: secant step (x the settings' step) tried for parameters the normal step leaves buried in the chaos
+UNCERTAINTY_WIDE_STEP = 3.0
 
 
 def chaos_corrected_covariance(jac: np.ndarray, steps: np.ndarray, chaos_sq: float, s2_eff: float,
@@ -466,8 +470,17 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     s2 = float(rvec @ rvec) / max(m - k, 1)
     n_eff_frac = max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
     chaos = model.chaos_difference(u_hat)
-    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), float(chaos @ chaos) if chaos is not None
-                                       else 0.0, s2 / n_eff_frac)
+    chaos_sq = float(chaos @ chaos) if chaos is not None else 0.0
+    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), chaos_sq, s2 / n_eff_frac)
+    if not np.all(np.isfinite(np.diag(cov_u))):
+        # buried in the chaos over one step: the response over a longer secant (its energy grows with the
+        # step squared, the chaos's does not) may still determine it
+        wide = UNCERTAINTY_WIDE_STEP
+        cov_w = chaos_corrected_covariance(model.secant_jacobian(u_hat, wide), model.jacobian_steps(u_hat, wide),
+                                           chaos_sq, s2 / n_eff_frac)
+        for j in range(cov_u.shape[0]):
+            if not math.isfinite(cov_u[j, j]) and math.isfinite(cov_w[j, j]):
+                cov_u[j, j] = cov_w[j, j]
     stderr = {}
     for j, p in enumerate(model.free):
         su = math.sqrt(max(cov_u[j, j], 0.0)) if math.isfinite(cov_u[j, j]) else math.inf

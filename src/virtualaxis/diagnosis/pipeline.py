@@ -272,6 +272,7 @@ def run_diagnosis(
 def _param_table(effect: str, cfg: AxisConfig, values: dict, stderr: dict) -> dict:
     params = {p.name: p for p in fx.EFFECTS[effect].params(cfg)}
     out = {}
+    stderr = fx.derived_stderr(effect, values, stderr)
     for name, v in fx.derived_values(effect, values).items():
         p = params.get(name)
         se = float(stderr.get(name, float("nan")))
