@@ -69,7 +69,9 @@ def test_cli_diagnose_on_a_rigid_force_axis(tmp_path, capsys):
     assert {"rmse_before", "rmse_after"} <= set(e0["heldout"])
     assert e0["accepted"] and e0["name"] == "coulomb_friction"
     assert abs(e0["params"]["coulomb_n"]["value"] - 90.0) / 90.0 < 0.15
-    assert e0["params"]["coulomb_n"]["stderr"] > 0
+    assert e0["params"]["coulomb_n"]["stderr"] > 0 and e0["params"]["coulomb_n"]["determined"]
+    # the true value lies within 3 reported standard errors
+    assert abs(e0["params"]["coulomb_n"]["value"] - 90.0) <= 3 * e0["params"]["coulomb_n"]["stderr"]
     assert set(rep["not_applicable"]) >= {"backlash", "axial_compliance", "torque_ripple", "lead_error"}
     assert {"model", "heldout_rmse_after"} <= set(rep["hybrid"])
     assert {m["model"] for m in rep["hybrid"]["models"]} >= {"bp_2_10_1", "gbr_lagged"}
