@@ -65,23 +65,3 @@ def test_amplitude_and_phase_errors_follow_from_the_components():
     loose = derived_stderr("torque_ripple", {"cogging_cos_nm": c, "cogging_sin_nm": s},
                            {"cogging_cos_nm": math.inf, "cogging_sin_nm": ss})
     assert loose["cogging_amplitude_nm"] == math.inf and loose["cogging_phase_rad"] == math.inf
-
-
-def test_one_sensor_recorded_in_two_channels_counts_once():
-    from virtualaxis.diagnosis.data import Weights, same_sensor
-
-    rng = np.random.default_rng(4)
-    res = []
-    for _ in range(2):
-        iq = rng.normal(0.0, 0.2, 3000)
-        scale = rng.normal(0.0, 1e-7, 3000)
-        res.append({"current_q": iq, "torque_meas": 0.9 * iq + 0.01, "pos_meas": scale,
-                    "vel_meas": np.cumsum(iq) * 1e-6 + 1e-3 * rng.normal(0.0, 1e-6, 3000),
-                    "pos_fb": scale + rng.normal(0.0, 1e-9, 3000)})  # another sensor, nearly the same
-    assert same_sensor(res) == {"current_q": 2, "torque_meas": 2}
-    alone = Weights.from_residuals([{k: v for k, v in r.items() if k != "torque_meas"} for r in res])
-    both = Weights.from_residuals(res)
-    # the two channels of one sensor together weigh what the sensor alone weighed
-    assert math.isclose(both.sigma["current_q"], alone.sigma["current_q"] * math.sqrt(2), rel_tol=1e-12)
-    assert math.isclose(both.n_eff_fraction["current_q"], alone.n_eff_fraction["current_q"] / 2, rel_tol=1e-12)
-    assert both.sigma["pos_meas"] == alone.sigma["pos_meas"]

@@ -146,7 +146,6 @@ class Weights:
     n_eff_fraction: dict[str, float]  # n_eff / n per channel
     quantum: dict[str, float] = field(default_factory=dict)  # grid step of quantised channels
     chaos: dict[str, float] = field(default_factory=dict)  # non-reproducible part per channel (model's own)
-    shared: dict[str, int] = field(default_factory=dict)  # channels carrying the same sensor (see same_sensor)
 
     @classmethod
     def from_residuals(cls, res_list: list[dict[str, np.ndarray]],
@@ -166,52 +165,8 @@ class Weights:
             sigma[ch] = max(noise, 0.1 * rms, quanta.get(ch, 0.0) / math.sqrt(12.0), chaos.get(ch, 0.0), 1e-300)
             taus = [correlation_time(r) for r in rs]
             frac[ch] = float(1.0 / max(np.mean(taus), 1.0))
-        # one sensor recorded in n channels (i_q and kt i_q; the motor angle and it through the lead) counts
-        # once: each of its channels gets 1/n of the weight and of the decorrelated samples
-        shared = same_sensor(res_list)
-        for ch, n in shared.items():
-            sigma[ch] *= math.sqrt(n)
-            frac[ch] /= n
         return cls(sigma, frac, {c: q for c, q in quanta.items() if c in sigma},
-                   {c: x for c, x in chaos.items() if c in sigma}, shared)
-
-
-#: two channels carry the same sensor when one's residual is an affine map of the other's to this relative rms
-SAME_SENSOR_TOLERANCE = 1e-3
-
-
-def same_sensor(res_list: list[dict[str, np.ndarray]]) -> dict[str, int]:
-    """Channels whose residuals (over all traces that have both) are an affine map of each other within
-    :data:`SAME_SENSOR_TOLERANCE` of their rms — one sensor written twice, e.g. ``torque_meas = kt current_q``
-    or ``pos_fb = motor_pos lead / 2 pi`` — and how many channels their sensor has. Channels not listed
-    are a sensor of their own. A model's output and the measurement differ by the sensor's noise and the
-    gap, so two sensors (a scale and a motor encoder) never pass."""
-    chans = sorted({c for r in res_list for c in r})
-    parent = {c: c for c in chans}
-
-    def root(c: str) -> str:
-        while parent[c] != c:
-            c = parent[c]
-        return c
-
-    for i, a in enumerate(chans):
-        for b in chans[i + 1:]:
-            both = [r for r in res_list if a in r and b in r]
-            if not both:
-                continue
-            xa = np.concatenate([r[a] for r in both])
-            xb = np.concatenate([r[b] for r in both])
-            sb = float(np.std(xb))
-            if sb == 0.0 or float(np.std(xa)) == 0.0:
-                continue
-            design = np.column_stack([xa, np.ones_like(xa)])
-            coef, *_ = np.linalg.lstsq(design, xb, rcond=None)
-            if float(np.std(xb - design @ coef)) <= SAME_SENSOR_TOLERANCE * sb:
-                parent[root(b)] = root(a)
-    groups: dict[str, list[str]] = {}
-    for c in chans:
-        groups.setdefault(root(c), []).append(c)
-    return {c: len(g) for g in groups.values() if len(g) > 1 for c in g}
+                   {c: x for c, x in chaos.items() if c in sigma})
 
 
 CHAOS_PERTURBATION_M = 1e-12  # white perturbation of the command for the chaos floor [m], far below any scale

@@ -392,8 +392,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
         # sigma_c of every cost: max(noise floor, 0.1 x baseline rms, quantum / sqrt 12, model chaos)
         "channel_weights": {ch: {"sigma": sg, "quantum": sel.weights.quantum.get(ch, 0.0),
                                  "chaos": sel.weights.chaos.get(ch, 0.0),
-                                 "n_eff_fraction": sel.weights.n_eff_fraction.get(ch, 1.0),
-                                 "same_sensor_channels": sel.weights.shared.get(ch, 1)}
+                                 "n_eff_fraction": sel.weights.n_eff_fraction.get(ch, 1.0)}
                             for ch, sg in sel.weights.sigma.items()} if sel.weights else {},
         "cumulative": cumulative,
         "final": {"fit": final_fit, "heldout": final_hold,
