@@ -207,7 +207,8 @@ def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) ->
         nonneg = 2 if "ki" in terms else 1  # Kp and Ki are not negative
         if (coef[:nonneg] < 0).any():
             lo = [0.0] * nonneg + [-np.inf] * (a.shape[1] - nonneg)
-            coef = lsq_linear(a, sig.u, bounds=(lo, np.inf)).x
+            with np.errstate(invalid="ignore"):  # scipy's reflective step computes 0 * inf for an unbounded side
+                coef = lsq_linear(a, sig.u, bounds=(lo, np.inf)).x
         return coef, sig.u - a @ coef
 
     def resid(x):
