@@ -233,9 +233,9 @@ def evaluate_case(meta: dict, report: dict, truth_metrics: dict | None = None) -
         for pname, true_v in meta["truth_params"][e["name"]].items():
             vals = derived_values(e["name"], {k: v["value"] for k, v in e["params"].items()})
             if pname in vals and true_v:
-                se = e["params"].get(pname, {}).get("stderr")
-                determined = e["params"].get(pname, {}).get("determined", True)
-                se = float(se) if se is not None and determined else math.nan
+                reported = e["params"].get(pname, {})
+                determined = reported.get("determined", True)
+                se = float(reported["stderr"]) if reported.get("stderr") is not None and determined else math.nan
                 err = abs(vals[pname] - true_v)
                 rec[f"{e['name']}.{pname}"] = {"true": true_v, "fitted": vals[pname], "rel_error": err / abs(true_v),
                                                "stderr": se, "determined": bool(determined),

@@ -172,6 +172,13 @@ class Weights:
 CHAOS_PERTURBATION_M = 1e-12  # white perturbation of the command for the chaos floor [m], far below any scale
 
 
+def perturbed_command(td: TraceData, rng: np.random.Generator) -> TraceData:
+    """The trace with its command moved by white noise of ``CHAOS_PERTURBATION_M`` (far below any scale):
+    simulating it gives another draw of the model's chaos (see :func:`chaos_floor`)."""
+    return TraceData(td.name, td.t, td.pos_cmd + rng.normal(0.0, CHAOS_PERTURBATION_M, td.t.size),
+                     td.force_ext, td.measured, td.overrides)
+
+
 def chaos_floor(cfg: AxisConfig, traces: list[TraceData], simulate: SimulateFn,
                 preds: list[dict[str, np.ndarray]] | None = None, seed: int = 0) -> dict[str, float]:
     """Per channel, the rms by which the model's own prediction changes when its command changes by an
@@ -185,9 +192,7 @@ def chaos_floor(cfg: AxisConfig, traces: list[TraceData], simulate: SimulateFn,
     diffs: dict[str, list[np.ndarray]] = {}
     for k, td in enumerate(traces):
         base = preds[k] if preds is not None else simulate_trace(cfg, td, simulate)
-        moved = TraceData(td.name, td.t, td.pos_cmd + rng.normal(0.0, CHAOS_PERTURBATION_M, td.t.size),
-                          td.force_ext, td.measured, td.overrides)
-        other = simulate_trace(cfg, moved, simulate)
+        other = simulate_trace(cfg, perturbed_command(td, rng), simulate)
         for ch, x in other.items():
             if ch in base:
                 diffs.setdefault(ch, []).append(x - base[ch])

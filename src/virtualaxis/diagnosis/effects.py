@@ -496,20 +496,19 @@ def split_joint(values: dict[str, float]) -> dict[str, dict[str, float]]:
     return out
 
 
+#: effects fitted as cos/sin components and reported as amplitude/phase: (cos, sin, amplitude, phase) names
+_POLAR = {"lead_error": ("periodic_cos_m", "periodic_sin_m", "lead_error_periodic_m", "lead_error_periodic_phase_rad"),
+          "torque_ripple": ("cogging_cos_nm", "cogging_sin_nm", "cogging_amplitude_nm", "cogging_phase_rad")}
+
+
 def derived_values(effect: str, values: dict[str, float]) -> dict[str, float]:
     """Report-friendly values (amplitude/phase instead of cos/sin components)."""
     out = dict(values)
-    if effect == "lead_error":
-        out["lead_error_periodic_m"] = math.hypot(values["periodic_cos_m"], values["periodic_sin_m"])
-        out["lead_error_periodic_phase_rad"] = math.atan2(values["periodic_sin_m"], values["periodic_cos_m"])
-    if effect == "torque_ripple":
-        out["cogging_amplitude_nm"] = math.hypot(values["cogging_cos_nm"], values["cogging_sin_nm"])
-        out["cogging_phase_rad"] = math.atan2(values["cogging_sin_nm"], values["cogging_cos_nm"])
+    if effect in _POLAR:
+        kc, ks, ka, kp = _POLAR[effect]
+        out[ka] = math.hypot(values[kc], values[ks])
+        out[kp] = math.atan2(values[ks], values[kc])
     return out
-
-
-_POLAR = {"lead_error": ("periodic_cos_m", "periodic_sin_m", "lead_error_periodic_m", "lead_error_periodic_phase_rad"),
-          "torque_ripple": ("cogging_cos_nm", "cogging_sin_nm", "cogging_amplitude_nm", "cogging_phase_rad")}
 
 
 def derived_stderr(effect: str, values: dict[str, float], stderr: dict[str, float]) -> dict[str, float]:

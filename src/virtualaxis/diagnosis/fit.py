@@ -30,13 +30,13 @@ from scipy.ndimage import uniform_filter1d
 from virtualaxis.config import AxisConfig
 from virtualaxis.diagnosis import effects as fx
 from virtualaxis.diagnosis.data import (
-    CHAOS_PERTURBATION_M,
     SimulateFn,
     TraceData,
     Weights,
     channel_quanta,
     chaos_floor,
     info_criterion_delta,
+    perturbed_command,
     pooled_metrics,
     residuals,
     sample_counts,
@@ -196,17 +196,15 @@ class _Model:
 
     def chaos_difference(self, u: np.ndarray, seed: int = 1) -> np.ndarray | None:
         """How the weighted fit residual at ``u`` changes when the commands change by an unmeasurably small
-        white perturbation (``CHAOS_PERTURBATION_M``): one draw of the model's own chaos, at the size every
-        secant Jacobian column carries on top of the parameter's real effect. None if it cannot be simulated."""
+        white perturbation (:func:`~virtualaxis.diagnosis.data.perturbed_command`): one draw of the model's own
+        chaos, at the size every secant Jacobian column carries on top of the parameter's real effect. None if
+        it cannot be simulated."""
         rng = np.random.default_rng(seed)
         cfg = self.cfg(u)
         preds = []
         try:
             for i in self.job.fit_idx:
-                td = self.job.traces[i]
-                moved = TraceData(td.name, td.t, td.pos_cmd + rng.normal(0.0, CHAOS_PERTURBATION_M, td.t.size),
-                                  td.force_ext, td.measured, td.overrides)
-                preds.append(simulate_trace(cfg, moved, self.job.simulate))
+                preds.append(simulate_trace(cfg, perturbed_command(self.job.traces[i], rng), self.job.simulate))
                 self.n_sims += 1
         except Exception:  # a config the simulator rejects: no correction
             return None
@@ -468,16 +466,16 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     rvec = model.residual_vector(u_hat)
     m, k = rvec.size, len(model.free)
     s2 = float(rvec @ rvec) / max(m - k, 1)
-    n_eff_frac = max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
+    s2_eff = s2 / max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
     chaos = model.chaos_difference(u_hat)
     chaos_sq = float(chaos @ chaos) if chaos is not None else 0.0
-    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), chaos_sq, s2 / n_eff_frac)
+    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), chaos_sq, s2_eff)
     if not np.all(np.isfinite(np.diag(cov_u))):
         # buried in the chaos over one step: the response over a longer secant (its energy grows with the
         # step squared, the chaos's does not) may still determine it
         wide = UNCERTAINTY_WIDE_STEP
         cov_w = chaos_corrected_covariance(model.secant_jacobian(u_hat, wide), model.jacobian_steps(u_hat, wide),
-                                           chaos_sq, s2 / n_eff_frac)
+                                           chaos_sq, s2_eff)
         for j in range(cov_u.shape[0]):
             if not math.isfinite(cov_u[j, j]) and math.isfinite(cov_w[j, j]):
                 cov_u[j, j] = cov_w[j, j]
