@@ -65,3 +65,25 @@ def test_amplitude_and_phase_errors_follow_from_the_components():
     loose = derived_stderr("torque_ripple", {"cogging_cos_nm": c, "cogging_sin_nm": s},
                            {"cogging_cos_nm": math.inf, "cogging_sin_nm": ss})
     assert loose["cogging_amplitude_nm"] == math.inf and loose["cogging_phase_rad"] == math.inf
+
+
+def test_one_short_trace_can_determine_what_the_pooled_chaos_buries():
+    # a long trace of pure chatter and a short one where the parameter rings well above its own chatter (a
+    # rapid move exciting a mode): pooled, the long trace's chaos buries it; trace by trace it is determined,
+    # with the variance its signal gives. A parameter no trace determines stays undetermined.
+    rng = np.random.default_rng(4)
+    n_long, n_short, h = 40000, 2000, np.array([0.15, 0.15])
+    signal = np.zeros((n_long + n_short, 2))
+    signal[n_long:, 0] = 3.0 * np.sin(np.arange(n_short) * 0.3)  # step energy ~200 vs chaos ~160 (pooled ~3400)
+    signal[n_long:, 1] = 0.001
+    jac, _ = _secant(signal, h, chaos_rms=0.2, rng=rng)
+    rows = [slice(0, n_long), slice(n_long, n_long + n_short)]
+    # one chaos difference per trace (the same draw process as the columns)
+    diff = rng.normal(0.0, 0.2, n_long + n_short) - rng.normal(0.0, 0.2, n_long + n_short)
+    per_trace = [float(diff[r] @ diff[r]) for r in rows]
+    pooled = chaos_corrected_covariance(jac, h, sum(per_trace), 1.0)
+    assert pooled[0, 0] == math.inf
+    cov = chaos_corrected_covariance(jac, h, per_trace, 1.0, segments=rows)
+    exact = 1.0 / float(signal[:, 0] @ signal[:, 0])
+    assert abs(cov[0, 0] / exact - 1.0) < 0.25
+    assert cov[1, 1] == math.inf

@@ -21,8 +21,9 @@ from pathlib import Path
 import can
 
 from virtualaxis.canopen_slave.slave import CanopenSlave
+from virtualaxis.resources import project_file
 
-EDS_PATH = Path(__file__).resolve().parents[3] / "eds" / "virtualaxis.eds"   # = DEFAULT_EDS_PATH
+EDS_PATH = project_file("eds/virtualaxis.eds")   # = DEFAULT_EDS_PATH
 
 
 def wait_until(predicate, timeout_s: float = 2.0, poll_s: float = 0.005) -> bool:

@@ -121,6 +121,7 @@ class _Model:
         self.free = [p for p in self.params if not fx.is_discrete(p.name)]
         self.n_sims = 0
         self.decim = []
+        self.trace_rows: list[slice] = []
         self._cache: dict[tuple, np.ndarray] = {}
         self.tried: list[tuple[float, dict[str, float]]] = []  # screening: (cost, estimate) per start
         self.smooth = []
@@ -152,13 +153,19 @@ class _Model:
         """Weighted, decimated residual vector of the fit traces."""
         w = self.job.weights
         parts = []
+        rows, pos = [], 0
         for k, (i, pred) in enumerate(zip(self.job.fit_idx, preds, strict=True)):
             td = self.job.traces[i]
             d = self.decim[k]
+            start = pos
             for ch in sorted(td.measured):
                 if ch in pred and ch in w.sigma:
                     r = uniform_filter1d(td.measured[ch] - pred[ch], self.smooth[k])
                     parts.append(r[::d] / w.sigma[ch] * math.sqrt(d))
+                    pos += parts[-1].size
+            if pos > start:
+                rows.append(slice(start, pos))
+        self.trace_rows = rows  # rows of each fit trace in the vector (independent chaos per trace)
         return np.concatenate(parts) if parts else np.zeros(1)
 
     def residual_of_values(self, values: dict[str, float]) -> np.ndarray | None:
@@ -372,8 +379,9 @@ MIN_INFORMATION_OVER_CHAOS = 0.25
 UNCERTAINTY_WIDE_STEP = 3.0
 
 
-def chaos_corrected_covariance(jac: np.ndarray, steps: np.ndarray, chaos_sq: float, s2_eff: float,
-                               min_over_chaos: float = MIN_INFORMATION_OVER_CHAOS) -> np.ndarray:
+def chaos_corrected_covariance(jac: np.ndarray, steps: np.ndarray, chaos_sq: float | list[float], s2_eff: float,
+                               min_over_chaos: float = MIN_INFORMATION_OVER_CHAOS,
+                               segments: list[slice] | None = None) -> np.ndarray:
     """Parameter covariance of a least-squares fit whose model is chaotic, in the Jacobian's units.
 
     ``jac`` (m x k) holds secant columns ``(r(u + h_j e_j) - r(u)) / h_j`` (``steps`` = h). In a chaotic
@@ -384,17 +392,54 @@ def chaos_corrected_covariance(jac: np.ndarray, steps: np.ndarray, chaos_sq: flo
     share the draw at ``u``); it is subtracted, and ``cov = s2_eff A^-1`` on the directions whose remaining
     information exceeds ``min_over_chaos * chaos_sq``. A parameter that loads on a direction below that is
     *not determined* by the data: its variance is ``inf``. ``s2_eff``: residual variance per decorrelated
-    sample. Without chaos (``chaos_sq = 0``) this is ``s2_eff (J^T J)^-1``."""
+    sample. Without chaos (``chaos_sq = 0``) this is ``s2_eff (J^T J)^-1``.
+
+    ``segments``: the rows of each independently simulated trace, with ``chaos_sq`` then one energy per
+    segment. A parameter the pooled test leaves undetermined is tested again trace by trace: each trace's
+    information counts where it clears that trace's own chaos, and the cleared parts are summed. One short
+    trace can pin a parameter that the chatter of the long ones would bury in the pooled sum (a rapid move
+    ringing a mode that no sine excites)."""
     k = jac.shape[1]
     if k == 0:
         return np.zeros((0, 0))
     h = np.abs(np.asarray(steps, dtype=float))
     js = jac * h
+    if segments is None:
+        return _covariance_of_information(_significant_information(js, float(chaos_sq), min_over_chaos), h, s2_eff)
+    per_segment = [float(c) for c in chaos_sq]  # type: ignore[union-attr]
+    cov = chaos_corrected_covariance(jac, steps, sum(per_segment), s2_eff, min_over_chaos)
+    if np.all(np.isfinite(np.diag(cov))) or len(segments) < 2:
+        return cov
+    kept = [_significant_information(js[rows], c, min_over_chaos) for rows, c in zip(segments, per_segment,
+                                                                                      strict=True)]
+    by_trace = _covariance_of_information(sum(kept), h, s2_eff)
+    # a parameter counts only where one trace alone determines it (its loading on that trace's cleared
+    # directions >= 0.9, the pooled test's rule): summing cleared directions of several traces would otherwise
+    # lend a buried parameter the small, chaos-set components of other parameters' directions
+    loading = np.max([np.diag(np.linalg.pinv(a, hermitian=True) @ a) for a in kept], axis=0)
+    for j in range(k):
+        if not math.isfinite(cov[j, j]) and loading[j] >= 0.9:
+            cov[j, j] = by_trace[j, j]
+    return cov
+
+
+def _significant_information(js: np.ndarray, chaos_sq: float, min_over_chaos: float) -> np.ndarray:
+    """``(J h)^T (J h)`` less its expected chaos part, on the directions above ``min_over_chaos * chaos_sq``
+    only (zero elsewhere)."""
+    k = js.shape[1]
     c = 0.5 * max(chaos_sq, 0.0)
     info = js.T @ js - c * (np.eye(k) + np.ones((k, k)))
     lam, vec = np.linalg.eigh(0.5 * (info + info.T))
     floor = max(min_over_chaos * 2.0 * c, 1e-12 * max(float(np.max(np.abs(lam))), 1e-300))
     ok = lam > floor
+    return (vec[:, ok] * lam[ok]) @ vec[:, ok].T
+
+
+def _covariance_of_information(info: np.ndarray, h: np.ndarray, s2_eff: float) -> np.ndarray:
+    """``s2_eff info^-1`` in parameter units; ``inf`` variance for a parameter loading on its null space."""
+    k = info.shape[0]
+    lam, vec = np.linalg.eigh(0.5 * (info + info.T))
+    ok = lam > 1e-10 * max(float(np.max(np.abs(lam))), 1e-300)
     cov_s = (vec[:, ok] / lam[ok]) @ vec[:, ok].T * s2_eff
     lost = np.sum(vec[:, ~ok] ** 2, axis=1)  # each parameter's loading on the undetermined directions
     var = np.diag(cov_s).copy()
@@ -468,14 +513,17 @@ def fit_candidate(job: FitJob) -> CandidateResult:
     s2 = float(rvec @ rvec) / max(m - k, 1)
     s2_eff = s2 / max(min(job.weights.n_eff_fraction.values(), default=1.0), 1e-6)
     chaos = model.chaos_difference(u_hat)
-    chaos_sq = float(chaos @ chaos) if chaos is not None else 0.0
-    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), chaos_sq, s2_eff)
+    rows = model.trace_rows
+    if chaos is None or sum(r.stop - r.start for r in rows) != rvec.size:
+        rows = [slice(0, rvec.size)]
+    chaos_sq = [float(chaos[r] @ chaos[r]) if chaos is not None else 0.0 for r in rows]
+    cov_u = chaos_corrected_covariance(jac, model.jacobian_steps(u_hat), chaos_sq, s2_eff, segments=rows)
     if not np.all(np.isfinite(np.diag(cov_u))):
         # buried in the chaos over one step: the response over a longer secant (its energy grows with the
         # step squared, the chaos's does not) may still determine it
         wide = UNCERTAINTY_WIDE_STEP
         cov_w = chaos_corrected_covariance(model.secant_jacobian(u_hat, wide), model.jacobian_steps(u_hat, wide),
-                                           chaos_sq, s2_eff)
+                                           chaos_sq, s2_eff, segments=rows)
         for j in range(cov_u.shape[0]):
             if not math.isfinite(cov_u[j, j]) and math.isfinite(cov_w[j, j]):
                 cov_u[j, j] = cov_w[j, j]

@@ -362,8 +362,9 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 f"{n}: {', '.join(loose)} not determined by the fit traces (their response to "
                 f"{'it' if len(loose) == 1 else 'them'} is at the level of the model's own chaos); the "
                 f"{'value is' if len(loose) == 1 else 'values are'} the best of a broad basin and the effect is "
-                "accepted on its held-out gain. Record a fit trace that excites it (a mode: a sine sweep through "
-                "its band; a Stribeck velocity: slow reversals) to pin it down"]
+                "accepted on its held-out gain. Record a fit trace that excites it (a mode: a rapid move with short "
+                "jerk phases, or a sine sweep through its band; a Stribeck velocity: slow reversals) to pin it "
+                "down"]
     final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
     final_hold = cumulative[-1]["heldout_after"] if cumulative else base_hold
     return {

@@ -44,10 +44,11 @@ from virtualaxis.drive.statemachine import (
     transition_for,
 )
 from virtualaxis.drive.units import PositionScaling
+from virtualaxis.resources import project_file
 from virtualaxis.sim import AxisSimulator, ControlMode
 
 S = Cia402State
-DEFAULT_EDS = Path(__file__).resolve().parents[3] / "eds" / "virtualaxis.eds"
+DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
 # SDO abort codes used by the drive's own checks
 ABORT_READ_ONLY = 0x06010002

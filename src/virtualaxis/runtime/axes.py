@@ -11,9 +11,9 @@ from virtualaxis.canopen_slave import CanopenSlave
 from virtualaxis.config import AxisConfig, ConfigError, load_axis_config
 from virtualaxis.drive.canopen_app import Cia402Application
 from virtualaxis.drive.core import DEFAULT_EDS, Drive
+from virtualaxis.resources import project_file
 
-REPO_ROOT = Path(__file__).resolve().parents[3]
-DEFAULT_CONFIG = REPO_ROOT / "configs" / "seed000-hust.toml"
+DEFAULT_CONFIG = project_file("configs/seed000-hust.toml")
 
 
 @dataclass(frozen=True)
