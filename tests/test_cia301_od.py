@@ -49,7 +49,7 @@ def test_eds_identity_and_device_type(eds_od):
     assert eds_od.device_information.vendor_name == "virtualaxis"
     assert eds_od[0x6504].default == "virtualaxis"
     assert [eds_od[0x1018][s].access_type for s in (1, 2, 3, 4)] == ["ro"] * 4
-    assert eds_od[0x6502].default == 0x1 | 0x4 | 0x20 | 0x80 | 0x100 | 0x200
+    assert eds_od[0x6502].default == 0x1 | 0x4 | 0x8 | 0x20 | 0x80 | 0x100 | 0x200
     for n in range(4):
         for base in (0x1400, 0x1600, 0x1800, 0x1A00):
             assert base + n in eds_od

@@ -7,14 +7,14 @@ import pytest
 from test_drive_rig import Rig, rig, seed_config  # noqa: F401  (fixture)
 
 
-@pytest.mark.parametrize("mode", [1, 3, 6, 8, 9, 10])
+@pytest.mark.parametrize("mode", [1, 3, 4, 6, 8, 9, 10])
 def test_mode_by_sdo_is_displayed_at_once(rig, mode):  # noqa: F811
     """18: 0x6060 = m -> 0x6061 = m."""
     rig.node.sdo[0x6060].raw = mode
     assert rig.node.sdo[0x6061].raw == mode
 
 
-@pytest.mark.parametrize("mode", [2, 4, 7, -1, 11])
+@pytest.mark.parametrize("mode", [2, 5, 7, -1, 11])
 def test_unsupported_mode_is_refused_and_display_unchanged(rig, mode):  # noqa: F811
     """7: a mode not in 0x6502 -> abort 0x06090030 (or the EDS range limit), 0x6061 unchanged."""
     rig.node.sdo[0x6060].raw = 8
@@ -283,6 +283,101 @@ def test_cyclic_synchronous_torque_with_offset_reports_torque():
         r.close()
 
 
+def test_profile_torque_ramps_with_torque_slope_and_halts_to_zero():
+    """Profile torque (mode 4, set through the master's op_mode): 0x6071 ramped with 0x6087 (per mille of
+    0x6076 per second) in 0x6074; bit 10 once the ramp has arrived; halt (bit 8) ramps to zero."""
+    r = Rig()
+    node = r.node
+    try:
+        node.setup_402_state_machine()
+        node.nmt.state = "OPERATIONAL"
+        node.op_mode = "PROFILED TORQUE"
+        assert node.sdo[0x6061].raw == 4
+        node.sdo[0x6087].raw = 1000  # rated torque per second: 50 per mille in 50 ms
+        r.enable()
+        node.sdo[0x6071].raw = 50
+        r.sync(25)
+        demand = node.sdo[0x6074].raw
+        assert 15 <= demand <= 35, demand  # half way up the ramp (25 +- SDO latency)
+        assert not r.sw() & 0x400
+        r.sync(60)
+        assert node.sdo[0x6074].raw == 50
+        assert r.sw() & 0x400
+        assert abs(node.sdo[0x6077].raw - 50) <= 5  # the motor gives it
+        node.sdo[0x6040].raw = 0x10F  # halt
+        r.sync(20)
+        assert 15 <= node.sdo[0x6074].raw <= 40
+        assert not r.sw() & 0x400
+        r.sync(60)
+        assert node.sdo[0x6074].raw == 0
+        assert r.sw() & 0x400
+        node.sdo[0x6040].raw = 0x0F
+        node.sdo[0x6087].raw = 0  # 0 = step
+        node.sdo[0x6071].raw = -30
+        r.sync(2)
+        assert node.sdo[0x6074].raw == -30
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x6088].raw = 1  # only the linear ramp
+        assert exc.value.code in (0x06090030, 0x06090031)
+        node.sdo[0x6071].raw = 0
+    finally:
+        r.close()
+
+
+def test_max_motor_speed_limits_profile_velocity_with_internal_limit_bit():
+    """0x6080 (1/min of the motor) limits a PV target: the axis runs at the limit, bit 11 set, bit 10 (velocity
+    reached) against the limited target; 0 is refused."""
+    r = Rig()
+    node = r.node
+    try:
+        node.sdo[0x6060].raw = 3
+        node.sdo[0x6080].raw = 600  # 600/min x 16 mm = 0.16 m/s
+        node.nmt.state = "OPERATIONAL"
+        r.enable()
+        node.sdo[0x60FF].raw = 300_000  # 0.3 m/s asked
+        r.sync(300)
+        assert abs(node.sdo[0x606C].raw - 160_000) < 3_000
+        sw = r.sw()
+        assert sw & 0x800 and sw & 0x400
+        node.sdo[0x60FF].raw = 100_000
+        r.sync(200)
+        assert abs(node.sdo[0x606C].raw - 100_000) < 3_000
+        assert not r.sw() & 0x800
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x6080].raw = 0
+        assert exc.value.code == 0x06090032
+        assert node.sdo[0x6080].raw == 600
+        node.sdo[0x60FF].raw = 0
+        r.sync(100)
+    finally:
+        r.close()
+
+
+def test_max_motor_speed_limits_the_speed_in_torque_control():
+    """CST with a torque that would accelerate the table without end: the drive's speed limiter (the speed
+    controller's P part set to 0x6080) holds the axis just below the limit, bit 11 set."""
+    r = Rig()
+    node = r.node
+    try:
+        node.sdo[0x6060].raw = 10
+        node.sdo[0x6080].raw = 300  # 0.08 m/s
+        node.nmt.state = "OPERATIONAL"
+        r.enable()
+        node.sdo[0x6071].raw = 100
+        r.sync(400)
+        speeds = []
+        for _ in range(5):
+            r.sync(20)
+            speeds.append(node.sdo[0x606C].raw)
+        assert all(78_000 < v <= 80_500 for v in speeds), speeds  # unlimited: 0.18 m/s by now
+        assert r.sw() & 0x800
+        assert node.sdo[0x6074].raw == 100  # the demand stays; the limiter takes the torque back
+        assert node.sdo[0x6077].raw < 60
+        node.sdo[0x6071].raw = 0
+    finally:
+        r.close()
+
+
 def test_application_abort_codes(rig):  # noqa: F811
     """6 (drive side): not in this state 0x08000022, invalid value 0x06090030, too high 0x06090031."""
     node = rig.node
@@ -291,6 +386,7 @@ def test_application_abort_codes(rig):  # noqa: F811
     for index, sub, value, code in (
         (0x6092, 1, 1000, 0x08000022),  # position factor while in operation
         (0x6086, 0, 1, 0x06090030),  # motion profile type 1 (sin^2) not offered
+        (0x607E, 0, 0x80, 0x06090030),  # polarity inversion not offered
         (0x6098, 0, 3, 0x06090030),  # homing method 3 not offered
         (0x2010, 0, 0x1234, 0x06090030),  # not a fault code
     ):

@@ -1,6 +1,6 @@
 """The CiA 402 drive around an :class:`~virtualaxis.sim.AxisSimulator`: the one drive API.
 
-:class:`Drive` runs the power drive state machine, the modes of operation (PP, PV, HM, CSP, CSV, CST),
+:class:`Drive` runs the power drive state machine, the modes of operation (PP, PV, PT, HM, CSP, CSV, CST),
 the monitoring (following error, software limits, target/velocity reached, standstill, motor temperature,
 DC link) and the fault handling (fault reaction, EMCY, fault buffer), one position-loop cycle at a time.
 Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
@@ -58,7 +58,11 @@ ABORT_VALUE_TOO_LOW = 0x06090032
 ABORT_DEVICE_STATE = 0x08000022
 ABORT_NO_OBJECT = 0x06020000
 
-PP, PV, HM, CSP, CSV, CST = 1, 3, 6, 8, 9, 10
+PP, PV, PT, HM, CSP, CSV, CST = 1, 3, 4, 6, 8, 9, 10
+TORQUE_MODES = (PT, CST)
+# torque modes: bit 11 while the torque pushes the axis at this share of 0x6080 or faster (the plant's speed
+# limiter acts there; chosen: above the P limiter's droop at the bench axes' friction, ~1 %)
+SPEED_LIMIT_SHARE = 0.97
 POSITION_MODES = (PP, HM, CSP)
 
 # objects whose change recomputes the cached monitoring parameters (_refresh_params)
@@ -171,7 +175,7 @@ class Drive:
             (0x607D, 1): clamp_to_dtype(cfg.limits.travel_min_m / unit, "i32"),
             (0x607D, 2): clamp_to_dtype(cfg.limits.travel_max_m / unit, "i32"),
             (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
-            (0x6080, 0): int(round(c.speed_limit_rpm or mot.rated_speed_rpm * 1.5)),
+            (0x6080, 0): self._default_max_motor_speed_rpm(),
             (0x6502, 0): sum(MODE_BITS.values()),
         }
         if st.following_error_tolerance_m is not None:
@@ -183,6 +187,20 @@ class Drive:
         if st.positioning_time_ms is not None:
             out[(0x6068, 0)] = st.positioning_time_ms
         return out
+
+    def _default_max_motor_speed_rpm(self) -> int:
+        """0x6080 at boot: the config's speed limit, else 1.5 x rated speed (chosen: a servo motor's usual
+        maximum over rated); on an axis without a lead 1.5 x the maximum traverse speed in virtual revolutions."""
+        cfg = self.cfg
+        if cfg.control.speed_limit_rpm > 0:
+            return int(round(cfg.control.speed_limit_rpm))
+        if cfg.actuator.kind == "force" or cfg.mechanics.lead_m <= 0:
+            return int(math.ceil(1.5 * cfg.limits.max_velocity_m_s / self._lead_m() * 60.0))
+        return int(round(cfg.motor.rated_speed_rpm * 1.5))
+
+    def _max_speed_m_s(self) -> float:
+        """0x6080 max motor speed as table speed [m/s]."""
+        return float(self._obj(0x6080)) / 60.0 * self._lead_m()
 
     def _lead_m(self) -> float:
         """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
@@ -208,6 +226,7 @@ class Drive:
             self._stop: dict | None = None  # active stop ramp
             self._demand_m = self.sim.state.position_m
             self._demand_v = 0.0
+            self._torque_demand_nm = 0.0  # PT: torque after the 0x6087 ramp
             self._last_vff = 0.0
             self._target_reached = False
             self._internal_limit = False
@@ -301,6 +320,12 @@ class Drive:
             and (value not in MODE_BITS or not MODE_BITS[value] & self.objects[(0x6502, 0)])
         ):
             raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
+        if key == (0x6080, 0) and value <= 0:
+            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, "max motor speed 0x6080 must be > 0")
+        if key == (0x607E, 0) and value != 0:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: inversion is not offered, only 0")
+        if key == (0x6088, 0) and value != 0:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, "torque profile type must be 0 (linear)")
         if key == (0x6086, 0) and value not in (0, 3):
             raise ObjectAccessError(ABORT_VALUE_INVALID, "motion profile type must be 0 (trapezoid) or 3 (jerk)")
         if key == (0x6098, 0):
@@ -382,7 +407,7 @@ class Drive:
             self._on_target_velocity()
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
-        elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073):
+        elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6080):
             self._apply_gains()
         elif index == 0x2010:
             if value == 0:
@@ -416,6 +441,7 @@ class Drive:
             torque_ff_factor=(c.torque_ff_factor or 1.0) if mode == 2 else 0.0,
             speed_kp=kp if kp > 0 else None,
             speed_ti_s=float(o[(0x2004, 0)]) / 1000.0,
+            speed_limit_m_s=self._max_speed_m_s(),
         )
         if self.cfg.actuator.kind == "pmsm":
             rated_a = float(o[(0x6075, 0)]) / 1000.0
@@ -717,7 +743,10 @@ class Drive:
             self.sim.set_velocity_setpoint(self._vramp.velocity_m_s)
             if mode == CSV:
                 self._on_target_velocity()
-        elif mode == CST:
+        elif mode in TORQUE_MODES:
+            # PT ramps from the torque the motor gives now (bumpless from CST), else from zero
+            from_torque = self._power and self._smode == ControlMode.TORQUE
+            self._torque_demand_nm = self._axis.torque_nm if from_torque else 0.0
             self._set_sim_mode(ControlMode.TORQUE)
         else:
             self._set_sim_mode(ControlMode.POSITION)
@@ -758,9 +787,7 @@ class Drive:
     def _on_target_velocity(self) -> None:
         if self._state == S.OPERATION_ENABLED and self._stop is None and hasattr(self, "_interp_v"):
             v = (int(self._obj(0x60FF)) + int(self._obj(0x60B1))) * self._u
-            vmax = float(self._obj(0x607F)) * self._u
-            v = max(-vmax, min(vmax, v))
-            self._interp_v.new_target(v, self._interp_cycles())
+            self._interp_v.new_target(self._clamp_velocity(v), self._interp_cycles())
 
     def _mode_controlword(self, old_cw: int, cw: int) -> None:
         """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt)."""
@@ -815,7 +842,7 @@ class Drive:
     def _pp_limits(self) -> tuple[float, float, float]:
         o, u = self.objects, self._u
         v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
-        return v, float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+        return min(v, self._max_speed_m_s()), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
 
     def _halt_decel(self) -> float:
         option = int(self._obj(0x605D))
@@ -862,10 +889,10 @@ class Drive:
             vff = slope / dt + int(self._obj(0x60B1)) * self._u
             self._set_position(p, vff)
         elif mode == PV:
-            target = int(self._obj(0x60FF)) * self._u
-            vmax = float(self._obj(0x607F)) * self._u
-            target = max(-vmax, min(vmax, target))
-            target = self._velocity_limit(target)
+            requested = int(self._obj(0x60FF)) * self._u
+            clamped = self._clamp_velocity(requested)
+            target = self._velocity_limit(clamped)
+            self._internal_limit = self._internal_limit or clamped != requested
             if halt:
                 v = self._vramp.step(0.0, self._halt_decel(), self._halt_decel())
             else:
@@ -875,18 +902,49 @@ class Drive:
         elif mode == CSV:
             v, _ = self._interp_v.step()
             v = self._velocity_limit(v)
+            requested = (int(self._obj(0x60FF)) + int(self._obj(0x60B1))) * self._u
+            self._internal_limit = self._internal_limit or self._clamp_velocity(requested) != requested
             self._demand_v = v
             self.sim.set_velocity_setpoint(v)
         elif mode == CST:
             rated_nm = float(self._obj(0x6076)) / 1000.0
-            t = (int(self._obj(0x6071)) + int(self._obj(0x60B2))) / 1000.0 * rated_nm
+            self._apply_torque((int(self._obj(0x6071)) + int(self._obj(0x60B2))) / 1000.0 * rated_nm, rated_nm)
+        elif mode == PT:
+            # profile torque: 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step);
+            # halt (bit 8) ramps to zero with the same slope
+            rated_nm = float(self._obj(0x6076)) / 1000.0
             t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
-            self._internal_limit = abs(t) > t_max
-            t = max(-t_max, min(t_max, t))
-            if self._velocity_limit(math.copysign(1.0, t) if t else 0.0) == 0.0 and t != 0.0:
-                t = 0.0
-            self.sim.set_torque_setpoint(t)
-            self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
+            target = 0.0 if halt else int(self._obj(0x6071)) / 1000.0 * rated_nm
+            target = max(-t_max, min(t_max, target))
+            slope = float(self._obj(0x6087)) / 1000.0 * rated_nm * dt
+            d = target - self._torque_demand_nm
+            self._torque_demand_nm = target if slope <= 0 or abs(d) <= slope else (
+                self._torque_demand_nm + math.copysign(slope, d)
+            )
+            requested = int(self._obj(0x6071)) / 1000.0 * rated_nm
+            self._apply_torque(self._torque_demand_nm, rated_nm, requested_nm=requested)
+
+    def _clamp_velocity(self, v: float) -> float:
+        """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
+        vmax = min(float(self._obj(0x607F)) * self._u, self._max_speed_m_s())
+        return max(-vmax, min(vmax, v))
+
+    def _apply_torque(self, t_nm: float, rated_nm: float, requested_nm: float | None = None) -> None:
+        """Torque modes: limit by 0x6072, stop pushing outward beyond a software limit; the plant's speed
+        limiter (0x6080, see :meth:`AxisSimulator.set_loop_gains`) caps the torque near the maximum speed;
+        bit 11 while any limit acts; 0x6074 = the torque demanded of the motor."""
+        t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
+        requested = t_nm if requested_nm is None else requested_nm
+        limited = abs(requested) > t_max
+        t = max(-t_max, min(t_max, t_nm))
+        if t != 0.0 and self._velocity_limit(math.copysign(1.0, t)) == 0.0:
+            t, limited = 0.0, True
+        v = self._axis.velocity_m_s
+        if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._max_speed_m_s():
+            limited = True
+        self._internal_limit = limited
+        self.sim.set_torque_setpoint(t)
+        self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
 
     def _velocity_limit(self, v: float) -> float:
         """Velocity modes: no motion outward beyond a software limit (bit 11)."""
@@ -1102,9 +1160,13 @@ class Drive:
                 )
                 self._target_reached = self._tr_timer.update(cond, dt, pc.position_time_s)
         elif mode == PV:
-            target = int(self.objects[(0x60FF, 0)]) * self._u if not self._cw & 0x100 else 0.0
+            target = self._clamp_velocity(int(self.objects[(0x60FF, 0)]) * self._u) if not self._cw & 0x100 else 0.0
             cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
             self._target_reached = self._tr_timer.update(cond, dt, pc.velocity_time_s)
+        elif mode == PT:  # the ramp has arrived at the target torque (zero while halted)
+            target = 0.0 if self._cw & 0x100 else int(self.objects[(0x6071, 0)]) / 1000.0 * pc.rated_nm
+            t_max = float(self.objects[(0x6072, 0)]) / 1000.0 * pc.rated_nm
+            self._target_reached = self._torque_demand_nm == max(-t_max, min(t_max, target))
         elif mode == HM:
             self._target_reached = self._homing is None or self._homing.status in (
                 hm.HomingStatus.ATTAINED,
@@ -1190,7 +1252,7 @@ class Drive:
         torque_pm = _i16(ax.torque_nm / pc.rated_nm * 1000.0) if pc.rated_nm else 0
         store((0x6077, 0), torque_pm)
         store((0x6078, 0), _i16(ax.current_q_a / pc.rated_a * 1000.0) if pc.rated_a else 0)
-        if self._mode != CST:
+        if self._mode not in TORQUE_MODES:
             store((0x6074, 0), torque_pm)
         store((0x6079, 0), clamp_to_dtype(ax.dc_link_v * 1000, "u32"))
         fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0

@@ -48,9 +48,9 @@ def _o(index: int, sub: int, name: str, dtype: str, access: str, default: int) -
     return ObjectSpec(index, sub, name, dtype, access, default)
 
 
-# Supported modes 0x6502: PP 0x1, PV 0x4, HM 0x20, CSP 0x80, CSV 0x100, CST 0x200
-SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x20 | 0x80 | 0x100 | 0x200
-MODE_BITS = {1: 0x1, 3: 0x4, 6: 0x20, 8: 0x80, 9: 0x100, 10: 0x200}
+# Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, CSP 0x80, CSV 0x100, CST 0x200
+SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x80 | 0x100 | 0x200
+MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 8: 0x80, 9: 0x100, 10: 0x200}
 
 OBJECTS: tuple[ObjectSpec, ...] = (
     # manufacturer objects (Siemens-style loop parameters, monitoring, faults, diagnostics)
@@ -124,14 +124,16 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x607C, 0, "home offset", "i32", "rw", 0),
     _o(0x607D, 1, "software position limit: min", "i32", "rw", -300000),
     _o(0x607D, 2, "software position limit: max", "i32", "rw", 300000),
+    _o(0x607E, 0, "polarity (0 only: inverting position / velocity is not offered)", "u8", "rw", 0),
     _o(0x607F, 0, "max profile velocity", "u32", "rw", 500000),
-    _o(0x6080, 0, "max motor speed [1/min]", "u32", "rw", 3000),
+    _o(0x6080, 0, "max motor speed [1/min] (speed set-point limit, all modes)", "u32", "rw", 3000),
     _o(0x6081, 0, "profile velocity", "u32", "rw", 100000),
     _o(0x6083, 0, "profile acceleration", "u32", "rw", 2000000),
     _o(0x6084, 0, "profile deceleration", "u32", "rw", 2000000),
     _o(0x6085, 0, "quick stop deceleration", "u32", "rw", 10000000),
     _o(0x6086, 0, "motion profile type (0 trapezoid, 3 jerk limited)", "i16", "rw", 0),
-    _o(0x6087, 0, "torque slope [per mille/s]", "u32", "rw", 0),
+    _o(0x6087, 0, "torque slope [per mille of rated torque / s]", "u32", "rw", 10000),
+    _o(0x6088, 0, "torque profile type (0 linear ramp)", "i16", "rw", 0),
     _o(0x608F, 1, "position encoder resolution: encoder increments", "u32", "rw", 131072),
     _o(0x608F, 2, "position encoder resolution: motor revolutions", "u32", "rw", 1),
     _o(0x6091, 1, "gear ratio: motor revolutions", "u32", "rw", 1),

@@ -759,8 +759,17 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
                         ilim_any = 1.0
                     iq_ref = tref if force_act else tref / kt
                 elif enabled and mode == MODE_TORQUE:
-                    tref = clamp(cmd_aux[j], lim)
-                    if tref != cmd_aux[j]:
+                    tref = cmd_aux[j]
+                    wlim = pr[P_WLIM]
+                    if wlim > 0.0:
+                        # speed limitation in torque control: the speed controller's P part, set to the
+                        # limit, caps the torque (and brakes when the load drives the axis past it)
+                        if tref > 0.0:
+                            tref = min(tref, kpw * (wlim - w_meas))
+                        elif tref < 0.0:
+                            tref = max(tref, kpw * (-wlim - w_meas))
+                    tref = clamp(tref, lim)
+                    if abs(cmd_aux[j]) > lim > 0.0:
                         ilim_any = 1.0
                     iq_ref = tref if force_act else tref / kt
                     int_w = 0.0

@@ -304,11 +304,14 @@ class AxisSimulator:
         speed_kp: float | None = None,
         speed_ti_s: float | None = None,
         current_limit: float | None = None,
+        speed_limit_m_s: float | None = None,
     ) -> None:
-        """Change control-loop parameters while running (the drive's 0x2000-0x2004, 0x6072/0x6073).
+        """Change control-loop parameters while running (the drive's 0x2000-0x2004, 0x6072/0x6073, 0x6080).
 
         ``speed_kp`` is N m s/rad (pmsm) or N s/m (force actuator); ``speed_ti_s`` = 0 makes the speed loop P
-        only; ``current_limit`` is A (pmsm) or N (force actuator). Derived kernel constants are updated too.
+        only; ``current_limit`` is A (pmsm) or N (force actuator); ``speed_limit_m_s`` limits the speed
+        set-point, expressed as table speed (0 = no limit; ignored on a direct drive without a lead).
+        Derived kernel constants are updated too.
         """
         pr = self.pr
         if kv_per_s is not None:
@@ -324,6 +327,11 @@ class AxisSimulator:
             pr[L.P_GI_W] = integral_gain_per_sample(self.cfg.control.speed_cycle_s, speed_ti_s)
         if current_limit is not None:
             pr[L.P_ILIM] = current_limit
+        if speed_limit_m_s is not None:
+            if self._force_actuator:
+                pr[L.P_WLIM] = max(0.0, speed_limit_m_s)
+            elif pr[L.P_R] > 0:
+                pr[L.P_WLIM] = max(0.0, speed_limit_m_s) / pr[L.P_R]
 
     @property
     def torque_constant_nm_per_a(self) -> float:
