@@ -147,7 +147,7 @@ def conditions(quick: bool) -> list[Condition]:
     if not quick:
         for ax in ("x", "y"):
             out.append(Condition(f"circle_{ax}", "circle:radius_mm=30,omega_rad_min=120", 3.2, "holdout", ax))
-        # a rapid traverse (G0) as a machine makes it: 10 ms jerk phases, the only fit trace with content near a
+        # a rapid traverse (G0) as a machine makes it: 2 ms jerk phases, the only fit trace with content near a
         # structural mode (the 50 ms jerk phases of the move above and the sines excite nothing above ~20 Hz)
         out.append(Condition("ptp_rapid", "ptp:distance_mm=50,feed_mm_min=10000,accel_m_s2=2,jerk_m_s3=1000,"
                              "dwell_s=0.2", 0.0, "fit"))

@@ -190,7 +190,8 @@ class Drive:
 
     def _default_max_motor_speed_rpm(self) -> int:
         """0x6080 at boot: the config's speed limit, else 1.5 x rated speed (chosen: a servo motor's usual
-        maximum over rated); on an axis without a lead 1.5 x the maximum traverse speed in virtual revolutions."""
+        maximum over rated); for a force actuator or an axis without a lead 1.5 x the maximum traverse speed
+        in (virtual) revolutions."""
         cfg = self.cfg
         if cfg.control.speed_limit_rpm > 0:
             return int(round(cfg.control.speed_limit_rpm))
@@ -307,6 +308,7 @@ class Drive:
             (0x2002, 0): (0, 2),
             (0x2012, 0): (0, 1),
             (0x60C2, 2): (-6, 0),
+            (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
         }
         if key in ranges:
             lo2, hi2 = ranges[key]
@@ -320,8 +322,6 @@ class Drive:
             and (value not in MODE_BITS or not MODE_BITS[value] & self.objects[(0x6502, 0)])
         ):
             raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
-        if key == (0x6080, 0) and value <= 0:
-            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, "max motor speed 0x6080 must be > 0")
         if key == (0x607E, 0) and value != 0:
             raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: inversion is not offered, only 0")
         if key == (0x6088, 0) and value != 0:
@@ -910,12 +910,9 @@ class Drive:
             rated_nm = float(self._obj(0x6076)) / 1000.0
             self._apply_torque((int(self._obj(0x6071)) + int(self._obj(0x60B2))) / 1000.0 * rated_nm, rated_nm)
         elif mode == PT:
-            # profile torque: 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step);
-            # halt (bit 8) ramps to zero with the same slope
+            # profile torque: 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step)
             rated_nm = float(self._obj(0x6076)) / 1000.0
-            t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
-            target = 0.0 if halt else int(self._obj(0x6071)) / 1000.0 * rated_nm
-            target = max(-t_max, min(t_max, target))
+            target = self._pt_target_nm(rated_nm)
             slope = float(self._obj(0x6087)) / 1000.0 * rated_nm * dt
             d = target - self._torque_demand_nm
             self._torque_demand_nm = target if slope <= 0 or abs(d) <= slope else (
@@ -923,6 +920,13 @@ class Drive:
             )
             requested = int(self._obj(0x6071)) / 1000.0 * rated_nm
             self._apply_torque(self._torque_demand_nm, rated_nm, requested_nm=requested)
+
+    def _pt_target_nm(self, rated_nm: float) -> float:
+        """Where the profile-torque ramp goes: 0x6071 limited by 0x6072, zero while halted (CW bit 8) [N m]."""
+        if self._cw & 0x100:
+            return 0.0
+        t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
+        return max(-t_max, min(t_max, int(self._obj(0x6071)) / 1000.0 * rated_nm))
 
     def _clamp_velocity(self, v: float) -> float:
         """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
@@ -1163,10 +1167,8 @@ class Drive:
             target = self._clamp_velocity(int(self.objects[(0x60FF, 0)]) * self._u) if not self._cw & 0x100 else 0.0
             cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
             self._target_reached = self._tr_timer.update(cond, dt, pc.velocity_time_s)
-        elif mode == PT:  # the ramp has arrived at the target torque (zero while halted)
-            target = 0.0 if self._cw & 0x100 else int(self.objects[(0x6071, 0)]) / 1000.0 * pc.rated_nm
-            t_max = float(self.objects[(0x6072, 0)]) / 1000.0 * pc.rated_nm
-            self._target_reached = self._torque_demand_nm == max(-t_max, min(t_max, target))
+        elif mode == PT:  # the ramp has arrived at its target
+            self._target_reached = self._torque_demand_nm == self._pt_target_nm(pc.rated_nm)
         elif mode == HM:
             self._target_reached = self._homing is None or self._homing.status in (
                 hm.HomingStatus.ATTAINED,
