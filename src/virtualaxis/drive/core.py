@@ -82,6 +82,8 @@ _MONITOR_PARAMETER_INDICES = frozenset(
         0x200B,
         0x6075,
         0x6076,
+        0x607F,
+        0x6080,
         0x608F,
         0x6091,
         0x6092,
@@ -842,7 +844,7 @@ class Drive:
     def _pp_limits(self) -> tuple[float, float, float]:
         o, u = self.objects, self._u
         v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
-        return min(v, self._max_speed_m_s()), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+        return min(v, self._params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
 
     def _halt_decel(self) -> float:
         option = int(self._obj(0x605D))
@@ -930,7 +932,7 @@ class Drive:
 
     def _clamp_velocity(self, v: float) -> float:
         """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
-        vmax = min(float(self._obj(0x607F)) * self._u, self._max_speed_m_s())
+        vmax = self._params().max_velocity_m_s
         return max(-vmax, min(vmax, v))
 
     def _apply_torque(self, t_nm: float, rated_nm: float, requested_nm: float | None = None) -> None:
@@ -944,7 +946,7 @@ class Drive:
         if t != 0.0 and self._velocity_limit(math.copysign(1.0, t)) == 0.0:
             t, limited = 0.0, True
         v = self._axis.velocity_m_s
-        if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._max_speed_m_s():
+        if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._params().max_speed_m_s:
             limited = True
         self._internal_limit = limited
         self.sim.set_torque_setpoint(t)
@@ -1096,11 +1098,18 @@ class Drive:
         self._monitor(ax, dt)
         self._publish_outputs()
 
+    def _params(self) -> _Params:
+        """The cached parameters, recomputed first if an object they come from was written."""
+        if self._params_dirty:
+            self._refresh_params()
+        return self._pc
+
     def _refresh_params(self) -> None:
-        """Monitoring parameters in SI, recomputed only after an object write (not every cycle)."""
+        """Monitoring parameters and limits in SI, recomputed only after an object write (not every cycle)."""
         o, u = self.objects, self._u
         vdc_nom = self.cfg.inverter.dc_link_v
         window = int(o[(0x6065, 0)])
+        max_speed = self._max_speed_m_s()
         self._pc = _Params(
             fe_window_m=math.inf if window == 0xFFFFFFFF else window * u,
             fe_time_s=int(o[(0x6066, 0)]) / 1000.0,
@@ -1121,6 +1130,8 @@ class Drive:
             inv_u=1.0 / u,
             rated_nm=float(o[(0x6076, 0)]) / 1000.0,
             rated_a=float(o[(0x6075, 0)]) / 1000.0,
+            max_speed_m_s=max_speed,
+            max_velocity_m_s=min(float(o[(0x607F, 0)]) * u, max_speed),
         )
         self._params_dirty = False
 
@@ -1392,6 +1403,8 @@ class _Params:
     inv_u: float
     rated_nm: float
     rated_a: float
+    max_speed_m_s: float  # 0x6080 as table speed
+    max_velocity_m_s: float  # velocity targets' limit: 0x607F and 0x6080
 
 
 def _i32(x: float) -> int:
