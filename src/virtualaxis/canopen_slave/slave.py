@@ -10,6 +10,8 @@ handling a frame is counted as ``internal_errors``.
 from __future__ import annotations
 
 import math
+import select
+import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -86,6 +88,9 @@ class CanopenSlave:
         self.nmt_state = NmtState.INITIALISING
         self._queue: deque[can.Message] = deque()
         self._now = 0.0
+        self._rx_fd: int | None = None   # the bus's receive file descriptor (-1: none), looked up once
+        self._sync_cob = -1             # COB-ID of SYNC while it is monitored (receive-path delay measured)
+        self._wall_to_now = 0.0          # caller's clock - time.time() at the last poll [s]
         self._sync_counters: list[int] = []
         self._due_sync_rpdos: deque[list] = deque(maxlen=16)
         self._applied_ahead = 0
@@ -115,6 +120,8 @@ class CanopenSlave:
             self.counters["rx_overruns"] += 1
             return
         self._queue.append(msg)
+        if msg.arbitration_id == self._sync_cob and msg.timestamp:
+            self.sync.note_delivery(time.time() - msg.timestamp)   # receive-path delay of SYNC frames
 
     def listener(self) -> can.Listener:
         """A python-can Listener feeding :meth:`receive` (add it to a ``can.Notifier``)."""
@@ -130,6 +137,7 @@ class CanopenSlave:
     def poll(self, now_s: float) -> list[int]:
         """Handle queued frames and timers; returns the SYNC counters received since the last poll."""
         self._now = now_s
+        self._wall_to_now = now_s - time.time()
         queue = self._queue
         counters = self.counters
         if self.nmt_state == NmtState.INITIALISING:      # not booted yet: a node hears nothing
@@ -160,10 +168,8 @@ class CanopenSlave:
                 self.sdo.check_timeout(now_s)
             if self.nmt_state == NmtState.OPERATIONAL:
                 self.pdo.poll(now_s)
-                if self.sync.timeout_s and self.sync.check_timeout(now_s):
-                    counters["sync_timeouts"] += 1
-                    self.emcy(0x8100, 0x10)
-                    self.communication_error("sync_timeout", 0)
+                if self.sync.timeout_s and self.sync.check_timeout(now_s, self._rx_pending):
+                    self._sync_timeout()
         except Exception:  # noqa: BLE001
             counters["internal_errors"] += 1
         return self._take_sync_counters()
@@ -278,8 +284,10 @@ class CanopenSlave:
             handlers[cob] = self._on_heartbeat
         for cob, rpdo in self.pdo.rpdo_by_cob.items():
             handlers[cob] = _rpdo_handler(self, rpdo)
+        self._sync_cob = -1
         if not self.od.value(0x1005) & 0x80000000:
             handlers[self.sync.cob_id] = self._on_sync_frame
+            self._sync_cob = self.sync.cob_id
         handlers[self.sdo.rx_cob] = self._on_sdo
         handlers[HEARTBEAT_BASE + self.node_id] = self._on_guard
         handlers[NMT_COB] = self._on_nmt
@@ -512,6 +520,38 @@ class CanopenSlave:
     def _on_heartbeat(self, msg: can.Message, now_s: float) -> None:
         self.heartbeat_consumer.on_heartbeat(msg.arbitration_id, msg.data, now_s)
 
+    def arrival_s(self, msg: can.Message, now_s: float) -> float:
+        """When ``msg`` arrived on the bus, on the caller's clock: its receive timestamp (python-can gives
+        ``time.time()``-based ones for virtual and udp_multicast, the kernel's for socketcan), ``now_s`` when
+        the frame has none or one that does not fit the wall clock."""
+        stamp = msg.timestamp
+        if not stamp:
+            return now_s
+        arrival = stamp + self._wall_to_now
+        if arrival > now_s or arrival < now_s - 10.0:
+            return now_s
+        return arrival
+
+    def _rx_pending(self) -> bool:
+        """True while frames wait in the bus's receive socket (not yet handed to :meth:`receive`)."""
+        if self._rx_fd is None:
+            try:
+                fd = self.bus.fileno()
+            except Exception:  # noqa: BLE001 - buses without a file descriptor
+                fd = -1
+            self._rx_fd = fd if isinstance(fd, int) and fd >= 0 else -1
+        if self._rx_fd < 0:
+            return False
+        try:
+            return bool(select.select([self._rx_fd], [], [], 0)[0])
+        except (OSError, ValueError):
+            return False
+
+    def _sync_timeout(self) -> None:
+        self.counters["sync_timeouts"] += 1
+        self.emcy(0x8100, 0x10)
+        self.communication_error("sync_timeout", 0)
+
     def _on_sync_frame(self, msg: can.Message, now_s: float) -> None:
         counter = self.sync.check_frame(msg.data)
         if counter is None or msg.is_remote_frame:
@@ -520,8 +560,9 @@ class CanopenSlave:
             self.emcy(0x8240, 0x10, bytes((len(msg.data),)))
             return
         self.counters["sync_received"] += 1
-        self.sync.last_sync_s = now_s
-        self.sync.timed_out = False
+        arrival = self.arrival_s(msg, now_s)
+        if self.sync.on_arrival(arrival) and self.nmt_state == NmtState.OPERATIONAL:
+            self._sync_timeout()          # a gap longer than 1.5 periods the timer had not caught
         self._sync_counters.append(counter)
         if self.nmt_state == NmtState.OPERATIONAL and self.pdo.sync_rpdos:
             self._due_sync_rpdos.append(self.pdo.latch_sync_rpdos())

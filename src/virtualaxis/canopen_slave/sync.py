@@ -1,5 +1,20 @@
 """SYNC consumer: COB-ID 0x1005, communication cycle period 0x1006 (SYNC timeout = 1.5 periods -> EMCY
-0x8100), synchronous window 0x1007 and the SYNC counter (0x1019)."""
+0x8100), synchronous window 0x1007 and the SYNC counter (0x1019).
+
+SYNC monitoring (CiA 301 7.2.5: the consumer reacts when no SYNC arrives within 1.5 communication cycle
+periods) is judged on the frames' own **arrival times** (the bus receive timestamp, mapped onto the caller's
+clock), never on when the drive thread got round to handling them:
+
+- a SYNC whose arrival is more than 1.5 x 0x1006 after the previous one's is a timeout (detected when it is
+  handled, if the timer below did not catch it first);
+- between SYNCs, a poll declares the timeout when the time since the last arrival exceeds 1.5 x 0x1006 plus
+  the receive path's delivery delay (``delivery_allowance_s``: 3 x the largest recent delay between a SYNC's
+  arrival and its hand-over to the stack, at least 1 ms) and only while the bus's receive socket holds no
+  unread frame, so that a SYNC still in the receive path of a busy
+  machine is not mistaken for a missing one.
+
+Each gap longer than 1.5 periods gives exactly one EMCY 0x8100; a gap shorter never gives one.
+"""
 
 from __future__ import annotations
 
@@ -13,13 +28,16 @@ if TYPE_CHECKING:
 
 SYNC_GENERATE = 0x40000000
 SYNC_EXTENDED = 0x20000000
+MIN_ALLOWANCE_S = 1e-3
+MAX_ALLOWANCE_S = 0.1
 
 
 class SyncConsumer:
     def __init__(self, slave: CanopenSlave):
         self.slave = slave
         self.configure()
-        self.last_sync_s: float | None = None
+        self.last_sync_s: float | None = None     # arrival of the last SYNC [s, caller's clock]
+        self.delivery_delay_s = 0.0                  # decaying max of (hand-over - arrival) of SYNC frames [s]
 
     def configure(self) -> None:
         od = self.slave.od
@@ -50,10 +68,34 @@ class SyncConsumer:
             return None
         return data[0] if self.counter_enabled else 0
 
-    def check_timeout(self, now_s: float) -> bool:
-        """True once when SYNCs stop for 1.5 x 0x1006 (monitoring starts with the first SYNC)."""
+    @property
+    def delivery_allowance_s(self) -> float:
+        """Receive-path delay allowed for before a missing SYNC is declared by the timer [s]."""
+        return min(MAX_ALLOWANCE_S, max(MIN_ALLOWANCE_S, 3.0 * self.delivery_delay_s))
+
+    def note_delivery(self, delay_s: float) -> None:
+        """One SYNC's delay between its arrival on the bus and its hand-over to the stack [s]."""
+        decayed = self.delivery_delay_s * 0.995
+        self.delivery_delay_s = delay_s if delay_s > decayed else decayed
+
+    def on_arrival(self, arrival_s: float) -> bool:
+        """A valid SYNC arrived at ``arrival_s``; True if the gap since the previous one was a timeout that
+        the timer had not reported yet."""
+        last = self.last_sync_s
+        late = (self.timeout_s > 0.0 and last is not None and not self.timed_out
+                and arrival_s - last > self.timeout_s)
+        if last is None or arrival_s > last:
+            self.last_sync_s = arrival_s
+        self.timed_out = False
+        return late
+
+    def check_timeout(self, now_s: float, rx_pending=None) -> bool:
+        """True once when SYNCs stop for 1.5 x 0x1006 (monitoring starts with the first SYNC);
+        ``rx_pending()`` (optional) says whether frames still wait in the receive socket: then not yet."""
         if self.timeout_s > 0.0 and self.last_sync_s is not None and not self.timed_out and \
-                now_s - self.last_sync_s > self.timeout_s:
+                now_s - self.last_sync_s > self.timeout_s + self.delivery_allowance_s:
+            if rx_pending is not None and rx_pending():
+                return False
             self.timed_out = True
             return True
         return False
