@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from virtualaxis.config.errors import InputError
+from virtualaxis.sim.trace_io import read_trace_npz
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -183,7 +184,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     against the sidecar metadata)."""
     p = Path(path)
     sp = str(p)
-    header, data = _parse_csv(p)
+    header, data = _parse_csv(p) if p.suffix.lower() != ".npz" else read_trace_npz(p)  # NPZ: sim.trace_io
     for col in ("t", "pos_cmd"):
         if col not in header:
             raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)})", 1, col)
