@@ -139,7 +139,7 @@ def test_bad_eds_and_node_id(tmp_path):
             CanopenSlave(bus, NODE, tmp_path / "missing.eds")
         broken = tmp_path / "broken.eds"
         broken.write_text("[1000]\nParameterName=x\nDataType=zz\n")
-        with pytest.raises(InputError, match="cannot load EDS"):
+        with pytest.raises(InputError, match=r"broken.eds: \[1000\] DataType = .zz.: expected an integer"):
             CanopenSlave(bus, NODE, broken)
         with pytest.raises(ValueError, match="node id"):
             CanopenSlave(bus, 128, EDS_PATH)

@@ -92,6 +92,107 @@ class ObjectInfo:
     subs: dict[int, Entry]
 
 
+_OBJECT_TYPES = {0x2: "DOMAIN", 0x5: "DEFTYPE", 0x6: "DEFSTRUCT", 0x7: "VAR", 0x8: "ARRAY", 0x9: "RECORD"}
+_ACCESS_TYPES = ("ro", "wo", "rw", "rwr", "rww", "const")
+_KNOWN_TYPES = frozenset(_STRUCT_FORMATS) | frozenset(STRING_TYPES) | frozenset(
+    getattr(dt, name) for name in ("INTEGER24", "INTEGER40", "INTEGER48", "INTEGER56", "UNSIGNED24", "UNSIGNED40",
+                                   "UNSIGNED48", "UNSIGNED56", "TIME_OF_DAY", "TIME_DIFFERENCE") if hasattr(dt, name))
+
+
+def _object_key(section: str) -> tuple[int, int | None] | None:
+    """(index, sub or None) of an object dictionary section name (``1018``, ``1018sub2``), None otherwise."""
+    name = section.lower()
+    hexdigits = "0123456789abcdef"
+    if len(name) == 4 and all(c in hexdigits for c in name):
+        return int(name, 16), None
+    if len(name) > 7 and name[4:7] == "sub" and all(c in hexdigits for c in name[:4] + name[7:]):
+        return int(name[:4], 16), int(name[7:], 16)
+    return None
+
+
+def _int_value(text: str) -> int:
+    """An EDS integer: decimal, 0x hex, octal 0..., with an optional ``$NODEID+`` term (as 0)."""
+    t = text.strip().upper().replace("$NODEID", "0")
+    total = 0
+    for term in t.split("+"):
+        term = term.strip()
+        if not term:
+            raise ValueError(text)
+        total += int(term, 16) if term.startswith("0X") else int(term, 10)
+    return total
+
+
+def validate_eds(eds_path: str | Path) -> None:
+    """Check the object sections of an EDS before `canopen` imports it: every ``ObjectType``, ``DataType``,
+    ``AccessType``, ``PDOMapping``, ``SubNumber``, ``DefaultValue``, ``LowLimit`` and ``HighLimit`` is parsed and
+    checked; a bad one raises :class:`InputError` naming the file, the ``[section]`` and the key with the value
+    found and what was expected (e.g. ``eds/x.eds: [6040] DataType = '0x9999': unknown CANopen data type``)."""
+    path = Path(eds_path)
+    parser = RawConfigParser(inline_comment_prefixes=(";",), strict=True)
+    parser.optionxform = str
+    try:
+        with open(path, encoding="utf-8") as fh:
+            parser.read_file(fh)
+    except UnicodeDecodeError as exc:
+        raise InputError(str(path), f"not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except Exception as exc:  # noqa: BLE001 - configparser errors name the line; keep them on one line
+        raise InputError(str(path), " ".join(str(exc).split())) from None
+
+    def bad(section: str, key: str, value: str, expected: str) -> InputError:
+        return InputError(str(path), f"[{section}] {key} = {value!r}: {expected}")
+
+    for section in parser.sections():
+        if _object_key(section) is None:
+            continue
+        get = parser[section].get
+        object_type = 0x7
+        if (text := get("ObjectType")) is not None:
+            try:
+                object_type = int(text, 0) if text.strip() else 0x7
+            except ValueError:
+                raise bad(section, "ObjectType", text, "expected an integer (0x7 VAR, 0x8 ARRAY, 0x9 RECORD)") from None
+            if object_type not in _OBJECT_TYPES:
+                raise bad(section, "ObjectType", text, "expected 0x2, 0x5, 0x6, 0x7 (VAR), 0x8 (ARRAY) or 0x9 (RECORD)")
+        if (text := get("SubNumber")) is not None and text.strip():
+            try:
+                if not 0 <= int(text, 0) <= 255:
+                    raise ValueError
+            except ValueError:
+                raise bad(section, "SubNumber", text, "expected an integer 0..255") from None
+        if object_type != 0x7:
+            continue
+        text = get("DataType")
+        if text is None:
+            raise InputError(str(path), f"[{section}] DataType missing: a VAR needs a data type")
+        try:
+            data_type = int(text, 0)
+        except ValueError:
+            raise bad(section, "DataType", text,
+                      "expected an integer data type index (e.g. 0x0007 UNSIGNED32)") from None
+        if data_type not in _KNOWN_TYPES:
+            raise bad(section, "DataType", text, "unknown CANopen data type (expected a CiA 301 basic type, "
+                      "e.g. 0x0001..0x0009, 0x000F, 0x0010..0x001B)")
+        access = get("AccessType")
+        if access is not None and access.strip().lower() not in _ACCESS_TYPES:
+            raise bad(section, "AccessType", access, "expected one of " + ", ".join(_ACCESS_TYPES))
+        if (text := get("PDOMapping")) is not None and text.strip() not in ("", "0", "1"):
+            raise bad(section, "PDOMapping", text, "expected 0 or 1")
+        numeric = data_type in _STRUCT_FORMATS
+        is_float = data_type in (dt.REAL32, dt.REAL64)
+        for key in ("DefaultValue", "LowLimit", "HighLimit"):
+            text = get(key)
+            if text is None or not text.strip() or not numeric:
+                continue
+            try:
+                value = float(text) if is_float else _int_value(text)
+            except ValueError:
+                kind = "a number" if is_float else "an integer (decimal, 0x hex, optionally $NODEID+...)"
+                raise bad(section, key, text, f"expected {kind}") from None
+            rng = _TYPE_RANGES.get(data_type)
+            if rng is not None and "$NODEID" not in text.upper() and not rng[0] <= value <= rng[1]:
+                raise bad(section, key, text, f"outside the range of the data type ({rng[0]}..{rng[1]})")
+
+
 def _parse_float_limits(eds_path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """canopen only parses integer limits; REAL32/REAL64 LowLimit/HighLimit are read here."""
     parser = RawConfigParser(inline_comment_prefixes=(";",))
@@ -145,6 +246,7 @@ class ObjectStore:
         self.eds_path = Path(eds_path)
         if not self.eds_path.is_file():
             raise InputError(str(self.eds_path), "EDS file not found")
+        validate_eds(self.eds_path)
         try:
             od = import_od(str(self.eds_path), node_id)
             float_limits = _parse_float_limits(self.eds_path)

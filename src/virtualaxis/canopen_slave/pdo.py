@@ -11,6 +11,7 @@ import struct
 from typing import TYPE_CHECKING
 
 from virtualaxis.canopen_slave import errors as ab
+from virtualaxis.canopen_slave.cobid import restricted
 from virtualaxis.canopen_slave.errors import SdoAbort
 from virtualaxis.canopen_slave.od import Entry
 
@@ -23,13 +24,7 @@ COB_INVALID = 0x80000000
 COB_NO_RTR = 0x40000000
 COB_EXTENDED = 0x20000000
 
-#: COB-IDs a PDO may not use (CiA 301 7.3.5: NMT, SYNC/EMCY range, TIME, SDO, NMT error control)
-_RESTRICTED = [(0x000, 0x000), (0x001, 0x07F), (0x101, 0x180), (0x581, 0x5FF), (0x601, 0x67F),
-               (0x6E0, 0x6FF), (0x701, 0x77F), (0x780, 0x7FF)]
-
-
-def cob_restricted(cob: int) -> bool:
-    return any(lo <= cob <= hi for lo, hi in _RESTRICTED)
+cob_restricted = restricted   # (the restricted list lives in cobid.py, shared by every COB-ID object)
 
 
 class Pdo:

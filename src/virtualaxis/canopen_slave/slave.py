@@ -20,6 +20,8 @@ from typing import Any, Protocol
 import can
 
 from virtualaxis.canopen_slave import errors as ab
+from virtualaxis.canopen_slave.cobid import check_write as check_cob_id
+from virtualaxis.canopen_slave.cobid import is_cob_id_object
 from virtualaxis.canopen_slave.counters import COUNTERS_2100, abort_key, new_counters
 from virtualaxis.canopen_slave.emcy import EmcyProducer
 from virtualaxis.canopen_slave.errors import ABORT_CODES, SdoAbort
@@ -47,6 +49,7 @@ from virtualaxis.canopen_slave.sync import SyncConsumer
 RX_QUEUE_LIMIT = 4096
 #: objects kept through NMT reset communication (status, not parameters)
 _STATUS_OBJECTS = frozenset({0x1001, 0x1003})
+COB_EXTENDED = 0x20000000          # 29-bit frame bit of a COB-ID object (refused by each object's own rule)
 _NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchronous RPDO data
 DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
 
@@ -397,6 +400,8 @@ class CanopenSlave:
 
     # ================================================================== communication objects
     def _comm_validate(self, index: int, sub: int, value) -> None:
+        if is_cob_id_object(index, sub) and isinstance(value, int) and not value & COB_EXTENDED:
+            check_cob_id(self, index, value)
         if self.pdo.owns(index):
             self.pdo.validate_write(index, sub, value)
         elif index in (0x1005, 0x1006, 0x1007, 0x1019):

@@ -58,8 +58,7 @@ def run(args) -> int:
     from virtualaxis.runtime.axes import DEFAULT_CONFIG
 
     eds = Path(args.eds) if args.eds else DEFAULT_EDS
-    if not eds.exists():
-        raise CliError(f"{eds}: EDS file not found")
+    _check_inputs(args, eds)
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
     if args.duration is not None and not args.duration > 0:
@@ -91,6 +90,7 @@ def run(args) -> int:
         stop.set()
 
     signal.signal(signal.SIGTERM, _stop)
+    _log_to_stderr()
     runtime.start()
     names = ", ".join(f"{a.name} (node {a.node_id})" for a in axes)
     mode = "lockstep (plant advances on SYNC)" if args.lockstep else f"real time, {runtime.period_s * 1e3:g} ms cycle"
@@ -102,6 +102,8 @@ def run(args) -> int:
             if t_end is not None and time.monotonic() >= t_end:
                 break
             stop.wait(0.1)
+            if runtime.stats.thread_error:
+                break  # the runtime thread stopped: nothing is served any more (reported below)
             if next_status is not None and time.monotonic() >= next_status:
                 next_status += args.status_interval
                 _print_status(runtime)
@@ -131,9 +133,73 @@ def run(args) -> int:
         f"(max lateness {st.max_late_s * 1e3:.3f} ms)",
         flush=True,
     )
+    healthy = runtime.healthy
+    summary["healthy"] = healthy
+    summary["drive_exceptions"] = st.drive_exceptions
+    summary["thread_error"] = st.thread_error
+    summary["axes_exceptions"] = {a.name: a.exceptions for a in axes}
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2, default=str))
+        _write_json(Path(args.json), summary)
+    if not healthy:
+        what = (f"the runtime thread stopped: {st.thread_error.strip().splitlines()[-1]}" if st.thread_error
+                else f"{st.drive_exceptions} drive-cycle exception(s), last: {st.last_exception}")
+        print(f"error: {what} (drives faulted with 0x6100; tracebacks above)", file=sys.stderr, flush=True)
+        return 1
     return 0
+
+
+def _check_inputs(args, eds: Path) -> None:
+    """Everything that can be refused is refused before serving: the EDS (file, section, key), the --json
+    output path (not a folder, its folder exists and takes a new file)."""
+    import tempfile
+
+    from virtualaxis.canopen_slave.od import validate_eds
+    from virtualaxis.cli.main import CliError
+
+    if not eds.is_file():
+        raise CliError(f"{eds}: EDS file not found" if not eds.exists() else f"{eds}: EDS path is not a file")
+    validate_eds(eds)
+    if args.json:
+        out = Path(args.json)
+        if out.is_dir():
+            raise CliError(f"--json {out}: is a folder, expected a file path")
+        parent = out.parent if str(out.parent) else Path(".")
+        if not parent.is_dir():
+            raise CliError(f"--json {out}: folder {parent} does not exist")
+        if out.exists() and not out.is_file():
+            raise CliError(f"--json {out}: exists and is not a regular file")
+        try:
+            with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{out.name}.", suffix=".tmp"):
+                pass
+        except OSError as exc:
+            raise CliError(f"--json {out}: cannot write in {parent} ({exc.strerror or exc})") from None
+
+
+def _write_json(path: Path, summary: dict) -> None:
+    """Written to a temporary name beside the target and renamed when complete."""
+    import os
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(summary, fh, indent=2, default=str)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _log_to_stderr() -> None:
+    """The runtime's log (drive-cycle exceptions with tracebacks) goes to stderr unless logging is set up."""
+    import logging
+
+    log = logging.getLogger("virtualaxis")
+    if not log.handlers and not logging.getLogger().handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
 
 
 def _set_rt_priority(priority: int) -> None:

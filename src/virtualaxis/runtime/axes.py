@@ -70,6 +70,21 @@ class AxisNode:
         self.app = Cia402Application(self.drive)
         self.slave = CanopenSlave(bus, node_id, eds_path, app=self.app, store_path=store_path)
         self.app.attach(self.slave)
+        self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
+
+    def fault_internal(self, code: int) -> None:
+        """Put the drive in FAULT with ``code`` (EMCY through the slave) after an exception in its cycle; not
+        again while it is still in fault from it (no EMCY flood when every cycle raises)."""
+        drive = self.drive
+        state = getattr(drive.cia402_state, "name", "")
+        if state not in ("FAULT", "FAULT_REACTION_ACTIVE"):
+            raise_fault = getattr(drive, "raise_fault", None)
+            if raise_fault is not None:
+                raise_fault(code)
+            else:  # (until Drive.raise_fault exists: the drive's own fault path, cleared by a fault reset)
+                with drive._lock:
+                    drive._raise_fault(code)
+        self.app.flush()
 
     def sync_cycles(self) -> int:
         """Drive cycles per SYNC in lockstep: 0x1006 (communication cycle) / position cycle, at least 1."""

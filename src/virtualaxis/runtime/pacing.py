@@ -13,17 +13,33 @@
   cycle (0x1006 / position cycle, at least one drive cycle) and then its slave sends the TPDOs due. The
   result depends only on the frames, never on the machine's speed. SDO, NMT, heartbeat and timers keep
   running between SYNCs.
+
+Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
+(``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
+:data:`LOGGED_TRACEBACKS` per axis, then every 1000th), counted (:attr:`RuntimeStats.drive_exceptions`,
+per axis in :attr:`AxisNode.exceptions`) and the drive is put in FAULT with EMCY 0x6100 (internal software);
+its slave keeps answering SDO and NMT, and a fault reset (or NMT reset node) recovers it. An exception that
+escapes the loop itself stops the thread; it is logged and recorded in :attr:`RuntimeStats.thread_error`
+(``Runtime.healthy`` is then False).
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
+import traceback
 from dataclasses import dataclass, field
 
 import can
 
 from virtualaxis.runtime.axes import AxisNode
+
+log = logging.getLogger("virtualaxis.runtime")
+#: EMCY / fault code of an exception in the drive cycle (CiA 301: 0x6100 internal software)
+INTERNAL_SOFTWARE_FAULT = 0x6100
+#: tracebacks logged per axis before only every 1000th is
+LOGGED_TRACEBACKS = 5
 
 
 @dataclass
@@ -38,6 +54,9 @@ class RuntimeStats:
     first_deadline_s: float = 0.0  # real time: perf_counter deadline of the first cycle
     next_deadline_s: float = 0.0  # real time: deadline of the next cycle to run
     checked_s: float = 0.0  # real time: last time the loop ran every cycle due
+    drive_exceptions: int = 0  # exceptions caught from drive cycles (all axes); each faults its drive
+    last_exception: str = ""  # "axis X: ValueError: ..." of the latest one
+    thread_error: str = ""  # traceback of an exception that stopped the runtime thread ("" = never)
     started_s: float = field(default_factory=time.perf_counter)
 
     def as_dict(self) -> dict:
@@ -51,6 +70,9 @@ class RuntimeStats:
             "loops": self.loops,
             "elapsed_s": elapsed,
             "busy_share": self.busy_s / elapsed if elapsed > 0 else 0.0,
+            "drive_exceptions": self.drive_exceptions,
+            "last_exception": self.last_exception,
+            "thread_error": self.thread_error,
         }
 
 
@@ -144,8 +166,51 @@ class Runtime:
         self.stop()
 
     # ------------------------------------------------------------------ loop
+    @property
+    def healthy(self) -> bool:
+        """False once a drive cycle raised or the runtime thread stopped on an exception."""
+        return not self.stats.drive_exceptions and not self.stats.thread_error
+
     def run(self, duration_s: float | None = None) -> RuntimeStats:
-        """Run until :meth:`stop` (or for ``duration_s``)."""
+        """Run until :meth:`stop` (or for ``duration_s``); an exception that escapes the loop is logged and
+        recorded in ``stats.thread_error`` (then re-raised)."""
+        try:
+            return self._run(duration_s)
+        except BaseException:
+            self.stats.thread_error = traceback.format_exc()
+            log.critical("runtime thread stopped:\n%s", self.stats.thread_error)
+            raise
+
+    def _drive_failed(self, ax: AxisNode, exc: BaseException) -> None:
+        """An exception escaped ``ax``'s cycle: log, count, fault the drive (EMCY 0x6100)."""
+        stats = self.stats
+        stats.drive_exceptions += 1
+        ax.exceptions += 1
+        stats.last_exception = f"axis {ax.name}: {type(exc).__name__}: {exc}"
+        if ax.exceptions <= LOGGED_TRACEBACKS or ax.exceptions % 1000 == 0:
+            log.error("axis %s (node %d): drive cycle raised (exception %d of this axis); drive faulted with "
+                      "0x%04X", ax.name, ax.node_id, ax.exceptions, INTERNAL_SOFTWARE_FAULT, exc_info=exc)
+        try:
+            ax.fault_internal(INTERNAL_SOFTWARE_FAULT)
+        except Exception:  # noqa: BLE001 - the fault path itself is broken: counted and logged, loop goes on
+            stats.drive_exceptions += 1
+            if ax.exceptions <= LOGGED_TRACEBACKS:
+                log.exception("axis %s: putting the drive in fault failed", ax.name)
+
+    def _step(self, ax: AxisNode, n: int) -> None:
+        try:
+            ax.drive.step(n)
+            ax.app.flush()
+        except Exception as exc:  # noqa: BLE001 - see module doc: caught, logged, counted, faulted
+            self._drive_failed(ax, exc)
+
+    def _flush(self, ax: AxisNode) -> None:
+        try:
+            ax.app.flush()
+        except Exception as exc:  # noqa: BLE001
+            self._drive_failed(ax, exc)
+
+    def _run(self, duration_s: float | None = None) -> RuntimeStats:
         self.open()
         end = None if duration_s is None else time.perf_counter() + duration_s
         period = self.period_s
@@ -166,19 +231,19 @@ class Runtime:
                 now = t_busy - self._t0
                 for ax in axes:
                     counters = ax.slave.poll(now)
-                    ax.app.flush()
+                    self._flush(ax)
                     if not counters:
                         continue
                     if ax is axes[0]:
                         stats.syncs += len(counters)
                     for counter in counters:
                         if self.lockstep:
-                            ax.drive.step(ax.sync_cycles())
-                            ax.app.flush()
+                            n = ax.sync_cycles()
+                            self._step(ax, n)
                             if ax is axes[0]:
-                                stats.cycles += ax.sync_cycles()
+                                stats.cycles += n
                         ax.slave.on_sync(counter, now)
-                        ax.app.flush()
+                        self._flush(ax)
                 if not self.lockstep:
                     t = perf()
                     if t - next_cycle > self.max_lag_s:
@@ -200,8 +265,7 @@ class Runtime:
                             for ax in axes:
                                 ax.drive.record_overrun()
                         for ax in axes:
-                            ax.drive.step(1)
-                            ax.app.flush()
+                            self._step(ax, 1)
                         stats.cycles += 1
                         next_cycle += period
                         t = perf()
