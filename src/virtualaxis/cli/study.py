@@ -60,8 +60,16 @@ def run(args) -> int:
                                  ("response_time_s", "s", 1), ("cost", "-", 1)):
             plot_xy(out / f"{stem}_{key}.png", kv, {key: [r[key] * scale for r in rows]}, "kv [1/min]",
                     f"{key} [{unit}]", f"{cfg.axis.name}")
+        from virtualaxis.studies.plots import plot_kv_weight_sensitivity
+
+        plot_kv_weight_sensitivity(out / f"{stem}_weights.png", doc["weight_sensitivity"], cfg.axis.name)
         print(f"cost optimum at kv = {doc['optimum_kv_per_min']:g} 1/min (paper: {doc['paper_optimum_kv_per_min']:g}); "
               f"relative spans: {json.dumps({k: round(v, 3) for k, v in doc['relative_span'].items()})}")
+        for name, r in doc["weight_sensitivity"]["readings"].items():
+            lo, hi = r["optimum_range_kv_per_min"]
+            print(f"  weights open ({name}): optimum {lo:g}..{hi:g}"
+                  f" 1/min; {100 * r['share_of_weights_within_tolerance']:.0f} % of weight triples within 10 % of the"
+                  f" paper; closest to equal weights: {r['closest_weights_within_tolerance']}")
     elif args.name == "inverter":
         rows = seeds.inverter_study(cfg, vals or (1000, 6000))
         doc = {"rows": rows, "paper": "seed 000 Fig. 6: SVPWM sector / dwell time / compare thresholds, six switches"}

@@ -78,3 +78,33 @@ def plot_xy(path: Path, x, ys: dict, xlabel: str, ylabel: str, title: str = "", 
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_kv_weight_sensitivity(path: Path, sens: dict, title: str = "") -> None:
+    """Seed 004 cost-function weights: optimum k_v over the weight simplex (w_precision, w_energy; w_time = rest),
+    one panel per reading of "precision"; the paper's optimum +-tolerance is outlined."""
+    import numpy as np
+
+    names = list(sens["readings"])
+    fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 4.6), squeeze=False)
+    g = sens["grid"]
+    x = np.array([r["w_precision"] for r in g])
+    y = np.array([r["w_energy"] for r in g])
+    lo = sens["paper_kv_per_min"] * (1 - sens["tolerance"])
+    hi = sens["paper_kv_per_min"] * (1 + sens["tolerance"])
+    for ax, name in zip(axes[0], names, strict=True):
+        z = np.array([r[f"optimum_kv_per_min_{name}"] for r in g])
+        sc = ax.scatter(x, y, c=z, cmap="viridis", s=55, marker="s")
+        hit = (z >= lo) & (z <= hi)
+        ax.scatter(x[hit], y[hit], facecolors="none", edgecolors="red", s=90, linewidths=1.2,
+                   label=f"within {100 * sens['tolerance']:.0f} % of {sens['paper_kv_per_min']:g} 1/min")
+        ax.plot([1 / 3], [1 / 3], "w*", ms=14, mec="k", label="equal weights")
+        ax.set_xlabel("weight of precision w_e")
+        ax.set_ylabel("weight of energy w_E (w_tau = 1 - w_e - w_E)")
+        ax.set_title(f"precision = {name.replace('_', ' ')}", fontsize=9)
+        ax.legend(fontsize=7, loc="upper right")
+        fig.colorbar(sc, ax=ax, label="optimum kv [1/min]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

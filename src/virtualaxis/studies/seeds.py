@@ -75,8 +75,12 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
     - static position error [m]: |command - linear scale|, mean over the last 100 ms of the dwell;
     - response time tau [s]: time for the table to cover 99 % of the move (mid-stroke to end).
 
-    The paper's cost formula was lost in conversion; we use C = e~ + E~ + tau~ with each metric normalised to
-    0..1 over the sweep (min-max), so C in [0, 3] and lower is better.
+    The paper's formula was lost in conversion; its text keeps two constraints: "if position error is seen as a
+    cost, low energy consumption and settling time will decrease it" and "1 as the upper limit and -2 as the lower
+    one". With each metric min-max normalised to 0..1 over the sweep (e~, E~, tau~) the reading that meets both is
+    C = e~ - (1 - E~) - (1 - tau~) = e~ + E~ + tau~ - 2, in [-2, 1]; that is the ``cost`` column (equal weights).
+    Any weights summing to 3 meet the same bounds, so the weights are open: :func:`kv_cost_weight_sensitivity`
+    (in ``weight_sensitivity``) gives the optimum for every weight triple.
     """
     kvs = np.arange(1000.0, 5001.0, 250.0) if kv_per_min is None else np.asarray(kv_per_min, float)
     cyc = cfg.control.position_cycle_s
@@ -103,7 +107,7 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
         span = np.nanmax(x) - np.nanmin(x)
         return (x - np.nanmin(x)) / span if span > 0 else np.zeros_like(x)
 
-    cost = norm("static_position_error_m") + norm("energy_per_cycle_j") + norm("response_time_s")
+    cost = norm("static_position_error_m") + norm("energy_per_cycle_j") + norm("response_time_s") - 2.0
     for r, cval in zip(rows, cost, strict=True):
         r["cost"] = float(cval)
     best = rows[int(np.nanargmin(cost))]
@@ -119,8 +123,60 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
         "relative_span": {k: rel_span(k) for k in ("static_position_error_m", "energy_per_cycle_j", "response_time_s")},
         "move_distance_m": float(dist),
         "move_time_s": float(move),
-        "cost_definition": "C = sum of min-max normalised static error, energy per cycle and response time",
+        "cost_definition": "C = e~ + E~ + tau~ - 2 in [-2, 1]: min-max normalised static error, energy per cycle and"
+                           " response time (seed 004 section 7, bounds as printed), equal weights",
+        "weight_sensitivity": kv_cost_weight_sensitivity(rows),
     }
+
+
+def kv_cost_weight_sensitivity(rows: list[dict], step: float = 0.05,
+                               paper_kv_per_min: float = SEED004_KV_OPTIMUM_PER_MIN, tolerance: float = 0.10) -> dict:
+    """Optimum k_v [1/min] of C = 3 (w_e e~ + w_E E~ + w_tau tau~) - 2 for every weight triple on a simplex grid
+    (w_e + w_E + w_tau = 1, ``step`` apart; min-max normalised metrics as in :func:`kv_sweep_study`), for two
+    readings of "precision": the static position error and the maximum following error during the move.
+
+    Returns the grid (weights and optimum per reading), the share of the weight simplex whose optimum lies within
+    ``tolerance`` of the paper's 2725 1/min, and the weight triples closest to equal weights that reach it.
+    """
+    kv = np.array([r["kv_per_min"] for r in rows])
+
+    def norm(key):
+        x = np.array([r[key] for r in rows], float)
+        span = np.nanmax(x) - np.nanmin(x)
+        return (x - np.nanmin(x)) / span if span > 0 else np.zeros_like(x)
+
+    energy, tau = norm("energy_per_cycle_j"), norm("response_time_s")
+    precisions = {"static_position_error": norm("static_position_error_m"),
+                  "max_following_error": norm("max_following_error_m")}
+    n = int(round(1.0 / step))
+    grid = []
+    for i in range(n + 1):
+        for j in range(n + 1 - i):
+            w_e, w_energy = i / n, j / n
+            w_tau = 1.0 - w_e - w_energy
+            row = {"w_precision": w_e, "w_energy": w_energy, "w_response_time": w_tau}
+            for name, prec in precisions.items():
+                c = 3.0 * (w_e * prec + w_energy * energy + w_tau * tau) - 2.0
+                row[f"optimum_kv_per_min_{name}"] = float(kv[int(np.nanargmin(c))])
+            grid.append(row)
+    out = {"step": step, "paper_kv_per_min": paper_kv_per_min, "tolerance": tolerance, "grid": grid, "readings": {}}
+    lo, hi = paper_kv_per_min * (1 - tolerance), paper_kv_per_min * (1 + tolerance)
+    for name in precisions:
+        key = f"optimum_kv_per_min_{name}"
+        hits = [g for g in grid if lo <= g[key] <= hi]
+        eq = next(g for g in grid if abs(g["w_precision"] - g["w_energy"]) < 1e-9
+                  and abs(g["w_energy"] - round(1 / 3 / step) * step) < 1e-9)
+        dist = [(abs(g["w_precision"] - 1 / 3) + abs(g["w_energy"] - 1 / 3) + abs(g["w_response_time"] - 1 / 3), g)
+                for g in hits]
+        closest = min(dist, key=lambda d: d[0])[1] if dist else None
+        vals = np.array([g[key] for g in grid])
+        out["readings"][name] = {
+            "optimum_near_equal_weights_kv_per_min": eq[key],
+            "share_of_weights_within_tolerance": len(hits) / len(grid),
+            "closest_weights_within_tolerance": closest,
+            "optimum_range_kv_per_min": [float(vals.min()), float(vals.max())],
+        }
+    return out
 
 
 def feed_sweep_study(cfg: AxisConfig, feeds_mm_min=(1000, 2000, 3000, 4000, 5000, 6000), stroke_mm: float = 100.0,
