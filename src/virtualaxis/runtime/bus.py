@@ -5,13 +5,21 @@
 - ``virtual:NAME``: python-can's in-process bus (tests, ``virtualaxis demo``).
 - ``udp_multicast:GROUP``: python-can's host-local bus across processes; always opened with
   ``hop_limit=0`` (frames never leave the host) unless the string says otherwise
-  (``udp_multicast:239.74.163.2,hop_limit=1,port=43113``). Needs the ``msgpack`` package.
+  (``udp_multicast:239.74.163.2,hop_limit=1,port=43113``). Needs the ``msgpack`` package. Opened as
+  :class:`OwnFrameFilteringUdpBus`: multicast loops every frame back to its sender, which a CAN controller
+  never does (a ``canopen`` master would take its own RPDOs for periodic PDOs from the drive); each frame is
+  tagged with the bus's own id in the ``channel`` field and dropped when it comes back.
 - any other python-can interface name is passed through (``pcan:PCAN_USBBUS1,bitrate=1000000``).
 """
 
 from __future__ import annotations
 
+import itertools
+import os
+from typing import Any
+
 import can
+from can.interfaces.udp_multicast import UdpMulticastBus
 
 DEFAULT_BUS = "socketcan:vcan0"
 DEFAULT_UDP_GROUP = "239.74.163.2"
@@ -25,6 +33,34 @@ VCAN_HELP = (
 
 class BusOpenError(Exception):
     """The bus could not be opened; the message says why and what to do."""
+
+
+_bus_ids = itertools.count(1)
+
+
+class OwnFrameFilteringUdpBus(UdpMulticastBus):
+    """python-can's ``udp_multicast`` bus that, like a CAN controller, does not receive its own frames.
+
+    ``send`` writes a tag unique to this bus object (process id + counter) into the frame's ``channel`` field
+    (which python-can's udp_multicast carries across); received frames with that tag are dropped (counted in
+    :attr:`own_frames_dropped`). Frames of other buses, also of other buses in the same process, are received.
+    """
+
+    def __init__(self, channel: str = DEFAULT_UDP_GROUP, port: int = 43113, hop_limit: int = 0, **kwargs: Any):
+        super().__init__(channel=channel, port=port, hop_limit=hop_limit, **kwargs)
+        self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"
+        self.own_frames_dropped = 0
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        msg.channel = self.own_tag
+        super().send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        msg, filtered = super()._recv_internal(timeout)
+        if msg is not None and msg.channel == self.own_tag:
+            self.own_frames_dropped += 1
+            return None, False
+        return msg, filtered
 
 
 def parse_bus_spec(spec: str) -> tuple[str, str, dict]:
@@ -58,6 +94,8 @@ def open_bus(spec: str = DEFAULT_BUS, *, receive_own_messages: bool = False) -> 
     if interface == "virtual" and not channel:
         channel = "virtualaxis"
     try:
+        if interface == "udp_multicast" and not receive_own_messages:
+            return OwnFrameFilteringUdpBus(channel=channel, **options)
         return can.Bus(interface=interface, channel=channel, receive_own_messages=receive_own_messages, **options)
     except can.CanInterfaceNotImplementedError as exc:
         if interface == "socketcan":
@@ -65,7 +103,7 @@ def open_bus(spec: str = DEFAULT_BUS, *, receive_own_messages: bool = False) -> 
                 f"bus {spec!r}: SocketCAN is not available here ({exc}); " + VCAN_HELP.format(ch=channel or "vcan0")
             ) from None
         raise BusOpenError(f"bus {spec!r}: interface not available ({exc})") from None
-    except (OSError, can.CanError, ValueError) as exc:
+    except (OSError, can.CanError, ValueError, TypeError) as exc:
         if interface == "socketcan":
             raise BusOpenError(
                 f"bus {spec!r}: cannot open {channel!r} ({exc}); " + VCAN_HELP.format(ch=channel or "vcan0")
