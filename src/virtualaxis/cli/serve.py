@@ -47,6 +47,9 @@ def register(sub) -> None:
         metavar="N",
         help="run the process with SCHED_FIFO priority N (1..99; needs the right to do so; 0: off)",
     )
+    from virtualaxis.services.serve_options import add_arguments as add_side_channel_arguments
+
+    add_side_channel_arguments(p)  # --modbus, --mqtt, ... (virtualaxis.services)
     p.set_defaults(func=run)
 
 
@@ -72,6 +75,13 @@ def run(args) -> int:
     if len(set(ids)) != len(ids):
         raise ConfigError("--axis", "node id", f"node ids must be unique (got {ids})")
     configs = [load_axis_config(s.config) for s in specs]
+    # ---- side channels (Modbus TCP, MQTT): options checked before the bus opens
+    from virtualaxis.services.serve_options import prepare as prepare_side_channels
+
+    try:
+        side = prepare_side_channels(args, specs[0].config)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     if args.rt_priority:
         _set_rt_priority(args.rt_priority)
     try:
@@ -92,9 +102,18 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, _stop)
     _log_to_stderr()
     runtime.start()
+    try:
+        side.start(axes)
+    except OSError as exc:
+        side.stop()
+        runtime.stop()
+        bus.shutdown()
+        raise CliError(str(exc)) from None
     names = ", ".join(f"{a.name} (node {a.node_id})" for a in axes)
     mode = "lockstep (plant advances on SYNC)" if args.lockstep else f"real time, {runtime.period_s * 1e3:g} ms cycle"
     print(f"ready: serving {names} on {args.can}; {mode}", flush=True)
+    for line in side.lines:
+        print(line, flush=True)
     t_end = None if args.duration is None else time.monotonic() + args.duration
     next_status = time.monotonic() + args.status_interval if args.status_interval > 0 else None
     try:
@@ -110,6 +129,7 @@ def run(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        side.stop()
         runtime.stop()
         bus.shutdown()
     summary = {
@@ -126,6 +146,7 @@ def run(args) -> int:
             }
             for a in axes
         ],
+        **side.stats(),
     }
     st = runtime.stats
     print(

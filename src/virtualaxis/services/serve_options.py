@@ -1,0 +1,125 @@
+"""The side-channel options of ``virtualaxis serve`` (--modbus, --mqtt, ...) and their start / stop.
+
+``serve`` calls :func:`add_arguments` on its parser, :func:`prepare` before it opens the bus (bad options
+end as a CLI error naming the option, the file or the variable) and :meth:`SideChannels.start` /
+:meth:`SideChannels.stop` around its run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+# pymodbus / aiomqtt are imported only when a side channel is requested (every CLI command imports this module)
+
+
+def add_arguments(p) -> None:
+    g = p.add_argument_group("side channels (docs/side-channels.md, docs/modbus-map.md)")
+    g.add_argument(
+        "--modbus",
+        nargs="?",
+        const="127.0.0.1:5020",
+        default=None,
+        metavar="HOST:PORT",
+        help="serve the Modbus TCP map (unit id = node id); default off, 127.0.0.1:5020 without a value",
+    )
+    g.add_argument("--modbus-writable", action="store_true", help="accept Modbus writes (else exception 04)")
+    g.add_argument("--mqtt", default=None, metavar="URL", help="publish MQTT telemetry to mqtt://HOST:PORT or mqtts://")
+    g.add_argument("--machine", default=None, help="machine name in the MQTT topics (default: the config's file stem)")
+    g.add_argument(
+        "--mqtt-credentials",
+        default=None,
+        metavar="FILE",
+        help="TOML file with username / password / ca_file / cert_file / key_file (or VIRTUALAXIS_MQTT_* variables)",
+    )
+    g.add_argument("--telemetry-rate", type=float, default=100.0, metavar="HZ", help="telemetry sample rate (100)")
+    g.add_argument("--telemetry-batch", type=int, default=10, metavar="N", help="samples per telemetry message (10)")
+    g.add_argument(
+        "--telemetry-buffer", type=int, default=1000, metavar="N", help="samples kept per axis while the broker is away"
+    )
+
+
+@dataclass
+class SideChannels:
+    """The services requested on the command line (either may be None)."""
+
+    modbus_address: tuple[str, int] | None = None
+    modbus_writable: bool = False
+    mqtt: Any = None  # MqttSettings
+    modbus: Any = None  # ModbusService
+    telemetry: Any = None  # MqttService
+    lines: list[str] = field(default_factory=list)
+
+    def start(self, axes) -> None:
+        """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave)."""
+        if self.modbus_address is not None:
+            from virtualaxis.services.modbus import ModbusService
+            from virtualaxis.services.modbus_map import AxisLink
+
+            host, port = self.modbus_address
+            links = [AxisLink(a.drive, a.node_id) for a in axes]
+            self.modbus = ModbusService(links, host=host, port=port, writable=self.modbus_writable).start()
+            ids = ", ".join(str(a.node_id) for a in axes)
+            rw = "read/write" if self.modbus_writable else "read-only"
+            self.lines.append(f"modbus: {host}:{self.modbus.bound_port} ({rw}), unit ids {ids}")
+        if self.mqtt is not None:
+            from virtualaxis.services.mqtt import MqttService
+
+            st = self.mqtt
+            chans = [(a.name, a.node_id, a.drive, _nmt_getter(a)) for a in axes]
+            self.telemetry = MqttService(st, chans).start()
+            scheme = "mqtts" if st.tls else "mqtt"
+            self.lines.append(
+                f"mqtt: {scheme}://{st.host}:{st.port}, topics virtualaxis/{st.machine}/<axis>/..., "
+                f"telemetry {st.rate_hz:g} Hz in batches of {st.batch_size}"
+            )
+
+    def stop(self) -> None:
+        if self.telemetry is not None:
+            self.telemetry.stop()
+        if self.modbus is not None:
+            self.modbus.stop()
+
+    def stats(self) -> dict:
+        out: dict = {}
+        if self.modbus is not None:
+            out["modbus"] = self.modbus.stats()
+        if self.telemetry is not None:
+            out["mqtt"] = self.telemetry.stats()
+        return out
+
+
+def _nmt_getter(axis):
+    slave = getattr(axis, "slave", None)
+    if slave is None:
+        return None
+    return lambda: getattr(slave.nmt_state, "name", str(slave.nmt_state)).replace("_", "-")
+
+
+def prepare(args, main_config) -> SideChannels:
+    """Validate the options (raises ValueError with a message naming the option, file or variable)."""
+    sc = SideChannels()
+    if args.modbus is not None:
+        from virtualaxis.services.modbus import parse_host_port
+    if args.mqtt is not None:
+        from virtualaxis.services.mqtt import load_credentials, machine_name_from, parse_mqtt_url
+    if args.modbus is not None:
+        sc.modbus_address = parse_host_port(args.modbus)
+        sc.modbus_writable = args.modbus_writable
+    elif args.modbus_writable:
+        raise ValueError("--modbus-writable needs --modbus")
+    if args.mqtt is not None:
+        machine = args.machine or machine_name_from(main_config)
+        st = parse_mqtt_url(args.mqtt, machine)
+        st.rate_hz = args.telemetry_rate
+        st.batch_size = args.telemetry_batch
+        st.buffer_samples = args.telemetry_buffer
+        load_credentials(st, args.mqtt_credentials)
+        st.validate()
+        sc.mqtt = st
+    elif args.mqtt_credentials or args.machine:
+        raise ValueError("--machine / --mqtt-credentials need --mqtt")
+    return sc
+
+
+__all__ = ["SideChannels", "add_arguments", "prepare"]
