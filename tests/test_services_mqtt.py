@@ -1,0 +1,320 @@
+"""MQTT side channel: a real mosquitto broker (fixture), a real paho subscriber, the drive served in real time.
+
+Every message received is validated against its JSON Schema in docs/schemas/. Checked: topics, retained
+state / birth / will, telemetry rate and batch size, fault events, the broker absent at start and killed and
+restarted mid-move (nothing lost beyond the documented buffer, counters exact), credentials handling.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jsonschema
+import paho.mqtt.client as mqtt
+import pytest
+from services_fixtures import Mosquitto, free_port, mosquitto  # noqa: F401 (fixture)
+from test_drive_rig import seed_config, seed_discrete
+
+from virtualaxis.runtime import AxisNode, Runtime, open_bus
+from virtualaxis.services.mqtt import (
+    MqttService,
+    MqttSettingsError,
+    load_credentials,
+    parse_mqtt_url,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+SCHEMAS = {
+    leaf: jsonschema.Draft202012Validator(json.loads((ROOT / "docs" / "schemas" / f"{leaf}.schema.json").read_text()))
+    for leaf in ("status", "state", "telemetry", "faults")
+}
+
+
+class Subscriber:
+    """A paho subscriber to virtualaxis/#; validates every message against its schema as it arrives."""
+
+    def __init__(self, port: int):
+        self.port = port
+        self.msgs: list[tuple[float, str, bool, dict]] = []
+        self.invalid: list[str] = []
+        self.lock = threading.Lock()
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"test-sub-{os.getpid()}-{port}")
+        self.client.on_message = self._on_message
+        self.client.on_connect = lambda c, u, f, rc, p: c.subscribe("virtualaxis/#", qos=1)
+        self.client.reconnect_delay_set(0.01, 0.05)
+        self.client.connect("127.0.0.1", port, keepalive=5)
+        self.client.loop_start()
+
+    def _on_message(self, client, userdata, m):
+        leaf = m.topic.rsplit("/", 1)[-1]
+        try:
+            payload = json.loads(m.payload)
+            SCHEMAS[leaf].validate(payload)
+        except (ValueError, KeyError, jsonschema.ValidationError) as exc:
+            self.invalid.append(f"{m.topic}: {exc}")
+            payload = {}
+        with self.lock:
+            self.msgs.append((time.monotonic(), m.topic, bool(m.retain), payload))
+
+    def of(self, leaf: str) -> list[dict]:
+        with self.lock:
+            return [p for _, t, _, p in self.msgs if t.endswith("/" + leaf)]
+
+    def wait(self, predicate, timeout: float = 10.0):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            v = predicate()
+            if v:
+                return v
+            time.sleep(0.01)
+        raise AssertionError("condition not reached; topics seen: " + str(sorted({t for _, t, _, _ in self.msgs})))
+
+    def close(self):
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+class ServedAxis:
+    """One drive served in real time on a virtual bus (runtime thread), moving in profile velocity mode."""
+
+    def __init__(self, name: str = "X", node_id: int = 3):
+        self.bus = open_bus(f"virtual:va-svc-{os.getpid()}-{time.monotonic_ns()}")
+        self.axis = AxisNode(self.bus, node_id, seed_config(), name=name, discrete=seed_discrete())
+        self.runtime = Runtime(self.bus, [self.axis]).start()
+        self.drive = self.axis.drive
+
+    def move(self, v_m_s: float) -> None:
+        d = self.drive
+        d.set_parameter("mode_of_operation", 3)
+        for cw in (0x06, 0x07, 0x0F):
+            d.set_controlword(cw)
+            time.sleep(0.005)
+        d.write_object(0x60FF, 0, int(v_m_s * 1e6))
+
+    def close(self):
+        self.runtime.stop()
+        self.bus.shutdown()
+
+
+def settings(url: str, **kw):
+    st = parse_mqtt_url(url, "rig1")
+    st.backoff_min_s = 0.1
+    st.backoff_max_s = 1.0
+    for k, v in kw.items():
+        setattr(st, k, v)
+    return st
+
+
+def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
+    sub = Subscriber(mosquitto.port)
+    ax = ServedAxis()
+    svc = MqttService(settings(mosquitto.url), [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")]).start()
+    try:
+        ax.move(0.02)
+        sub.wait(lambda: len(sub.of("telemetry")) >= 5)
+        t0 = time.monotonic()
+        n0 = len(sub.of("telemetry"))
+        time.sleep(2.0)
+        n1 = len(sub.of("telemetry"))
+        wall = time.monotonic() - t0
+        ax.drive.inject_fault(0x4210, 42)
+        sub.wait(lambda: any(f["event"] == "fault" for f in sub.of("faults")))
+        sub.wait(lambda: ax.drive.state.cia402_state == "FAULT")  # fault reaction (braking) finished
+        ax.drive.clear_fault()
+        sub.wait(lambda: any(f["event"] == "fault_cleared" for f in sub.of("faults")))
+    finally:
+        svc.stop()
+        ax.close()
+    sub.wait(lambda: sub.of("status") and sub.of("status")[-1]["status"] == "offline")
+    sub.close()
+    assert not sub.invalid, sub.invalid[:3]
+    topics = {t for _, t, _, _ in sub.msgs}
+    assert topics == {f"virtualaxis/rig1/X/{leaf}" for leaf in ("status", "state", "telemetry", "faults")}
+    tel = sub.of("telemetry")
+    # 100 Hz in batches of 10 = 10 messages per second
+    assert (n1 - n0) / wall == pytest.approx(10.0, rel=0.15)
+    assert all(len(m["samples"]) == 10 for m in tel[:-1])
+    samples = [s for m in tel for s in m["samples"]]
+    seqs = [s["seq"] for s in samples]
+    assert seqs == list(range(len(seqs)))  # nothing lost, no duplicates, in order
+    dts = sorted(b["t_s"] - a["t_s"] for a, b in zip(samples[:-1], samples[1:], strict=True))
+    assert dts[len(dts) // 2] == pytest.approx(0.010, abs=0.0015)  # 100 Hz in drive time (real-time pacing)
+    moving = [s for s in samples if s["velocity_mm_min"] > 1100]
+    assert moving and all(abs(s["velocity_mm_min"] - 1200) < 60 for s in moving[-20:])
+    assert abs(moving[-1]["speed_rpm"] - 1200 / 16.0) < 5  # 16 mm lead
+    ev = [f for f in sub.of("faults") if f["event"] == "fault"][0]
+    assert ev["emcy_code"] == "0x4210" and ev["fault_number"] == "F30004" and ev["fault_value"] == 42
+    states = sub.of("state")
+    assert any(s["cia402_state"] == "FAULT" and s["active_faults"] for s in states)
+    last = states[-1]["telemetry"]
+    assert last["samples_taken"] == last["samples_published"] + last["samples_dropped"] + last["samples_buffered"]
+    assert last["samples_published"] == len(samples) and last["samples_dropped"] == 0
+    with sub.lock:
+        retained = {t.rsplit("/", 1)[-1]: r for _, t, r, _ in sub.msgs}
+    assert retained["telemetry"] is False and retained["faults"] is False
+    # a late subscriber gets the retained state and the retained offline status
+    late = Subscriber(mosquitto.port)
+    late.wait(lambda: late.of("state") and late.of("status"))
+    assert late.of("status")[-1]["status"] == "offline"
+    late.close()
+
+
+def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  # noqa: F811
+    """Buffer 60 samples (0.6 s): the outage drops exactly the oldest samples beyond it, counted; all others
+    arrive once, in order."""
+    port = mosquitto.port
+    mosquitto.stop()  # absent at start
+    ax = ServedAxis()
+    st = settings(f"mqtt://127.0.0.1:{port}", buffer_samples=60)
+    svc = MqttService(st, [(ax.axis.name, 3, ax.drive, None)]).start()
+    ch = svc.channels[0]
+    try:
+        ax.move(0.01)
+        time.sleep(1.0)
+        assert ch.connects == 0 and ch.buffer.dropped > 0  # the drive ran on, samples dropped and counted
+        cycles = ax.drive.counters["cycles"]
+        assert cycles > 900
+        mosquitto.start()
+        sub = Subscriber(port)
+        sub.wait(lambda: ch.connects == 1 and len(sub.of("telemetry")) >= 3)
+        # kill the broker right after a batch went out (QoS 0 gives no delivery receipt: a batch written
+        # into the socket in the instant of the crash would be lost without a trace)
+        n = len(sub.of("telemetry"))
+        sub.wait(lambda: len(sub.of("telemetry")) > n)
+        mosquitto.stop(kill=True)
+        time.sleep(1.5)  # 150 samples taken meanwhile: 60 kept, the rest dropped
+        attempts = ch.connect_attempts
+        sub.wait(lambda: ch.connect_attempts > attempts + 1, timeout=5)  # a retry failed: next one >= 0.2 s away
+        mosquitto.start()
+        sub.client.reconnect()
+        sub.wait(lambda: ch.connects == 2, timeout=10)
+        time.sleep(0.5)
+    finally:
+        svc.stop()
+        ax.close()
+    sub.wait(lambda: sub.of("status") and sub.of("status")[-1]["status"] == "offline")
+    sub.close()
+    assert not sub.invalid, sub.invalid[:3]
+    c = ch.buffer.counters()
+    assert c["samples_buffered"] == 0
+    assert c["samples_taken"] == c["samples_published"] + c["samples_dropped"]
+    tel = sub.of("telemetry")
+    seqs = [s["seq"] for m in tel for s in m["samples"]]
+    assert len(seqs) == len(set(seqs)) and seqs == sorted(seqs)  # no duplicates, in order
+    assert len(seqs) == c["samples_published"]  # every published sample arrived
+    missing = sorted(set(range(c["samples_taken"])) - set(seqs))
+    assert len(missing) == c["samples_dropped"]  # exactly the counted ones are missing
+    # two gaps: before the first connect and during the outage, each = taken - buffer capacity
+    gaps = [[missing[0]]]
+    for m in missing[1:]:
+        if m == gaps[-1][-1] + 1:
+            gaps[-1].append(m)
+        else:
+            gaps.append([m])
+    assert len(gaps) == 2 and gaps[0][0] == 0
+    # the samples right after each gap were kept: the oldest were dropped, the newest 60 kept
+    for g in gaps:
+        assert g[-1] + 1 in seqs
+    # the telemetry message's cumulative drop counter matches
+    assert tel[-1]["samples_dropped"] == c["samples_dropped"]
+    assert sub.of("state")[-1]["connection"]["disconnects"] == 1
+
+
+def test_last_will_offline_when_the_process_dies(mosquitto, tmp_path):  # noqa: F811
+    """`virtualaxis serve --mqtt` in its own process, killed: the broker publishes the retained will."""
+    sub = Subscriber(mosquitto.port)
+    cli = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    port = free_port()
+    proc = subprocess.Popen(
+        [*cli, "serve", "--can", f"udp_multicast:239.74.163.7,port={port}", "--node-id", "5", "--machine", "cell7",
+         "--mqtt", mosquitto.url, "--telemetry-rate", "50", "--telemetry-batch", "5", "--status-interval", "0",
+         "--modbus", "127.0.0.1:0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )
+    try:
+        sub.wait(lambda: len(sub.of("telemetry")) >= 3, timeout=60)
+        online = sub.of("status")[-1]
+        assert online["status"] == "online" and online["node_id"] == 5 and online["telemetry_rate_hz"] == 50
+        assert all(len(m["samples"]) == 5 for m in sub.of("telemetry"))
+        assert sub.of("state")[-1]["nmt_state"] == "PRE-OPERATIONAL"
+        proc.kill()
+        proc.wait(timeout=10)
+        sub.wait(lambda: sub.of("status")[-1]["status"] == "offline", timeout=30)  # keepalive 10 s x 1.5
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    sub.close()
+    assert not sub.invalid, sub.invalid[:3]
+    topic = {t for _, t, _, p in sub.msgs if p.get("status") == "offline"}
+    assert topic == {"virtualaxis/cell7/seed000-hust/status"}
+
+
+def test_credentials_come_from_a_file_or_the_environment_never_the_command_line(tmp_path):
+    with pytest.raises(MqttSettingsError, match="not accepted on the command line"):
+        parse_mqtt_url("mqtt://user:secret@127.0.0.1:1883", "m")
+    st = parse_mqtt_url("mqtts://broker.local", "m")
+    assert st.tls and st.port == 8883
+    load_credentials(st, None, env={"VIRTUALAXIS_MQTT_USERNAME": "u1", "VIRTUALAXIS_MQTT_PASSWORD": "p1"})
+    assert (st.username, st.password) == ("u1", "p1")
+    f = tmp_path / "cred.toml"
+    f.write_text('username = "u2"\npassword = "p2"\nca_file = "/etc/ssl/ca.pem"\n')
+    load_credentials(st, str(f), env={})
+    assert (st.username, st.password, st.ca_file) == ("u2", "p2", "/etc/ssl/ca.pem")
+    f.write_text('user = "x"\n')
+    with pytest.raises(MqttSettingsError, match=r"cred.toml: user: unknown key"):
+        load_credentials(st, str(f), env={})
+    with pytest.raises(MqttSettingsError, match="nope.toml"):
+        load_credentials(st, str(tmp_path / "nope.toml"), env={})
+
+
+def test_username_and_password_against_a_broker_that_requires_them(tmp_path):
+    """mosquitto with a password file: the right credentials (from the environment) connect, wrong ones are
+    refused and retried with backoff while the drive runs on."""
+    import pwd
+    import shutil
+    import tempfile
+
+    passwd = shutil.which("mosquitto_passwd") or "/usr/bin/mosquitto_passwd"
+    # mosquitto started as root drops to the user 'mosquitto': the file must be readable by it
+    pwdir = Path(tempfile.mkdtemp(prefix="va-mqtt-pw-"))
+    pwdir.chmod(0o755)
+    pwfile = pwdir / "passwd"
+    subprocess.run([passwd, "-c", "-b", str(pwfile), "axis", "s3cret"], check=True, capture_output=True)
+    os.chmod(pwfile, 0o600)
+    if os.geteuid() == 0:
+        try:
+            user = pwd.getpwnam("mosquitto")
+            os.chown(pwfile, user.pw_uid, user.pw_gid)
+        except KeyError:
+            pass
+    broker = Mosquitto(tmp_path, extra_conf=f"password_file {pwfile}\n")
+    broker.conf.write_text(broker.conf.read_text().replace("allow_anonymous true", "allow_anonymous false"))
+    broker.start()
+    ax = ServedAxis()
+    try:
+        good = settings(broker.url)
+        load_credentials(good, None, env={"VIRTUALAXIS_MQTT_USERNAME": "axis", "VIRTUALAXIS_MQTT_PASSWORD": "s3cret"})
+        bad = settings(broker.url, machine="rig2")
+        load_credentials(bad, None, env={"VIRTUALAXIS_MQTT_USERNAME": "axis", "VIRTUALAXIS_MQTT_PASSWORD": "wrong"})
+        s_good = MqttService(good, [("X", 3, ax.drive, None)]).start()
+        s_bad = MqttService(bad, [("X", 3, ax.drive, None)]).start()
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not (s_good.channels[0].connects and s_bad.channels[0].connect_attempts > 2):
+            time.sleep(0.05)
+        s_good.stop()
+        s_bad.stop()
+        assert s_good.channels[0].connects == 1
+        assert s_bad.channels[0].connects == 0 and s_bad.channels[0].connect_attempts > 2
+        assert s_bad.channels[0].last_error
+    finally:
+        ax.close()
+        broker.stop()
+        shutil.rmtree(pwdir, ignore_errors=True)
