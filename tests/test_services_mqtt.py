@@ -46,10 +46,22 @@ class Subscriber:
         self.lock = threading.Lock()
         self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"test-sub-{os.getpid()}-{port}")
         self.client.on_message = self._on_message
+        self.subscribed = threading.Event()
         self.client.on_connect = lambda c, u, f, rc, p: c.subscribe("virtualaxis/#", qos=1)
+        self.client.on_subscribe = lambda c, u, mid, rc, p: self.subscribed.set()
         self.client.reconnect_delay_set(0.01, 0.05)
         self.client.connect("127.0.0.1", port, keepalive=5)
         self.client.loop_start()
+        assert self.subscribed.wait(10), "subscriber: no SUBACK"
+
+    def resubscribe(self) -> None:
+        """After a broker restart: reconnect now and wait for the subscription."""
+        self.subscribed.clear()
+        self.client.reconnect()
+        assert self.subscribed.wait(10), "subscriber: no SUBACK after reconnect"
+
+    def samples(self) -> int:
+        return sum(len(m["samples"]) for m in self.of("telemetry"))
 
     def _on_message(self, client, userdata, m):
         leaf = m.topic.rsplit("/", 1)[-1]
@@ -180,19 +192,27 @@ def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  
         assert ch.connects == 0 and ch.buffer.dropped > 0  # the drive ran on, samples dropped and counted
         cycles = ax.drive.counters["cycles"]
         assert cycles > 900
+        # the subscriber must be there before the publisher reconnects: start the broker right after a failed
+        # attempt (the next one is >= 0.8 s away with backoff 0.1 s doubling to 1 s)
+        attempts = ch.connect_attempts
+        end = time.monotonic() + 5
+        while ch.connect_attempts < max(attempts + 1, 5) and time.monotonic() < end:
+            time.sleep(0.002)
         mosquitto.start()
         sub = Subscriber(port)
+        assert ch.connects == 0, "the publisher connected before the test's subscriber: test timing invalid"
         sub.wait(lambda: ch.connects == 1 and len(sub.of("telemetry")) >= 3)
-        # kill the broker right after a batch went out (QoS 0 gives no delivery receipt: a batch written
-        # into the socket in the instant of the crash would be lost without a trace)
-        n = len(sub.of("telemetry"))
-        sub.wait(lambda: len(sub.of("telemetry")) > n)
+        # kill the broker when nothing is in flight: every published sample has arrived and the next batch is
+        # >= 50 ms away (QoS 0 has no delivery receipt: a batch written into the socket in the instant of an
+        # unannounced crash would be lost without a trace; docs/side-channels.md)
+        sub.wait(lambda: sub.samples() == ch.buffer.published and len(ch.buffer) <= 5)
         mosquitto.stop(kill=True)
         time.sleep(1.5)  # 150 samples taken meanwhile: 60 kept, the rest dropped
         attempts = ch.connect_attempts
-        sub.wait(lambda: ch.connect_attempts > attempts + 1, timeout=5)  # a retry failed: next one >= 0.2 s away
+        sub.wait(lambda: ch.connect_attempts > attempts + 1, timeout=5)  # a retry failed: next one >= 0.8 s away
         mosquitto.start()
-        sub.client.reconnect()
+        sub.resubscribe()
+        assert ch.connects == 1, "the publisher reconnected before the test's subscriber: test timing invalid"
         sub.wait(lambda: ch.connects == 2, timeout=10)
         time.sleep(0.5)
     finally:

@@ -198,6 +198,7 @@ class AxisChannel:
     buffer: SampleBuffer
     event_capacity: int
     events: deque = field(default_factory=deque)
+    states: deque = field(default_factory=lambda: deque(maxlen=32))  # DriveState snapshots of drive events
     events_dropped: int = 0
     events_published: int = 0
     state_dirty: bool = True
@@ -275,8 +276,8 @@ class MqttService:
         d = self._head(ch) | {"status": "offline"}
         return json.dumps(d).encode()
 
-    def state_payload(self, ch: AxisChannel) -> bytes:
-        s = ch.drive.state
+    def state_payload(self, ch: AxisChannel, snapshot=None) -> bytes:
+        s = snapshot if snapshot is not None else ch.drive.state
         active = [f.as_dict() for f in s.faults if not f.acknowledged] if s.fault_active else []
         d = self._head(ch) | {
             "ts_unix_s": round(time.time(), 3),
@@ -320,6 +321,7 @@ class MqttService:
     # -------------------------------------------------------------------------------- drive side
     def _observer(self, ch: AxisChannel) -> Callable:
         def on_event(event: str, state) -> None:  # runs under the drive's lock: cheap and non-blocking only
+            ch.states.append(state)  # each transition gets its own state message (bounded: the newest 32)
             ch.state_dirty = True
             if event not in ("fault", "fault_cleared"):
                 return
@@ -469,9 +471,14 @@ class MqttService:
                     await client.publish(self.topic(ch, "telemetry"), self.telemetry_payload(ch, batch), qos=0)
                     ch.buffer.commit(batch)
                     ch.batches_published += 1
+                while ch.states:
+                    snap = ch.states[0]
+                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, snap), qos=1, retain=True)
+                    if ch.states and ch.states[0] is snap:
+                        ch.states.popleft()
                 now = time.monotonic()
                 if ch.state_dirty or now >= next_state or stopping:
-                    ch.state_dirty = False
+                    ch.state_dirty = False  # (the current state last: the retained message is the newest)
                     await client.publish(self.topic(ch, "state"), self.state_payload(ch), qos=1, retain=True)
                     next_state = now + st.state_interval_s
                 if stopping:
