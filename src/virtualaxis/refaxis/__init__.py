@@ -14,6 +14,6 @@ See docs/refaxis.md for the equations, the cases and their magnitudes.
 
 from virtualaxis.refaxis.cases import CaseFiles, CaseSpec, case_names, make_case
 
-STRUCTURES = ("two_mass", "rigid_pp")
+STRUCTURES = ("two_mass", "full_closed", "rigid_pp")
 
 __all__ = ["CaseFiles", "CaseSpec", "STRUCTURES", "case_names", "make_case"]

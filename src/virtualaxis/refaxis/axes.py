@@ -82,6 +82,7 @@ TWO_MASS: dict[str, float] = {
     "dead_time_s": 0.0,
     "speed_estimator_samples": 1.0,
     "stroke_m": 0.5,
+    "full_closed": 0.0,
 }
 
 RIGID_PP: dict[str, float] = {
@@ -114,9 +115,15 @@ RIGID_PP: dict[str, float] = {
     "dead_time_s": 0.0,
     "speed_estimator_samples": 1.0,
     "stroke_m": 0.4,
+    "full_closed": 0.0,
 }
 
-NOMINAL = {"two_mass": TWO_MASS, "rigid_pp": RIGID_PP}
+# Full closed loop: the two-mass ball screw with the position loop on the linear scale (speed loop on the motor
+# encoder); Kv lowered as usual when the mechanics is inside the position loop.
+FULL_CLOSED: dict[str, float] = dict(TWO_MASS, kv_per_s=30.0, full_closed=1.0)
+
+NOMINAL = {"two_mass": TWO_MASS, "rigid_pp": RIGID_PP, "full_closed": FULL_CLOSED}
+SCREW_STRUCTURES = ("two_mass", "full_closed")
 
 
 def screw_inertia_kg_m2(phys: dict) -> float:
@@ -150,7 +157,7 @@ def two_mass_frequencies(phys: dict) -> tuple[float, float]:
 
 def kernel_params(structure: str, phys: dict) -> dict:
     """Map physical parameters to the kernel's parameter names (``kernel.PARAM_NAMES``)."""
-    two = structure == "two_mass"
+    two = structure in SCREW_STRUCTURES
     m_total = phys["table_mass_kg"]
     mr = phys["resonance_mass_kg"] if phys["resonance_hz"] > 0 else 0.0
     m_rigid = m_total - mr
@@ -209,6 +216,9 @@ def kernel_params(structure: str, phys: dict) -> dict:
             tau_th_s=phys["thermal_time_constant_s"],
             enc_counts=phys["encoder_counts"],
             enc_jitter_counts=phys["encoder_jitter_counts"],
+            fb_scale=phys["full_closed"],
+            fb_quantum_m=phys["scale_quantum_m"],
+            fb_noise_m=phys["scale_noise_m"],
         )
     else:
         out.update(fb_quantum_m=phys["scale_quantum_m"], fb_noise_m=phys["scale_noise_m"], tau_th_s=1.0)
@@ -233,7 +243,8 @@ def config_toml(structure: str, phys: dict, name: str, header: str) -> str:
     WITHOUT the withheld effect(s). Every value names its source."""
     lines = [f"# {h}" for h in header.splitlines()]
     add = lines.append
-    if structure == "two_mass":
+    if structure in SCREW_STRUCTURES:
+        full = bool(phys["full_closed"])
         r = radius_m_per_rad(phys)
         j = motor_side_inertia_kg_m2(phys)
         k = phys["axial_stiffness_n_per_m"]
@@ -296,15 +307,16 @@ def config_toml(structure: str, phys: dict, name: str, header: str) -> str:
         add(f"current_ti_s = {_v(lq / rs, 'drive: current PI zero on the winding pole, Ti = L_q / R_s')}")
         add(f"speed_kp_nm_s_per_rad = {_v(phys['speed_kp'], 'drive parameter list')}")
         add(f"speed_ti_s = {_v(phys['speed_ti_s'], 'drive parameter list')}")
-        add(f"kv_per_s = {_v(phys['kv_per_s'], 'NC machine data: Kv 2.4 (m/min)/mm')}")
+        kv = phys["kv_per_s"]
+        add(f"kv_per_s = {_v(kv, f'NC machine data: Kv {kv * 60 / 1000:g} (m/min)/mm')}")
         add(f"velocity_ff_factor = {_v(phys['velocity_ff'], 'NC machine data: speed feed-forward 100 %')}")
         add(f"torque_ff_factor = {_v(0.0, 'NC machine data: off')}")
         add(f"current_limit_a = {_v(phys['effort_limit'] / kt, 'drive: 3 x rated torque')}")
         add(f"speed_limit_rpm = {_v(3000.0, 'drive: rated speed')}")
-        add('position_feedback = "motor_encoder"')
+        add('position_feedback = "linear_scale"' if full else 'position_feedback = "motor_encoder"')
         add("\n[sensors]")
         add(f"motor_encoder_counts_per_rev = {_v(int(phys['encoder_counts']), 'motor catalogue: 20-bit encoder')}")
-        add(f"linear_scale_resolution_m = {_v(phys['scale_quantum_m'], 'measuring scale data sheet: 20 nm')}")
+        add(f"linear_scale_resolution_m = {_v(phys['scale_quantum_m'], 'linear scale data sheet: 20 nm')}")
         add(f"dead_time_s = {_v(0.0, 'drive: no feedback delay expected')}")
         add(f"position_noise_m = {_v(phys['scale_noise_m'], 'scale at standstill, 1 sigma')}")
         add(f"current_noise_a = {_v(phys['current_noise_a'], 'current at standstill, 1 sigma')}")

@@ -75,6 +75,7 @@ PARAM_NAMES = (
     "est_samples",  # speed estimate: difference over 1 or 2 samples
     "ctrl_on",  # 1: closed loop; 0: effort = u_add only (open-loop tests)
     "t_pos_s",  # position-loop cycle [s]
+    "fb_scale",  # two_mass only: 1 = position loop on the linear scale (full closed loop), 0 = motor encoder
 )
 P_STRUCTURE = 0
 P_R_M_PER_RAD = 1
@@ -125,6 +126,7 @@ P_DELAY_S = 45
 P_EST_SAMPLES = 46
 P_CTRL_ON = 47
 P_T_POS_S = 48
+P_FB_SCALE = 49
 N_PARAMS = len(PARAM_NAMES)
 for _i, _name in enumerate(PARAM_NAMES):  # the constants above must follow the names' order
     assert globals()["P_" + _name.upper()] == _i, _name
@@ -344,8 +346,11 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
     delay = p[P_DELAY_S]
     est = int(p[P_EST_SAMPLES])
     n_hist = 8192
-    hist = np.zeros(n_hist)
-    n_written = 0
+    hist_th = np.zeros(n_hist)  # motor angle after every integration step (encoder dead time)
+    hist_x = np.zeros(n_hist)  # table position after every integration step (scale dead time)
+    scale_fb = (not two_mass) or p[P_FB_SCALE] != 0.0
+    delay_enc = delay if (two_mass and not scale_fb) else 0.0
+    delay_scale = delay if scale_fb else 0.0
 
     s = s_init.copy()
     z = z_init
@@ -359,25 +364,26 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
     fb_prev1 = s[2]
     fb_prev2 = s[2]
     theta_meas_prev = s[0]
-    hist[0] = s[0] if two_mass else s[2]
+    hist_th[0] = s[0]
+    hist_x[0] = s[2]
     n_written = 1
     enc_i = 0
     for k in range(n):
         # ---- sample at t_k ------------------------------------------------------------------------
+        theta_meas = 0.0
         if two_mass:
-            th_true = _hist_read(hist, n_hist, n_written, h, delay, hist[0]) if delay > 0.0 else s[0]
+            th_true = _hist_read(hist_th, n_hist, n_written, h, delay_enc, hist_th[0]) if delay_enc > 0.0 else s[0]
             th = th_true + p[P_ENC_JITTER_COUNTS] * q_enc * enc_noise[enc_i]
             if q_enc > 0.0:
                 th = math.floor(th / q_enc + 0.5) * q_enc
             fb = r * th
             theta_meas = th
-        else:
-            x_true = _hist_read(hist, n_hist, n_written, h, delay, hist[0]) if delay > 0.0 else s[2]
+        if scale_fb:
+            x_true = _hist_read(hist_x, n_hist, n_written, h, delay_scale, hist_x[0]) if delay_scale > 0.0 else s[2]
             xm = x_true + p[P_FB_NOISE_M] * fb_noise[k]
             if q_fb > 0.0:
                 xm = math.floor(xm / q_fb + 0.5) * q_fb
             fb = xm
-            theta_meas = 0.0
         pos_fs = 0.0
         if two_mass:
             pos_fs, _g = spring_force(p, s[0], s[1], s[2], s[3], dtemp)
@@ -396,7 +402,8 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
             # ---- speed loop ---------------------------------------------------------------------------
             if two_mass:
                 if j > 0:
-                    th_true = _hist_read(hist, n_hist, n_written, h, delay, hist[0]) if delay > 0.0 else s[0]
+                    th_true = (_hist_read(hist_th, n_hist, n_written, h, delay_enc, hist_th[0])
+                               if delay_enc > 0.0 else s[0])
                     th = th_true + p[P_ENC_JITTER_COUNTS] * q_enc * enc_noise[enc_i]
                     if q_enc > 0.0:
                         th = math.floor(th / q_enc + 0.5) * q_enc
@@ -405,7 +412,7 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
                 err = v_set / r - w_est
             else:
                 if est == 2:
-                    v_est = (fb - fb_prev2) / (2.0 * ts)
+                    v_est = (fb - fb_prev2) / (2.0 * ts)  # two-sample difference
                 else:
                     v_est = (fb - fb_prev1) / ts
                 fb_prev2 = fb_prev1
@@ -449,6 +456,7 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
                     fv = p[P_FV_POS_N_S_PER_M] if v_mid >= 0.0 else p[P_FV_NEG_N_S_PER_M]
                     power = abs((fbr + fv * v_mid) * v_mid)
                     dtemp += h * (g_th * power - dtemp) / tau_th
-                hist[n_written % n_hist] = s[0] if two_mass else s[2]
+                hist_th[n_written % n_hist] = s[0]
+                hist_x[n_written % n_hist] = s[2]
                 n_written += 1
     return out, s, z, integ, u_act

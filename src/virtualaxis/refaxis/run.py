@@ -3,11 +3,12 @@
 Recording conventions (row k = position-loop instant t_k = k T, T = 1 ms):
 
 * ``pos_cmd``: the command the position loop used at t_k.
-* ``pos_meas``: linear scale at t_k (quantised, white noise). On ``rigid_pp`` the scale is also the loop's
-  feedback, so the channel is exactly what the controller read (including a feedback dead time, if any).
-* ``pos_fb`` (two_mass): motor encoder at the table (r x encoder angle) as the position loop read it at t_k.
-* ``motor_pos`` (two_mass): that encoder angle [rad], 0 with the table at 0.
-* ``current_q`` (two_mass): torque-producing current sampled at t_k (torque / kt, quantised, noisy);
+* ``pos_meas``: linear scale at t_k (quantised, white noise). On ``rigid_pp`` and ``full_closed`` the scale is
+  also the position loop's feedback, so the channel is exactly what the controller read (including a feedback
+  dead time, if any); on ``two_mass`` it is a measuring scale outside the loop.
+* ``pos_fb`` (two_mass only): motor encoder at the table (r x encoder angle) as the position loop read it at t_k.
+* ``motor_pos`` (two_mass, full_closed): the encoder angle [rad], 0 with the table at 0.
+* ``current_q`` (two_mass, full_closed): torque-producing current sampled at t_k (torque / kt, quantised, noisy);
   ``force_drive`` = current_q x kt x 2 pi / lead (the drive's force at the nut).
 * ``force_drive`` (rigid_pp): the controller's force command; by default row k holds the command applied
   during [t_k-1, t_k) (computed at t_k-1); with ``channel_shift = 1`` row k holds the command computed at t_k
@@ -54,7 +55,7 @@ def simulate(structure: str, phys: dict, x_cmd: np.ndarray, seed: int, *, record
     s0 = np.zeros(6)
     integ0 = 0.0
     u0 = 0.0
-    if structure == "two_mass":
+    if structure in A.SCREW_STRUCTURES:
         r = p[K.P_R_M_PER_RAD]
         th0 = cmd[0] / r
         pos, g = K.screw_position(p, th0, p[K.P_DTEMP0_K])
@@ -76,10 +77,13 @@ def simulate(structure: str, phys: dict, x_cmd: np.ndarray, seed: int, *, record
     m = raw.shape[0]
     t = np.arange(m) * T
     cols: dict[str, np.ndarray] = {"t": t, "pos_cmd": x_rec}
-    if structure == "two_mass":
-        cols["pos_meas"] = _quantise(raw[:, K.C_X_TABLE] + phys["scale_noise_m"] * rng.standard_normal(m),
-                                     phys["scale_quantum_m"])
-        cols["pos_fb"] = raw[:, K.C_FB]
+    if structure in A.SCREW_STRUCTURES:
+        if phys["full_closed"]:
+            cols["pos_meas"] = raw[:, K.C_FB]  # the scale as the position loop read it
+        else:
+            cols["pos_meas"] = _quantise(raw[:, K.C_X_TABLE] + phys["scale_noise_m"] * rng.standard_normal(m),
+                                         phys["scale_quantum_m"])
+            cols["pos_fb"] = raw[:, K.C_FB]
         kt = phys["torque_constant_nm_per_a"]
         iq = _quantise(raw[:, K.C_U_ACT] / kt + phys["current_noise_a"] * rng.standard_normal(m),
                        phys["current_quantum_a"])
