@@ -35,7 +35,7 @@ def test_every_profile_kind_runs(tmp_path):
     for spec in ("ptp:distance_mm=50,feed_mm_min=10000,accel_m_s2=2,jerk_m_s3=50", "step:distance_um=10",
                  "chirp:amplitude_um=5,f0_hz=1,f1_hz=500", f"file:{moves}"):
         assert main(["simulate", "--config", str(SEED000), "--profile", spec, "--duration", "0.3",
-                     "--out", str(tmp_path / "t.csv")]) == 0, spec
+                     "--out", str(tmp_path / "t.csv"), "--force"]) == 0, spec
     assert main(["simulate", "--config", str(SEED000), "--profile", "circle:radius_mm=50,omega_rad_min=120",
                  "--duration", "0.3", "--out", str(tmp_path / "c.csv")]) == 0
     assert (tmp_path / "c_x.csv").exists() and (tmp_path / "c_y.csv").exists()

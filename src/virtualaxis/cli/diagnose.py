@@ -4,8 +4,14 @@ it shrinks. Writes DIR/report.json, DIR/report.html and DIR/calibrated.toml."""
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
+from virtualaxis.cli.outputs import add_force_argument, check_output_dir, staged_dir
 from virtualaxis.config import load_axis_config
+
+#: files written into --out
+OUT_NAMES = ("report.json", "report.html", "calibrated.toml")
 
 
 def register(subparsers) -> None:
@@ -28,6 +34,7 @@ def register(subparsers) -> None:
                    help="refinement of each candidate: bounded Gauss-Newton with a secant Jacobian (default), "
                    "scipy least_squares, or differential evolution (slow)")
     p.add_argument("--no-hybrid", action="store_true", help="skip the data-driven residual models")
+    add_force_argument(p)
     p.set_defaults(func=run)
 
 
@@ -38,9 +45,11 @@ def run(args: argparse.Namespace) -> int:
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
 
-    if args.jobs < 1:
-        raise CliError("--jobs must be >= 1")
+    if not 1 <= args.jobs <= 256:
+        raise CliError(f"--jobs must be 1 .. 256 (got {args.jobs})")
     cfg = load_axis_config(args.config)
+    inputs = [args.config, *args.traces, *args.holdout]
+    check_output_dir(args.out, args.force, OUT_NAMES, inputs=inputs)
     names = [n.strip() for n in args.effects.split(",")] if args.effects else None
     bars: list = []
 
@@ -70,7 +79,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for b in bars:
             b.close()
-    paths = write_outputs(report, args.out)
+    with staged_dir(args.out) as stage:
+        staged = write_outputs(report, stage)
+    paths = {k: Path(args.out) / Path(v).name for k, v in staged.items()}
+    for w in report.get("warnings", []):
+        if "plausibility: " in w:
+            print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)
     print(f"conclusion: {report['conclusion']}")
     for e in report["effects"]:
         if e["accepted"]:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from virtualaxis.cli.outputs import add_force_argument, check_output_file, write_text_atomic
 from virtualaxis.cli.rcsa import check_positions, parse_positions
 from virtualaxis.config import load_axis_config
 from virtualaxis.rcsa.config_writer import write_identified_config
@@ -92,6 +93,18 @@ def run(args: argparse.Namespace) -> int:
     if set(train_pos) & set(val_pos):
         raise CliError("--validate-positions must not repeat a training position")
     check_positions(model, train_pos + val_pos, "position")
+    for opt, val, lo, hi in (("--generations", args.generations, 1, 100_000),
+                             ("--population", args.population, 1, 1000),
+                             ("--workers", args.workers, 1, 256), ("--seed", args.seed, 0, 2**63 - 1)):
+        if val is not None and not lo <= val <= hi:
+            raise CliError(f"{opt} must be {lo} .. {hi} (got {val})")
+    inputs = [args.config] + [x for x in (args.frf, args.modes) if x]
+    if args.json:
+        check_output_file(args.json, args.force, "--json", inputs=inputs)
+    if args.write_config:
+        check_output_file(args.write_config, args.force, "--write-config", inputs=inputs)
+        if args.json and Path(args.json).resolve() == Path(args.write_config).resolve():
+            raise CliError("--json and --write-config name the same file")
     measured = _load_measured(args, model)
     try:
         train = measured.select(train_pos, source)
@@ -155,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
             errs = ", ".join("—" if e is None else f"{100 * e:.2f} %" for e in r["frequency_relative_errors"])
             print(f"{tag:>8} l = {r['position_m']:g} m: frequency errors {errs}")
     if args.json:
-        Path(args.json).write_text(json.dumps(nan_to_none(doc), indent=1, allow_nan=False))
+        write_text_atomic(args.json, json.dumps(nan_to_none(doc), indent=1, allow_nan=False))
     if args.write_config:
         stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d")
         note = (
@@ -163,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
             + ",".join(f"{p:g}" for p in train_pos)
             + f" m, objective {res.objective:.4g}"
         )
-        write_identified_config(args.config, args.write_config, res.joints, note)
+        from virtualaxis.cli.outputs import atomic_path
+
+        with atomic_path(args.write_config) as tmp:
+            write_identified_config(args.config, tmp, res.joints, note)
         print(f"wrote {args.write_config}")
     return 0
 
@@ -193,4 +209,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--amplitude-weight", type=float, help="weight of eq. 26's amplitude terms (rcsa.identification)"
     )
+    add_force_argument(p)
     p.set_defaults(func=run)

@@ -3,13 +3,22 @@
 Commands are modules in this package; each defines ``register(subparsers)`` adding one sub-parser
 whose ``func(args) -> int`` runs it. Expected user errors (``ConfigError``, ``InputError``,
 ``CliError``) are printed as one ``error: ...`` line with exit status 2, never as a traceback.
+
+Last resort: any other exception is printed as one ``internal error: ...`` line with exit status 1 (the
+traceback only with ``--debug`` or ``VIRTUALAXIS_DEBUG=1``); such a line is a bug to report, each user
+mistake has its own check. SIGTERM is handled like SIGINT (``KeyboardInterrupt``), so that outputs being
+written are removed instead of left truncated; the exit status is 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+import threading
+import traceback
 
 from virtualaxis.cli.errors import CliError
 from virtualaxis.config.errors import ConfigError, InputError
@@ -37,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     from virtualaxis import __version__
 
     parser.add_argument("--version", action="version", version=f"virtualaxis {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an internal error (also: VIRTUALAXIS_DEBUG=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         try:
@@ -49,20 +60,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like SIGINT so that the same clean-up runs."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    debug = bool(getattr(args, "debug", False)) or os.environ.get("VIRTUALAXIS_DEBUG", "") not in ("", "0")
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args) or 0)
     except (ConfigError, InputError, CliError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except _Terminated:
+        print("terminated (SIGTERM); incomplete outputs removed", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print("interrupted; incomplete outputs removed", file=sys.stderr)
         return 130
+    except MemoryError:
+        print(f"error: out of memory in '{args.command}' (an input or option asks for more than this machine "
+              "has; see docs/bad-input.md)", file=sys.stderr)
+        return 1
+    except BrokenPipeError:
+        return 1
+    except Exception as exc:  # the last resort; every expected mistake has its own check
+        if debug:
+            traceback.print_exc()
+        where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        loc = f" at {os.path.basename(where.filename)}:{where.lineno}" if where else ""
+        print(f"internal error in '{args.command}': {type(exc).__name__}: {_one_line(exc)}{loc} (a bug; rerun "
+              "with --debug for the traceback)", file=sys.stderr)
+        return 1
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,6 +6,18 @@ import json
 from pathlib import Path
 
 from virtualaxis.cli.common import add_config_argument, parse_float_list
+from virtualaxis.cli.outputs import (
+    add_force_argument,
+    check_output_dir,
+    check_output_file,
+    staged_dir,
+    write_text_atomic,
+)
+
+#: files ``--plot`` writes
+PLOT_NAMES = ("frequencies_vs_position.png", "mode_shapes.png")
+#: most positions one run evaluates (each is a modal analysis of the full model, ~ms; the JSON grows with it)
+MAX_POSITIONS = 10_000
 
 
 def register(sub) -> None:
@@ -15,6 +27,7 @@ def register(sub) -> None:
                    help="nut positions as fractions of the stroke, e.g. 0.1,0.5,0.9 (default: mid-stroke)")
     p.add_argument("--json", default=None, help="write results JSON here")
     p.add_argument("--plot", default=None, help="write mode-shape and frequency-vs-position PNGs to this folder")
+    add_force_argument(p)
     p.set_defaults(func=run)
 
 
@@ -28,6 +41,12 @@ def run(args) -> int:
     for fr in fracs:
         if not 0.0 <= fr <= 1.0:
             raise CliError(f"--positions: {fr:g} is not a fraction of the stroke (0..1)")
+    if len(fracs) > MAX_POSITIONS:
+        raise CliError(f"--positions: {len(fracs)} positions; at most {MAX_POSITIONS}")
+    if args.json:
+        check_output_file(args.json, args.force, "--json", inputs=[args.config])
+    if args.plot:
+        check_output_dir(args.plot, args.force, PLOT_NAMES, "--plot", inputs=[args.config])
     results = []
     for fr in fracs:
         table = (fr - 0.5) * cfg.axis.stroke_m
@@ -48,10 +67,10 @@ def run(args) -> int:
     doc = {"config": str(args.config), "nut_position_reference": "distance from the fixed (driven-end) bearing",
            "results": results}
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(doc, indent=2))
+        write_text_atomic(args.json, json.dumps(doc, indent=2))
     if args.plot:
         from virtualaxis.studies.plots import plot_modal
 
-        plot_modal(cfg, results, Path(args.plot))
+        with staged_dir(args.plot) as stage:
+            plot_modal(cfg, results, Path(stage))
     return 0

@@ -10,6 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from virtualaxis.cli.common import parse_float_list
+from virtualaxis.cli.outputs import (
+    add_force_argument,
+    check_output_dir,
+    check_output_file,
+    staged_dir,
+    write_text_atomic,
+)
 from virtualaxis.config import load_axis_config
 from virtualaxis.rcsa.fe_shaft import fe_natural_frequencies_hz
 from virtualaxis.rcsa.identify import predict_modes
@@ -81,6 +88,24 @@ def run(args: argparse.Namespace) -> int:
     if not positions:
         raise CliError(f"{args.config}: no positions: give --positions or rcsa.positions_m")
     check_positions(model, positions, "--positions")
+    if args.json:
+        check_output_file(args.json, args.force, "--json", inputs=[args.config])
+    if args.plot:
+        check_output_dir(args.plot, args.force, [f"frf_{p:.3f}m.png" for p in positions], "--plot",
+                         inputs=[args.config])
+    with staged_dir(args.plot) if args.plot else _nullstage() as stage:
+        return _run(args, model, positions, stage)
+
+
+class _nullstage:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+def _run(args: argparse.Namespace, model: RcsaModel, positions: list[float], stage: Path | None) -> int:
     results = []
     preds = predict_modes(model, positions)
     print(
@@ -101,13 +126,11 @@ def run(args: argparse.Namespace) -> int:
             fe = fe_natural_frequencies_hz(model, pr.position_m)
             row["fe_natural_frequencies_hz"] = [float(v) for v in fe[(fe > 1.0) & (fe < 1000.0)]]
         results.append(row)
-        if args.plot:
-            out_dir = Path(args.plot)
-            out_dir.mkdir(parents=True, exist_ok=True)
+        if stage is not None:
             plot_frf(
                 model,
                 pr.position_m,
-                out_dir / f"frf_{pr.position_m:.3f}m.png",
+                stage / f"frf_{pr.position_m:.3f}m.png",
                 (pr.natural_frequencies_hz, pr.amplitudes_m_per_n),
             )
     gaps = sum(1 for r in results for f in r["natural_frequencies_hz"] if f is None)
@@ -120,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
             "joints": model.joints.as_dict(),
             "results": results,
         }
-        Path(args.json).write_text(json.dumps(doc, indent=1))
+        write_text_atomic(args.json, json.dumps(doc, indent=1))
     return 0
 
 
@@ -139,4 +162,5 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--fe-check", action="store_true", help="add the independent FE model's natural frequencies"
     )
+    add_force_argument(p)
     p.set_defaults(func=run)

@@ -9,6 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from virtualaxis.cli.common import add_config_argument, parse_float_list
+from virtualaxis.cli.errors import CliError
+from virtualaxis.cli.outputs import add_force_argument, check_output_dir, staged_dir
+
+#: most sweep values one run takes (each is a simulation of seconds of motion or a modal analysis)
+MAX_VALUES = 200
 
 
 def register(sub) -> None:
@@ -18,6 +23,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--values", default=None,
                    help="sweep values: kv [1/min] for kv-sweep, scales for support-stiffness, feeds [mm/min]")
+    add_force_argument(p)
     p.set_defaults(func=run)
 
 
@@ -29,17 +35,30 @@ def _write_rows(path: Path, rows: list[dict]) -> None:
 
 
 def run(args) -> int:
+    from virtualaxis.config import load_axis_config
+
+    cfg = load_axis_config(args.config)
+    vals = parse_float_list(args.values, "--values") if args.values else None
+    if vals is not None:
+        if len(vals) > MAX_VALUES:
+            raise CliError(f"--values: {len(vals)} values; at most {MAX_VALUES}")
+        bad = [v for v in vals if not v > 0]
+        if bad:
+            raise CliError(f"--values: {bad[0]:g} is not > 0 (kv [1/min], stiffness scales and feeds [mm/min] are "
+                           "positive)")
+    stem = args.name.replace("-", "_")
+    check_output_dir(args.out, args.force, (f"{stem}.csv", f"{stem}.json", f"{stem}*.png"), inputs=[args.config])
+    with staged_dir(args.out) as stage:
+        return _run(args, cfg, vals, stem, Path(stage))
+
+
+def _run(args, cfg, vals, stem: str, out: Path) -> int:
+    """Run the study, writing every file into ``out`` (the staging folder)."""
     from tqdm import tqdm
 
-    from virtualaxis.config import load_axis_config
     from virtualaxis.studies import seeds
     from virtualaxis.studies.plots import plot_xy
 
-    cfg = load_axis_config(args.config)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    vals = parse_float_list(args.values, "--values") if args.values else None
-    stem = args.name.replace("-", "_")
     if args.name == "support-stiffness":
         rows = seeds.support_stiffness_study(cfg, None if vals is None else np.array(vals))
         doc = {"rows": rows, "paper": "seed 004 Fig. 10: first frequency rises with support stiffness k0_A"}

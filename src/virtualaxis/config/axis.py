@@ -7,8 +7,12 @@ A config file is TOML. Every physical parameter carries its unit in its key name
     lead_m = { value = 0.016, source = "seed 000 Table 2" }
     table_mass_kg = 300.0            # a bare number is accepted; its source is then "unspecified"
 
-Loading validates every key: unknown keys, missing required keys, wrong types and non-physical values
-raise :class:`~virtualaxis.config.ConfigError` naming the file and ``section.key``.
+A value may carry another unit of the same quantity, ``lead_m = { value = 16, unit = "mm" }``: it is converted
+to the key's unit (table in :mod:`virtualaxis.config.bounds`); a unit of another quantity is refused.
+
+Loading validates every key: unknown keys, missing required keys, wrong types, non-finite numbers (nan, inf),
+values outside the plausibility bounds of :mod:`virtualaxis.config.bounds`, files that are not UTF-8 and
+duplicate keys raise :class:`~virtualaxis.config.ConfigError` naming the file and ``section.key`` (or line).
 
 Sections (each a dataclass below, fields documented with unit and meaning):
 ``axis``, ``mechanics``, ``backlash``, ``friction``, ``actuator``, ``motor``, ``inverter``, ``control``,
@@ -31,7 +35,18 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
+from virtualaxis.config.bounds import (
+    BOUNDS,
+    DIMENSIONLESS,
+    MAX_MECHANICAL_STEP_RATE_HZ,
+    convert_unit,
+    format_bound,
+    units_for_key,
+)
 from virtualaxis.config.errors import ConfigError
+
+#: a config file larger than this is not a config (``/dev/zero``, a trace given as --config) [bytes]
+MAX_CONFIG_BYTES = 4 << 20
 
 # Sections that belong to other packages; kept verbatim, validated by their owners.
 EXTENSION_SECTIONS = ("rcsa", "drive", "canopen", "modbus", "mqtt", "diagnosis", "metadata")
@@ -370,9 +385,11 @@ def _toml_table(name: str, value: dict) -> str:
     return "\n".join(lines)
 
 
-def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field) -> Any:
+def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field, unit: str | None = None) -> Any:
     meta = f.metadata
     typ = f.type if isinstance(f.type, str) else f.type.__name__
+    if unit is not None and typ in ("bool", "str"):
+        raise ConfigError(file, key, f"takes no unit (got unit = {unit!r})")
     if typ == "bool":
         if not isinstance(raw, bool):
             raise ConfigError(file, key, f"must be true or false (got {raw!r})")
@@ -383,19 +400,28 @@ def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field) -> Any:
         if meta["choices"] and raw not in meta["choices"]:
             raise ConfigError(file, key, f"must be one of {', '.join(meta['choices'])} (got {raw!r})")
         return raw
+    if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+        kind = "an integer" if typ == "int" else "a number"
+        raise ConfigError(file, key, f"must be {kind} (got {raw!r})")
+    if isinstance(raw, float) and not math.isfinite(raw):
+        raise ConfigError(file, key, f"must be a finite number (got {raw!r})")
+    if unit is not None:
+        if not isinstance(unit, str):
+            raise ConfigError(file, key, f"unit must be a string (got {unit!r})")
+        try:
+            raw = convert_unit(key, float(raw), unit)
+        except ValueError as exc:
+            raise ConfigError(file, key, str(exc)) from None
     if typ == "int":
-        if isinstance(raw, bool) or not isinstance(raw, int):
-            if isinstance(raw, float) and raw.is_integer():
-                raw = int(raw)
-            else:
+        if isinstance(raw, float):
+            if not raw.is_integer():
                 raise ConfigError(file, key, f"must be an integer (got {raw!r})")
+            raw = int(raw)
         val: Any = raw
     else:  # float
-        if isinstance(raw, bool) or not isinstance(raw, (int, float)):
-            raise ConfigError(file, key, f"must be a number (got {raw!r})")
         val = float(raw)
-        if not math.isfinite(val) and key.split(".")[-1] not in ("travel_min_m", "travel_max_m"):
-            raise ConfigError(file, key, f"must be finite (got {raw!r})")
+        if not math.isfinite(val):
+            raise ConfigError(file, key, f"must be a finite number (got {raw!r})")
     check = meta["check"]
     if check == ">0" and not val > 0:
         raise ConfigError(file, key, f"must be > 0 (got {val})")
@@ -403,7 +429,19 @@ def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field) -> Any:
         raise ConfigError(file, key, f"must be >= 0 (got {val})")
     if check == "0..1" and not 0 <= val <= 1:
         raise ConfigError(file, key, f"must be between 0 and 1 (got {val})")
+    lo_hi = BOUNDS.get(key)
+    if lo_hi is not None and not lo_hi[0] <= val <= lo_hi[1]:
+        lo, hi = lo_hi
+        raise ConfigError(
+            file, key, f"{val:g} is outside the plausible range {format_bound(lo)} .. {format_bound(hi)}"
+            f" {_unit_name(key)}".rstrip()
+        )
     return val
+
+
+def _unit_name(key: str) -> str:
+    units = units_for_key(key)
+    return next(iter(units)) if units is not DIMENSIONLESS else ""
 
 
 def _section(file: str, name: str, cls: type, raw: Any, sources: dict) -> Any:
@@ -427,14 +465,20 @@ def _section(file: str, name: str, cls: type, raw: Any, sources: dict) -> Any:
         if isinstance(value, dict):
             extra_keys = set(value) - {"value", "source", "unit"}
             if "value" not in value or extra_keys:
-                raise ConfigError(file, key, "a table value needs exactly 'value' and optionally 'source'")
+                raise ConfigError(
+                    file, key, "a table value needs 'value' and optionally 'source' and 'unit'"
+                    + (f" (unknown: {', '.join(sorted(extra_keys))})" if extra_keys else "")
+                )
             src = value.get("source")
             if src is not None and not isinstance(src, str):
                 raise ConfigError(file, key, "source must be a string")
             if src:
                 sources[key] = src
+            unit = value.get("unit")
             value = value["value"]
-        kwargs[fname] = _coerce(file, key, value, f)
+        else:
+            unit = None
+        kwargs[fname] = _coerce(file, key, value, f, unit)
     return cls(**kwargs)
 
 
@@ -516,23 +560,64 @@ def _check_consistency(cfg: AxisConfig) -> None:
             raise ConfigError(
                 f, f"control.{outer}", f"must be an integer multiple of control.{inner} ({to} / {ti} = {ratio:g})"
             )
+    sim = cfg.simulation
+    rate = sim.mechanical_substeps / c.current_cycle_s
+    if rate > MAX_MECHANICAL_STEP_RATE_HZ:
+        most = max(1, int(MAX_MECHANICAL_STEP_RATE_HZ * c.current_cycle_s))
+        raise ConfigError(
+            f, "simulation.mechanical_substeps",
+            f"{sim.mechanical_substeps} substeps of the {c.current_cycle_s:g} s current cycle are {rate:.3g} "
+            f"mechanical steps per simulated second; at most {MAX_MECHANICAL_STEP_RATE_HZ:.0e} (1..{most} here): "
+            "finer steps add no accuracy and cost wall time linearly",
+        )
+    nyquist = 0.5 * rate
+    if cfg.effects.resonance_frequency_hz > nyquist:
+        raise ConfigError(
+            f, "effects.resonance_frequency_hz",
+            f"{cfg.effects.resonance_frequency_hz:g} Hz is above the Nyquist frequency {nyquist:g} Hz of the "
+            "mechanical step (raise simulation.mechanical_substeps)",
+        )
+    if m.model == "ball_screw" and m.min_segment_m >= m.screw_length_m:
+        raise ConfigError(f, "mechanics.min_segment_m", "must be smaller than mechanics.screw_length_m")
     if cfg.limits.travel_min_m >= cfg.limits.travel_max_m:
-        raise ConfigError(f, "limits.travel_max_m", "must be greater than limits.travel_min_m")
+        raise ConfigError(
+            f, "limits.travel_max_m",
+            f"must be greater than limits.travel_min_m ({cfg.limits.travel_max_m:g} <= {cfg.limits.travel_min_m:g})",
+        )
     if cfg.effects.resonance_frequency_hz > 0 and not cfg.effects.resonance_mass_kg > 0:
         raise ConfigError(f, "effects.resonance_mass_kg", "must be > 0 when resonance_frequency_hz is set")
     if cfg.backlash.enabled and m.model == "rigid":
         raise ConfigError(f, "backlash.enabled", "a rigid axis has no nut contact for backlash")
 
 
+def read_text_file(path: str | Path, what: str = "file", max_bytes: int = MAX_CONFIG_BYTES) -> str:
+    """A small UTF-8 text file's text (a BOM is accepted). Raises :class:`ConfigError` naming the file (and
+    the line of the first byte that is not UTF-8) for a missing, unreadable, oversized or non-UTF-8 file."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            blob = fh.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise ConfigError(str(p), "", f"{what} not found") from None
+    except IsADirectoryError:
+        raise ConfigError(str(p), "", f"is a folder, not a {what}") from None
+    except OSError as exc:
+        raise ConfigError(str(p), "", f"cannot read ({exc.strerror or exc})") from None
+    if len(blob) > max_bytes:
+        raise ConfigError(str(p), "", f"larger than {max_bytes >> 20} MiB: not a {what}")
+    try:
+        return blob.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = blob[: exc.start].count(b"\n") + 1
+        raise ConfigError(
+            str(p), "", f"line {line}: not UTF-8 text (byte 0x{blob[exc.start]:02x} at offset {exc.start})"
+        ) from None
+
+
 def load_axis_config(path: str | Path) -> AxisConfig:
     """Read and validate an axis config file. Raises :class:`ConfigError` naming file and key."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(str(p), "", "file not found") from None
-    except OSError as exc:
-        raise ConfigError(str(p), "", f"cannot read ({exc.strerror})") from None
+    text = read_text_file(p, "config file")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -40,6 +40,8 @@ def load_traces(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str])
     traces = [read_trace(p, cfg.axis.name) for p in list(fit_paths) + list(holdout_paths)]
     for tr in traces:
         check_units(tr, cfg)
+    from virtualaxis.diagnosis.plausibility import check_plausibility  # bad-input checks (issue 18)
+    notes.extend(check_plausibility(cfg, traces, list(fit_paths), list(holdout_paths or [])))
     dts = {round(tr.dt_s, 12) for tr in traces}
     if len(dts) > 1:
         notes.append(f"traces have different sample periods {sorted(dts)} s; each is simulated on its own grid")

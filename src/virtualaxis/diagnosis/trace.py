@@ -88,48 +88,133 @@ def _err(path: str, msg: str, row: int | None = None, column: str | None = None)
     return InputError(path, msg, row, column)
 
 
-def _parse_csv(path: Path) -> tuple[list[str], np.ndarray]:
+#: most samples per trace the diagnosis reads. Every candidate fit simulates each trace several times (the
+#: kernel runs ~1e5-1e6 position cycles per second) and the workers hold the trace and its predictions
+#: (~100 bytes per sample per copy), so 500 000 samples (8 min at 1 kHz) cost ~50 MB per copy and minutes per
+#: fit round. A longer trace is refused before it is read, naming this bound; cut it into segments.
+MAX_TRACE_SAMPLES = 500_000
+#: lines parsed per chunk (bounded memory while reading; the progress bar advances per chunk)
+_CHUNK_LINES = 50_000
+
+
+def _fast_chunk(lines: list[str], ncols: int, use: list[int]) -> np.ndarray | None:
+    """Parse a chunk of well-formed numeric lines in C; None when any line needs the careful path."""
+    for ln in lines:
+        if ln.count(",") != ncols - 1 or '"' in ln or ",," in ln or ln.startswith(",") or not ln.strip(" \r\n,"):
+            return None
+        if ln.rstrip("\r\n").endswith(","):
+            return None
     try:
-        fh = path.open(newline="", encoding="utf-8")
+        arr = np.loadtxt(lines, delimiter=",", dtype=float, usecols=use, ndmin=2, comments=None)
+    except ValueError:
+        return None
+    return arr if arr.shape[0] == len(lines) else None
+
+
+def _careful_chunk(path: str, lines: list[str], first_line_no: int, header: list[str], use: list[int]) -> np.ndarray:
+    """Row-by-row parse naming the line and column of the first bad value (empty fields are NaN)."""
+    rows: list[list[float]] = []
+    reader = csv.reader(lines)
+    try:
+        for k, rec in enumerate(reader):
+            line_no = first_line_no + k
+            if not rec or all(not x.strip() for x in rec):
+                continue
+            if len(rec) != len(header):
+                raise _err(path, f"has {len(rec)} fields, the header has {len(header)}", line_no)
+            vals = []
+            for i in use:
+                s = rec[i].strip()
+                try:
+                    vals.append(float(s) if s else math.nan)
+                except ValueError:
+                    raise _err(path, f"not a number: {s!r}", line_no, header[i]) from None
+            rows.append(vals)
+    except csv.Error as exc:
+        raise _err(path, f"not a readable CSV file ({exc})", first_line_no) from None
+    return np.asarray(rows, dtype=float).reshape(-1, len(use))
+
+
+def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], list[str], np.ndarray, list[str]]:
+    """Stream a trace CSV in chunks of :data:`_CHUNK_LINES` lines (a progress bar on a terminal) keeping only the
+    known columns. Returns (header, kept column names, data, warnings). A file with more than ``max_samples``
+    rows (default :data:`MAX_TRACE_SAMPLES`) is refused, by its size before it is read where possible."""
+    from itertools import islice
+
+    from tqdm import tqdm
+
+    sp = str(path)
+    limit = MAX_TRACE_SAMPLES if max_samples is None else max_samples
+    if path.is_dir():
+        raise _err(sp, "is a folder, not a trace file")
+    try:
+        fh = path.open(newline="", encoding="utf-8-sig")
+        size = path.stat().st_size
     except FileNotFoundError:
-        raise _err(str(path), "file not found") from None
+        raise _err(sp, "file not found") from None
     except OSError as exc:
-        raise _err(str(path), f"cannot read ({exc.strerror})") from None
-    with fh:
-        reader = csv.reader(fh)
+        raise _err(sp, f"cannot read ({exc.strerror})") from None
+    warnings: list[str] = []
+    chunks: list[np.ndarray] = []
+    n_rows = 0
+    line_no = 1
+    last_line = ""
+    with fh, tqdm(total=size, desc=f"read {path.name}", unit="B", unit_scale=True, leave=False, disable=None,
+                  mininterval=0.5) as bar:
         try:
-            header = next(reader)
-        except StopIteration:
-            raise _err(str(path), "empty file (a header row is required)", 1) from None
-        except (csv.Error, UnicodeDecodeError) as exc:
-            raise _err(str(path), f"not a readable CSV file ({exc})", 1) from None
-        header = [h.strip() for h in header]
-        if len(set(header)) != len(header):
-            dup = next(h for h in header if header.count(h) > 1)
-            raise _err(str(path), "duplicate column name", 1, dup)
-        rows: list[list[float]] = []
-        try:
-            for line_no, rec in enumerate(reader, start=2):
-                if not rec or all(not x.strip() for x in rec):
-                    continue
-                if len(rec) != len(header):
-                    raise _err(str(path), f"has {len(rec)} fields, the header has {len(header)}", line_no)
-                vals = []
-                for col, x in zip(header, rec, strict=True):
-                    s = x.strip()
-                    if col not in KNOWN_COLUMNS:
-                        vals.append(math.nan)  # extra columns are kept only as names; values ignored
-                        continue
-                    try:
-                        vals.append(float(s) if s else math.nan)
-                    except ValueError:
-                        raise _err(str(path), f"not a number: {s!r}", line_no, col) from None
-                rows.append(vals)
-        except (csv.Error, UnicodeDecodeError) as exc:
-            raise _err(str(path), f"not a readable CSV file ({exc})") from None
-    if not rows:
-        raise _err(str(path), "no data rows")
-    return header, np.asarray(rows, dtype=float)
+            first = fh.readline()
+            if not first:
+                raise _err(sp, "empty file (a header row is required)", 1)
+            try:
+                header = next(csv.reader([first]))
+            except (csv.Error, StopIteration) as exc:
+                raise _err(sp, f"not a readable CSV header ({exc})", 1) from None
+            header = [h.strip() for h in header]
+            if len(set(header)) != len(header):
+                dup = next(h for h in header if header.count(h) > 1)
+                raise _err(sp, "duplicate column name", 1, dup)
+            use = [i for i, h in enumerate(header) if h in KNOWN_COLUMNS]
+            names = [header[i] for i in use]
+            if not use:
+                raise _err(sp, f"no known column in the header ({', '.join(header)[:200]}); expected "
+                               f"{', '.join(KNOWN_COLUMNS)}", 1)
+            bar.update(len(first.encode("utf-8", "replace")))
+            line_no = 2
+            while True:
+                lines = list(islice(fh, _CHUNK_LINES))
+                if not lines:
+                    break
+                nbytes = sum(len(x) for x in lines)
+                if line_no == 2 and size > 0 and nbytes > 0:
+                    est = int(len(lines) * max(size - len(first), 0) / nbytes)
+                    if est > 1.05 * limit:
+                        raise _err(sp, f"about {est:,} samples ({size / 2**20:.0f} MiB); the diagnosis reads at most "
+                                       f"{limit:,} samples per trace (bounded memory and fit time): cut the trace "
+                                       "into segments or decimate it")
+                last_line = lines[-1]
+                arr = _fast_chunk(lines, len(header), use)
+                if arr is None:
+                    arr = _careful_chunk(sp, lines, line_no, header, use)
+                chunks.append(arr)
+                n_rows += arr.shape[0]
+                if n_rows > limit:
+                    raise _err(sp, f"more than {limit:,} samples; the diagnosis reads at most {limit:,} samples per "
+                                   "trace (bounded memory and fit time): cut the trace into segments or decimate it",
+                               line_no + len(lines) - 1)
+                line_no += len(lines)
+                bar.update(nbytes)
+        except UnicodeDecodeError as exc:
+            raise _err(sp, f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x})", line_no) from None
+        except csv.Error as exc:
+            raise _err(sp, f"not a readable CSV file ({exc})", line_no) from None
+    data = np.concatenate(chunks) if chunks else np.zeros((0, len(names)))
+    if last_line and not last_line.endswith("\n") and last_line.strip() and data.shape[0]:
+        data = data[:-1]
+        warnings.append(f"the last row (line {line_no - 1}) has no line end: the file looks truncated (an "
+                        "interrupted writer?); that row was dropped")
+    if not data.shape[0]:
+        raise _err(sp, "no data rows")
+    return header, names, data, warnings
 
 
 def read_sidecar(csv_path: Path) -> dict:
@@ -137,10 +222,16 @@ def read_sidecar(csv_path: Path) -> dict:
     side = csv_path.with_suffix(".toml")
     if not side.exists():
         return {}
+    if side.is_dir():
+        raise _err(str(side), "sidecar metadata path is a folder, not a TOML file")
     try:
-        return tomllib.loads(side.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        return tomllib.loads(side.read_text(encoding="utf-8-sig"))
+    except UnicodeDecodeError as exc:
+        raise _err(str(side), f"sidecar metadata is not UTF-8 text (byte offset {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
         raise _err(str(side), f"sidecar metadata is not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise _err(str(side), f"cannot read sidecar metadata ({exc.strerror})") from None
 
 
 def sidecar_axis_name(meta: dict) -> str | None:
@@ -184,7 +275,16 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     against the sidecar metadata)."""
     p = Path(path)
     sp = str(p)
-    header, data = _parse_csv(p) if p.suffix.lower() != ".npz" else read_trace_npz(p)  # NPZ: sim.trace_io
+    if p.suffix.lower() == ".npz":  # NPZ: sim.trace_io
+        header, raw = read_trace_npz(p)
+        names = [h for h in header if h in KNOWN_COLUMNS]
+        data = raw[:, [header.index(h) for h in names]]
+        warnings: list[str] = []
+        if data.shape[0] > MAX_TRACE_SAMPLES:
+            raise _err(sp, f"{data.shape[0]:,} samples; the diagnosis reads at most {MAX_TRACE_SAMPLES:,} samples per "
+                           "trace (bounded memory and fit time): cut the trace into segments or decimate it")
+    else:
+        header, names, data, warnings = _parse_csv(p)
     for col in ("t", "pos_cmd"):
         if col not in header:
             raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)})", 1, col)
@@ -192,8 +292,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         raise _err(sp, "needs at least one of the columns pos_meas, pos_fb, motor_pos", 1)
     if data.shape[0] < 16:
         raise _err(sp, f"only {data.shape[0]} data rows (at least 16 needed)")
-    warnings: list[str] = []
-    cols = {h: data[:, i] for i, h in enumerate(header) if h in KNOWN_COLUMNS}
+    cols = {h: data[:, i] for i, h in enumerate(names)}
     extra = [h for h in header if h not in KNOWN_COLUMNS]
     if extra:
         warnings.append(f"extra columns ignored: {', '.join(extra)}")

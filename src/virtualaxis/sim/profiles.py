@@ -45,6 +45,18 @@ class Profile:
     axes: tuple[str, ...]
     natural_duration_s: float
     _fn: object = field(repr=False)
+    #: the move file a ``file:`` profile reads (an output must never overwrite it)
+    source_path: str | None = None
+    #: highest frequency in the command [Hz] (chirp), checked against the position cycle's Nyquist frequency
+    max_frequency_hz: float = 0.0
+    #: an event that must happen inside the run (the step time) [s]
+    event_s: float | None = None
+
+    def check_duration(self, duration_s: float) -> None:
+        """Refuse a run that ends before the profile's event (a step at 1e9 s in a 0.5 s run)."""
+        if self.event_s is not None and self.event_s >= duration_s:
+            raise ProfileError(self.spec, f"the step at {self.event_s:g} s lies after the end of the "
+                                          f"{duration_s:g} s run (the command would never move)")
 
     def sample(self, t: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Position [m], velocity [m/s], acceleration [m/s^2] per axis at times ``t``."""
@@ -58,6 +70,8 @@ def _kv(spec: str, body: str, required: tuple[str, ...], optional: dict) -> dict
         if "=" not in part:
             raise ProfileError(spec, f"expected key=value, got '{part}'")
         k, v = (s.strip() for s in part.split("=", 1))
+        if k in seen:
+            raise ProfileError(spec, f"parameter '{k}' given twice")
         if k not in required and k not in optional:
             raise ProfileError(spec, f"unknown parameter '{k}' (expected {', '.join(required + tuple(optional))})")
         if isinstance(optional.get(k), str):
@@ -172,16 +186,20 @@ def parse_profile(spec: str, cfg: AxisConfig | None = None, start_position_m: fl
             p, vv, a = sfn(t)
             return {"x": (x0 + p, vv, a)}
 
-        return Profile(spec, ("x",), total + max(v["dwell_s"], 0.0), fn)
+        if not v["dwell_s"] >= 0:
+            raise ProfileError(spec, f"parameter 'dwell_s' must be >= 0 (got {v['dwell_s']:g})")
+        return Profile(spec, ("x",), total + v["dwell_s"], fn)
     if kind == "step":
         v = _kv(spec, body, ("distance_um",), {"at_s": 0.01})
+        if not v["at_s"] >= 0:
+            raise ProfileError(spec, f"parameter 'at_s' must be >= 0 (got {v['at_s']:g})")
         d = v["distance_um"] * 1e-6
 
         def fn(t):
             p = np.where(t >= v["at_s"], x0 + d, x0)
             return {"x": (p, np.zeros_like(t), np.zeros_like(t))}
 
-        return Profile(spec, ("x",), v["at_s"] + 0.2, fn)
+        return Profile(spec, ("x",), v["at_s"] + 0.2, fn, event_s=v["at_s"])
     if kind == "chirp":
         v = _kv(spec, body, ("amplitude_um", "f0_hz", "f1_hz"), {"sweep": "log", "duration_s": 0.0})
         _positive(spec, v, "amplitude_um", "f0_hz", "f1_hz")
@@ -189,12 +207,17 @@ def parse_profile(spec: str, cfg: AxisConfig | None = None, start_position_m: fl
             raise ProfileError(spec, "sweep must be log or linear")
         amp = v["amplitude_um"] * 1e-6
         f0, f1 = v["f0_hz"], v["f1_hz"]
+        if v["duration_s"] < 0:
+            raise ProfileError(spec, f"parameter 'duration_s' must be >= 0 (got {v['duration_s']:g})")
         dur_default = v["duration_s"] if v["duration_s"] > 0 else 10.0
-        prof = Profile(spec, ("x",), dur_default, None)
+        prof = Profile(spec, ("x",), dur_default, None, max_frequency_hz=max(f0, f1))
 
         def fn(t, dur=None):
             T = dur or prof.natural_duration_s
-            if v["sweep"] == "linear":
+            if f0 == f1:  # the limit of both sweeps: a plain sine
+                ph = 2 * math.pi * f0 * t
+                f = np.full_like(t, f0)
+            elif v["sweep"] == "linear":
                 k = (f1 - f0) / T
                 ph = 2 * math.pi * (f0 * t + k * t * t / 2)
                 f = f0 + k * t
@@ -230,41 +253,61 @@ def parse_profile(spec: str, cfg: AxisConfig | None = None, start_position_m: fl
 
 
 def _file_profile(spec: str, path: str, x0: float) -> Profile:
+    """A ``file:`` move list: CSV with ``t`` and ``pos`` (or ``x`` and ``y``), UTF-8 (a BOM is accepted)."""
+    from array import array
+
     p = Path(path)
+    if not path:
+        raise ProfileError(spec, "file: needs a file name, e.g. file:moves.csv")
     if not p.exists():
         raise InputError(path, "file not found")
-    with p.open(newline="") as fh:
-        reader = csv.reader(fh)
-        try:
-            header = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise InputError(path, "empty file", row=1) from None
-        if "t" not in header:
-            raise InputError(path, "missing required column", row=1, column="t")
-        axes = ("x", "y") if ("x" in header and "y" in header) else ("pos",) if "pos" in header else ()
-        if not axes:
-            raise InputError(path, "need a 'pos' column (one axis) or 'x' and 'y' columns", row=1)
-        cols = {name: header.index(name) for name in ("t",) + axes}
-        rows = []
-        for rown, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            vals = []
-            for name, ci in cols.items():
-                try:
-                    val = float(row[ci])
-                except (IndexError, ValueError):
-                    raise InputError(path, f"not a number: {row[ci] if ci < len(row) else ''!r}", row=rown,
-                                     column=name) from None
-                if not math.isfinite(val):
-                    raise InputError(path, "not finite", row=rown, column=name)
-                vals.append(val)
-            if rows and vals[0] <= rows[-1][0]:
-                raise InputError(path, "time must increase strictly", row=rown, column="t")
-            rows.append(vals)
-    if len(rows) < 2:
+    if p.is_dir():
+        raise InputError(path, "is a folder, not a CSV file")
+    values = array("d")
+    rown = 1
+    try:
+        with p.open(newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise InputError(path, "empty file (a header row t,pos or t,x,y is required)", row=1) from None
+            dups = sorted({h for h in header if header.count(h) > 1 and h})
+            if dups:
+                raise InputError(path, "duplicate column name", row=1, column=dups[0])
+            if "t" not in header:
+                raise InputError(path, f"missing required column (header: {', '.join(header)})", row=1, column="t")
+            axes = ("x", "y") if ("x" in header and "y" in header) else ("pos",) if "pos" in header else ()
+            if not axes:
+                raise InputError(path, "need a 'pos' column (one axis) or 'x' and 'y' columns", row=1)
+            cols = {name: header.index(name) for name in ("t",) + axes}
+            last_t = -math.inf
+            for rown, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                for name, ci in cols.items():
+                    cell = row[ci].strip() if ci < len(row) else ""
+                    try:
+                        val = float(cell)
+                    except ValueError:
+                        what = "missing value (the row is short)" if ci >= len(row) else f"not a number: {cell!r}"
+                        raise InputError(path, what, row=rown, column=name) from None
+                    if not math.isfinite(val):
+                        raise InputError(path, f"not a finite number: {cell!r}", row=rown, column=name)
+                    if name == "t":
+                        if val <= last_t:
+                            raise InputError(path, f"time must increase strictly ({last_t:g} then {val:g})",
+                                             row=rown, column="t")
+                        last_t = val
+                    values.append(val)
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x})", row=rown + 1) from None
+    except csv.Error as exc:
+        raise InputError(path, f"not a readable CSV file ({exc})", row=rown + 1) from None
+    width = len(cols)
+    if len(values) < 2 * width:
         raise InputError(path, "need at least two samples")
-    data = np.array(rows)
+    data = np.frombuffer(values, dtype=float).reshape(-1, width)
     t_data = data[:, 0] - data[0, 0]
     names = ("x", "y") if axes == ("x", "y") else ("x",)
 
@@ -277,7 +320,7 @@ def _file_profile(spec: str, path: str, x0: float) -> Profile:
             res[name] = (pos, vel, acc)
         return res
 
-    return Profile(spec, names, float(t_data[-1]), fn)
+    return Profile(spec, names, float(t_data[-1]), fn, source_path=str(p))
 
 
 def check_limits(profile: Profile, cfg: AxisConfig, duration_s: float, cycle_s: float) -> dict:
@@ -285,7 +328,17 @@ def check_limits(profile: Profile, cfg: AxisConfig, duration_s: float, cycle_s: 
     t = np.arange(0.0, duration_s + cycle_s / 2, cycle_s)
     lim = cfg.limits
     peaks = {}
+    nyquist = 0.5 / cycle_s
+    if profile.max_frequency_hz > nyquist:
+        raise ProfileError(profile.spec, f"frequency {profile.max_frequency_hz:g} Hz is above the Nyquist "
+                                         f"frequency {nyquist:g} Hz of the {cycle_s:g} s position cycle "
+                                         "(the command would alias)")
     for name, (p, v, a) in sample_profile(profile, t, duration_s).items():
+        for arr, what in ((p, "position"), (v, "velocity"), (a, "acceleration")):
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                raise ProfileError(profile.spec, f"axis {name}: non-finite {what} at t = "
+                                                 f"{float(t[np.flatnonzero(bad)[0]]):g} s")
         vmax, amax = float(np.max(np.abs(v))), float(np.max(np.abs(a)))
         pmin, pmax = float(np.min(p)), float(np.max(p))
         if vmax > lim.max_velocity_m_s * (1 + 1e-9):

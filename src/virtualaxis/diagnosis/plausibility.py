@@ -1,0 +1,213 @@
+"""Plausibility of measured traces before any fit: the diagnosis must never conclude on data that cannot be right.
+
+:func:`check_plausibility` runs once, after the traces are read and their units checked
+(:func:`virtualaxis.diagnosis.trace.check_units`). It raises
+:class:`~virtualaxis.config.errors.InputError` (naming file, row and column) for data that would make any
+conclusion meaningless, and returns warnings (prefixed ``plausibility:``) for findings a person should look at:
+
+- **time unit**: the sample interval must be one a drive records at (:data:`DT_RANGE_S`); a trace with
+  ``t`` in milliseconds written as seconds has a 1 s interval and is refused. An interval far from the
+  config's position cycle is a warning.
+- **sign and scale of each channel against the command**: position channels must follow ``pos_cmd`` with a
+  regression slope near +1 (a sign-flipped or wrongly scaled channel is refused), ``vel_meas`` the command's
+  derivative, and the drive effort (``torque_meas``, ``current_q``, ``force_drive``) must push the way the
+  command accelerates, with an inertia near the config's (a factor beyond :data:`EFFORT_SCALE_RANGE` warns).
+- **the same data twice**: two inputs with the same content (SHA-256 of the parsed samples) are refused; a
+  held-out trace identical to a fit trace would judge the fit on its own data.
+- **absurd magnitudes**: an external or drive force beyond :data:`FORCE_FACTOR` times the axis' peak drive
+  force (``force_ext = 1e300``) is refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+
+from virtualaxis.config.errors import InputError
+
+#: sample intervals of drive traces [s]: 1 us (current-loop recorders) .. 0.1 s (slow loggers)
+DT_RANGE_S = (1e-6, 0.1)
+#: accepted regression slope of a position channel on pos_cmd (servo tracking is within a few % in amplitude)
+POSITION_SLOPE_RANGE = (0.7, 1.4)
+#: accepted slope of vel_meas on the command's derivative
+VELOCITY_SLOPE_RANGE = (0.5, 2.0)
+#: the effort's inertia term vs the config's inertia: beyond this factor it is a unit or scale warning
+EFFORT_SCALE_RANGE = (0.2, 5.0)
+#: an external or drive force beyond this multiple of the peak drive force is not a measurement
+FORCE_FACTOR = 20.0
+PREFIX = "plausibility: "
+
+
+def _slope(x: np.ndarray, y: np.ndarray) -> float:
+    """Least-squares slope of y on x (both de-meaned)."""
+    xc = x - x.mean()
+    den = float(np.dot(xc, xc))
+    return float(np.dot(xc, y - y.mean())) / den if den > 0 else math.nan
+
+
+def content_hash(trace) -> str:
+    """SHA-256 of a trace's samples (time and every column, in a fixed order)."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(trace.t, dtype=float).tobytes())
+    for name in sorted(trace.columns):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(trace.columns[name], dtype=float).tobytes())
+    return h.hexdigest()
+
+
+def peak_drive_force_n(cfg) -> float:
+    """The largest force the drive can put on the table [N] (peak current through the screw, or the force
+    actuator's limit); a fallback of 1e5 N where the config gives neither."""
+    if cfg.actuator.kind == "force":
+        return cfg.actuator.force_limit_n or 1e5
+    m = cfg.motor
+    i_peak = cfg.control.current_limit_a or 3.0 * m.rated_current_a
+    lead = cfg.mechanics.lead_m
+    return m.kt_nm_per_a * i_peak * 2 * math.pi / lead if lead > 0 else 1e5
+
+
+def _inertia_per_acc(cfg, channel: str) -> float | None:
+    """Expected effort per table acceleration for ``channel`` [N, N m or A per m/s^2]."""
+    mech = cfg.mechanics
+    mass = mech.table_mass_kg + mech.nut_mass_kg
+    lead = mech.lead_m
+    if cfg.actuator.kind == "pmsm" and lead > 0:
+        r = lead / (2 * math.pi)
+        j = mech.motor_inertia_kg_m2 + mech.coupling_inertia_kg_m2 + mech.screw_end_inertia_kg_m2
+        screw = mech.screw_density_kg_m3 * math.pi * (mech.screw_root_diameter_m / 2) ** 4 / 2 * mech.screw_length_m
+        m_eq = mass + (j + screw) / r**2
+        torque = m_eq * r
+        if channel == "torque_meas":
+            return torque
+        if channel == "current_q":
+            kt = cfg.motor.kt_nm_per_a
+            return torque / kt if kt > 0 else None
+        if channel == "force_drive":
+            return m_eq
+        return None
+    return mass if channel == "force_drive" else None
+
+
+def _check_time(tr, cfg, warnings: list[str]) -> None:
+    dt = tr.dt_s
+    lo, hi = DT_RANGE_S
+    if not lo <= dt <= hi:
+        hint = " (is t in milliseconds? it must be in seconds)" if dt > hi else " (is t in seconds?)"
+        raise InputError(tr.path, f"sample interval {dt:g} s is outside {lo:g} .. {hi:g} s of a drive trace{hint}",
+                         3, "t")
+    cyc = cfg.control.position_cycle_s
+    if not 0.01 <= dt / cyc <= 100:
+        warnings.append(f"{PREFIX}{tr.name}: sample interval {dt:g} s is {dt / cyc:.3g} x the config's position "
+                        f"cycle {cyc:g} s: check the time unit of column t")
+
+
+def _check_positions(tr, warnings: list[str]) -> None:
+    cmd = tr.pos_cmd
+    if float(np.ptp(cmd)) <= 0:
+        return
+    for col in ("pos_meas", "pos_fb"):
+        x = tr.columns.get(col)
+        if x is None:
+            continue
+        k = _slope(cmd, x)
+        lo, hi = POSITION_SLOPE_RANGE
+        if not k > 0:
+            raise InputError(tr.path, f"moves against pos_cmd (slope {k:.3g}; expected about +1): a sign-flipped "
+                                      "channel or encoder direction", None, col)
+        if not lo <= k <= hi:
+            raise InputError(tr.path, f"follows pos_cmd with slope {k:.3g} (expected {lo:g} .. {hi:g}): wrong scale "
+                                      "or unit", None, col)
+
+
+def _check_velocity(tr, warnings: list[str]) -> None:
+    vel = tr.columns.get("vel_meas")
+    if vel is None or tr.t.size < 3:
+        return
+    v_cmd = np.gradient(tr.pos_cmd, tr.t)
+    if float(np.std(v_cmd)) <= 0:
+        return
+    k = _slope(v_cmd, vel)
+    lo, hi = VELOCITY_SLOPE_RANGE
+    if not k > 0:
+        raise InputError(tr.path, f"runs against the command's velocity (slope {k:.3g}; expected about +1): "
+                                  "sign-flipped", None, "vel_meas")
+    if not lo <= k <= hi:
+        warnings.append(f"{PREFIX}{tr.name}: vel_meas follows the command's velocity with slope {k:.3g} "
+                        f"(expected {lo:g} .. {hi:g}): check its unit (m/s)")
+
+
+def _check_efforts(tr, cfg, warnings: list[str]) -> None:
+    """Effort = c_a * a_cmd + c_c * sign(v_cmd) + c_v * v_cmd + c_0: the inertia term c_a must be positive and
+    near the config's inertia when the command's acceleration explains the effort."""
+    if tr.t.size < 16:
+        return
+    v = np.gradient(tr.pos_cmd, tr.t)
+    a = np.gradient(v, tr.t)
+    if float(np.std(a)) <= 0:
+        return
+    reg = np.column_stack([a, np.sign(v), v, np.ones_like(v)])
+    for col in ("torque_meas", "current_q", "force_drive"):
+        y = tr.columns.get(col)
+        if y is None:
+            continue
+        coef, *_ = np.linalg.lstsq(reg, y, rcond=None)
+        resid = y - reg @ coef
+        # standard error of the inertia coefficient
+        dof = max(y.size - reg.shape[1], 1)
+        cov = np.linalg.pinv(reg.T @ reg) * float(np.dot(resid, resid)) / dof
+        se = math.sqrt(max(float(cov[0, 0]), 0.0))
+        c_a = float(coef[0])
+        expected = _inertia_per_acc(cfg, col)
+        if se > 0 and c_a < 0 and abs(c_a) > 5 * se and (expected is None or abs(c_a) > 0.2 * expected):
+            raise InputError(tr.path, f"pushes against the command's acceleration (inertia term {c_a:.3g} per m/s^2, "
+                                      f"expected {expected:.3g}): sign-flipped" if expected else
+                             f"pushes against the command's acceleration (inertia term {c_a:.3g}): sign-flipped",
+                             None, col)
+        if expected and c_a > 5 * se:
+            ratio = c_a / expected
+            lo, hi = EFFORT_SCALE_RANGE
+            if not lo <= ratio <= hi:
+                warnings.append(f"{PREFIX}{tr.name}: {col} has {ratio:.3g} x the inertia the config gives (expected "
+                                f"{lo:g} .. {hi:g} x): check its unit and scale")
+
+
+def _check_magnitudes(tr, cfg) -> None:
+    f_peak = peak_drive_force_n(cfg)
+    for col in ("force_ext", "force_drive"):
+        x = tr.columns.get(col)
+        if x is None:
+            continue
+        bad = np.abs(x) > FORCE_FACTOR * f_peak
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(tr.path, f"force {float(x[i]):g} N is over {FORCE_FACTOR:g} x the axis' peak drive force "
+                                      f"{f_peak:.4g} N: not a measurement (unit?)", i + 2, col)
+
+
+def _check_duplicates(traces, n_fit: int | None) -> None:
+    seen: dict[str, int] = {}
+    for i, tr in enumerate(traces):
+        h = content_hash(tr)
+        if h in seen:
+            j = seen[h]
+            roles = ""
+            if n_fit is not None:
+                roles = f" ({'fit' if j < n_fit else 'held-out'} and {'fit' if i < n_fit else 'held-out'})"
+            raise InputError(tr.path, f"has the same content as {traces[j].path}{roles} (SHA-256 {h[:12]}); each "
+                                      "trace must be given once, and held-out data must differ from the fit data")
+        seen[h] = i
+
+
+def check_plausibility(cfg, traces: list, fit_paths: list[str], holdout_paths: list[str]) -> list[str]:
+    """Run every check on every trace (see the module doc). Returns warnings; raises InputError to stop."""
+    warnings: list[str] = []
+    for tr in traces:
+        _check_time(tr, cfg, warnings)
+        _check_magnitudes(tr, cfg)
+        _check_positions(tr, warnings)
+        _check_velocity(tr, warnings)
+        _check_efforts(tr, cfg, warnings)
+    _check_duplicates(traces, len(fit_paths) if holdout_paths else None)
+    return warnings
