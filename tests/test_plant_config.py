@@ -89,3 +89,35 @@ def test_round_trip_to_toml(tmp_path):
     again = load_axis_config(p)
     assert again == cfg
     assert again.sources["mechanics.lead_m"] == cfg.sources["mechanics.lead_m"]
+
+
+def test_every_numeric_parameter_has_a_bound_and_a_unit_table():
+    """Issue 18: plausibility bounds for every physical parameter; a key's unit table comes from its name."""
+    import dataclasses
+
+    from virtualaxis.config.axis import _SECTIONS
+    from virtualaxis.config.bounds import BOUNDS, DIMENSIONLESS, convert_unit, units_for_key
+
+    for sec, cls in _SECTIONS.items():
+        for f in dataclasses.fields(cls):
+            typ = f.type if isinstance(f.type, str) else f.type.__name__
+            if typ in ("float", "int"):
+                assert f"{sec}.{f.name}" in BOUNDS, f"{sec}.{f.name}"
+    assert set(BOUNDS) <= {f"{s}.{f.name}" for s, c in _SECTIONS.items() for f in dataclasses.fields(c)}
+    assert convert_unit("mechanics.lead_m", 16, "mm") == pytest.approx(0.016)
+    assert convert_unit("motor.rated_speed_rpm", 50, "1/s") == pytest.approx(3000)
+    assert convert_unit("control.kv_per_s", 120, "1/min") == pytest.approx(2)
+    assert convert_unit("mechanics.motor_inertia_kg_m2", 16, "kg cm^2") == pytest.approx(1.6e-3)
+    assert convert_unit("mechanics.nut_contact_stiffness_n_per_m", 400, "N/um") == pytest.approx(4e8)
+    assert units_for_key("motor.pole_pairs") is DIMENSIONLESS
+    with pytest.raises(ValueError, match="accepted"):
+        convert_unit("mechanics.lead_m", 16, "rpm")
+
+
+def test_every_shipped_config_loads():
+    from plant_helpers import ROOT
+
+    paths = sorted((ROOT / "configs").rglob("*.toml"))
+    assert len(paths) >= 5
+    for p in paths:
+        load_axis_config(p)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from virtualaxis.cli.outputs import add_force_argument, check_output_file, write_text_atomic
+from virtualaxis.cli.outputs import add_force_argument, check_input_file, check_output_file, write_text_atomic
 from virtualaxis.cli.rcsa import check_positions, parse_positions
 from virtualaxis.config import load_axis_config
 from virtualaxis.rcsa.config_writer import write_identified_config
@@ -99,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
         if val is not None and not lo <= val <= hi:
             raise CliError(f"{opt} must be {lo} .. {hi} (got {val})")
     inputs = [args.config] + [x for x in (args.frf, args.modes) if x]
+    for opt, val in (("--frf", args.frf), ("--modes", args.modes)):
+        if val:
+            check_input_file(val, opt)
     if args.json:
         check_output_file(args.json, args.force, "--json", inputs=inputs)
     if args.write_config:

@@ -52,6 +52,21 @@ def _probe_folder(folder: Path, option: str) -> None:
         raise CliError(f"{option}: cannot write in {folder} ({exc.strerror or exc})") from None
 
 
+def check_input_file(path: str | Path, option: str) -> Path:
+    """An input file must exist, be a file (not a folder) and be readable; checked before any work."""
+    p = Path(path)
+    if not p.exists():
+        raise CliError(f"{option}: {p}: file not found")
+    if p.is_dir():
+        raise CliError(f"{option}: {p} is a folder, not a file")
+    try:
+        with p.open("rb") as fh:
+            fh.read(1)
+    except OSError as exc:
+        raise CliError(f"{option}: {p}: cannot read ({exc.strerror or exc})") from None
+    return p
+
+
 def same_file(a: str | Path, b: str | Path) -> bool:
     """True when two paths name the same file (also through symlinks or hard links)."""
     try:

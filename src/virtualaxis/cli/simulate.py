@@ -44,6 +44,8 @@ def run(args) -> int:
     from virtualaxis.sim.simulator import AxisSimulator
     from virtualaxis.sim.trace_io import TraceWriter
 
+    if not args.out.strip():
+        raise CliError("--out: empty path")
     cfg = load_axis_config(args.config)
     if args.seed is not None and not 0 <= args.seed < 2**63:
         raise CliError(f"--seed must be an integer 0 .. 2^63-1 (got {args.seed})")

@@ -30,3 +30,15 @@ class InputError(ValueError):
         if column is not None:
             where += f": column {column}"
         super().__init__(f"{where}: {message}")
+
+
+def first_non_utf8_line(path) -> tuple[int, int]:
+    """(1-based line number, byte value) of the first line of ``path`` that is not UTF-8; (0, 0) if none.
+    Reads line by line (bounded memory)."""
+    with open(path, "rb") as fh:
+        for no, raw in enumerate(fh, start=1):
+            try:
+                raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                return no, raw[exc.start]
+    return 0, 0

@@ -26,9 +26,8 @@ import math
 import numpy as np
 
 from virtualaxis.config.errors import InputError
+from virtualaxis.diagnosis.trace import DT_RANGE_S, check_sample_interval  # noqa: F401 (DT_RANGE_S: documented)
 
-#: sample intervals of drive traces [s]: 1 us (current-loop recorders) .. 0.1 s (slow loggers)
-DT_RANGE_S = (1e-6, 0.1)
 #: accepted regression slope of a position channel on pos_cmd (servo tracking is within a few % in amplitude)
 POSITION_SLOPE_RANGE = (0.7, 1.4)
 #: accepted slope of vel_meas on the command's derivative
@@ -92,11 +91,7 @@ def _inertia_per_acc(cfg, channel: str) -> float | None:
 
 def _check_time(tr, cfg, warnings: list[str]) -> None:
     dt = tr.dt_s
-    lo, hi = DT_RANGE_S
-    if not lo <= dt <= hi:
-        hint = " (is t in milliseconds? it must be in seconds)" if dt > hi else " (is t in seconds?)"
-        raise InputError(tr.path, f"sample interval {dt:g} s is outside {lo:g} .. {hi:g} s of a drive trace{hint}",
-                         3, "t")
+    check_sample_interval(tr.path, dt)  # also done on reading, before the unit checks
     cyc = cfg.control.position_cycle_s
     if not 0.01 <= dt / cyc <= 100:
         warnings.append(f"{PREFIX}{tr.name}: sample interval {dt:g} s is {dt / cyc:.3g} x the config's position "
@@ -160,17 +155,20 @@ def _check_efforts(tr, cfg, warnings: list[str]) -> None:
         se = math.sqrt(max(float(cov[0, 0]), 0.0))
         c_a = float(coef[0])
         expected = _inertia_per_acc(cfg, col)
-        if se > 0 and c_a < 0 and abs(c_a) > 5 * se and (expected is None or abs(c_a) > 0.2 * expected):
-            raise InputError(tr.path, f"pushes against the command's acceleration (inertia term {c_a:.3g} per m/s^2, "
-                                      f"expected {expected:.3g}): sign-flipped" if expected else
-                             f"pushes against the command's acceleration (inertia term {c_a:.3g}): sign-flipped",
-                             None, col)
-        if expected and c_a > 5 * se:
-            ratio = c_a / expected
-            lo, hi = EFFORT_SCALE_RANGE
-            if not lo <= ratio <= hi:
-                warnings.append(f"{PREFIX}{tr.name}: {col} has {ratio:.3g} x the inertia the config gives (expected "
-                                f"{lo:g} .. {hi:g} x): check its unit and scale")
+        if not expected or not c_a**2 > 25 * se**2:
+            continue  # no inertia figure for this channel, or the inertia term is not determined
+        # judged only where the inertia the config gives is a visible part of the effort (friction-dominated
+        # slow moves say little about the sign of the inertia term)
+        if expected * float(np.std(a)) < 0.2 * float(np.std(y)):
+            continue
+        if c_a < 0 and abs(c_a) > 0.3 * expected:
+            raise InputError(tr.path, f"pushes against the command's acceleration (inertia term {c_a:.3g} per "
+                                      f"m/s^2, the config gives {expected:.3g}): sign-flipped", None, col)
+        ratio = c_a / expected
+        lo, hi = EFFORT_SCALE_RANGE
+        if not lo <= ratio <= hi:
+            warnings.append(f"{PREFIX}{tr.name}: {col} has {ratio:.3g} x the inertia the config gives (expected "
+                            f"{lo:g} .. {hi:g} x): check its unit and scale")
 
 
 def _check_magnitudes(tr, cfg) -> None:

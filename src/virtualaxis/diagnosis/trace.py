@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from virtualaxis.config.errors import InputError
+from virtualaxis.config.errors import InputError, first_non_utf8_line
 from virtualaxis.sim.trace_io import read_trace_npz
 
 if sys.version_info >= (3, 11):
@@ -158,7 +158,6 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     chunks: list[np.ndarray] = []
     n_rows = 0
     line_no = 1
-    last_line = ""
     with fh, tqdm(total=size, desc=f"read {path.name}", unit="B", unit_scale=True, leave=False, disable=None,
                   mininterval=0.5) as bar:
         try:
@@ -185,13 +184,19 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
                 if not lines:
                     break
                 nbytes = sum(len(x) for x in lines)
+                if not lines[-1].endswith("\n"):  # only a file's last line can lack its line end
+                    cut = lines.pop()
+                    if cut.strip():
+                        warnings.append(f"the last row (line {line_no + len(lines)}) has no line end: the file looks "
+                                        "truncated (an interrupted writer?); that row was dropped")
+                    if not lines:
+                        break
                 if line_no == 2 and size > 0 and nbytes > 0:
                     est = int(len(lines) * max(size - len(first), 0) / nbytes)
                     if est > 1.05 * limit:
                         raise _err(sp, f"about {est:,} samples ({size / 2**20:.0f} MiB); the diagnosis reads at most "
                                        f"{limit:,} samples per trace (bounded memory and fit time): cut the trace "
                                        "into segments or decimate it")
-                last_line = lines[-1]
                 arr = _fast_chunk(lines, len(header), use)
                 if arr is None:
                     arr = _careful_chunk(sp, lines, line_no, header, use)
@@ -203,15 +208,12 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
                                line_no + len(lines) - 1)
                 line_no += len(lines)
                 bar.update(nbytes)
-        except UnicodeDecodeError as exc:
-            raise _err(sp, f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x})", line_no) from None
+        except UnicodeDecodeError:
+            bad_line, byte = first_non_utf8_line(path)
+            raise _err(sp, f"not UTF-8 text (byte 0x{byte:02x})", bad_line) from None
         except csv.Error as exc:
             raise _err(sp, f"not a readable CSV file ({exc})", line_no) from None
     data = np.concatenate(chunks) if chunks else np.zeros((0, len(names)))
-    if last_line and not last_line.endswith("\n") and last_line.strip() and data.shape[0]:
-        data = data[:-1]
-        warnings.append(f"the last row (line {line_no - 1}) has no line end: the file looks truncated (an "
-                        "interrupted writer?); that row was dropped")
     if not data.shape[0]:
         raise _err(sp, "no data rows")
     return header, names, data, warnings
@@ -304,6 +306,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         i = int(nonmono[0]) + 1
         raise _err(sp, f"time is not increasing ({float(t[i - 1])!r} then {float(t[i])!r})", i + 2, "t")
     dt_med = float(np.median(dt))
+    check_sample_interval(sp, dt_med)
     gaps = np.flatnonzero(dt > _GAP_FACTOR * dt_med)
     if gaps.size:
         i = int(gaps[0]) + 1
@@ -343,6 +346,19 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     tr = Trace(name=p.stem, path=sp, t=t - t[0], columns=columns, metadata=meta, warnings=warnings)
     tr.metadata.setdefault("t0_s", float(t[0]))
     return tr
+
+
+#: sample intervals of drive traces [s]: 1 us (current-loop recorders) .. 0.1 s (slow loggers)
+DT_RANGE_S = (1e-6, 0.1)
+
+
+def check_sample_interval(path: str, dt_s: float) -> None:
+    """The time unit from the sampling interval: a drive trace samples every 1 us .. 0.1 s. A 1 s interval is
+    ``t`` in milliseconds written as seconds (or a logger far too slow for servo dynamics)."""
+    lo, hi = DT_RANGE_S
+    if not lo <= dt_s <= hi:
+        hint = " (is t in milliseconds? it must be in seconds)" if dt_s > hi else " (is t in seconds?)"
+        raise _err(path, f"sample interval {dt_s:g} s is outside {lo:g} .. {hi:g} s of a drive trace{hint}", 3, "t")
 
 
 def _first_row(mask: np.ndarray) -> int:

@@ -300,8 +300,11 @@ def _file_profile(spec: str, path: str, x0: float) -> Profile:
                                              row=rown, column="t")
                         last_t = val
                     values.append(val)
-    except UnicodeDecodeError as exc:
-        raise InputError(path, f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x})", row=rown + 1) from None
+    except UnicodeDecodeError:
+        from virtualaxis.config.errors import first_non_utf8_line
+
+        bad_row, byte = first_non_utf8_line(p)
+        raise InputError(path, f"not UTF-8 text (byte 0x{byte:02x})", row=bad_row) from None
     except csv.Error as exc:
         raise InputError(path, f"not a readable CSV file ({exc})", row=rown + 1) from None
     width = len(cols)
