@@ -23,8 +23,18 @@ from virtualaxis.runtime.bus import DEFAULT_BUS, open_bus
 DEFAULT_EDS = str(project_file("eds/virtualaxis.eds"))
 
 
-def connect(spec: str = DEFAULT_BUS) -> canopen.Network:
-    """A connected ``canopen.Network`` on the bus ``spec`` names (``INTERFACE:CHANNEL[,key=value...]``)."""
-    net = canopen.Network(open_bus(spec))
+def connect(spec: str = DEFAULT_BUS, *, bitrate: int = 0) -> canopen.Network:
+    """A connected ``canopen.Network`` on the bus ``spec`` names (``INTERFACE:CHANNEL[,key=value...]``).
+
+    ``bitrate`` (bit/s, 0 = off): the master's frames go out with the timing of a CAN bus at that rate
+    (:class:`virtualaxis.runtime.bitrate.BitRateBus`: frame times, arbitration, transmit queue), so that a
+    master that would overload a real bus sees the delays (``net.bus.stats()``) and, when its transmit queue is
+    full, ``can.CanOperationError`` from ``send``."""
+    bus = open_bus(spec)
+    if bitrate:
+        from virtualaxis.runtime.bitrate import BitRateBus
+
+        bus = BitRateBus(bus, bitrate)
+    net = canopen.Network(bus)
     net.connect()
     return net

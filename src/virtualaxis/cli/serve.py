@@ -41,6 +41,14 @@ def register(sub) -> None:
     p.add_argument("--status-interval", type=float, default=5.0, help="seconds between status lines (0: none)")
     p.add_argument("--json", default=None, help="write final statistics to this JSON file")
     p.add_argument(
+        "--bitrate",
+        type=int,
+        default=1_000_000,
+        metavar="BIT_S",
+        help="emulated CAN bit rate: frame times, arbitration by identifier, bus load in the status and JSON "
+        "(default 1000000; 0: off, frames go out as fast as the host bus takes them)",
+    )
+    p.add_argument(
         "--rt-priority",
         type=int,
         default=0,
@@ -84,10 +92,16 @@ def run(args) -> int:
         raise CliError(str(exc)) from None
     if args.rt_priority:
         _set_rt_priority(args.rt_priority)
+    if args.bitrate and not 10_000 <= args.bitrate <= 1_000_000:
+        raise CliError(f"--bitrate must be 10000..1000000 bit/s, or 0 for no emulation (got {args.bitrate})")
     try:
         bus = open_bus(args.can)
     except BusOpenError as exc:
         raise CliError(str(exc)) from None
+    if args.bitrate:
+        from virtualaxis.runtime.bitrate import BitRateBus
+
+        bus = BitRateBus(bus, args.bitrate)
     try:
         axes = [AxisNode(bus, s.node_id, c, name=s.name, eds_path=eds) for s, c in zip(specs, configs, strict=True)]
         runtime = Runtime(bus, axes, lockstep=args.lockstep)
@@ -126,6 +140,11 @@ def run(args) -> int:
             if next_status is not None and time.monotonic() >= next_status:
                 next_status += args.status_interval
                 _print_status(runtime)
+                if hasattr(bus, "stats"):
+                    b = bus.stats()
+                    print(f"CAN bus: load {b['load_percent']:.1f} % of {b['bitrate_bit_s']} bit/s (peak "
+                          f"{b['peak_load_percent']:.1f} %), tx delay max {b['tx_delay_max_ms']:.3f} ms, "
+                          f"{b['tx_refused']} frames refused", flush=True)
     except KeyboardInterrupt:
         pass
     finally:
@@ -136,6 +155,7 @@ def run(args) -> int:
         "bus": args.can,
         "lockstep": args.lockstep,
         "runtime": runtime.stats.as_dict(),
+        "can_bus": bus.stats() if hasattr(bus, "stats") else {"bitrate_bit_s": 0, "emulated": False},
         "axes": [
             {
                 "name": a.name,

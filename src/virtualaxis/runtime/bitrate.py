@@ -1,0 +1,235 @@
+"""CAN bit-rate emulation on a served bus: frame transmission times, arbitration by identifier, bus load.
+
+A python-can ``virtual`` or ``udp_multicast`` bus delivers a frame as fast as the host can; a real CAN bus at
+1 Mbit/s needs ~47 + 8 x DLC bits plus stuff bits per classical frame (111-135 us for 8 data bytes) and, when
+several frames wait, sends the one with the lowest identifier first. :class:`BitRateBus` wraps the served bus
+so that a master that would overload a real bus sees the delays and the overload here:
+
+- ``send`` queues the frame (never blocks the drive thread); a transmitter thread puts it on the wire on a
+  virtual bus timeline: the frame starts when the bus is idle (after the previous frame of this node and
+  after every frame received from other nodes), among the frames waiting at that moment the lowest
+  identifier wins (arbitration), and it is handed to the wrapped bus when its last bit would have been sent
+  (start + bits / bit rate). The release can be late by the host's sleep granularity (~0.1 ms), the timeline
+  itself is exact (no drift, no throughput lost to late wake-ups).
+- Frame length: CAN 2.0A/B data or remote frame: SOF, arbitration field, control field, data, CRC-15, CRC
+  delimiter, ACK, EOF and the 3-bit intermission; stuff bits either computed from the frame's actual bits
+  (``stuffing="computed"``, the default: the CRC-15 is computed and every run of 5 equal bits from SOF to the
+  CRC gets one stuff bit) or the worst case (``stuffing="worst"``: one per 4 bits after the first).
+- Frames received from other nodes take bus time too: they push the idle time of the timeline and count in
+  the bus load.
+- :meth:`stats`: bus load in percent of the bit rate over the last second and since the start, its peak
+  (per 1 s window), frames and bits sent and received, the queueing delay of this node's frames (mean / max)
+  and frames refused because the transmit queue was full (:data:`TX_QUEUE_LIMIT`; ``send`` then raises
+  ``can.CanOperationError`` like a full controller buffer, which the CiA 301 stack counts as ``tx_errors``).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import can
+
+#: frames waiting for the bus beyond which ``send`` refuses (a controller's transmit buffer) [frames]
+TX_QUEUE_LIMIT = 1024
+#: window of the "current" bus load [s]
+LOAD_WINDOW_S = 1.0
+_CRC15_POLY = 0x4599
+
+
+def _crc15(bits: list[int]) -> int:
+    crc = 0
+    for b in bits:
+        nxt = b ^ ((crc >> 14) & 1)
+        crc = (crc << 1) & 0x7FFF
+        if nxt:
+            crc ^= _CRC15_POLY
+    return crc
+
+
+def _bits_of(value: int, n: int) -> list[int]:
+    return [(value >> (n - 1 - i)) & 1 for i in range(n)]
+
+
+def frame_bits(msg: can.Message, stuffing: str = "computed") -> int:
+    """Bits a classical CAN frame occupies on the bus, intermission (3 bits) included."""
+    dlc = min(msg.dlc, 8)
+    n_data = 0 if msg.is_remote_frame else dlc
+    rtr = 1 if msg.is_remote_frame else 0
+    if msg.is_extended_id:
+        ident = msg.arbitration_id & 0x1FFFFFFF
+        head = [0] + _bits_of(ident >> 18, 11) + [1, 1] + _bits_of(ident & 0x3FFFF, 18) + [rtr, 0, 0]
+    else:
+        head = [0] + _bits_of(msg.arbitration_id & 0x7FF, 11) + [rtr, 0, 0]
+    stuffed_part = head + _bits_of(dlc, 4)
+    for byte in bytes(msg.data[:n_data]):
+        stuffed_part += _bits_of(byte, 8)
+    stuffed_part += _bits_of(_crc15(stuffed_part), 15)
+    n = len(stuffed_part)
+    if stuffing == "worst":
+        stuff = (n - 1) // 4
+    else:
+        stuff, run, last = 0, 0, -1
+        for b in stuffed_part:
+            if b == last:
+                run += 1
+            else:
+                last, run = b, 1
+            if run == 5:  # a stuff bit of the opposite level follows and starts a new run
+                stuff += 1
+                last, run = 1 - b, 1
+    return n + stuff + 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
+
+
+class BitRateBus(can.BusABC):
+    """Wraps a bus with the timing of a CAN bus at ``bitrate`` bit/s (see the module doc)."""
+
+    def __init__(self, inner: can.BusABC, bitrate: int = 1_000_000, *, stuffing: str = "computed",
+                 tx_queue_limit: int = TX_QUEUE_LIMIT):
+        if not isinstance(bitrate, int) or not 10_000 <= bitrate <= 1_000_000:
+            raise ValueError(f"CAN bit rate must be 10000..1000000 bit/s (got {bitrate!r})")
+        if stuffing not in ("computed", "worst"):
+            raise ValueError(f"stuffing must be 'computed' or 'worst' (got {stuffing!r})")
+        self.inner = inner
+        self.bitrate = bitrate
+        self.stuffing = stuffing
+        self.tx_queue_limit = tx_queue_limit
+        self.channel_info = f"{getattr(inner, 'channel_info', 'bus')} at {bitrate} bit/s"
+        super().__init__(channel=None)
+        self._lock = threading.Condition()
+        self._pending: list[tuple[int, int, float, can.Message, int]] = []  # (priority, seq, queued_s, msg, bits)
+        self._seq = 0
+        self._idle_s = time.perf_counter()   # the bus timeline: when the last frame (any node) ended
+        self._window: deque[tuple[float, int]] = deque()  # (end of frame, bits) inside LOAD_WINDOW_S
+        self._window_bits = 0
+        self._t0 = time.perf_counter()
+        self.frames_tx = self.frames_rx = self.bits_tx = self.bits_rx = 0
+        self.tx_refused = 0
+        self.queue_max = 0
+        self.delay_sum_s = 0.0
+        self.delay_max_s = 0.0
+        self.peak_load = 0.0
+        self._peak_checked_s = self._t0
+        self._stop = False
+        self._thread = threading.Thread(target=self._transmitter, name="can-bitrate-tx", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ python-can interface
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        bits = frame_bits(msg, self.stuffing)
+        priority = ((msg.arbitration_id & 0x1FFFFFFF) << 1) if msg.is_extended_id else \
+            ((msg.arbitration_id & 0x7FF) << 19)   # an 11-bit id beats an extended one with the same base id
+        with self._lock:
+            if len(self._pending) >= self.tx_queue_limit:
+                self.tx_refused += 1
+                raise can.CanOperationError("CAN transmit queue full (bus overloaded)")
+            self._seq += 1
+            self._pending.append((priority, self._seq, time.perf_counter(), msg, bits))
+            if len(self._pending) > self.queue_max:
+                self.queue_max = len(self._pending)
+            self._lock.notify()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        msg = self.inner.recv(timeout)
+        if msg is not None:
+            bits = frame_bits(msg, self.stuffing)
+            now = time.perf_counter()
+            with self._lock:
+                self.frames_rx += 1
+                self.bits_rx += bits
+                # the frame ended about now and took the bus for bits / bitrate before
+                start = max(self._idle_s, now - bits / self.bitrate)
+                self._idle_s = max(self._idle_s, start + bits / self.bitrate)
+                self._account(self._idle_s, bits)
+        return msg, False
+
+    def fileno(self) -> int:
+        return self.inner.fileno()
+
+    def shutdown(self) -> None:
+        with self._lock:
+            self._stop = True
+            self._lock.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self.inner.shutdown()
+        super().shutdown()
+
+    # ------------------------------------------------------------------ the wire
+    def _account(self, end_s: float, bits: int) -> None:
+        window = self._window
+        window.append((end_s, bits))
+        self._window_bits += bits
+        horizon = end_s - LOAD_WINDOW_S
+        while window and window[0][0] < horizon:
+            self._window_bits -= window.popleft()[1]
+        if end_s - self._peak_checked_s >= 0.1:   # peak of the 1 s load, sampled every 0.1 s
+            self._peak_checked_s = end_s
+            if end_s - self._t0 >= LOAD_WINDOW_S:
+                load = self._window_bits / (self.bitrate * LOAD_WINDOW_S)
+                if load > self.peak_load:
+                    self.peak_load = load
+
+    def _transmitter(self) -> None:
+        lock = self._lock
+        perf = time.perf_counter
+        while True:
+            with lock:
+                while not self._pending and not self._stop:
+                    lock.wait(0.1)
+                if self._stop:
+                    return
+                first_queued = min(p[2] for p in self._pending)
+                start = max(self._idle_s, first_queued)
+                # arbitration: among the frames waiting when the bus goes idle, the lowest identifier
+                entry = min(p for p in self._pending if p[2] <= start)
+                self._pending.remove(entry)
+                _prio, _seq, queued_s, msg, bits = entry
+                end = start + bits / self.bitrate
+                self._idle_s = end
+            remaining = end - perf()
+            if remaining > 0:
+                time.sleep(remaining)
+            try:
+                self.inner.send(msg)
+            except (can.CanError, OSError, ValueError):
+                self.tx_refused += 1
+                continue
+            with lock:
+                self.frames_tx += 1
+                self.bits_tx += bits
+                delay = end - queued_s
+                self.delay_sum_s += delay
+                if delay > self.delay_max_s:
+                    self.delay_max_s = delay
+                self._account(end, bits)
+
+    # ------------------------------------------------------------------ report
+    def load(self) -> float:
+        """Bus load over the last second [fraction of the bit rate; > 1 means more than the bus can carry]."""
+        now = time.perf_counter()
+        with self._lock:
+            bits = sum(b for t, b in self._window if t >= now - LOAD_WINDOW_S)
+        return bits / (self.bitrate * min(LOAD_WINDOW_S, max(now - self._t0, 1e-3)))
+
+    def stats(self) -> dict:
+        """Bus load [%], frames, bits and this node's queueing delays [ms] (JSON-ready)."""
+        elapsed = max(time.perf_counter() - self._t0, 1e-9)
+        load = self.load()
+        with self._lock:
+            return {
+                "bitrate_bit_s": self.bitrate,
+                "stuffing": self.stuffing,
+                "load_percent": round(100.0 * load, 2),
+                "peak_load_percent": round(100.0 * max(self.peak_load, load), 2),
+                "mean_load_percent": round(100.0 * (self.bits_tx + self.bits_rx) / (self.bitrate * elapsed), 2),
+                "frames_sent": self.frames_tx,
+                "frames_received": self.frames_rx,
+                "bits_sent": self.bits_tx,
+                "bits_received": self.bits_rx,
+                "tx_queue_max": self.queue_max,
+                "tx_refused": self.tx_refused,
+                "tx_delay_mean_ms": round(1e3 * self.delay_sum_s / self.frames_tx, 4) if self.frames_tx else 0.0,
+                "tx_delay_max_ms": round(1e3 * self.delay_max_s, 4),
+            }

@@ -1,0 +1,153 @@
+"""CAN bit-rate emulation (issue #15 "Scale"): frame lengths against the literature's formula, frame times and
+arbitration order on a python-can virtual bus, bus load and a transmit queue that overflows, and `serve`
+reporting the load of a master's traffic from another process."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import can
+import pytest
+from served_drive import served
+
+from virtualaxis.runtime.bitrate import BitRateBus, frame_bits
+
+
+def _msg(cob: int, n: int, fill: int = 0x55, ext: bool = False, rtr: bool = False) -> can.Message:
+    return can.Message(arbitration_id=cob, data=bytes([fill] * n) if not rtr else b"", dlc=n, is_extended_id=ext,
+                       is_remote_frame=rtr)
+
+
+@pytest.mark.parametrize("n", range(9))
+def test_worst_case_frame_length_is_the_literature_formula(n):
+    # Davis, Burns, Bril, Lukkien (2007), "Controller Area Network (CAN) schedulability analysis: refuted,
+    # revisited and revised", eq. (1): C = (g + 8s + 13 + floor((g + 8s - 1) / 4)) bit times, g = 34 (11-bit) or
+    # 54 (29-bit identifiers); the 13 fixed bits include the 3-bit inter-frame space.
+    for ext, g in ((False, 34), (True, 54)):
+        assert frame_bits(_msg(0x123, n, ext=ext), "worst") == g + 8 * n + 13 + (g + 8 * n - 1) // 4
+
+
+def test_computed_stuffing_lies_between_none_and_worst_case():
+    for n in range(9):
+        for fill in (0x00, 0xFF, 0x55, 0x0F, 0x3C):
+            m = _msg(0x7E0 if fill else 0x000, n, fill)
+            bits = frame_bits(m)
+            assert 47 + 8 * n <= bits <= frame_bits(m, "worst")
+    # long runs of equal bits are stuffed, alternating bits are not: zeros need more bits than 0x55
+    assert frame_bits(_msg(0x000, 8, 0x00)) > frame_bits(_msg(0x2AA, 8, 0x55)) + 10
+    assert frame_bits(_msg(0x123, 0, rtr=True)) < frame_bits(_msg(0x123, 8))
+
+
+class _Arrivals(can.Listener):
+    def __init__(self):
+        self.got: list[tuple[float, int]] = []
+        self.cond = threading.Condition()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.cond:
+            self.got.append((time.perf_counter(), msg.arbitration_id))
+            self.cond.notify_all()
+
+    def wait(self, n: int, timeout_s: float = 5.0) -> list[tuple[float, int]]:
+        end = time.monotonic() + timeout_s
+        with self.cond:
+            while len(self.got) < n and time.monotonic() < end:
+                self.cond.wait(0.05)
+            return list(self.got)
+
+
+def test_frame_times_and_arbitration_order_at_125_kbit(request):
+    channel = f"va-bitrate-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
+    rx = can.Bus(interface="virtual", channel=channel)
+    arrivals = _Arrivals()
+    notifier = can.Notifier(rx, [arrivals], timeout=0.01)
+    try:
+        frames = [_msg(cob, 8) for cob in (0x500, 0x400, 0x300, 0x200, 0x181, 0x182, 0x183, 0x100 + 0x7F)]
+        t0 = time.perf_counter()
+        for m in frames:
+            tx.send(m)
+        got = arrivals.wait(len(frames))
+        assert len(got) == len(frames)
+        ids = [cob for _t, cob in got]
+        # the first frame found the bus idle and went at once; the rest waited and won by identifier
+        assert ids[0] == 0x500 and ids[1:] == sorted(ids[1:])
+        expected_s = sum(frame_bits(m) for m in frames) / 125_000
+        took = got[-1][0] - t0
+        assert 0.95 * expected_s <= took <= expected_s + 0.05, (took, expected_s)
+        gaps = [b - a for (a, _), (b, _) in zip(got, got[1:], strict=False)]
+        assert min(gaps) > 0.5 * min(frame_bits(m) for m in frames) / 125_000  # frames never overlap
+        s = tx.stats()
+        assert s["frames_sent"] == len(frames) and s["tx_queue_max"] >= len(frames) - 1
+        assert s["tx_delay_max_ms"] >= 0.9 * 1e3 * expected_s * (len(frames) - 1) / len(frames)
+    finally:
+        notifier.stop()
+        tx.shutdown()
+        rx.shutdown()
+
+
+def test_bus_load_and_overload(request):
+    channel = f"va-bitrate-load-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 500_000, tx_queue_limit=64)
+    try:
+        # ~50 % load: one 8-byte frame (111..135 bits) every 0.25 ms at 500 kbit/s
+        end = time.perf_counter() + 0.6
+        n = 0
+        t = time.perf_counter()
+        while t < end:
+            tx.send(_msg(0x181, 8, 0x55))
+            n += 1
+            t += 0.25e-3
+            while time.perf_counter() < t:
+                time.sleep(0)
+        time.sleep(0.05)
+        bits = frame_bits(_msg(0x181, 8, 0x55))
+        s = tx.stats()
+        assert s["frames_sent"] == n and s["tx_refused"] == 0
+        expected = 100.0 * bits / 500_000 / 0.25e-3
+        assert 0.6 * expected <= s["load_percent"] <= 1.1 * expected, (s, expected)
+        # a burst the bus cannot carry: the transmit queue fills, send refuses like a full controller buffer
+        refused = 0
+        for _ in range(300):
+            try:
+                tx.send(_msg(0x182, 8))
+            except can.CanOperationError:
+                refused += 1
+        assert refused > 0 and tx.stats()["tx_refused"] == refused
+    finally:
+        tx.shutdown()
+
+
+def test_serve_reports_the_bus_load_of_a_master_in_another_process(tmp_path):
+    """A master with its own 125 kbit/s emulation floods 8-byte frames: its sends are paced by the bus (and
+    refused once its queue is full); `serve` at 125 kbit/s reports a load near 100 %."""
+    from virtualaxis.master import connect
+
+    out = tmp_path / "serve.json"
+    with served("--bitrate", "125000", "--json", str(out)) as srv:
+        net = connect(srv.spec, bitrate=125_000)
+        try:
+            t0 = time.perf_counter()
+            sent = refused = 0
+            while time.perf_counter() - t0 < 1.0:
+                try:
+                    net.bus.send(_msg(0x1F0, 8))
+                    sent += 1
+                except can.CanOperationError:
+                    refused += 1
+                    time.sleep(1e-3)
+            time.sleep(0.3)
+            bitrate_bus = net.bus
+        finally:
+            net.disconnect()  # (the queue keeps draining until the bus is shut down)
+        master = bitrate_bus.stats()
+    assert refused > 0 and master["tx_delay_max_ms"] > 100  # the master saw the bus was full
+    bits = frame_bits(_msg(0x1F0, 8))
+    assert master["mean_load_percent"] <= 101.0  # the master never put more on the bus than it carries
+    assert master["bits_sent"] == master["frames_sent"] * bits
+    bus = json.loads(out.read_text())["can_bus"]
+    assert bus["bitrate_bit_s"] == 125_000
+    assert 60.0 <= bus["peak_load_percent"] <= 115.0, bus
+    assert 0.95 * master["frames_sent"] <= bus["frames_received"] <= master["frames_sent"] + 5
