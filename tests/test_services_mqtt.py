@@ -338,3 +338,53 @@ def test_username_and_password_against_a_broker_that_requires_them(tmp_path):
         ax.close()
         broker.stop()
         shutil.rmtree(pwdir, ignore_errors=True)
+
+
+def test_mqtts_with_a_private_ca(tmp_path):
+    """mqtts:// against a mosquitto TLS listener whose certificate (SAN IP 127.0.0.1) is signed by a CA given
+    as ca_file in the credentials file; without that CA the connection is refused (certificate not trusted)."""
+    import shutil
+    import tempfile
+
+    d = Path(tempfile.mkdtemp(prefix="va-mqtt-tls-"))
+    d.chmod(0o755)  # mosquitto started as root reads its files as the user 'mosquitto'
+    try:
+        def ossl(*a):
+            subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
+
+        ossl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+             "-subj", "/CN=virtualaxis test CA")
+        ossl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr",
+             "-subj", "/CN=127.0.0.1")
+        (d / "san.ext").write_text("subjectAltName=IP:127.0.0.1\n")
+        ossl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+             "-out", "server.pem", "-days", "2", "-extfile", "san.ext")
+        for f in d.iterdir():
+            f.chmod(0o644)
+        broker = Mosquitto(tmp_path, extra_conf=f"cafile {d / 'ca.pem'}\ncertfile {d / 'server.pem'}\n"
+                                                f"keyfile {d / 'server.key'}\n")
+        broker.start()
+        ax = ServedAxis()
+        try:
+            cred = tmp_path / "cred.toml"
+            cred.write_text(f'ca_file = "{d / "ca.pem"}"\n')
+            good = settings(f"mqtts://127.0.0.1:{broker.port}")
+            load_credentials(good, str(cred), env={})
+            untrusted = settings(f"mqtts://127.0.0.1:{broker.port}", machine="rig3")
+            s_good = MqttService(good, [("X", 3, ax.drive, None)]).start()
+            s_bad = MqttService(untrusted, [("X", 3, ax.drive, None)]).start()
+            end = time.monotonic() + 10
+            while time.monotonic() < end and not (
+                s_good.channels[0].batches_published >= 2 and s_bad.channels[0].connect_attempts >= 2
+            ):
+                time.sleep(0.05)
+            s_good.stop()
+            s_bad.stop()
+            assert s_good.channels[0].connects == 1 and s_good.channels[0].batches_published >= 2
+            assert s_bad.channels[0].connects == 0
+            assert "certificate" in s_bad.channels[0].last_error.lower()
+        finally:
+            ax.close()
+            broker.stop()
+    finally:
+        shutil.rmtree(d, ignore_errors=True)

@@ -54,3 +54,43 @@ def test_docker_compose_file_is_valid_and_wires_the_emulator_to_the_host():
 def test_readme_documents_vcan_setup_and_compose_up():
     text = (ROOT / "README.md").read_text()
     assert "ip link add dev vcan0 type vcan" in text and "docker compose up" in text
+
+
+def test_serve_side_channel_errors_are_one_line(tmp_path):
+    """A Modbus port in use ends `serve` with one error line naming the address, exit 2, no traceback; bad
+    option values are refused before the bus opens, naming the option or the file."""
+    import argparse
+    import os
+    import socket
+    import sys
+
+    from virtualaxis.services.serve_options import add_arguments, prepare
+
+    cli = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run(
+            [*cli, "serve", "--can", "udp_multicast:239.74.163.11,port=43917", "--duration", "1",
+             "--status-interval", "0", "--modbus", f"127.0.0.1:{port}"],
+            capture_output=True, text=True, timeout=120, env=env,
+        )
+    assert r.returncode == 2 and f"127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    cases = [
+        (["--modbus", "127.0.0.1:abc"], "--modbus '127.0.0.1:abc': port 'abc' is not a number"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--mqtt-credentials", str(tmp_path / "none.toml")], "none.toml"),
+        (["--mqtt", "mqtt://u:pw@127.0.0.1:1"], "not accepted on the command line"),
+        (["--mqtt", "http://127.0.0.1:1"], "expected mqtt://HOST:PORT"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--telemetry-batch", "0"], "batch size must be >= 1"),
+        (["--modbus-writable"], "--modbus-writable needs --modbus"),
+    ]
+    for argv, expect in cases:
+        with pytest.raises(ValueError) as exc:
+            prepare(parser.parse_args(argv), "configs/seed000-hust.toml")
+        assert expect in str(exc.value), (argv, str(exc.value))
+    ok = prepare(parser.parse_args(["--modbus", "--mqtt", "mqtt://127.0.0.1"]), "configs/seed000-hust.toml")
+    assert ok.modbus_address == ("127.0.0.1", 5020) and ok.mqtt.port == 1883 and ok.mqtt.machine == "seed000-hust"
