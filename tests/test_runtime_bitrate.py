@@ -77,8 +77,13 @@ def test_frame_times_and_arbitration_order_at_125_kbit(request):
         expected_s = sum(frame_bits(m) for m in frames) / 125_000
         took = got[-1][0] - t0
         assert 0.95 * expected_s <= took <= expected_s + 0.05, (took, expected_s)
-        gaps = [b - a for (a, _), (b, _) in zip(got, got[1:], strict=False)]
-        assert min(gaps) > 0.5 * min(frame_bits(m) for m in frames) / 125_000  # frames never overlap
+        # never early: the k-th frame arrives no sooner than the bits of the frames before it and its own take
+        # (late releases on a loaded host are allowed; the timeline stays exact)
+        by_id = {m.arbitration_id: m for m in frames}
+        cum = 0
+        for t, cob in got:
+            cum += frame_bits(by_id[cob])
+            assert t - t0 >= cum / 125_000 - 1e-4, (cob, t - t0, cum / 125_000)
         s = tx.stats()
         assert s["frames_sent"] == len(frames) and s["tx_queue_max"] >= len(frames) - 1
         assert s["tx_delay_max_ms"] >= 0.9 * 1e3 * expected_s * (len(frames) - 1) / len(frames)
@@ -90,7 +95,7 @@ def test_frame_times_and_arbitration_order_at_125_kbit(request):
 
 def test_bus_load_and_overload(request):
     channel = f"va-bitrate-load-{id(request)}"
-    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 500_000, tx_queue_limit=64)
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 500_000)
     try:
         # ~50 % load: one 8-byte frame (111..135 bits) every 0.25 ms at 500 kbit/s
         end = time.perf_counter() + 0.6
@@ -109,6 +114,7 @@ def test_bus_load_and_overload(request):
         expected = 100.0 * bits / 500_000 / 0.25e-3
         assert 0.6 * expected <= s["load_percent"] <= 1.1 * expected, (s, expected)
         # a burst the bus cannot carry: the transmit queue fills, send refuses like a full controller buffer
+        tx.tx_queue_limit = 64
         refused = 0
         for _ in range(300):
             try:
