@@ -68,7 +68,7 @@ def test_make_case_writes_a_loadable_config_traces_and_truth(tmp_path, name):
     assert not cfg.backlash.enabled and cfg.sensors.dead_time_s == 0  # the withheld effect is not in the config
     for key, src in cfg.sources.items():
         assert src.strip(), key
-    assert len(cf.fit) == 4 and len(cf.holdout) == 3
+    assert len(cf.fit) == 4 and len(cf.holdout) == (4 if name.startswith("rigid") else 3)
     truth = json.loads((tmp_path / "truth.json").read_text())
     assert truth == json.loads(json.dumps(cf.truth))
     assert set(cf.truth) >= {"effects", "params", "main_param", "notes"}
@@ -81,6 +81,9 @@ def test_make_case_writes_a_loadable_config_traces_and_truth(tmp_path, name):
     if name.startswith("two"):
         expect += ["pos_fb"]
     assert set(header) == set(expect)
+    if name.startswith("rigid"):  # the validation run with known force pulses
+        pulses = np.genfromtxt(cf.holdout[-1], delimiter=",", names=True)
+        assert cf.holdout[-1].stem == "heldout_pulses" and set(np.unique(pulses["force_ext"])) == {-40.0, 0.0, 40.0}
     d = np.genfromtxt(cf.fit[0], delimiter=",", names=True)
     assert np.allclose(np.diff(d["t"]), 1e-3)
     assert np.all(np.isfinite(d.view(float).reshape(len(d), -1)))

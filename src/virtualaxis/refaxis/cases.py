@@ -208,7 +208,8 @@ def conditions(structure: str, quick: bool) -> tuple[list[tuple[str, np.ndarray]
     """(fit, held-out) commands as (stem, 1 kHz position array).
 
     Fit: sines F1000 and F6000 over the stroke, a jerk-limited point-to-point move there and back, and a rapid
-    traverse with 2 ms jerk phases. Held out: sines F2000..F5000 and another point-to-point move."""
+    traverse with 2 ms jerk phases. Held out: sines F2000..F5000 and another point-to-point move; on
+    ``rigid_pp`` also a slow move with known +-40 N force pulses (``pulses``, see :func:`external_force`)."""
     s = 0.01 if quick else 0.1  # stroke [m]
     fit = [
         ("sine_F1000", C.sine(1000, s, 1)),
@@ -225,7 +226,16 @@ def conditions(structure: str, quick: bool) -> tuple[list[tuple[str, np.ndarray]
     ]
     if quick:
         hold = [hold[0], hold[2], hold[4]]
+    if structure == "rigid_pp":  # a validation run with known force pulses (force_ext), like the lab axis
+        hold.append(("pulses", C.point_to_point(-0.2 * s, 0.2 * s, 0.05, 0.5, 10.0, dwell_s=1.0)))
     return fit, hold
+
+
+def external_force(structure: str, stem: str, n: int) -> np.ndarray | None:
+    """Known external force of a condition [N] (recorded as ``force_ext``), or None."""
+    if structure == "rigid_pp" and stem == "pulses":
+        return C.force_pulses(n, 40.0, 0.06, 0.7, 0.1)
+    return None
 
 
 @dataclass
@@ -285,7 +295,8 @@ def make_case(name: str, out_dir: Path, seed: int = 0, quick: bool = False) -> C
         for stem, x in cmds:
             rec = _moving_start_index(x) if spec.moving_start else 0
             cols = simulate(spec.structure, truth_phys, x, noise_seed(name, seed, kind, stem),
-                            record_from=rec, channel_shift=spec.channel_shift)
+                            record_from=rec, channel_shift=spec.channel_shift,
+                            f_ext=external_force(spec.structure, stem, len(x)))
             if spec.moving_start:
                 start_speeds[f"{kind}_{stem}"] = float((x[rec] - x[rec - 1]) / truth_phys["position_cycle_s"])
             path = out_dir / f"{kind}_{stem}.csv"

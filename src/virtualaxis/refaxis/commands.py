@@ -58,3 +58,18 @@ def velocity(x: np.ndarray, t_s: float = 1e-3) -> np.ndarray:
     v = np.zeros_like(x)
     v[1:] = np.diff(x) / t_s
     return v
+
+
+def force_pulses(n: int, amplitude_n: float, width_s: float, period_s: float, first_s: float,
+                 t_s: float = 1e-3) -> np.ndarray:
+    """Known external force on the table [N]: rectangular pulses of ``width_s`` every ``period_s`` from
+    ``first_s`` on, alternating in sign (a validation run with force pulses, like the lab axis of issue 14)."""
+    t = np.arange(n) * t_s
+    f = np.zeros(n)
+    k = 0
+    start = first_s
+    while start < t[-1]:
+        f[(t >= start) & (t < start + width_s)] = amplitude_n * (1 if k % 2 == 0 else -1)
+        start += period_s
+        k += 1
+    return f

@@ -10,6 +10,7 @@ Recording conventions (row k = position-loop instant t_k = k T, T = 1 ms):
 * ``motor_pos`` (two_mass, full_closed): the encoder angle [rad], 0 with the table at 0.
 * ``current_q`` (two_mass, full_closed): torque-producing current sampled at t_k (torque / kt, quantised, noisy);
   ``force_drive`` = current_q x kt x 2 pi / lead (the drive's force at the nut).
+* ``force_ext``: the known external force on the table (pulses of the rigid axis' validation run), exact.
 * ``force_drive`` (rigid_pp): the controller's force command; by default row k holds the command applied
   during [t_k-1, t_k) (computed at t_k-1); with ``channel_shift = 1`` row k holds the command computed at t_k
   (applied during [t_k, t_k+1)): the channel then leads our convention by one sample.
@@ -41,7 +42,8 @@ def simulate(structure: str, phys: dict, x_cmd: np.ndarray, seed: int, *, record
     """Simulate ``x_cmd`` (1 kHz, metres) on the axis ``phys`` and return the trace columns (SI units).
 
     A standstill of ``PREROLL_S`` at the first command value runs before the command (not recorded; the
-    axis settles, enabled). ``record_from``: first command sample recorded (a start already moving)."""
+    axis settles, enabled). ``record_from``: first command sample recorded (a start already moving).
+    ``f_ext``: known external force on the table along +x per command sample [N], recorded as ``force_ext``."""
     T = phys["position_cycle_s"]
     n_pre = int(round(PREROLL_S / T))
     cmd = np.concatenate([np.full(n_pre, x_cmd[0]), x_cmd])
@@ -77,6 +79,8 @@ def simulate(structure: str, phys: dict, x_cmd: np.ndarray, seed: int, *, record
     m = raw.shape[0]
     t = np.arange(m) * T
     cols: dict[str, np.ndarray] = {"t": t, "pos_cmd": x_rec}
+    if f_ext is not None:
+        cols["force_ext"] = np.asarray(f_ext, dtype=float)[record_from:]
     if structure in A.SCREW_STRUCTURES:
         if phys["full_closed"]:
             cols["pos_meas"] = raw[:, K.C_FB]  # the scale as the position loop read it
