@@ -5,13 +5,15 @@
 :class:`~virtualaxis.config.errors.InputError` (naming file, row and column) for data that would make any
 conclusion meaningless, and returns warnings (prefixed ``plausibility:``) for findings a person should look at:
 
-- **time unit**: the sample interval must be one a drive records at (:data:`DT_RANGE_S`); a trace with
+- **time unit**: the sample interval must be one a drive records at (``trace.DT_RANGE_S``); a trace with
   ``t`` in milliseconds written as seconds has a 1 s interval and is refused. An interval far from the
   config's position cycle is a warning.
-- **sign and scale of each channel against the command**: position channels must follow ``pos_cmd`` with a
-  regression slope near +1 (a sign-flipped or wrongly scaled channel is refused), ``vel_meas`` the command's
-  derivative, and the drive effort (``torque_meas``, ``current_q``, ``force_drive``) must push the way the
-  command accelerates, with an inertia near the config's (a factor beyond :data:`EFFORT_SCALE_RANGE` warns).
+- **sign and scale of each channel against the command**: position channels must follow ``pos_cmd`` (delayed
+  by up to five closed-loop time constants, the servo's lag) with a positive correlation (a sign-flipped channel
+  is refused) and a slope near 1 (else a warning; a mm-for-m channel is already refused by the unit checks),
+  ``vel_meas`` the command's derivative likewise, and the drive effort (``torque_meas``, ``current_q``,
+  ``force_drive``) must push the way the command accelerates, with an inertia near the config's (a factor
+  beyond :data:`EFFORT_SCALE_RANGE` warns).
 - **the same data twice**: two inputs with the same content (SHA-256 of the parsed samples) are refused; a
   held-out trace identical to a fit trace would judge the fit on its own data.
 - **absurd magnitudes**: an external or drive force beyond :data:`FORCE_FACTOR` times the axis' peak drive
@@ -98,48 +100,100 @@ def _check_time(tr, cfg, warnings: list[str]) -> None:
                         f"cycle {cyc:g} s: check the time unit of column t")
 
 
-def _check_positions(tr, warnings: list[str]) -> None:
+def _lagged_fit(ref: np.ndarray, x: np.ndarray, max_lag: int) -> tuple[float, float, float, float]:
+    """Correlation of ``x`` with ``ref`` delayed by 0..max_lag samples: (best positive correlation, the slope of x
+    on the delayed ref there, most negative correlation, the slope there). A servo channel follows its command
+    with a lag; judging it at lag 0 would call a lagging channel mis-scaled."""
+    n = x.size
+    step = max(1, max_lag // 60)
+    best = (-2.0, math.nan, 2.0, math.nan)
+    for lag in range(0, min(max_lag, n // 2) + 1, step):
+        r = ref[: n - lag] - ref[: n - lag].mean()
+        y = x[lag:] - x[lag:].mean()
+        den = math.sqrt(float(np.dot(r, r)) * float(np.dot(y, y)))
+        if den <= 0:
+            continue
+        c = float(np.dot(r, y)) / den
+        k = float(np.dot(r, y)) / float(np.dot(r, r))
+        if c > best[0]:
+            best = (c, k, best[2], best[3])
+        if c < best[2]:
+            best = (best[0], best[1], c, k)
+    return best
+
+
+def _max_lag_samples(tr, cfg) -> int:
+    """Lags searched: up to five closed-loop time constants 1/kv (at least 0.2 s), at most a quarter trace."""
+    kv = cfg.control.kv_1_per_s
+    lag_s = max(0.2, 5.0 / kv) if kv > 0 else 0.5
+    return max(1, min(int(lag_s / tr.dt_s), tr.t.size // 4))
+
+
+def _check_positions(tr, cfg, warnings: list[str]) -> None:
     cmd = tr.pos_cmd
     if float(np.ptp(cmd)) <= 0:
         return
+    max_lag = _max_lag_samples(tr, cfg)
     for col in ("pos_meas", "pos_fb"):
         x = tr.columns.get(col)
         if x is None:
             continue
-        k = _slope(cmd, x)
+        c_pos, k_pos, c_neg, k_neg = _lagged_fit(cmd, x, max_lag)
+        if c_neg < -0.8 and c_pos < 0.5:
+            raise InputError(tr.path, f"moves against pos_cmd (correlation {c_neg:.2f}, slope {k_neg:.3g}; expected "
+                                      "about +1): a sign-flipped channel or encoder direction", None, col)
         lo, hi = POSITION_SLOPE_RANGE
-        if not k > 0:
-            raise InputError(tr.path, f"moves against pos_cmd (slope {k:.3g}; expected about +1): a sign-flipped "
-                                      "channel or encoder direction", None, col)
-        if not lo <= k <= hi:
-            raise InputError(tr.path, f"follows pos_cmd with slope {k:.3g} (expected {lo:g} .. {hi:g}): wrong scale "
-                                      "or unit", None, col)
+        if c_pos > 0.8 and not lo <= k_pos <= hi:
+            warnings.append(f"{PREFIX}{tr.name}: {col} follows pos_cmd with slope {k_pos:.3g} at its best lag "
+                            f"(expected {lo:g} .. {hi:g}): check its scale and unit")
 
 
-def _check_velocity(tr, warnings: list[str]) -> None:
+def _check_velocity(tr, cfg, warnings: list[str]) -> None:
     vel = tr.columns.get("vel_meas")
     if vel is None or tr.t.size < 3:
         return
     v_cmd = np.gradient(tr.pos_cmd, tr.t)
     if float(np.std(v_cmd)) <= 0:
         return
-    k = _slope(v_cmd, vel)
+    c_pos, k_pos, c_neg, k_neg = _lagged_fit(v_cmd, vel, _max_lag_samples(tr, cfg))
+    if c_neg < -0.8 and c_pos < 0.5:
+        raise InputError(tr.path, f"runs against the command's velocity (correlation {c_neg:.2f}; expected about "
+                                  "+1): sign-flipped", None, "vel_meas")
     lo, hi = VELOCITY_SLOPE_RANGE
-    if not k > 0:
-        raise InputError(tr.path, f"runs against the command's velocity (slope {k:.3g}; expected about +1): "
-                                  "sign-flipped", None, "vel_meas")
-    if not lo <= k <= hi:
-        warnings.append(f"{PREFIX}{tr.name}: vel_meas follows the command's velocity with slope {k:.3g} "
+    if c_pos > 0.8 and not lo <= k_pos <= hi:
+        warnings.append(f"{PREFIX}{tr.name}: vel_meas follows the command's velocity with slope {k_pos:.3g} "
                         f"(expected {lo:g} .. {hi:g}): check its unit (m/s)")
 
 
+def _measured_motion(tr, cfg) -> tuple[np.ndarray, np.ndarray] | None:
+    """Velocity and acceleration of the table from the measured position (Savitzky-Golay, cubic, ~20 ms window
+    against quantisation and noise), or None without a position channel. The effort answers the motion that
+    happened, not the command: a loose loop lags its command by more than the effort's own dynamics."""
+    from scipy.signal import savgol_filter
+
+    x = tr.columns.get("pos_meas", tr.columns.get("pos_fb"))
+    if x is None and "motor_pos" in tr.columns and cfg.mechanics.lead_m > 0:
+        x = tr.columns["motor_pos"] * cfg.mechanics.lead_m / (2 * math.pi)
+    if x is None:
+        return None
+    w = int(round(0.02 / tr.dt_s)) | 1
+    w = min(max(w, 7), (x.size // 2) | 1 if (x.size // 2) % 2 else x.size // 2 - 1)
+    if w < 5:
+        return None
+    v = savgol_filter(x, w, 3, deriv=1, delta=tr.dt_s, mode="interp")
+    a = savgol_filter(x, w, 3, deriv=2, delta=tr.dt_s, mode="interp")
+    return v, a
+
+
 def _check_efforts(tr, cfg, warnings: list[str]) -> None:
-    """Effort = c_a * a_cmd + c_c * sign(v_cmd) + c_v * v_cmd + c_0: the inertia term c_a must be positive and
-    near the config's inertia when the command's acceleration explains the effort."""
+    """Effort = c_a * a + c_c * sign(v) + c_v * v + c_0 on the measured motion: the inertia term c_a must be
+    positive and near the config's inertia where the inertia is a visible part of the effort."""
     if tr.t.size < 16:
         return
-    v = np.gradient(tr.pos_cmd, tr.t)
-    a = np.gradient(v, tr.t)
+    motion = _measured_motion(tr, cfg)
+    if motion is None:
+        return
+    v, a = motion
     if float(np.std(a)) <= 0:
         return
     reg = np.column_stack([a, np.sign(v), v, np.ones_like(v)])
@@ -161,7 +215,7 @@ def _check_efforts(tr, cfg, warnings: list[str]) -> None:
         # slow moves say little about the sign of the inertia term)
         if expected * float(np.std(a)) < 0.2 * float(np.std(y)):
             continue
-        if c_a < 0 and abs(c_a) > 0.3 * expected:
+        if c_a < 0 and abs(c_a) > 0.5 * expected:
             raise InputError(tr.path, f"pushes against the command's acceleration (inertia term {c_a:.3g} per "
                                       f"m/s^2, the config gives {expected:.3g}): sign-flipped", None, col)
         ratio = c_a / expected
@@ -204,8 +258,8 @@ def check_plausibility(cfg, traces: list, fit_paths: list[str], holdout_paths: l
     for tr in traces:
         _check_time(tr, cfg, warnings)
         _check_magnitudes(tr, cfg)
-        _check_positions(tr, warnings)
-        _check_velocity(tr, warnings)
+        _check_positions(tr, cfg, warnings)
+        _check_velocity(tr, cfg, warnings)
         _check_efforts(tr, cfg, warnings)
     _check_duplicates(traces, len(fit_paths) if holdout_paths else None)
     return warnings
