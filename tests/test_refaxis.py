@@ -308,3 +308,16 @@ def test_every_withheld_effect_changes_the_traces_beyond_the_sensor_noise(struct
             assert worst == 0.0, name
         else:
             assert worst > 3.0, f"{name}: largest change {worst:.2f} x the noise"
+
+
+def test_encoder_dead_time_shifts_the_feedback_by_v_times_d():
+    """Semi-closed loop at constant speed: the delayed encoder reads r theta(t - d) = r theta(t) - v d, the
+    (undelayed) scale is unchanged, so pos_meas - pos_fb grows by exactly v d (50 mm/s x 0.6 ms = 30 um)."""
+    v, d = 0.05, 6e-4
+    t = np.arange(2500) * 1e-3
+    x = np.where(t < 0.2, -0.05, -0.05 + v * (t - 0.2))
+    gaps = []
+    for delay in (0.0, d):
+        tr = R.simulate("two_mass", dict(A.NOMINAL["two_mass"], dead_time_s=delay), x, seed=5)
+        gaps.append((tr["pos_meas"] - tr["pos_fb"])[-800:].mean())
+    assert gaps[1] - gaps[0] == pytest.approx(v * d, rel=0.01)

@@ -132,9 +132,9 @@ def _specs() -> list[CaseSpec]:
                                   "effects.resonance_damping_ratio": 0.03},
                  {"resonance": "effects.resonance_frequency_hz"},
                  "a 40 kg part of the table on a spring: 75 Hz, 3 %; table_mass_kg stays the total"),
-        CaseSpec(fc, "time_delay", {"dead_time_s": 1e-3}, ("time_delay",), {"sensors.dead_time_s": 1e-3},
+        CaseSpec(fc, "time_delay", {"dead_time_s": 1.25e-3}, ("time_delay",), {"sensors.dead_time_s": 1.25e-3},
                  {"time_delay": "sensors.dead_time_s"},
-                 "1 ms read-out delay of the linear scale (the position loop and the recorded pos_meas see it; the"
+                 "1.25 ms read-out delay of the linear scale (the position loop and the recorded pos_meas see it; the"
                  " speed loop's motor encoder does not)"),
         CaseSpec(fc, "backlash+coulomb_friction", {"gap_m": 10e-6, "coulomb_n": 55.0, "coulomb_negative_n": 55.0},
                  ("backlash", "coulomb_friction"), {"backlash.gap_m": 10e-6, "friction.coulomb_n": 55.0},
@@ -162,9 +162,9 @@ def _specs() -> list[CaseSpec]:
                  {"resonance": "effects.resonance_frequency_hz"},
                  "a 15 kg part of the 60 kg carriage (a tall fixture) on a spring: 40 Hz, 2 %; table_mass_kg stays"
                  " the total"),
-        CaseSpec(rp, "time_delay", {"dead_time_s": 2e-3}, ("time_delay",), {"sensors.dead_time_s": 2e-3},
+        CaseSpec(rp, "time_delay", {"dead_time_s": 2.5e-3}, ("time_delay",), {"sensors.dead_time_s": 2.5e-3},
                  {"time_delay": "sensors.dead_time_s"},
-                 "2 ms scale read-out delay: both loops and the recorded pos_meas see the delayed scale"),
+                 "2.5 ms scale read-out delay: both loops and the recorded pos_meas see the delayed scale"),
         CaseSpec(rp, "coulomb_friction+viscous_friction",
                  {"coulomb_n": 20.0, "coulomb_negative_n": 20.0, "viscous_n_s_per_m": 200.0,
                   "viscous_negative_n_s_per_m": 200.0}, ("coulomb_friction", "viscous_friction"),
