@@ -15,7 +15,7 @@ from virtualaxis.rcsa.identify import predict_modes
 from virtualaxis.rcsa.params import JointParams, rcsa_model_from_config
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "seed002-usst.toml"
-TRUTH = JointParams(4.28e7, 2.94e7, 7.09e8, 5.53e3, 100.0, 100.0, 500.0, 0.1)
+TRUTH = JointParams(4.28e7, 2.94e7, 7.09e8, 880.0, 100.0, 100.0, 500.0, 0.1)  # Table 3, k_m read as in the config
 
 
 def test_rcsa_json_and_plots(tmp_path, capsys):

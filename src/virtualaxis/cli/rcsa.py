@@ -108,20 +108,25 @@ class _nullstage:
 def _run(args: argparse.Namespace, model: RcsaModel, positions: list[float], stage: Path | None) -> int:
     results = []
     preds = predict_modes(model, positions)
+    from virtualaxis.rcsa.consistency import undamped_model
+
+    poles = predict_modes(undamped_model(model), positions)  # modes the damped FRF may hide (no band peak)
     print(
         f"{'position [m]':>12}  "
         + "  ".join(f"f{q + 1} [Hz]  |h{q + 1}| [m/N]" for q in range(len(model.mode_bands_hz)))
     )
-    for pr in preds:
+    for pr, pole in zip(preds, poles, strict=True):
         row: dict = {
             "position_m": pr.position_m,
             "natural_frequencies_hz": _none_for_nan(pr.natural_frequencies_hz),
+            "undamped_natural_frequencies_hz": _none_for_nan(pole.natural_frequencies_hz),
             "amplitudes_m_per_n": _none_for_nan(pr.amplitudes_m_per_n),
         }
         cells = []
         for f, a in zip(pr.natural_frequencies_hz, pr.amplitudes_m_per_n, strict=True):
             cells.append(f"{f:7.1f}  {a:12.3e}" if math.isfinite(f) else f"{'—':>7}  {'(no peak)':>12}")
-        print(f"{pr.position_m:12.3f}  " + "  ".join(cells))
+        und = ", ".join("—" if not math.isfinite(f) else f"{f:.1f}" for f in pole.natural_frequencies_hz)
+        print(f"{pr.position_m:12.3f}  " + "  ".join(cells) + f"   undamped: {und}")
         if args.fe_check:
             fe = fe_natural_frequencies_hz(model, pr.position_m)
             row["fe_natural_frequencies_hz"] = [float(v) for v in fe[(fe > 1.0) & (fe < 1000.0)]]
@@ -135,7 +140,8 @@ def _run(args: argparse.Namespace, model: RcsaModel, positions: list[float], sta
             )
     gaps = sum(1 for r in results for f in r["natural_frequencies_hz"] if f is None)
     if gaps:
-        print(f"{gaps} mode(s) have no peak in their band (reported as null in JSON, '—' above)")
+        print(f"{gaps} mode(s) have no peak in their band (reported as null in JSON, '—' above); the undamped"
+              " poles (undamped_natural_frequencies_hz) show where they are")
     if args.json:
         doc = {
             "config": str(args.config),
