@@ -59,7 +59,8 @@ def test_case_names_cover_every_effect_and_the_pairs():
         make_case("two_mass/nothing", Path("/nonexistent"))
 
 
-@pytest.mark.parametrize("name", ["two_mass/backlash", "full_closed/time_delay", "rigid_pp/channel_shift"])
+@pytest.mark.parametrize("name", ["two_mass/backlash", "full_closed/time_delay", "rigid_pp/channel_shift",
+                                  "rigid_pp/moving_start"])
 def test_make_case_writes_a_loadable_config_traces_and_truth(tmp_path, name):
     cf = make_case(name, tmp_path, seed=3, quick=True)
     cfg = load_axis_config(cf.config_path)  # our schema, validated on load
@@ -74,6 +75,7 @@ def test_make_case_writes_a_loadable_config_traces_and_truth(tmp_path, name):
     assert set(cf.truth) >= {"effects", "params", "main_param", "notes"}
     for eff, key in cf.truth["main_param"].items():
         assert eff in cf.truth["effects"] and key in cf.truth["params"]
+    assert all(isinstance(v, (int, float)) for v in cf.truth["params"].values())
     header = cf.fit[0].read_text().splitlines()[0].split(",")
     expect = ["t", "pos_cmd", "pos_meas", "force_drive"]
     if not name.startswith("rigid"):

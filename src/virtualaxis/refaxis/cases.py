@@ -307,9 +307,10 @@ def make_case(name: str, out_dir: Path, seed: int = 0, quick: bool = False) -> C
     if spec.moving_start:
         vmax = max(start_speeds.values(), key=abs)
         params["moving_start/start_velocity_m_s"] = vmax
-        params["moving_start/start_velocity_per_trace_m_s"] = start_speeds
         main["moving_start"] = "moving_start/start_velocity_m_s"
     truth = {"effects": list(spec.effects), "params": params, "main_param": main, "notes": spec.notes,
              "structure": spec.structure, "seed": seed, "quick": quick}
+    if spec.moving_start:
+        truth["start_velocity_per_trace_m_s"] = start_speeds
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
     return CaseFiles(name=name, config_path=cfg_path, fit=fit_paths, holdout=hold_paths, truth=truth)
