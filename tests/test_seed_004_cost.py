@@ -43,3 +43,16 @@ def test_interior_optimum_and_weights_found() -> None:
     assert w is not None and 2475.0 <= w["optimum_kv_per_min_static_position_error"] <= 2997.5
     # the bounds: 3 (w.x) - 2 spans [-2, 1] for weights summing to 1
     assert sum(w[k] for k in ("w_precision", "w_energy", "w_response_time")) == pytest.approx(1.0)
+
+
+def test_timing_sensitivity_reads_the_error_at_each_delay() -> None:
+    from virtualaxis.studies.seeds import kv_cost_timing_sensitivity
+
+    kv = np.arange(1000.0, 5001.0, 125.0)
+    delays = np.array([0.0, 0.1])
+    # at delay 0 the error is a well centred on 2750 (optimum there); at 0.1 s it is flat (corner optimum)
+    rows = [{"kv_per_min": float(k), "energy_per_cycle_j": 0.0, "response_time_s": 1.0,
+             "error_after_move_m": [(k - 2750.0) ** 2, 1.0]} for k in kv]
+    s = kv_cost_timing_sensitivity(rows, delays)
+    assert s["optimum_kv_per_min"][0] == 2750.0
+    assert s["delays_within_tolerance_s"] == [0.0]

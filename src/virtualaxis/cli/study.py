@@ -82,6 +82,14 @@ def _run(args, cfg, vals, stem: str, out: Path) -> int:
         from virtualaxis.studies.plots import plot_kv_weight_sensitivity
 
         plot_kv_weight_sensitivity(out / f"{stem}_weights.png", doc["weight_sensitivity"], cfg.axis.name)
+        ts = doc["timing_sensitivity"]
+        plot_xy(out / f"{stem}_timing.png", [1e3 * d for d in ts["delays_s"]],
+                {"optimum kv (equal weights)": ts["optimum_kv_per_min"]}, "error read at [ms] after the move",
+                "optimum kv [1/min]", f"{cfg.axis.name}: when is the static error read?",
+                paper={"paper: 2725 1/min": ([0, 1e3 * ts["delays_s"][-1]], [ts["paper_kv_per_min"]] * 2)})
+        inside = ts["delays_within_tolerance_s"]
+        print("  error read d after the move (equal weights): optimum within 10 % of the paper for d = "
+              + (", ".join(f"{1e3 * d:.0f}" for d in inside) + " ms" if inside else "none of 0..400 ms"))
         print(f"cost optimum at kv = {doc['optimum_kv_per_min']:g} 1/min (paper: {doc['paper_optimum_kv_per_min']:g}); "
               f"relative spans: {json.dumps({k: round(v, 3) for k, v in doc['relative_span'].items()})}")
         for name, r in doc["weight_sensitivity"]["readings"].items():

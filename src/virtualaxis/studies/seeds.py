@@ -86,6 +86,8 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
     cyc = cfg.control.position_cycle_s
     t, p, v, a, move = reference_cycle(cfg, cyc)
     dist = p[-1] - p[0]
+    delays = np.round(np.arange(0.0, 0.401, 0.01), 3)  # [s] after the end of the commanded move
+    idx_delay = np.minimum(np.round((move + delays) / cyc).astype(int), t.size - 1)
     rows = []
     for kv in kvs:
         c = cfg.replace(control={"kv_per_min": float(kv), "kv_1000_per_min": 0.0, "kv_per_s": 0.0})
@@ -98,7 +100,9 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
         tau = float(t[reached[0]]) if reached.size else float("nan")
         rows.append({"kv_per_min": float(kv), "kv_1000_per_min": float(kv) / 1000.0, "energy_per_cycle_j": energy,
                      "static_position_error_m": static, "response_time_s": tau,
-                     "max_following_error_m": float(np.max(np.abs(tr["following_error"])))})
+                     "max_following_error_m": float(np.max(np.abs(tr["following_error"]))),
+                     "error_after_move_m": [float(x) for x in
+                                            np.abs(tr["pos_cmd"][idx_delay] - tr["pos_meas"][idx_delay])]})
         if progress:
             progress(1)
 
@@ -126,7 +130,29 @@ def kv_sweep_study(cfg: AxisConfig, kv_per_min: np.ndarray | None = None, progre
         "cost_definition": "C = e~ + E~ + tau~ - 2 in [-2, 1]: min-max normalised static error, energy per cycle and"
                            " response time (seed 004 section 7, bounds as printed), equal weights",
         "weight_sensitivity": kv_cost_weight_sensitivity(rows),
+        "timing_sensitivity": kv_cost_timing_sensitivity(rows, delays),
     }
+
+
+def kv_cost_timing_sensitivity(rows: list[dict], delays_s: np.ndarray,
+                               paper_kv_per_min: float = SEED004_KV_OPTIMUM_PER_MIN, tolerance: float = 0.10) -> dict:
+    """Optimum of the equal-weight cost when the "static" error is read ``delay`` seconds after the commanded move
+    ends instead of after our 0.6 s dwell (the paper's Fig. 8a cycle, and so when its error was read, is not in
+    the text). Energy and response time as in :func:`kv_sweep_study`."""
+    kv = np.array([r["kv_per_min"] for r in rows])
+
+    def norm(x):
+        x = np.asarray(x, float)
+        span = np.nanmax(x) - np.nanmin(x)
+        return (x - np.nanmin(x)) / span if span > 0 else np.zeros_like(x)
+
+    base = norm([r["energy_per_cycle_j"] for r in rows]) + norm([r["response_time_s"] for r in rows]) - 2.0
+    err = np.array([r["error_after_move_m"] for r in rows])  # (kv, delay)
+    optima = [float(kv[int(np.nanargmin(base + norm(err[:, j])))]) for j in range(len(delays_s))]
+    lo, hi = paper_kv_per_min * (1 - tolerance), paper_kv_per_min * (1 + tolerance)
+    return {"delays_s": [float(d) for d in delays_s], "optimum_kv_per_min": optima,
+            "delays_within_tolerance_s": [float(d) for d, o in zip(delays_s, optima, strict=True) if lo <= o <= hi],
+            "paper_kv_per_min": paper_kv_per_min, "tolerance": tolerance}
 
 
 def kv_cost_weight_sensitivity(rows: list[dict], step: float = 0.05,
