@@ -68,6 +68,9 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
     """``clients`` threads, each with its own TCP connection, polling POLL_RANGES at ``rate_hz``."""
     from pymodbus.client import ModbusTcpClient
 
+    # clients run on other machines in a plant: here at normal priority (the master's SCHED_FIFO is inherited)
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     results: list[list[float]] = [[] for _ in range(clients)]
     errors = [0] * clients
     late = [0] * clients

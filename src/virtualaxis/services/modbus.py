@@ -1,49 +1,42 @@
-"""Modbus TCP server of the served axes (pymodbus), in its own thread and asyncio loop.
+"""Modbus TCP server of the served axes: pymodbus in a process of its own, the register map in ``serve``.
 
-The register map is :mod:`virtualaxis.services.modbus_map`; this module only binds it to pymodbus:
+Why two processes: pymodbus costs ~100-150 us of Python per request (framing, transaction handling,
+asyncio). In the drive's process every such microsecond is taken from the interpreter lock the drive's
+runtime thread needs each millisecond; ten clients polling at 100 Hz moved the SYNC -> TPDO latency by
+hundreds of microseconds. So:
 
-- a server context (:class:`DriveServerContext`) whose ``async_getValues`` / ``async_setValues`` read and
-  write the drive and return the Modbus exception code of a refused access;
-- request classes for FC03/04/23 that decode any count (pymodbus' own raise on a count > 125 while decoding,
-  which it answers with exception 01; the map answers 03) and one class per other function code that
-  answers exception 01;
-- :class:`ModbusService`: ``start()`` / ``stop()`` of the server thread.
+- the **server process** (:func:`_server_main`, started with ``multiprocessing`` "spawn"; it imports neither
+  the drive nor numba) runs ``pymodbus.server.ModbusTcpServer`` with a server context
+  (:class:`ForwardingContext`) that forwards each register access over a pipe;
+- a **bridge thread** in ``serve`` (:class:`ModbusService`) answers each access with the register map of
+  :mod:`virtualaxis.services.modbus_map` on the live drive: only the map's own work (tens of microseconds,
+  one drive snapshot per request) runs in the drive's process. Nothing is cached: a read shows the drive's
+  state of that moment, a write is applied before the response leaves.
 
-The drive cycle never waits for Modbus: a request takes the drive's lock only for the short read or write
-of the drive API, like any other API user.
+pymodbus specifics handled here: request classes for FC03/04/23 that decode any count (pymodbus raises
+while decoding a count > 125, which it answers with exception 01; the map answers 03), one class per other
+function code that answers exception 01, and a custom server context (pymodbus' "old simulator" path: the
+server calls only ``async_getValues`` / ``async_setValues``, whose return value may be an exception code).
 """
 
 from __future__ import annotations
 
-import asyncio
-import logging
+import multiprocessing
 import struct
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
-from pymodbus.constants import ExcCodes
-from pymodbus.datastore import ModbusServerContext
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
-from pymodbus.pdu.register_message import (
-    ReadHoldingRegistersRequest,
-    ReadInputRegistersRequest,
-    ReadWriteMultipleRegistersRequest,
-)
-from pymodbus.server import ModbusTcpServer
-
-from virtualaxis.services.modbus_map import (
-    REASON_BAD_COUNT,
-    REASON_UNSUPPORTED_FUNCTION,
-    REASON_WRITES_DISABLED,
-    AxisLink,
-    RegisterError,
-    read_block,
-    write_block,
-)
+from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16, 23)
 DEFAULT_ADDRESS = ("127.0.0.1", 5020)
+GATEWAY_NO_RESPONSE = 0x0B
+
+# pipe protocol (server process -> serve): ">BBBHH" op (0 read, 1 write, 2 count error, 3 unsupported function),
+# unit, function code, address, count, then the write values (">H" each). Reply: b"\x00" + words (">H" each)
+# or b"\x01" + exception code.
+_REQ = struct.Struct(">BBBHH")
 
 
 def parse_host_port(text: str | None) -> tuple[str, int]:
@@ -68,136 +61,51 @@ def parse_host_port(text: str | None) -> tuple[str, int]:
     return host, p
 
 
-class DriveServerContext(ModbusServerContext):
-    """The pymodbus server context of the axes: unit id -> :class:`AxisLink`.
+# ============================================================================================ serve side
+class RegisterAccess:
+    """The register map of the axes (unit id -> ``AxisLink``) answering forwarded accesses."""
 
-    It takes pymodbus' path for a custom (``old_simulator``) context: the server calls only
-    ``async_getValues`` / ``async_setValues``, whose return value may be an exception code.
-    """
-
-    def __init__(self, links: dict[int, AxisLink], *, writable: bool):  # noqa: D107 (no base init: no datablocks)
+    def __init__(self, links: dict, *, writable: bool):
         self.links = links
         self.writable = writable
-        self.old_simulator = True  # the server then uses this object as is
-        self.simdevices = []
-        self._devices = links
 
-    def device_ids(self) -> list[int]:
-        return list(self.links)
+    def handle(self, op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int]) -> bytes:
+        from virtualaxis.services.modbus_map import (
+            REASON_BAD_COUNT,
+            REASON_UNSUPPORTED_FUNCTION,
+            REASON_WRITES_DISABLED,
+            RegisterError,
+            read_block,
+            write_block,
+        )
 
-    def _link(self, unit: int) -> AxisLink | None:
-        return self.links.get(unit)
-
-    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
-        link = self._link(device_id)
+        link = self.links.get(unit)
         if link is None:
-            return ExcCodes.GATEWAY_NO_RESPONSE
+            return bytes((1, GATEWAY_NO_RESPONSE))
         link.requests += 1
         try:
-            if func_code not in (3, 4, 6, 16, 23):
-                raise RegisterError(REASON_UNSUPPORTED_FUNCTION, f"function {func_code} not supported")
-            if not 1 <= count <= 125:
-                raise RegisterError(REASON_BAD_COUNT, f"count {count} out of 1..125", address=address)
-            return read_block(link, address, count)
-        except RegisterError as exc:
-            link.record_error(exc)
-            return ExcCodes(exc.exception_code)
-
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values: Sequence[int]):
-        link = self._link(device_id)
-        if link is None:
-            return ExcCodes.GATEWAY_NO_RESPONSE
-        link.requests += 1
-        try:
-            if func_code not in (6, 16, 23):
-                raise RegisterError(REASON_UNSUPPORTED_FUNCTION, f"function {func_code} not supported")
+            if op == 3 or fc not in SUPPORTED_FUNCTIONS:
+                raise RegisterError(REASON_UNSUPPORTED_FUNCTION, f"function {fc} not supported", address=address)
+            if op == 2:
+                raise RegisterError(REASON_BAD_COUNT, f"count {count} out of range", address=address)
+            if op == 0:
+                if not 1 <= count <= 125:
+                    raise RegisterError(REASON_BAD_COUNT, f"count {count} out of 1..125", address=address)
+                words = read_block(link, address, count)
+                return b"\x00" + struct.pack(f">{len(words)}H", *words)
             if not self.writable:
                 raise RegisterError(REASON_WRITES_DISABLED, "writes are disabled", address=address)
-            write_block(link, address, [int(v) for v in values])
-            return None
+            write_block(link, address, list(values))
+            return b"\x00"
         except RegisterError as exc:
             link.record_error(exc)
-            return ExcCodes(exc.exception_code)
-
-
-def _count_exception(pdu: ModbusPDU, context: DriveServerContext, device_id: int) -> ModbusPDU:
-    link = context.links.get(device_id)
-    if link is None:
-        return ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
-    link.requests += 1
-    link.record_error(RegisterError(REASON_BAD_COUNT, "bad count", address=pdu.address))
-    return ExceptionResponse(pdu.function_code, ExcCodes.ILLEGAL_VALUE)
-
-
-class ReadHoldingAnyCount(ReadHoldingRegistersRequest):
-    """FC03 that decodes any count (the count is checked when answering: exception 03)."""
-
-    def decode(self, data: bytes) -> None:
-        self.address, self.count = struct.unpack(">HH", data[:4])
-
-    async def datastore_update(self, context, device_id):
-        if not 1 <= self.count <= 125:
-            return _count_exception(self, context, device_id)
-        return await super().datastore_update(context, device_id)
-
-
-class ReadInputAnyCount(ReadHoldingAnyCount):
-    """FC04 (the same map as FC03)."""
-
-    function_code = ReadInputRegistersRequest.function_code
-
-
-class ReadWriteAnyCount(ReadWriteMultipleRegistersRequest):
-    """FC23 that decodes any count; the base class answers bad counts with exception 03."""
-
-    def decode(self, data: bytes) -> None:
-        (
-            self.read_address,
-            self.read_count,
-            self.write_address,
-            self.write_count,
-            self.write_byte_count,
-        ) = struct.unpack(">HHHHB", data[:9])
-        self._payload_byte_count = len(data) - 9
-        self.write_registers = [
-            struct.unpack(">H", data[i : i + 2])[0] for i in range(9, min(len(data), self.write_byte_count + 9) - 1, 2)
-        ]
-
-    async def datastore_update(self, context, device_id):
-        if not (1 <= self.read_count <= 125 and 1 <= self.write_count <= 121):
-            self.address = self.write_address
-            return _count_exception(self, context, device_id)
-        return await super().datastore_update(context, device_id)
-
-
-class _Unsupported(ModbusPDU):
-    """Any function code the map does not serve: exception 01 (the request body is ignored)."""
-
-    function_code = 0
-
-    def decode(self, data: bytes) -> None:
-        self._raw = data
-
-    async def datastore_update(self, context, device_id):
-        link = context.links.get(device_id) if isinstance(context, DriveServerContext) else None
-        if link is not None:
-            link.requests += 1
-            link.record_error(RegisterError(REASON_UNSUPPORTED_FUNCTION, "unsupported function"))
-        return ExceptionResponse(self.function_code, ExcCodes.ILLEGAL_FUNCTION)
-
-
-_UNSUPPORTED = [
-    type(f"UnsupportedFunction{fc:02d}", (_Unsupported,), {"function_code": fc})
-    for fc in range(1, 128)
-    if fc not in SUPPORTED_FUNCTIONS
-]
-CUSTOM_PDUS: list[type[ModbusPDU]] = [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, *_UNSUPPORTED]
+            return bytes((1, exc.exception_code))
 
 
 class ModbusService:
-    """The Modbus TCP server of the axes ``links`` (unit id -> link) in a background thread."""
+    """The Modbus TCP server of ``links`` (``AxisLink``, unit id = node id): :meth:`start` / :meth:`stop`."""
 
-    def __init__(self, links: list[AxisLink], *, host: str = "127.0.0.1", port: int = 5020, writable: bool = False):
+    def __init__(self, links: list, *, host: str = "127.0.0.1", port: int = 5020, writable: bool = False):
         ids = [link.unit_id for link in links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"Modbus unit ids must be unique (got {ids})")
@@ -205,59 +113,86 @@ class ModbusService:
         self.host = host
         self.port = port
         self.writable = writable
-        self.context = DriveServerContext(self.links, writable=writable)
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._server: ModbusTcpServer | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
+        self.access = RegisterAccess(self.links, writable=writable)
         self.bound_port: int | None = None
+        self._proc = None
+        self._conn = None
+        self._ctl = None
+        self._bridge: threading.Thread | None = None
 
-    def start(self, timeout_s: float = 10.0) -> ModbusService:
-        """Start listening; returns when the socket is bound (raises OSError if it cannot be)."""
-        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # its per-request warnings are not ours
-        self._thread = threading.Thread(target=self._run, name="virtualaxis-modbus", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(timeout_s):
-            raise TimeoutError("Modbus server did not start")
-        if self._error is not None:
-            raise OSError(f"Modbus server on {self.host}:{self.port}: {self._error}")
+    def start(self, timeout_s: float = 30.0) -> ModbusService:
+        """Start the server process and the bridge; returns once the socket is bound (OSError if it cannot be)."""
+        short_gil_slices()  # the bridge thread must not hold the drive's runtime thread for a 5 ms slice
+        ctx = multiprocessing.get_context("spawn")
+        ours, theirs = ctx.Pipe(duplex=True)
+        ctl_r, ctl_w = ctx.Pipe(duplex=False)  # stop signal (a message, or EOF when serve dies)
+        self._ctl = ctl_w
+        self._proc = ctx.Process(
+            target=_server_main,
+            args=(theirs, ctl_r, self.host, self.port),
+            name="virtualaxis-modbus",
+            daemon=True,
+        )
+        self._proc.start()
+        theirs.close()
+        ctl_r.close()
+        self._conn = ours
+        if not ours.poll(timeout_s):
+            self.stop()
+            raise OSError(f"Modbus server on {self.host}:{self.port}: did not start in {timeout_s:g} s")
+        try:
+            kind, value = ours.recv()
+        except EOFError:
+            self.stop()
+            raise OSError(f"Modbus server on {self.host}:{self.port}: the server process ended") from None
+        if kind != "ready":
+            self.stop()
+            raise OSError(f"Modbus server on {self.host}:{self.port}: {value}")
+        self.bound_port = int(value)
+        self._bridge = threading.Thread(target=self._serve_bridge, name="virtualaxis-modbus-bridge", daemon=True)
+        self._bridge.start()
         return self
 
-    def _run(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
-        asyncio.set_event_loop(loop)
-        try:
-            loop.run_until_complete(self._serve())
-        except BaseException as exc:  # noqa: BLE001 - reported to start()
-            self._error = exc
-            self._ready.set()
-        finally:
-            loop.close()
-
-    async def _serve(self) -> None:
-        self._server = ModbusTcpServer(self.context, address=(self.host, self.port), custom_pdu=CUSTOM_PDUS)
-        try:
-            await self._server.serve_forever(background=True)
-        except RuntimeError as exc:
-            raise OSError(f"cannot listen ({exc})") from None
-        listener = self._server.transport  # an asyncio Server for a TCP listener
-        sockets = getattr(listener, "sockets", None) or []
-        self.bound_port = sockets[0].getsockname()[1] if sockets else self.port
-        self._ready.set()
-        await self._server.serving
+    def _serve_bridge(self) -> None:
+        conn, handle = self._conn, self.access.handle
+        unpack = _REQ.unpack_from
+        size = _REQ.size
+        while True:
+            try:
+                msg = conn.recv_bytes()
+            except (EOFError, OSError):
+                return
+            op, unit, fc, address, count = unpack(msg)
+            values = struct.unpack_from(f">{(len(msg) - size) // 2}H", msg, size) if len(msg) > size else ()
+            try:
+                reply = handle(op, unit, fc, address, count, values)
+            except Exception:  # noqa: BLE001 - never a dead bridge: device failure, as pymodbus does
+                reply = bytes((1, 0x04))
+            try:
+                conn.send_bytes(reply)
+            except (EOFError, OSError):
+                return
 
     def stop(self) -> None:
-        if self._loop is not None and self._server is not None and self._loop.is_running():
-            fut = asyncio.run_coroutine_threadsafe(self._server.shutdown(), self._loop)
+        if self._ctl is not None:
             try:
-                fut.result(timeout=5.0)
-            except Exception:  # noqa: BLE001 - best effort at shutdown
+                self._ctl.send_bytes(b"stop")
+            except (EOFError, OSError):
                 pass
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
+            self._ctl.close()
+            self._ctl = None
+        if self._proc is not None:
+            self._proc.join(timeout=5.0)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join(timeout=5.0)
+            self._proc = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self._bridge is not None:
+            self._bridge.join(timeout=5.0)
+            self._bridge = None
 
     def stats(self) -> dict:
         return {
@@ -268,6 +203,165 @@ class ModbusService:
                 for uid, link in self.links.items()
             },
         }
+
+
+# ============================================================================================ server process
+def _server_main(conn, ctl, host: str, port: int) -> None:
+    """Entry of the server process: pymodbus on ``host:port``, every access forwarded over ``conn``; a message
+    on ``ctl`` (or its EOF: serve is gone) stops it."""
+    import asyncio
+    import logging
+
+    leave_realtime()  # clients are not the drive: never compete with it at real-time priority
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    from pymodbus.server import ModbusTcpServer
+
+    lock = threading.Lock()
+
+    def call(op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int] = ()) -> bytes:
+        msg = _REQ.pack(op, unit & 0xFF, fc & 0xFF, address & 0xFFFF, count & 0xFFFF)
+        if values:
+            msg += struct.pack(f">{len(values)}H", *values)
+        with lock:
+            conn.send_bytes(msg)
+            return conn.recv_bytes()
+
+    async def serve() -> None:
+        server = ModbusTcpServer(
+            ForwardingContext(call), address=(host, port), custom_pdu=custom_pdus(call)
+        )
+        try:
+            await server.serve_forever(background=True)
+        except RuntimeError as exc:
+            conn.send(("error", f"cannot listen ({exc})"))
+            return
+        sockets = getattr(server.transport, "sockets", None) or []
+        conn.send(("ready", sockets[0].getsockname()[1] if sockets else port))
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+
+        def watch_parent() -> None:  # the parent's "stop" (or its death) ends the server
+            try:
+                ctl.recv_bytes()
+            except (EOFError, OSError):
+                pass
+            loop.call_soon_threadsafe(stop.set)
+
+        threading.Thread(target=watch_parent, daemon=True).start()
+        await stop.wait()
+        await server.shutdown()
+
+    try:
+        asyncio.run(serve())
+    except Exception as exc:  # noqa: BLE001 - reported to the parent
+        try:
+            conn.send(("error", str(exc)))
+        except (EOFError, OSError):
+            pass
+
+
+def _exc(code: int):
+    from pymodbus.constants import ExcCodes
+
+    return ExcCodes(code)
+
+
+def _decode_reply(reply: bytes):
+    if reply[0] == 0:
+        n = (len(reply) - 1) // 2
+        return list(struct.unpack_from(f">{n}H", reply, 1))
+    return _exc(reply[1])
+
+
+def _make_context_class():
+    from pymodbus.datastore import ModbusServerContext
+
+    class _ForwardingContext(ModbusServerContext):
+        """pymodbus server context forwarding every access to ``call`` (no data blocks of its own)."""
+
+        def __init__(self, call: Callable):  # no base init: it would require data blocks
+            self.call = call
+            self.old_simulator = True  # the server then uses this object as is
+            self.simdevices = []
+            self._devices = {}
+
+        def device_ids(self) -> list[int]:
+            return []
+
+        async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
+            return _decode_reply(self.call(0, device_id, func_code, address, count))
+
+        async def async_setValues(self, device_id: int, func_code: int, address: int, values: Sequence[int]):
+            reply = self.call(1, device_id, func_code, address, len(values), [int(v) & 0xFFFF for v in values])
+            return None if reply[0] == 0 else _exc(reply[1])
+
+    return _ForwardingContext
+
+
+def ForwardingContext(call: Callable):  # noqa: N802 - a class built on first use (pymodbus imported lazily)
+    return _make_context_class()(call)
+
+
+def custom_pdus(call: Callable) -> list:
+    """Request classes: FC03/04/23 with any count (exception 03 when answering), 01 for every other code."""
+    from pymodbus.pdu import ExceptionResponse, ModbusPDU
+    from pymodbus.pdu.register_message import (
+        ReadHoldingRegistersRequest,
+        ReadInputRegistersRequest,
+        ReadWriteMultipleRegistersRequest,
+    )
+
+    def refused(pdu, device_id: int, op: int, address: int):
+        reply = call(op, device_id, pdu.function_code, address, 0)
+        return ExceptionResponse(pdu.function_code, _exc(reply[1]))
+
+    class ReadHoldingAnyCount(ReadHoldingRegistersRequest):
+        def decode(self, data: bytes) -> None:
+            self.address, self.count = struct.unpack(">HH", data[:4])
+
+        async def datastore_update(self, context, device_id):
+            if not 1 <= self.count <= 125:
+                return refused(self, device_id, 2, self.address)
+            return await super().datastore_update(context, device_id)
+
+    class ReadInputAnyCount(ReadHoldingAnyCount):
+        function_code = ReadInputRegistersRequest.function_code
+
+    class ReadWriteAnyCount(ReadWriteMultipleRegistersRequest):
+        def decode(self, data: bytes) -> None:
+            (
+                self.read_address,
+                self.read_count,
+                self.write_address,
+                self.write_count,
+                self.write_byte_count,
+            ) = struct.unpack(">HHHHB", data[:9])
+            self._payload_byte_count = len(data) - 9
+            self.write_registers = [
+                struct.unpack(">H", data[i : i + 2])[0]
+                for i in range(9, min(len(data), self.write_byte_count + 9) - 1, 2)
+            ]
+
+        async def datastore_update(self, context, device_id):
+            if not (1 <= self.read_count <= 125 and 1 <= self.write_count <= 121):
+                return refused(self, device_id, 2, self.write_address)
+            return await super().datastore_update(context, device_id)
+
+    class Unsupported(ModbusPDU):
+        function_code = 0
+
+        def decode(self, data: bytes) -> None:
+            self._raw = data
+
+        async def datastore_update(self, context, device_id):
+            return refused(self, device_id, 3, 0)
+
+    others = [
+        type(f"UnsupportedFunction{fc:02d}", (Unsupported,), {"function_code": fc})
+        for fc in range(1, 128)
+        if fc not in SUPPORTED_FUNCTIONS
+    ]
+    return [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, *others]
 
 
 def wait_port(host: str, port: int, timeout_s: float = 5.0) -> None:

@@ -22,9 +22,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 from virtualaxis import __version__
-from virtualaxis.drive.core import Drive
+
+if TYPE_CHECKING:
+    from virtualaxis.drive.core import Drive
 
 # ---------------------------------------------------------------------------------------------- errors
 # reason codes of the last-error register 40499 (and the exception each one answers with)

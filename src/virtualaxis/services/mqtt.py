@@ -33,6 +33,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from virtualaxis.drive.core import Drive
+from virtualaxis.services.threads import short_gil_slices
 
 TOPIC_ROOT = "virtualaxis"
 SCHEMA_VERSION = 1
@@ -346,6 +347,7 @@ class MqttService:
         return on_event
 
     def _sample_loop(self) -> None:
+        # (keeps the process' priority: a thread that takes the drive's lock must not be preempted holding it)
         period = 1.0 / self.settings.rate_hz
         nxt = time.perf_counter()
         while not self._stop.is_set():
@@ -365,6 +367,7 @@ class MqttService:
 
     # -------------------------------------------------------------------------------- lifecycle
     def start(self) -> MqttService:
+        short_gil_slices()
         for ch in self.channels:
             cb = self._observer(ch)
             ch.drive.add_observer(cb)
