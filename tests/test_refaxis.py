@@ -244,8 +244,9 @@ def test_thermal_and_lead_error_kinematics_at_standstill():
 def test_cli_writes_cases_and_rejects_unknown_names(tmp_path, capsys):
     from virtualaxis.refaxis.__main__ import main
 
-    assert main(["--out", str(tmp_path), "--quick", "--cases", "rigid_pp/clean"]) == 0
+    assert main(["--out", str(tmp_path), "--quick", "--plot", "--cases", "rigid_pp/clean"]) == 0
     assert (tmp_path / "rigid_pp__clean" / "truth.json").exists() and (tmp_path / "timing.json").exists()
+    assert (tmp_path / "rigid_pp__clean" / "traces.png").stat().st_size > 10_000
     assert main(["--out", str(tmp_path), "--cases", "rigid_pp/nothing"]) == 2
     assert "unknown case(s) rigid_pp/nothing" in capsys.readouterr().err
 

@@ -1,7 +1,7 @@
-"""``python -m virtualaxis.refaxis --out DIR [--quick] [--seed N] [--cases a,b] [--list]``: write reference cases.
+"""``python -m virtualaxis.refaxis --out DIR [--quick] [--seed N] [--cases a,b] [--plot] [--list]``: write cases.
 
-Each case goes to DIR/<structure>__<case>/ (config.toml, fit_*.csv, heldout_*.csv, truth.json); the time per case
-is printed and DIR/timing.json holds it.
+Each case goes to DIR/<structure>__<case>/ (config.toml, fit_*.csv, heldout_*.csv, truth.json, with --plot also
+traces.png); the time per case is printed and DIR/timing.json holds it.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="10 mm stroke, three held-out traces")
     ap.add_argument("--seed", type=int, default=0, help="sensor-noise seed")
     ap.add_argument("--cases", default="", help="comma-separated case names (default: all)")
+    ap.add_argument("--plot", action="store_true", help="also write traces.png per case (matplotlib)")
     ap.add_argument("--list", action="store_true", help="list the case names and exit")
     a = ap.parse_args(argv)
     names = case_names()
@@ -41,6 +42,10 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         cf = make_case(name, a.out / name.replace("/", "__"), seed=a.seed, quick=a.quick)
         timing[name] = time.perf_counter() - t0
+        if a.plot:
+            from virtualaxis.refaxis.plot import plot_case
+
+            plot_case(cf.config_path.parent, cf.fit + cf.holdout, f"{name}: {cf.truth['notes']}")
         print(f"[{i}/{len(chosen)}] {name}: {timing[name]:.2f} s, {len(cf.fit)} fit + {len(cf.holdout)} held-out"
               f" traces, truth {cf.truth['effects'] or 'clean'}", flush=True)
     total = time.perf_counter() - t_all
