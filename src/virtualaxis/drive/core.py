@@ -15,6 +15,7 @@ the change (normally the runtime thread) and must not block.
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import threading
@@ -24,6 +25,7 @@ from pathlib import Path
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.drive import homing as hm
+from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults
 from virtualaxis.drive.profiles import (
@@ -48,6 +50,7 @@ from virtualaxis.resources import project_file
 from virtualaxis.sim import AxisSimulator, ControlMode
 
 S = Cia402State
+log = logging.getLogger("virtualaxis.drive")
 DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
 # SDO abort codes used by the drive's own checks
@@ -94,6 +97,9 @@ _MONITOR_PARAMETER_INDICES = frozenset(
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 
+#: commissioned following-error window = margin x steady lag at the maximum speed + EDS default (chosen: 1.5,
+#: the usual MD36400 setting of "lag plus half again")
+FE_WINDOW_MARGIN = 1.5
 MOTOR_AMBIENT_C = 20.0
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
@@ -140,7 +146,10 @@ class Drive:
             "faults_raised": 0,
             "cycles": 0,
             "fault_resets_refused": 0,
+            "cycle_exceptions": 0,
         }
+        self._cycle_hooks: list[Callable[[Drive], None]] = []
+        self._warnings: dict[int, int] = {}  # active warnings (set_warning): EMCY code -> alarm number
         self._reset_all()
 
     # ================================================================================ object table
@@ -182,6 +191,8 @@ class Drive:
         }
         if st.following_error_tolerance_m is not None:
             out[(0x6065, 0)] = clamp_to_dtype(st.following_error_tolerance_m / unit, "u32")
+        else:
+            out[(0x6065, 0)] = clamp_to_dtype(self._commissioned_fe_window_m(out) / unit, "u32")
         if st.following_error_time_ms is not None:
             out[(0x6066, 0)] = st.following_error_time_ms
         if st.positioning_window_m is not None:
@@ -189,6 +200,21 @@ class Drive:
         if st.positioning_time_ms is not None:
             out[(0x6068, 0)] = st.positioning_time_ms
         return out
+
+    def _commissioned_fe_window_m(self, derived: dict) -> float:
+        """The following-error window a commissioning engineer sets (0x6065 at boot unless ``[drive]
+        following_error_tolerance_m`` is given) [m]: the steady lag at the fastest speed the defaults permit
+        (0x607F limited by 0x6080) with the position-loop gain and the speed feed-forward share,
+        v (1 - k_ff) / Kv, times :data:`FE_WINDOW_MARGIN`, plus the EDS default as a floor for the
+        acceleration transient; so that no speed the defaults allow faults (issue #15 item 5)."""
+        c, st = self.cfg.control, self.settings
+        kv = max(c.kv_1_per_s, 1e-3)
+        kff = c.velocity_ff_factor if c.velocity_ff_factor > 0 else 0.0
+        v_max = min(self.cfg.limits.max_velocity_m_s,
+                    float(derived[(0x6080, 0)]) / 60.0 * self._lead_m())
+        lag = v_max * abs(1.0 - kff) / kv
+        floor = float(self._eds_defaults.get((0x6065, 0), 1000)) * st.position_unit_m
+        return FE_WINDOW_MARGIN * lag + floor
 
     def _default_max_motor_speed_rpm(self) -> int:
         """0x6080 at boot: the config's speed limit, else 1.5 x rated speed (chosen: a servo motor's usual
@@ -204,6 +230,12 @@ class Drive:
     def _max_speed_m_s(self) -> float:
         """0x6080 max motor speed as table speed [m/s]."""
         return float(self._obj(0x6080)) / 60.0 * self._lead_m()
+
+    def _inside_stroke(self, x_plant_m: float) -> float:
+        """A plant position moved inside the stroke, clear of the limit switches [m]."""
+        half = self.cfg.axis.stroke_m / 2 - self.settings.limit_switch_inset_m - 1e-3
+        half = max(half, 0.0)
+        return min(max(x_plant_m, -half), half)
 
     def _lead_m(self) -> float:
         """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
@@ -236,6 +268,8 @@ class Drive:
             self._homed = False
             self._warning = False
             self._alarm = 0
+            self._temperature_alarm = 0
+            self._warnings.clear()
             self._motor_rise_k = 0.0
             self._pp_ack = False
             self._pp_pending: float | None = None
@@ -544,73 +578,18 @@ class Drive:
         self._demand_v = 0.0
         self._homing = None
 
-    def _start_stop(self, kind: str, then: Cia402State | None) -> None:
-        """Decelerate: 'slow' (0x6084), 'quick' (0x6085), 'current' (speed loop at its limit), 'coast'."""
+    def _start_stop(self, kind: str, then: Cia402State | str | None) -> None:
+        """Stop FROM THE ACTUAL MOTION (see :mod:`virtualaxis.drive.reactions`); ``then``: the state once
+        stopped and held (None: stay holding, e.g. quick stop 5..8; "resume": re-enter the mode)."""
         if kind == "coast":
             self._power_off()
-            if then is not None:
+            if isinstance(then, Cia402State):
                 self._set_state(then)
             return
-        position_control = self._smode == ControlMode.POSITION
-        if position_control:
-            v0 = self._demand_v
-            p0 = self._demand_m
-        else:
-            v0 = self._axis.velocity_m_s
-            p0 = self._axis.position_m - self._zero_m
-        decel_obj = 0x6084 if kind == "slow" else 0x6085
-        decel = max(float(self._obj(decel_obj)) * self._u, 1e-6)
-        self._stop = {
-            "kind": kind,
-            "then": then,
-            "decel": decel,
-            "v": v0,
-            "p": p0,
-            "t": 0.0,
-            "position": position_control and kind != "current",
-        }
-        if not self._stop["position"]:
-            self._set_sim_mode(ControlMode.VELOCITY)
-            self._vramp.velocity_m_s = v0
+        self._stop = rx.StopRamp.start(self, kind, then)
 
     def _run_stop(self) -> None:
-        s = self._stop
-        dt = self.cycle_s
-        s["t"] += dt
-        if s["kind"] == "current":
-            self.sim.set_velocity_setpoint(0.0)
-            self._demand_v = 0.0
-            done = abs(self._axis.velocity_m_s) < max(float(self._obj(0x606F)) * self._u, 1e-4)
-        elif s["position"]:
-            v = s["v"]
-            dv = s["decel"] * dt
-            v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
-            s["v"] = v
-            s["p"] += v * dt
-            self._set_position(s["p"], v)
-            done = v == 0.0
-        else:
-            v = self._vramp.step(0.0, s["decel"], s["decel"])
-            self._demand_v = v
-            self.sim.set_velocity_setpoint(v)
-            done = v == 0.0 and abs(self._axis.velocity_m_s) < max(float(self._obj(0x606F)) * self._u, 1e-4)
-        if not done and s["t"] < 10.0:
-            return
-        # stopped: hold position, then the state change the stop was for
-        self._stop = None
-        if not s["position"]:
-            self._demand_m = self._axis.position_m - self._zero_m
-        self._set_sim_mode(ControlMode.POSITION)
-        self._set_position(self._demand_m, 0.0)
-        then = s["then"]
-        if self._state == S.FAULT_REACTION_ACTIVE:
-            self._power_off()
-            self._set_state(S.FAULT)
-        elif then is not None:
-            self._power_off()
-            self._set_state(then)
-        else:  # quick stop 5..8: stay in quick stop active, holding position
-            self._enter_mode_idle_hold()
+        rx.run_stop(self)
 
     def _enter_mode_idle_hold(self) -> None:
         self._profile.reset(self._demand_m)
@@ -633,17 +612,20 @@ class Drive:
         self._store((0x603F, 0), code)
         if emit and self.emcy_sink is not None:
             self.emcy_sink(code, info.register_bits, struct.pack("<i", clamp_to_dtype(value, "i32"))[:4] + b"\x00")
+        kind = rx.fault_reaction_kind(info.reaction, int(self._obj(0x605E)))
         if self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             was_moving = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
             self._set_state(S.FAULT_REACTION_ACTIVE)
-            option = int(self._obj(0x605E))
-            kind = {0: "coast", 1: "slow", 2: "quick", 3: "current", 4: "current"}.get(option, "quick")
             if not was_moving or kind == "coast":
                 self._power_off()
                 self._set_state(S.FAULT)
             else:
                 self._homing = None
                 self._start_stop(kind, then=S.FAULT)
+        elif self._state is S.FAULT_REACTION_ACTIVE and kind == "coast":
+            # a fault that forbids braking under control (encoder, over-current) during a stop ramp: OFF2
+            self._power_off()
+            self._set_state(S.FAULT)
         self._notify("fault")  # after the reaction has started: the snapshot shows the fault state
 
     def _publish_fault_buffer(self) -> None:
@@ -1070,10 +1052,132 @@ class Drive:
 
     # ================================================================================ cycle
     def step(self, n_cycles: int = 1) -> None:
-        """Run ``n_cycles`` drive cycles (one position-loop cycle each)."""
+        """Run ``n_cycles`` drive cycles (one position-loop cycle each).
+
+        Each cycle first calls the cycle hooks (:meth:`add_cycle_hook`), then runs the drive. An exception
+        in a hook or in the cycle does not escape: it is logged with its traceback (logger
+        ``virtualaxis.drive``), counted (``counters["cycle_exceptions"]``, OD 0x2110:6), the power stage is
+        switched off and the drive goes to FAULT with EMCY 0x6100 (internal software); the objects stay
+        consistent and a fault reset clears it once the cause is gone."""
         for _ in range(n_cycles):
             with self._lock:
-                self._cycle()
+                try:
+                    for hook in tuple(self._cycle_hooks):
+                        hook(self)
+                    self._cycle()
+                except Exception as exc:  # noqa: BLE001 - see docstring: caught, logged, counted, faulted
+                    self._cycle_failed(exc)
+
+    def _cycle_failed(self, exc: BaseException) -> None:
+        """An exception in the drive cycle: log, count, OFF2 + FAULT 0x6100 (once per fault), republish."""
+        n = self.counters["cycle_exceptions"] = self.counters["cycle_exceptions"] + 1
+        self._store((0x2110, 6), clamp_to_dtype(n, "u32"))
+        if n <= 5 or n % 1000 == 0:
+            log.error("drive %s: exception in the drive cycle (%d so far); FAULT 0x6100", self.name, n,
+                      exc_info=exc)
+        try:
+            self._power_off()
+            self._restore_plant_if_not_finite()
+            self._axis = self.sim.state
+            if self._state is not S.FAULT or not self._faults or self._faults[0].emcy_code != 0x6100:
+                self._raise_fault(0x6100, n)
+            self._publish_outputs()
+        except Exception:  # noqa: BLE001 - the fault path itself failed: keep the statusword consistent
+            log.exception("drive %s: fault handling after a cycle exception failed", self.name)
+            self._state = S.FAULT
+            self._store((0x6041, 0), STATE_BITS[S.FAULT] | 0x210)
+
+    def _restore_plant_if_not_finite(self) -> None:
+        """If the plant state holds NaN/inf (a diverged integration), put the axis at rest at the last finite
+        position inside the stroke (the plant knows no fault state; it must never feed NaN upward)."""
+        st = self.sim.st
+        if all(math.isfinite(x) for x in st.tolist()):
+            return
+        x = self._prev_actual_m if math.isfinite(self._prev_actual_m) else 0.0
+        self.sim.reset(self._inside_stroke(x), keep_time=True)
+
+    # ================================================================================ fault injection API
+    def add_cycle_hook(self, fn: Callable[[Drive], None]) -> None:
+        """``fn(drive)`` at the start of every drive cycle, under the drive's lock, before the mode runs
+        (fault injection, physical effects). An exception in ``fn`` is handled like any drive-cycle
+        exception (FAULT 0x6100, logged)."""
+        with self._lock:
+            if fn not in self._cycle_hooks:
+                self._cycle_hooks.append(fn)
+
+    def remove_cycle_hook(self, fn: Callable[[Drive], None]) -> None:
+        with self._lock:
+            if fn in self._cycle_hooks:
+                self._cycle_hooks.remove(fn)
+
+    @property
+    def simulator(self) -> AxisSimulator:
+        """The plant (:class:`~virtualaxis.sim.AxisSimulator`), for physical effects (external force,
+        a brake, ...). Call its setters from a cycle hook or under the drive's lock."""
+        return self.sim
+
+    def raise_fault(self, code: int, value: int = 0, *, cause: str | None = None) -> None:
+        """Raise a fault with EMCY ``code`` (0x0001..0xFFFF) and fault value ``value`` (r0949).
+
+        The reaction is the fault's class in :data:`~virtualaxis.drive.faults.FAULT_TABLE`: ``coast`` (OFF2:
+        encoder loss, over-current), ``quick`` (OFF3, hardware limit switch) or ``option`` (0x605E from the
+        actual motion; unknown codes). With a ``cause`` name the cause persists until
+        :meth:`clear_cause`: a fault reset (controlword bit 7) is refused while any cause persists."""
+        with self._lock:
+            if isinstance(code, bool) or not isinstance(code, int) or not 0 < code <= 0xFFFF:
+                raise ValueError(f"fault code must be an integer 0x0001..0xFFFF (got {code!r})")
+            self._raise_fault(code, int(value), injected=True, cause=cause or "")
+
+    def clear_cause(self, cause: str) -> None:
+        """Remove a named persistent fault cause (see :meth:`raise_fault`); the fault itself stays until a
+        fault reset."""
+        with self._lock:
+            self._causes = {k: v for k, v in self._causes.items() if v != cause}
+
+    @property
+    def causes(self) -> dict[int, str]:
+        """Persistent fault causes: EMCY code -> cause name."""
+        with self._lock:
+            return dict(self._causes)
+
+    def set_warning(self, code: int, active: bool, *, alarm_number: int | None = None) -> None:
+        """Set or clear a warning (CiA 402 statusword bit 7; SINAMICS alarm number in 0x2031).
+
+        On activation an EMCY with ``code`` goes out (CiA 301 allows EMCY for warnings; the error register
+        gets the code's class bits); when the last warning and no fault remain, EMCY 0x0000 (error reset).
+        ``alarm_number`` defaults to the fault table's number of the code."""
+        with self._lock:
+            if isinstance(code, bool) or not isinstance(code, int) or not 0 < code <= 0xFFFF:
+                raise ValueError(f"warning code must be an integer 0x0001..0xFFFF (got {code!r})")
+            info = fault_info(code)
+            if active:
+                if code in self._warnings:
+                    return
+                self._warnings[code] = int(alarm_number if alarm_number is not None else info.fault_number)
+                if self.emcy_sink is not None:
+                    self.emcy_sink(code, info.register_bits, b"\x00\x00\x00\x00\x00")
+            else:
+                if self._warnings.pop(code, None) is None:
+                    return
+                if not self._warnings and self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
+                    if self.emcy_reset_sink is not None:
+                        self.emcy_reset_sink()
+            self._update_alarm()
+            self._update_statusword()
+
+    @property
+    def warnings(self) -> dict[int, int]:
+        """Active warnings: EMCY code -> alarm number."""
+        with self._lock:
+            return dict(self._warnings)
+
+    def _update_alarm(self) -> None:
+        """0x2031 = the motor-temperature alarm, else the newest warning's alarm number; bit 7 follows."""
+        alarm = self._temperature_alarm
+        if not alarm and self._warnings:
+            alarm = next(reversed(self._warnings.values()))
+        self._alarm = alarm
+        self._warning = alarm != 0 or bool(self._warnings)
 
     def _cycle(self) -> None:
         dt = self.cycle_s
@@ -1196,7 +1300,7 @@ class Drive:
             rise_ss = MOTOR_RISE_AT_RATED_K * i2 / (pc.rated_current_a * pc.rated_current_a)
             self._motor_rise_k += dt / MOTOR_THERMAL_TAU_S * (rise_ss - self._motor_rise_k)
         temp = MOTOR_AMBIENT_C + self._motor_rise_k
-        self._alarm = 7910 if temp >= pc.temperature_alarm_c else 0
+        self._temperature_alarm = 7910 if temp >= pc.temperature_alarm_c else 0
         if temp >= pc.temperature_fault_c:
             if 0x4310 not in self._causes:
                 self._raise_fault(0x4310, int(temp * 10), cause="motor temperature")
@@ -1210,7 +1314,7 @@ class Drive:
                     self._raise_fault(code, int(vdc * 1000), cause="dc link")
                 elif not bad and self._causes.get(code) == "dc link":
                     del self._causes[code]
-        self._warning = self._alarm != 0
+        self._update_alarm()
 
     # ================================================================================ outputs
     def _update_statusword(self) -> None:
@@ -1408,10 +1512,14 @@ class _Params:
 
 
 def _i32(x: float) -> int:
+    if not math.isfinite(x):  # (never expected: the cycle guards the plant; saturate instead of raising)
+        return 0 if math.isnan(x) else (0x7FFFFFFF if x > 0 else -0x80000000)
     v = int(round(x))
     return -0x80000000 if v < -0x80000000 else 0x7FFFFFFF if v > 0x7FFFFFFF else v
 
 
 def _i16(x: float) -> int:
+    if not math.isfinite(x):
+        return 0 if math.isnan(x) else (0x7FFF if x > 0 else -0x8000)
     v = int(round(x))
     return -0x8000 if v < -0x8000 else 0x7FFF if v > 0x7FFF else v

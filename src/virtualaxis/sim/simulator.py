@@ -183,9 +183,12 @@ class AxisSimulator:
         self.reset(initial_position_m)
 
     # ----------------------------------------------------------------------------------------- state
-    def reset(self, position_m: float = 0.0) -> None:
-        """Put the axis at rest at ``position_m`` (table), disabled, position mode."""
+    def reset(self, position_m: float = 0.0, *, keep_time: bool = False) -> None:
+        """Put the axis at rest at ``position_m`` (table), disabled, position mode (``keep_time``: the
+        simulated time runs on, e.g. for a drive's power-on reset)."""
+        t = float(self.st[L.S_T]) if keep_time and math.isfinite(float(self.st[L.S_T])) else 0.0
         self.st[:] = 0.0
+        self.st[L.S_T] = t
         r = self.pr[L.P_R]
         names = self.dm.body_names
         for i, name in enumerate(names):
@@ -194,6 +197,8 @@ class AxisSimulator:
             elif name in ("motor", "screw_end", "screw") and r > 0:
                 self.st[L.Z0 + i] = position_m / r
         self.st[L.S_DIR] = 1.0
+        self.st[L.S_POS_FB] = position_m
+        self.st[L.S_CMD_POS] = position_m
         self.st[L.S_STUCK] = 1.0 if self.cfg.friction.enabled else 0.0
         self.st[L.S_TEMP] = self.cfg.effects.initial_temperature_rise_k
         self.ring[:, 0] = position_m / r if r > 0 else 0.0

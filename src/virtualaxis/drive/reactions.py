@@ -1,0 +1,187 @@
+"""Stop reactions of the drive, in one place, always FROM THE ACTUAL MOTION.
+
+Every way the drive brings the axis to rest goes through :class:`StopRamp`: quick stop (0x605A), shutdown /
+disable operation with a ramp (0x605B / 0x605C), the fault reaction (0x605E, or the fault's own class in
+:data:`~virtualaxis.drive.faults.FAULT_TABLE`), abort connection (0x6007), a hardware limit switch and a mode
+change while moving. A real drive (SINAMICS OFF1/OFF3, a CiA 402 servo) brakes the motor it measures, not a
+set-point that may already be at rest (after a following-error fault the demand is far from the axis):
+
+- ``slow`` (0x6084 profile deceleration) and ``quick`` (0x6085 quick-stop deceleration): a position ramp
+  that starts at the actual position and actual velocity and decelerates with the given rate; the position
+  loop follows it with feed-forward. In velocity control (PV, CSV) the same ramp runs on the speed set-point
+  from the actual speed.
+- ``current``: speed set-point 0, the speed controller brakes at the current limit (0x6073 / 0x6072).
+- ``coast``: pulses off at once (OFF2): encoder loss, over-current, option 0.
+
+Once the ramp is at zero the drive waits for standstill (|v| below 0x606F), holds the position for
+:data:`HOLD_S` (SINAMICS p1228 pulse suppression delay) and only then changes the state (switch on disabled,
+fault, ...). If the axis is not at standstill within :func:`brake_bound_s` of the start, braking has failed:
+fault 0x8400 (F07900) is raised and the pulses are switched off.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from virtualaxis.drive.statemachine import Cia402State
+from virtualaxis.sim import ControlMode
+
+if TYPE_CHECKING:
+    from virtualaxis.drive.core import Drive
+
+S = Cia402State
+
+#: hold at standstill before the pulses are switched off [s] (SINAMICS p1228 default 0.01 s... chosen 20 ms,
+#: two speed-controller settling times of the bench axes)
+HOLD_S = 0.02
+#: standstill detection: |v| below max(0x606F, this) [m/s]
+MIN_STANDSTILL_M_S = 1e-4
+#: braking may take this factor x the ideal ramp time plus :data:`BRAKE_MARGIN_S` before it counts as failed
+BRAKE_FACTOR = 1.5
+BRAKE_MARGIN_S = 0.5
+#: a current-limit stop is given this long [s] (the achievable deceleration is not known in advance)
+CURRENT_STOP_BOUND_S = 3.0
+
+#: 0x605E fault reaction option -> stop kind (negative: manufacturer-specific; this drive: quick stop)
+FAULT_OPTION_KIND = {0: "coast", 1: "slow", 2: "quick", 3: "current", 4: "current"}
+#: 0x605A quick stop option -> stop kind (1..4: then switch on disabled; 5..8: stay in quick stop active)
+QUICK_STOP_OPTION_KIND = {0: "coast", 1: "slow", 2: "quick", 3: "current", 4: "current", 5: "slow", 6: "quick",
+                          7: "current", 8: "current"}
+
+
+def fault_reaction_kind(reaction_class: str, option_605e: int) -> str:
+    """The stop kind of a fault: its class ("coast", "quick") or, for "option", 0x605E."""
+    if reaction_class == "coast":
+        return "coast"
+    if reaction_class == "quick":
+        return "quick"
+    return FAULT_OPTION_KIND.get(option_605e, "quick")
+
+
+def brake_bound_s(v0_m_s: float, decel_m_s2: float, kind: str) -> float:
+    """Time after which an axis not at standstill counts as 'braking failed' [s]."""
+    if kind == "current":
+        return CURRENT_STOP_BOUND_S
+    return BRAKE_FACTOR * abs(v0_m_s) / max(decel_m_s2, 1e-9) + BRAKE_MARGIN_S
+
+
+@dataclass
+class StopRamp:
+    """One running stop (``Drive._stop``)."""
+
+    kind: str  # "slow" | "quick" | "current"
+    then: Cia402State | str | None  # state once stopped; None: keep holding; "resume": re-enter the mode
+    decel_m_s2: float
+    v_m_s: float  # ramp velocity (drive coordinate)
+    p_m: float  # ramp position (drive coordinate)
+    velocity_control: bool  # the ramp runs on the speed set-point (PV/CSV), else on the position set-point
+    bound_s: float
+    t_s: float = 0.0
+    stopped_s: float = -1.0  # time the ramp reached zero and the axis standstill (-1: not yet)
+    v0_m_s: float = 0.0
+    hold_s: float = HOLD_S  # hold at standstill before the state change [s]
+
+    @classmethod
+    def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
+        ax = drive._axis
+        v0 = ax.velocity_m_s
+        p0 = ax.position_m - drive._zero_m
+        decel_obj = 0x6084 if kind == "slow" else 0x6085
+        decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
+        velocity_control = kind == "current" or drive._smode == ControlMode.VELOCITY
+        if velocity_control:
+            drive._set_sim_mode(ControlMode.VELOCITY)
+            drive._vramp.velocity_m_s = v0
+        else:
+            drive._set_sim_mode(ControlMode.POSITION)
+            drive._last_vff = v0
+        drive._homing = None
+        ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0)
+        if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
+            ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
+            if velocity_control:
+                drive._set_sim_mode(ControlMode.POSITION)
+                ramp.velocity_control = False
+        return ramp
+
+
+def standstill_threshold_m_s(drive: Drive) -> float:
+    """|v| below this is standstill: 0x606F velocity threshold, at least :data:`MIN_STANDSTILL_M_S` [m/s]."""
+    return max(float(drive._obj(0x606F)) * drive._u, MIN_STANDSTILL_M_S)
+
+
+def at_standstill(drive: Drive) -> bool:
+    return abs(drive._axis.velocity_m_s) < standstill_threshold_m_s(drive)
+
+
+def run_stop(drive: Drive) -> None:
+    """One cycle of the running stop: ramp, standstill, hold, then the state change (or 'braking failed')."""
+    s: StopRamp = drive._stop
+    dt = drive.cycle_s
+    s.t_s += dt
+    ax = drive._axis
+    threshold = standstill_threshold_m_s(drive)
+    if s.kind == "hold":
+        drive._set_position(s.p_m, 0.0)
+        ramp_done = True
+    elif s.kind == "current":
+        drive.sim.set_velocity_setpoint(0.0)
+        drive._demand_v = 0.0
+        ramp_done = True
+    elif s.velocity_control:
+        v = drive._vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
+        drive._demand_v = v
+        drive.sim.set_velocity_setpoint(v)
+        ramp_done = v == 0.0
+    else:
+        v = s.v_m_s
+        dv = s.decel_m_s2 * dt
+        v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
+        s.v_m_s = v
+        s.p_m += v * dt
+        drive._set_position(s.p_m, v)
+        ramp_done = v == 0.0
+    if ramp_done and s.stopped_s < 0.0 and abs(ax.velocity_m_s) < threshold:
+        s.stopped_s = s.t_s
+        if s.velocity_control:  # hold the position where the axis came to rest
+            drive._demand_m = ax.position_m - drive._zero_m
+            drive._set_sim_mode(ControlMode.POSITION)
+            drive._set_position(drive._demand_m, 0.0)
+            s.velocity_control = False
+            s.kind = "hold"
+            s.v_m_s, s.p_m = 0.0, drive._demand_m
+    if s.stopped_s < 0.0:
+        if s.t_s > s.bound_s:
+            braking_failed(drive, s)
+        return
+    if s.t_s - s.stopped_s < s.hold_s - 1e-12:
+        return
+    finish_stop(drive, s)
+
+
+def braking_failed(drive: Drive, s: StopRamp) -> None:
+    """The axis is not at standstill within the bound: fault 0x8400 (F07900), pulses off (OFF2)."""
+    drive._stop = None
+    v = drive._axis.velocity_m_s
+    drive._raise_fault(0x8400, int(round(v * drive._pc.inv_u)) if math.isfinite(v) else 0)
+    drive._power_off()
+    if drive._state is S.FAULT_REACTION_ACTIVE:
+        drive._set_state(S.FAULT)
+
+
+def finish_stop(drive: Drive, s: StopRamp) -> None:
+    """Stopped and held: the state change the stop was for."""
+    drive._stop = None
+    drive._enter_mode_idle_hold()
+    then = s.then
+    if drive._state is S.FAULT_REACTION_ACTIVE:
+        drive._power_off()
+        drive._set_state(S.FAULT)
+    elif then == "resume":
+        drive._enter_mode(drive._mode)
+    elif isinstance(then, Cia402State):
+        drive._power_off()
+        drive._set_state(then)
+    # None: quick stop 5..8, stay in quick stop active holding the position
