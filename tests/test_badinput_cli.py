@@ -260,6 +260,14 @@ CASES += [
     ("diag-binary", ["diagnose", "--config", str(C4), _tr("binary.csv"), "--out", "{T}/d"], ["binary.csv"]),
     ("diag-latin1-row", ["diagnose", "--config", str(C4), _tr("latin1_row.csv"), "--out", "{T}/d"],
      ["latin1_row.csv", "not UTF-8"]),
+    ("diag-trace-dev-zero", ["diagnose", "--config", str(C4), "/dev/zero", "--out", "{T}/d"],
+     ["/dev/zero", "not a regular file"]),
+    ("diag-trace-fifo", ["diagnose", "--config", str(C4), "{T}/fifo.csv", "--out", "{T}/d"],
+     ["fifo.csv", "not a regular file"]),
+    ("diag-trace-header-1mb", ["diagnose", "--config", str(C4), "{T}/wide.csv", "--out", "{T}/d"],
+     ["wide.csv", "row 1", "header row longer"]),
+    ("prof-file-dev-zero", ["simulate", "--config", str(C4), "--profile", "file:/dev/zero", "--out", "{T}/t.csv"],
+     ["/dev/zero", "not a regular file"]),
     ("diag-trace-missing", ["diagnose", "--config", str(C4), "{T}/none.csv", "--out", "{T}/d"],
      ["none.csv", "not found"]),
     ("diag-trace-folder", ["diagnose", "--config", str(C4), "{T}", "--out", "{T}/d"], ["is a folder"]),
@@ -289,6 +297,8 @@ def _setup(tmp: Path) -> None:
     (tmp / "m_nan.csv").write_text("position_m,order,freq_hz\n0.6,1,nan\n")
     os.symlink(tmp / "cfg.toml", tmp / "link.csv")
     os.symlink(tmp / "missing-target.csv", tmp / "dangling.csv")
+    os.mkfifo(tmp / "fifo.csv")
+    (tmp / "wide.csv").write_text("t," + "x" * 1_000_000 + "\n0,1\n")
     (tmp / "done").mkdir()
     for name in ("frf.csv", "report.json"):
         (tmp / "done" / name).write_text("old output\n")

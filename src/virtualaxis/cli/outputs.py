@@ -59,6 +59,8 @@ def check_input_file(path: str | Path, option: str) -> Path:
         raise CliError(f"{option}: {p}: file not found")
     if p.is_dir():
         raise CliError(f"{option}: {p} is a folder, not a file")
+    if not p.is_file():
+        raise CliError(f"{option}: {p} is not a regular file (a device, pipe or socket)")
     try:
         with p.open("rb") as fh:
             fh.read(1)

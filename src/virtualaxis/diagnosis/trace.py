@@ -93,6 +93,9 @@ def _err(path: str, msg: str, row: int | None = None, column: str | None = None)
 #: (~100 bytes per sample per copy), so 500 000 samples (8 min at 1 kHz) cost ~50 MB per copy and minutes per
 #: fit round. A longer trace is refused before it is read, naming this bound; cut it into segments.
 MAX_TRACE_SAMPLES = 500_000
+#: a CSV row of the trace format is ~100-150 bytes; files beyond this per allowed sample are refused unread
+_MAX_BYTES_PER_ROW = 512
+_MAX_HEADER_CHARS = 65536
 #: lines parsed per chunk (bounded memory while reading; the progress bar advances per chunk)
 _CHUNK_LINES = 50_000
 
@@ -147,9 +150,15 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     limit = MAX_TRACE_SAMPLES if max_samples is None else max_samples
     if path.is_dir():
         raise _err(sp, "is a folder, not a trace file")
+    if path.exists() and not path.is_file():
+        raise _err(sp, "not a regular file (a device, pipe or socket); give a trace file")
     try:
-        fh = path.open(newline="", encoding="utf-8-sig")
         size = path.stat().st_size
+        if size > limit * _MAX_BYTES_PER_ROW:
+            raise _err(sp, f"{size / 2**20:.0f} MiB; the diagnosis reads at most {limit:,} samples per trace "
+                           f"(~{limit * _MAX_BYTES_PER_ROW / 2**20:.0f} MiB of CSV at most; bounded memory and fit "
+                           "time): cut the trace into segments or decimate it")
+        fh = path.open(newline="", encoding="utf-8-sig")
     except FileNotFoundError:
         raise _err(sp, "file not found") from None
     except OSError as exc:
@@ -161,9 +170,11 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     with fh, tqdm(total=size, desc=f"read {path.name}", unit="B", unit_scale=True, leave=False, disable=None,
                   mininterval=0.5) as bar:
         try:
-            first = fh.readline()
+            first = fh.readline(_MAX_HEADER_CHARS + 1)
             if not first:
                 raise _err(sp, "empty file (a header row is required)", 1)
+            if len(first) > _MAX_HEADER_CHARS:
+                raise _err(sp, f"header row longer than {_MAX_HEADER_CHARS} characters: not a trace header", 1)
             try:
                 header = next(csv.reader([first]))
             except (csv.Error, StopIteration) as exc:

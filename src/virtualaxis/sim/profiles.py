@@ -263,6 +263,8 @@ def _file_profile(spec: str, path: str, x0: float) -> Profile:
         raise InputError(path, "file not found")
     if p.is_dir():
         raise InputError(path, "is a folder, not a CSV file")
+    if not p.is_file():
+        raise InputError(path, "not a regular file (a device, pipe or socket); give a CSV file")
     values = array("d")
     rown = 1
     try:
