@@ -214,8 +214,8 @@ class AxisChannel:
     sampler_late: int = 0
 
     def nmt(self) -> str:
-        if self.nmt_state is None:
-            return "OPERATIONAL"
+        if self.nmt_state is None:  # a drive not served on CANopen has no NMT state
+            return "UNKNOWN"
         try:
             return str(self.nmt_state())
         except Exception:  # noqa: BLE001 - a diagnostic field, never worth a crash
