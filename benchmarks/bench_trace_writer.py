@@ -68,7 +68,7 @@ NEW = "import sys\nfrom virtualaxis.cli.main import main\nsys.exit(main(sys.argv
 
 def run_command(code: str, duration_s: float, out: Path, js: Path) -> dict:
     args = [sys.executable, "-c", code, "simulate", "--config", str(CONFIG), "--profile", PROFILE,
-            "--duration", str(duration_s), "--out", str(out), "--json", str(js)]
+            "--duration", str(duration_s), "--out", str(out), "--json", str(js), "--force"]
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT / "src") + os.pathsep + env.get("PYTHONPATH", "")
     t0 = time.perf_counter()
