@@ -8,6 +8,13 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py                      # 60 s per case: 1 ms / 500 us, 1 / 2 axes
     python benchmarks/bench_drive_latency.py --seconds 10 --cases 1ms:1
     python benchmarks/bench_drive_latency.py --rt-priority 20     # serve under SCHED_FIFO
+    python benchmarks/bench_drive_latency.py --cases 1ms:7 --lockstep   # six feed axes + the spindle, lockstep
+    python benchmarks/bench_drive_latency.py --scale --seconds 10  # 1/2/4/7 axes x real time/lockstep x FIFO/not
+    python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
+
+With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
+are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
+latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus).
 
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
 lead error, thermal growth, an extra resonance; sensor noise). Latency = TPDO receive timestamp minus SYNC
@@ -112,13 +119,23 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int) -> dict:
+SPINDLE = REPO / "configs" / "spindle.toml"
+SPINDLE_RPM = 3000.0
+
+
+def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int,
+             lockstep: bool = False, bitrate: int = 0) -> dict:
     spec = f"udp_multicast:239.74.163.2,port={port}"
-    args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60)]
+    args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60),
+            "--bitrate", str(bitrate)]
+    spindle = n_axes == 7
     for nid in range(1, n_axes + 1):
-        args += ["--axis", f"A{nid}={nid}:{config}"]
+        cfg = SPINDLE if spindle and nid == 7 else config
+        args += ["--axis", f"A{nid}={nid}:{cfg}"]
     if rt_priority:
         args += ["--rt-priority", str(rt_priority)]
+    if lockstep:
+        args += ["--lockstep"]
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"}
     )
@@ -140,7 +157,10 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             sdo(bus, reply, 1, 0x6041)
             rtts.append(time.perf_counter() - t0)
         for nid in node_ids:
-            sdo(bus, reply, nid, 0x6060, value=8, size=1)
+            if lockstep:
+                sdo(bus, reply, nid, 0x1006, value=int(round(period_s * 1e6)))  # one drive cycle per SYNC
+            is_spindle = spindle and nid == 7
+            sdo(bus, reply, nid, 0x6060, value=3 if is_spindle else 8, size=1)  # spindle: profile velocity
             sdo(bus, reply, nid, 0x6065, value=50_000)  # 50 mm: never trip during the benchmark
             sdo(bus, reply, nid, 0x1401, 2, value=1, size=1)  # RPDO2 (CW + target) synchronous
             sdo(bus, reply, nid, 0x1801, 2, value=1, size=1)  # TPDO2 (SW + position) on every SYNC
@@ -152,6 +172,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             state = sdo(bus, reply, nid, 0x6041) & 0x6F
             if state != 0x27:
                 raise RuntimeError(f"node {nid} not enabled (statusword & 0x6F = 0x{state:02X})")
+            if is_spindle:  # 0x60FF in position units per second: 1/3600 rev per unit
+                sdo(bus, reply, nid, 0x60FF, value=int(SPINDLE_RPM / 60 * 3600))
         x0 = {
             nid: int.from_bytes(sdo(bus, reply, nid, 0x6064).to_bytes(4, "little"), "little", signed=True)
             for nid in node_ids
@@ -191,6 +213,9 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         result = {
             "sync_period_us": period_s * 1e6,
             "axes": n_axes,
+            "lockstep": lockstep,
+            "rt_priority": rt_priority,
+            "bitrate": bitrate,
             "seconds": seconds,
             "syncs": n_sync,
             "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
@@ -219,7 +244,65 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         proc.terminate()
         out, _ = proc.communicate(timeout=20)
     result["serve_report"] = out.strip().splitlines()[-1] if out.strip() else ""
+    lat = [result[f"node{n}"] for n in node_ids]
+    result["all_axes"] = {
+        "latency_us_p50_max": max(x["latency_us_p50"] or 0 for x in lat),
+        "latency_us_p99_max": max(x["latency_us_p99"] or 0 for x in lat),
+        "latency_us_max": max(x["latency_us_max"] or 0 for x in lat),
+        "missed_cycles": sum(x["missed_cycles"] for x in lat),
+        "late_tpdos": sum(x["late_tpdos"] for x in lat),
+    }
     return result
+
+
+def cycle_cost(axis_counts=(1, 2, 4, 7), cycles: int = 2000, repeats: int = 3) -> list[dict]:
+    """In-process cost of one communication cycle of the runtime (lockstep, 1 ms SYNC, a synchronous RPDO2
+    per axis): SYNC + RPDO handled, every drive stepped, TPDO2 packed and sent on a ``virtual`` bus with no
+    other listener. Best of ``repeats`` runs of ``cycles`` cycles [us]."""
+    from virtualaxis.canopen_slave import NmtState
+    from virtualaxis.runtime import AxisNode, Runtime
+
+    feed = load_axis_config(REPO / "configs" / "seed000-hust.toml")
+    spindle = load_axis_config(SPINDLE)
+    out = []
+    for n in axis_counts:
+        bus = can.Bus(interface="virtual", channel=f"bench-cycle-{os.getpid()}-{n}")
+        axes = [AxisNode(bus, i + 1, spindle if (n == 7 and i == 6) else feed, name=f"A{i + 1}") for i in range(n)]
+        rt = Runtime(bus, axes, lockstep=True)
+        for ax in axes:
+            ax.slave.boot(0.0)
+            ax.app.flush()
+            ax.slave.write(0x1401, 2, 1)
+            ax.slave.write(0x1006, 0, 1000)
+            ax.slave._set_state(NmtState.OPERATIONAL)
+            ax.slave.sdo_download(0x6060, 0, bytes([3 if (n == 7 and ax.node_id == 7) else 8]))
+            for cw in (6, 7, 15):
+                ax.slave.sdo_download(0x6040, 0, cw.to_bytes(2, "little"))
+        sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+
+        def one(k: int, axes=axes, sync=sync, rt=rt) -> None:
+            stamp = time.time()
+            for ax in axes:
+                ax.slave.receive(can.Message(arbitration_id=0x300 + ax.node_id, is_extended_id=False,
+                                             data=b"\x0f\x00" + (k * 5).to_bytes(4, "little", signed=True),
+                                             timestamp=stamp))
+                sync.timestamp = stamp
+                ax.slave.receive(sync)
+            rt.poll_once()
+
+        for k in range(300):
+            one(k)
+        best = float("inf")
+        for r in range(repeats):
+            t = time.perf_counter()
+            for k in range(cycles):
+                one(300 + r * cycles + k)
+            best = min(best, (time.perf_counter() - t) / cycles)
+        if rt.stats.drive_exceptions:
+            raise RuntimeError(rt.stats.last_exception)
+        out.append({"axes": n, "cycle_us": best * 1e6, "per_axis_us": best * 1e6 / n})
+        bus.shutdown()
+    return out
 
 
 def main() -> int:
@@ -228,7 +311,23 @@ def main() -> int:
     ap.add_argument("--cases", default="1ms:1,1ms:2,500us:1,500us:2", help="period:axes,...")
     ap.add_argument("--rt-priority", type=int, default=0)
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_drive_latency.json"))
+    ap.add_argument("--lockstep", action="store_true", help="serve --lockstep (0x1006 = the SYNC period)")
+    ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
+    ap.add_argument("--scale", action="store_true",
+                    help="1ms with 1/2/4/7 axes, real time and lockstep, with and without SCHED_FIFO")
+    ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
     args = ap.parse_args()
+    if args.cycle_cost:
+        res = cycle_cost()
+        base = res[0]["cycle_us"]
+        print(f"{'axes':>4} {'cycle us':>9} {'per axis us':>11} {'vs 1 axis':>9}")
+        for r in res:
+            print(f"{r['axes']:>4} {r['cycle_us']:>9.1f} {r['per_axis_us']:>11.1f} {r['cycle_us'] / base:>8.2f}x")
+        Path(args.json).write_text(json.dumps({"machine": _machine(), "cycle_cost": res}, indent=2))
+        print(f"wrote {args.json}")
+        return 0
+    if args.scale:
+        return scale(args)
     cases = []
     for item in args.cases.split(","):
         period, axes = item.split(":")
@@ -241,14 +340,10 @@ def main() -> int:
         results = []
         for i, (period_s, n_axes) in enumerate(cases):
             results.append(
-                run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i, args.rt_priority)
+                run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i, args.rt_priority,
+                         args.lockstep, args.bitrate)
             )
-    machine = {
-        "nproc": os.cpu_count(),
-        "cpu": _cpu_model(),
-        "python": platform.python_version(),
-        "load_average_at_end": os.getloadavg(),
-    }
+    machine = _machine()
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
     print(
         f"{'SYNC':>7} {'axes':>4} {'node':>4} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} "
@@ -263,6 +358,53 @@ def main() -> int:
                 f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}%"
             )
     Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results}, indent=2))
+    print(f"wrote {args.json}")
+    return 0
+
+
+def _machine() -> dict:
+    return {
+        "nproc": os.cpu_count(),
+        "cpu": _cpu_model(),
+        "python": platform.python_version(),
+        "load_average_at_end": os.getloadavg(),
+    }
+
+
+def scale(args) -> int:
+    """1 ms SYNC, 1/2/4/7 axes (7 = six feed axes + the spindle), real-time pacing and lockstep, with and
+    without SCHED_FIFO (tried; reported when not permitted). One line per case: the worst axis."""
+    fifo_ok = True
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(20))
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, PermissionError, OSError) as exc:
+        fifo_ok = False
+        print(f"SCHED_FIFO not permitted here ({exc}): only the cases without it run")
+    results = []
+    cases = [(n, lock, prio) for prio in ((0, 20) if fifo_ok else (0,)) for lock in (False, True) for n in (1, 2, 4, 7)]
+    with tempfile.TemporaryDirectory() as tmp:
+        config = all_effects_config(Path(tmp) / "all-effects.toml")
+        for i, (n, lock, prio) in enumerate(tqdm(cases, desc="scale cases", unit="case")):
+            if prio:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+            else:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            results.append(run_case(1e-3, n, args.seconds, config, 45000 + os.getpid() % 500 + i, prio, lock,
+                                    args.bitrate))
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    machine = _machine()
+    print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
+    print(f"{'FIFO':>4} {'pacing':>9} {'axes':>4} {'p50 us':>7} {'p99 us':>7} {'max us':>8} {'missed':>6} "
+          f"{'late':>6} {'CPU':>5}  (worst axis)")
+    for r in results:
+        a = r["all_axes"]
+        print(f"{'yes' if r['rt_priority'] else 'no':>4} {'lockstep' if r['lockstep'] else 'real time':>9} "
+              f"{r['axes']:>4} {a['latency_us_p50_max']:>7.0f} {a['latency_us_p99_max']:>7.0f} "
+              f"{a['latency_us_max']:>8.0f} {a['missed_cycles']:>6} {a['late_tpdos']:>6} "
+              f"{r['serve_cpu_share_of_one_core'] * 100:>4.0f}%")
+    Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "fifo_permitted": fifo_ok,
+                                           "results": results}, indent=2))
     print(f"wrote {args.json}")
     return 0
 

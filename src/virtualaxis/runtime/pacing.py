@@ -12,7 +12,7 @@
 - **lockstep**: the plant advances only on SYNC: for each SYNC, every drive runs exactly one communication
   cycle (0x1006 / position cycle, at least one drive cycle) and then its slave sends the TPDOs due. The
   result depends only on the frames, never on the machine's speed. SDO, NMT, heartbeat and timers keep
-  running between SYNCs.
+  running between SYNCs. The SYNC -> TPDO latency of axis k includes the cycles of axes 1..k.
 
 Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
 (``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
@@ -210,6 +210,32 @@ class Runtime:
         except Exception as exc:  # noqa: BLE001
             self._drive_failed(ax, exc)
 
+    def poll_once(self) -> None:
+        """One pass of the loop's frame service in the caller's thread (no pacing): frames and timers of
+        every slave, SYNCs answered and, in lockstep, the communication cycles run (benchmarks, tests)."""
+        with self.lock:
+            self._service(self.now())
+
+    def _service(self, now: float) -> None:
+        axes = self.axes
+        stats = self.stats
+        lockstep = self.lockstep
+        for ax in axes:
+            counters = ax.slave.poll(now)
+            self._flush(ax)
+            if not counters:
+                continue
+            if ax is axes[0]:
+                stats.syncs += len(counters)
+            for counter in counters:
+                if lockstep:
+                    n = ax.sync_cycles()
+                    self._step(ax, n)
+                    if ax is axes[0]:
+                        stats.cycles += n
+                ax.slave.on_sync(counter, now)
+                self._flush(ax)
+
     def _run(self, duration_s: float | None = None) -> RuntimeStats:
         self.open()
         end = None if duration_s is None else time.perf_counter() + duration_s
@@ -228,22 +254,7 @@ class Runtime:
                 break
             wake.clear()
             with self.lock:
-                now = t_busy - self._t0
-                for ax in axes:
-                    counters = ax.slave.poll(now)
-                    self._flush(ax)
-                    if not counters:
-                        continue
-                    if ax is axes[0]:
-                        stats.syncs += len(counters)
-                    for counter in counters:
-                        if self.lockstep:
-                            n = ax.sync_cycles()
-                            self._step(ax, n)
-                            if ax is axes[0]:
-                                stats.cycles += n
-                        ax.slave.on_sync(counter, now)
-                        self._flush(ax)
+                self._service(t_busy - self._t0)
                 if not self.lockstep:
                     t = perf()
                     if t - next_cycle > self.max_lag_s:
