@@ -228,10 +228,20 @@ class PdoEngine:
         self.apply(rpdo, data)
 
     def apply(self, rpdo: Rpdo, data: bytes) -> None:
+        """Store every entry of the PDO, then let the application react (its optional ``begin_pdo`` /
+        ``end_pdo`` hooks bracket the stores: CiA 402 needs controlword + target of one RPDO together)."""
         values = rpdo.packer.unpack(data)
         store = self.slave.store_from_pdo
-        for entry, value in zip(rpdo.entries, values, strict=True):
-            store(entry, value)
+        app = self.slave.app
+        begin, end = getattr(app, "begin_pdo", None), getattr(app, "end_pdo", None)
+        if begin is not None:
+            begin()
+        try:
+            for entry, value in zip(rpdo.entries, values, strict=True):
+                store(entry, value)
+        finally:
+            if end is not None:
+                end()
 
     def latch_sync_rpdos(self) -> list[tuple[Rpdo, bytes]]:
         """At a SYNC: take the synchronous RPDO data received before it (applied by ``on_sync``)."""

@@ -27,6 +27,7 @@ class Cia402Application:
         self.slave: CanopenSlave | None = None
         self._entries: dict = {}
         self.nmt_state: NmtState | None = None
+        self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
 
     def attach(self, slave: CanopenSlave) -> None:
         """Connect to the slave (call before ``slave.boot``)."""
@@ -74,8 +75,22 @@ class Cia402Application:
             except ObjectAccessError as exc:
                 raise SdoAbort(exc.code, str(exc)) from None
 
+    def begin_pdo(self) -> None:
+        """An RPDO is being stored: collect its drive objects (see :meth:`end_pdo`)."""
+        self._batch = []
+
+    def end_pdo(self) -> None:
+        """All entries of the RPDO are stored: the drive reacts to them together (controlword + target)."""
+        batch, self._batch = self._batch, None
+        if batch:
+            self.drive.write_objects(batch, checked=True)
+            self.flush()
+
     def after_write(self, index: int, sub: int, value) -> None:
         if (index, sub) in SPECS or (index, sub) in ALIASES:
+            if self._batch is not None:
+                self._batch.append((index, sub, value))
+                return
             self.drive.write_object(index, sub, value, checked=True)
             self.flush()
 
@@ -83,13 +98,22 @@ class Cia402Application:
         self.flush()
 
     def on_nmt_state(self, state: NmtState) -> None:
+        """NMT Stopped while the drive is enabled is a loss of control (0x6007, CiA 402)."""
         self.nmt_state = state
+        if state == NmtState.STOPPED:
+            self.drive.communication_error("nmt_stopped", 0)
+            self.flush()
 
     def on_communication_error(self, kind: str, detail: int) -> None:
         self.drive.communication_error(kind, detail)
         self.flush()
 
     def on_reset(self, application: bool) -> None:
+        """NMT Reset Node: the drive restarts (power-on reset, plant back inside the stroke); Reset
+        Communication while enabled: loss of control (0x6007)."""
+        if not application:
+            self.drive.communication_error("nmt_reset_communication", 0)
+            self.flush()
         if application:
             self.drive.power_on_reset()
             self._sync_from_slave()

@@ -231,6 +231,15 @@ class Drive:
         """0x6080 max motor speed as table speed [m/s]."""
         return float(self._obj(0x6080)) / 60.0 * self._lead_m()
 
+    def _lag_m(self, v_m_s: float) -> float:
+        """Steady following error of the position loop at velocity ``v`` [m]: v (1 - k_ff) / Kv. A position
+        demand placed this far ahead of the actual position takes over a moving axis bumplessly (the speed
+        set-point equals the actual speed)."""
+        o = self.objects
+        kv = float(o[(0x2000, 0)]) * 1000.0 / 60.0
+        kff = float(o[(0x2001, 0)]) if int(o[(0x2002, 0)]) >= 1 else 0.0
+        return v_m_s * (1.0 - kff) / kv if kv > 0 else 0.0
+
     def _inside_stroke(self, x_plant_m: float) -> float:
         """A plant position moved inside the stroke, clear of the limit switches [m]."""
         half = self.cfg.axis.stroke_m / 2 - self.settings.limit_switch_inset_m - 1e-3
@@ -394,6 +403,25 @@ class Drive:
             if key[0] in _MONITOR_PARAMETER_INDICES:
                 self._params_dirty = True
             self._react(key, value)
+
+    def write_objects(self, items: list[tuple[int, int, int | float]], *, checked: bool = False) -> None:
+        """Write several objects as ONE event (an RPDO): every value is stored first, then the reactions run
+        (mode 0x6060 first, the controlword 0x6040 last), so a controlword with the new-set-point bit and
+        the target 0x607A in one RPDO start the move to the NEW target (issue #15 item 2)."""
+        with self._lock:
+            keyed = []
+            for index, sub, value in items:
+                if not checked:
+                    self.check_object_write(index, sub, value)
+                key = ALIASES.get((index, sub), (index, sub))
+                value = float(value) if SPECS[key].dtype == "f32" else int(value)
+                self._store(key, value)
+                if key[0] in _MONITOR_PARAMETER_INDICES:
+                    self._params_dirty = True
+                keyed.append((key, value))
+            keyed.sort(key=lambda kv: 0 if kv[0][0] == 0x6060 else 2 if kv[0][0] == 0x6040 else 1)
+            for key, value in keyed:
+                self._react(key, value)
 
     def load_objects(self, values: dict[tuple[int, int], int | float]) -> None:
         """Take parameter values (e.g. the slave's OD after boot: EDS defaults or restored values) without
@@ -671,20 +699,29 @@ class Drive:
             return tuple(self._faults)
 
     def communication_error(self, kind: str, detail: int = 0) -> None:
-        """React per 0x6007 (abort connection option) to a lost master (heartbeat, RPDO timeout, bus off)."""
+        """Loss of control: react per 0x6007 abort connection option (0 none, 1 fault, 2 disable voltage,
+        3 quick stop; CiA 402) to heartbeat / life guarding lost, RPDO timeout (0x1400+n:5), bus off, NMT
+        Stopped or Reset Communication (``nmt_stopped``, ``nmt_reset_communication``). SYNC loss alone
+        (``sync_timeout``) gets only the stack's EMCY 0x8100: in SYNC lockstep the plant does not advance
+        without SYNC, and a lost set-point stream is caught by the RPDO event timer (0x1400+n:5). NMT events
+        count only while the drive is enabled (a master resetting communication at start-up must not fault a disabled drive)."""
         with self._lock:
-            code = {
-                "heartbeat_lost": 0x8130,
-                "life_guarding": 0x8130,
-                "rpdo_timeout": 0x8250,
-                "bus_off": 0x8140,
-            }.get(kind)
+            code, stack_sent_emcy = {
+                "heartbeat_lost": (0x8130, True),
+                "life_guarding": (0x8130, True),
+                "rpdo_timeout": (0x8250, True),
+                "bus_off": (0x8140, True),
+                "nmt_stopped": (0x8131, False),
+                "nmt_reset_communication": (0x8131, False),
+            }.get(kind, (None, True))
             if code is None:
+                return
+            enabled = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
+            if kind.startswith("nmt_") and not enabled:
                 return
             option = int(self._obj(0x6007))
             if option == 1:
-                # the CiA 301 stack has sent the EMCY for this event already
-                self._raise_fault(code, detail, emit=False)
+                self._raise_fault(code, detail, emit=not stack_sent_emcy)
             elif option == 2 and self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
                 self._power_off()
                 self._set_state(S.SWITCH_ON_DISABLED)
@@ -733,6 +770,24 @@ class Drive:
             self._torque_demand_nm = self._axis.torque_nm if from_torque else 0.0
             self._set_sim_mode(ControlMode.TORQUE)
         else:
+            v_act = ax.velocity_m_s if self._power else 0.0
+            if mode in (PP, HM, 0) and not rx.at_standstill(self):
+                # entered while moving (mode change): from the ACTUAL motion, decelerate to rest with the
+                # mode's deceleration (PP 0x6084, HM 0x609A, no mode 0x6085) instead of a hard stop
+                p = ax.position_m - self._zero_m + self._lag_m(v_act)
+                decel = {PP: float(self._obj(0x6084)) * self._u, HM: self._homing_accel()}.get(
+                    mode, float(self._obj(0x6085)) * self._u)
+                decel = max(decel, 1e-6)
+                stop_at = p + v_act * abs(v_act) / (2.0 * decel)
+                self._demand_m = p
+                self._profile.reset(p, v_act)
+                self._profile.set_target(stop_at, max(abs(v_act), 1e-9), decel, decel)
+                self._jerk.reset(p, 1)
+                self._pp_target_m = stop_at
+                self._last_vff = v_act
+                self._set_sim_mode(ControlMode.POSITION)
+                self.sim.set_position_setpoint(p + self._zero_m, v_act, 0.0)
+                return
             self._set_sim_mode(ControlMode.POSITION)
             self.sim.set_position_setpoint(p + self._zero_m, 0.0, 0.0)
 
@@ -851,7 +906,8 @@ class Drive:
             elif mode == HM:
                 self._run_homing(halt)
             else:
-                self._profile.set_target(self._profile.position_m, 1.0, 1.0, 1.0)
+                if self._profile.velocity_m_s == 0.0:  # no mode: hold (after a stop from motion, see _enter_mode)
+                    self._profile.set_target(self._profile.position_m, 1.0, 1.0, 1.0)
             p, _ = self._profile.step()
             pf = self._jerk.step(p)
             vff = (pf - self._demand_m) / dt

@@ -6,10 +6,10 @@ disable operation with a ramp (0x605B / 0x605C), the fault reaction (0x605E, or 
 change while moving. A real drive (SINAMICS OFF1/OFF3, a CiA 402 servo) brakes the motor it measures, not a
 set-point that may already be at rest (after a following-error fault the demand is far from the axis):
 
-- ``slow`` (0x6084 profile deceleration) and ``quick`` (0x6085 quick-stop deceleration): a position ramp
-  that starts at the actual position and actual velocity and decelerates with the given rate; the position
-  loop follows it with feed-forward. In velocity control (PV, CSV) the same ramp runs on the speed set-point
-  from the actual speed.
+- ``slow`` (0x6084 profile deceleration) and ``quick`` (0x6085 quick-stop deceleration): as SINAMICS
+  OFF1 / OFF3, a ramp on the speed set-point that starts at the ACTUAL speed and decelerates with the given
+  rate (the speed controller's integrator carries over: no bump); at standstill the position loop takes
+  over and holds. The stopping distance is v^2 / (2 a) whatever the position demand was.
 - ``current``: speed set-point 0, the speed controller brakes at the current limit (0x6073 / 0x6072).
 - ``coast``: pulses off at once (OFF2): encoder loss, over-current, option 0.
 
@@ -87,10 +87,10 @@ class StopRamp:
     def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
         ax = drive._axis
         v0 = ax.velocity_m_s
-        p0 = ax.position_m - drive._zero_m
+        p0 = ax.position_m - drive._zero_m + drive._lag_m(v0)  # bumpless: the speed set-point = actual speed
         decel_obj = 0x6084 if kind == "slow" else 0x6085
         decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
-        velocity_control = kind == "current" or drive._smode == ControlMode.VELOCITY
+        velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
         if velocity_control:
             drive._set_sim_mode(ControlMode.VELOCITY)
             drive._vramp.velocity_m_s = v0

@@ -221,7 +221,9 @@ class AxisSimulator:
 
     def set_mode(self, mode: ControlMode) -> None:
         mode = ControlMode(mode)
-        if mode != self.mode:
+        # position <-> velocity control share the speed controller: its integrator carries over (bumpless);
+        # it restarts only when torque control is entered or left
+        if mode != self.mode and ControlMode.TORQUE in (mode, self.mode):
             self.st[L.S_INT_W] = 0.0
         self.st[L.S_MODE] = int(mode)
 
