@@ -222,6 +222,12 @@ CASES += [
                          "--train-positions", "0.6"], ["m_nan.csv", "row 2", "column freq_hz", "finite"]),
     ("ident-json-under-proc", ["identify-joints", "--config", str(RCSA), "--modes", "{T}/m.csv",
                                "--train-positions", "0.6", "--json", "/proc/x.json"], ["--json", "virtual file"]),
+    ("gap-bench-seed-negative", ["gap-bench", "--out", "{T}/gb", "--seed", "-1", "--cases", "rigid-clean"],
+     ["--seed must be >= 0"]),
+    ("demo-stroke-nan", ["demo", "--out", "{T}/demo", "--stroke-mm", "nan", "--no-pace"], ["--stroke-mm"]),
+    ("demo-out-is-file", ["demo", "--out", "{T}/f.csv", "--no-pace"], ["f.csv", "cannot create output directory"]),
+    ("demo-config-latin1", ["demo", "--config", _cfg("latin1"), "--out", "{T}/demo", "--no-pace"],
+     ["latin1.toml", "line 13", "not UTF-8"]),
     # ---- diagnose: traces
     ("diag-trace-time-in-ms", ["diagnose", "--config", str(C4), _tr("time_in_ms.csv"), "--out", "{T}/d"],
      ["time_in_ms.csv", "column t", "sample interval 1 s", "milliseconds"]),

@@ -23,6 +23,10 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.seed < 0 or (args.jobs is not None and args.jobs < 1):  # bad input (issue 18)
+        from virtualaxis.cli.errors import CliError
+
+        raise CliError(f"--seed must be >= 0 and --jobs >= 1 (got --seed {args.seed}, --jobs {args.jobs})")
     from tqdm import tqdm
 
     from virtualaxis.diagnosis.bench import QUICK_CASES, all_cases, run_bench
