@@ -153,3 +153,40 @@ def test_ragged_row(tmp_path):
 def test_missing_file():
     with pytest.raises(InputError, match="file not found"):
         read_trace("/nonexistent/trace.csv")
+
+
+def test_streamed_reader_names_the_line_after_the_first_chunk(tmp_path):
+    """Issue 18: the reader parses 50 000-line chunks in C; a bad value deep in the file still gets its line."""
+    rows = _good_rows(120_000)
+    p = _write(tmp_path / "long.csv", HEADER, rows)
+    tr = read_trace(p)
+    assert tr.t.size == 120_000
+    np.testing.assert_allclose(tr.columns["pos_meas"], rows[:, 2], rtol=1e-9, atol=1e-15)
+    lines = p.read_text().splitlines()
+    lines[100_002] = lines[100_002].replace(",", ",x", 1)  # line 100 003 of the file
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"long.csv: row 100003: column pos_cmd: not a number"):
+        read_trace(p)
+
+
+def test_trace_over_the_sample_bound_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    import virtualaxis.diagnosis.trace as trace_mod
+
+    monkeypatch.setattr(trace_mod, "MAX_TRACE_SAMPLES", 1000)
+    monkeypatch.setattr(trace_mod, "_CHUNK_LINES", 500)
+    p = _write(tmp_path / "big.csv", HEADER, _good_rows(2000))
+    with pytest.raises(InputError, match=r"about [12],\d{3} samples .* at most 1,000 samples per trace"):
+        read_trace(p)
+    p = _write(tmp_path / "huge.csv", HEADER, _good_rows(20_000))  # over 512 bytes per allowed sample: unread
+    with pytest.raises(InputError, match=r"huge.csv: [\d.]+ MiB; the diagnosis reads at most 1,000 samples"):
+        read_trace(p)
+    p = _write(tmp_path / "edge.csv", HEADER, _good_rows(1000))
+    assert read_trace(p).t.size == 1000
+
+
+def test_bom_header_and_missing_line_end(tmp_path):
+    p = _write(tmp_path / "b.csv", HEADER, _good_rows())
+    p.write_bytes(b"\xef\xbb\xbf" + p.read_bytes()[:-1])  # BOM, and the last row without its line end
+    tr = read_trace(p)
+    assert tr.t.size == 199
+    assert any("no line end" in w for w in tr.warnings)

@@ -155,8 +155,8 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     try:
         size = path.stat().st_size
         if size > limit * _MAX_BYTES_PER_ROW:
-            raise _err(sp, f"{size / 2**20:.0f} MiB; the diagnosis reads at most {limit:,} samples per trace "
-                           f"(~{limit * _MAX_BYTES_PER_ROW / 2**20:.0f} MiB of CSV at most; bounded memory and fit "
+            raise _err(sp, f"{size / 2**20:.3g} MiB; the diagnosis reads at most {limit:,} samples per trace "
+                           f"(~{limit * _MAX_BYTES_PER_ROW / 2**20:.3g} MiB of CSV at most; bounded memory and fit "
                            "time): cut the trace into segments or decimate it")
         fh = path.open(newline="", encoding="utf-8-sig")
     except FileNotFoundError:
@@ -205,7 +205,7 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
                 if line_no == 2 and size > 0 and nbytes > 0:
                     est = int(len(lines) * max(size - len(first), 0) / nbytes)
                     if est > 1.05 * limit:
-                        raise _err(sp, f"about {est:,} samples ({size / 2**20:.0f} MiB); the diagnosis reads at most "
+                        raise _err(sp, f"about {est:,} samples ({size / 2**20:.3g} MiB); the diagnosis reads at most "
                                        f"{limit:,} samples per trace (bounded memory and fit time): cut the trace "
                                        "into segments or decimate it")
                 arr = _fast_chunk(lines, len(header), use)
