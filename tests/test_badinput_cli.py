@@ -66,7 +66,7 @@ CONFIG_ERRORS = [
     ("cfg-resonance-above-nyquist", "resonance_above_nyquist", ["effects.resonance_frequency_hz", "Nyquist"]),
     ("cfg-substeps-1e6", "substeps_1e6", ["simulation.mechanical_substeps", "plausible range"]),
     ("cfg-substeps-1000", "substeps_1000", ["simulation.mechanical_substeps", "mechanical steps per simulated"]),
-    ("cfg-grid-1e8", "grid_1e8", ["simulation.position_grid_points", "plausible range 1 .. 20001"]),
+    ("cfg-grid-1e8", "grid_1e8", ["simulation.position_grid_points", "plausible range 1 .. 2001"]),
     ("cfg-seed-negative", "seed_negative", ["simulation.seed", "plausible range 0"]),
     ("cfg-unicode-key", "unicode_key", ["not valid TOML", "line 89"]),
     ("cfg-empty", "empty", ["empty.toml", "axis", "missing section"]),

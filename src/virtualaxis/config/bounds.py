@@ -17,18 +17,20 @@ import math
 
 # ---- numerical settings: bounds from memory and time -------------------------------------------------------
 #: Largest mechanical step rate the kernel is asked for [1/s]. One mechanical step of the six-body model costs
-#: about 0.1-0.2 us of compiled kernel time (BENCHMARKS.md), so 1e7 steps per simulated second are 1-2 s of
+#: about 0.12 us of compiled kernel time (measured: configs/seed004-siemens.toml with 64 substeps, a 20 s sine,
+#: 2.4 s wall for 2.05e7 steps; 0.26 us at 16 substeps), so 1e7 steps per simulated second are 1-2 s of
 #: wall time per simulated second: the slowest rate at which a study of minutes of motion still finishes. The
 #: stiffest contact mode of a feed axis (nut contact 1e9 N/m on a 2 kg nut: 3.6 kHz; a bearing on a screw end
 #: ~10 kHz) is resolved over 1000 times at this rate, so a finer step buys no accuracy.
 MAX_MECHANICAL_STEP_RATE_HZ = 1e7
 #: Memory of the discretised mode tables per nut-position grid point [bytes]: 4 contact/stick modes x
-#: (s x s + s x 4) float64 with s <= 16 states, plus the table rows; about 10 KiB.
+#: (s x s + s x 4) float64 with s = 12 states for the six-body model: 6 KiB (measured), ~10 KiB with extra modes.
 GRID_POINT_BYTES = 4 * (16 * 16 + 16 * 4) * 8 + 2 * 2 * 8 * 8
-#: Largest nut-position grid. Building a grid point takes four 20 x 20 matrix exponentials (~1 ms), so
-#: 20001 points are ~20-40 s of start-up and ~200 MiB of tables; and a grid step of stroke/20000 (40 um on
-#: a 0.8 m stroke) is far below the length over which the screw's axial stiffness changes (the nut length).
-MAX_POSITION_GRID_POINTS = 20001
+#: Largest nut-position grid. Building a grid point takes four matrix exponentials: measured 5.9 ms per point
+#: (2001 points of configs/seed004-siemens.toml in 11.8 s on the shared 2-vCPU machine), so 2001 points are
+#: ~12 s of start-up and ~12 MiB of tables; the grid step, stroke/2000 (0.4 mm on a 0.8 m stroke), is far
+#: below the length over which the screw's axial stiffness changes (the nut length, centimetres).
+MAX_POSITION_GRID_POINTS = 2001
 #: Switching-level SVPWM: integration steps per switching segment (six segments per PWM period); beyond 256 the
 #: current ripple no longer changes (the segment is resolved to < 0.4 %) and the cost grows linearly.
 MAX_SVPWM_SUBSTEPS = 256
