@@ -88,11 +88,12 @@ def _err(path: str, msg: str, row: int | None = None, column: str | None = None)
     return InputError(path, msg, row, column)
 
 
-#: most samples per trace the diagnosis reads. Every candidate fit simulates each trace several times (the
-#: kernel runs ~1e5-1e6 position cycles per second) and the workers hold the trace and its predictions
-#: (~100 bytes per sample per copy), so 500 000 samples (8 min at 1 kHz) cost ~50 MB per copy and minutes per
-#: fit round. A longer trace is refused before it is read, naming this bound; cut it into segments.
-MAX_TRACE_SAMPLES = 500_000
+#: most samples per trace the diagnosis reads. Every candidate fit simulates each trace several times and the
+#: workers hold the trace and its predictions: measured on a 120 000-sample trace (120 s at 1 kHz, `diagnose
+#: --jobs 2`): 15 min wall, 415 MiB in the main process, 850 MiB with the workers (docs/bad-input.md); both grow
+#: linearly, so 200 000 samples (3.3 min at 1 kHz) are ~25 min and ~1.4 GiB. A longer trace is refused before
+#: it is read, naming this bound; cut it into segments or decimate it.
+MAX_TRACE_SAMPLES = 200_000
 #: a CSV row of the trace format is ~100-150 bytes; files beyond this per allowed sample are refused unread
 _MAX_BYTES_PER_ROW = 512
 _MAX_HEADER_CHARS = 65536
