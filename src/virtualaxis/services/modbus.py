@@ -309,6 +309,7 @@ def custom_pdus(call: Callable) -> list:
         ReadHoldingRegistersRequest,
         ReadInputRegistersRequest,
         ReadWriteMultipleRegistersRequest,
+        WriteMultipleRegistersRequest,
     )
 
     def refused(pdu, device_id: int, op: int, address: int):
@@ -347,6 +348,17 @@ def custom_pdus(call: Callable) -> list:
                 return refused(self, device_id, 2, self.write_address)
             return await super().datastore_update(context, device_id)
 
+    class WriteMultipleCounted(WriteMultipleRegistersRequest):
+        """FC16: a bad count or byte count is recorded in the last-error registers too (exception 03)."""
+
+        async def datastore_update(self, context, device_id):
+            if not 1 <= self.count <= 123 or (
+                self.byte_count is not None
+                and (self.byte_count != self.count * 2 or self._payload_byte_count != self.byte_count)
+            ):
+                return refused(self, device_id, 2, self.address)
+            return await super().datastore_update(context, device_id)
+
     class Unsupported(ModbusPDU):
         function_code = 0
 
@@ -361,7 +373,7 @@ def custom_pdus(call: Callable) -> list:
         for fc in range(1, 128)
         if fc not in SUPPORTED_FUNCTIONS
     ]
-    return [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, *others]
+    return [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, WriteMultipleCounted, *others]
 
 
 def wait_port(host: str, port: int, timeout_s: float = 5.0) -> None:

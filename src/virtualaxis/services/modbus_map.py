@@ -654,7 +654,7 @@ def render_markdown() -> str:
         "A read must stay inside one range (else exception 02):",
         "",
     ]
-    lines += [f"- {a}-{b} ({b - a + 1} registers)" for a, b in _ranges()]
+    lines += [f"- {a}-{b} ({b - a + 1} registers)" if b > a else f"- {a} (1 register)" for a, b in _ranges()]
     lines += [
         "",
         "## Registers",
