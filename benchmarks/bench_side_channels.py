@@ -8,8 +8,12 @@ every 1 ms, TPDO2 = statusword + position answered on every SYNC, a 20 mm sine a
 - phase ``off``: ``serve`` without side channels;
 - phase ``load``: ``serve --modbus ... --mqtt ...`` (telemetry 100 Hz in batches of 10 to a mosquitto broker
   started here on a free loopback port, read by a paho subscriber in this process) and **ten Modbus TCP clients**
-  (threads of a separate process), each polling 50 registers (40110-40121 and 40340-40377: two FC03 requests)
-  at 100 Hz.
+  (ten processes), each polling 50 registers (40110-40121 and 40340-40377: two FC03 requests) at 100 Hz; a
+  client a whole period behind skips the missed polls (counted), so ``polls/s`` is the load delivered.
+
+With ``--rt-priority N`` serve and the master run at SCHED_FIFO N, the load side (clients, serve's Modbus server
+process, mosquitto) at ``--load-priority`` (10) below it: on a shared machine other jobs would otherwise starve
+the load generator and the drive would be measured without the load it is meant to carry.
 
 Phases alternate (off, load, off, load, ...; ``--rounds``) so that drifting machine load hits both alike.
 Latency = TPDO receive time minus SYNC send time (both in this process). Missed = SYNCs without a TPDO.
@@ -43,6 +47,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
 POLL_RANGES = ((40110, 12), (40340, 38))  # 50 registers per poll
+CLIENTS = 10
 
 
 def free_port() -> int:
@@ -64,17 +69,39 @@ def wait_port(port: int, timeout_s: float = 10.0) -> None:
 
 
 # ------------------------------------------------------------------------------------ Modbus load (subprocess)
-def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: str) -> None:
+def set_priority(pid: int, priority: int) -> None:
+    """SCHED_FIFO ``priority`` for ``pid`` and all its threads (0: SCHED_OTHER)."""
+    policy, param = (os.SCHED_FIFO, priority) if priority else (os.SCHED_OTHER, 0)
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            os.sched_setscheduler(int(tid), policy, os.sched_param(param))
+        except OSError:
+            pass
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out += [int(c) for c in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def modbus_load(
+    port: int, clients: int, rate_hz: float, seconds: float, out: str, priority: int = 0, start_unix: float = 0.0
+) -> None:
     """``clients`` threads, each with its own TCP connection, polling POLL_RANGES at ``rate_hz``."""
     from pymodbus.client import ModbusTcpClient
 
-    # clients run on other machines in a plant: here at normal priority (the master's SCHED_FIFO is inherited)
-    if os.sched_getscheduler(0) != os.SCHED_OTHER:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    # in a plant the clients run on other machines: here below the drive's priority (or at normal priority)
+    policy, param = (os.SCHED_FIFO, priority) if priority else (os.SCHED_OTHER, 0)
+    os.sched_setscheduler(0, policy, os.sched_param(param))
     results: list[list[float]] = [[] for _ in range(clients)]
     errors = [0] * clients
     late = [0] * clients
-    start = time.perf_counter() + 0.2
+    start = time.perf_counter() + max(0.2, start_unix - time.time())
 
     def worker(i: int) -> None:
         c = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
@@ -105,20 +132,24 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
         t.start()
     for t in threads:
         t.join()
-    rt = np.concatenate([np.array(r) for r in results]) * 1e6
-    Path(out).write_text(
-        json.dumps(
-            {
-                "requests": int(rt.size),
-                "errors": int(sum(errors)),
-                "skipped_polls": int(sum(late)),  # deadlines missed by a whole period (client or server behind)
-                "polls_per_s": rt.size / len(POLL_RANGES) / seconds,
-                "response_us_p50": float(np.percentile(rt, 50)),
-                "response_us_p99": float(np.percentile(rt, 99)),
-                "response_us_max": float(rt.max()),
-            }
-        )
-    )
+    np.save(out + ".npy", np.concatenate([np.array(r) for r in results]) * 1e6)
+    Path(out).write_text(json.dumps({"errors": int(sum(errors)), "skipped_polls": int(sum(late))}))
+
+
+def modbus_summary(outs: list[str], seconds: float) -> dict:
+    """Response times and delivered load of all client processes."""
+    rt = np.concatenate([np.load(o + ".npy") for o in outs])
+    counters = [json.loads(Path(o).read_text()) for o in outs]
+    return {
+        "clients": len(outs),
+        "requests": int(rt.size),
+        "errors": sum(c["errors"] for c in counters),
+        "skipped_polls": sum(c["skipped_polls"] for c in counters),  # deadlines missed by a whole period
+        "polls_per_s": rt.size / len(POLL_RANGES) / seconds,
+        "response_us_p50": float(np.percentile(rt, 50)),
+        "response_us_p99": float(np.percentile(rt, 99)),
+        "response_us_max": float(rt.max()),
+    }
 
 
 # ------------------------------------------------------------------------------------ the master
@@ -188,7 +219,9 @@ class TelemetryCounter:
         self.c.disconnect()
 
 
-def run_phase(load: bool, seconds: float, port: int, broker: Mosquitto | None, rt_priority: int, tmp: Path) -> dict:
+def run_phase(
+    load: bool, seconds: float, port: int, broker: Mosquitto | None, rt_priority: int, load_priority: int, tmp: Path
+) -> dict:
     spec = f"udp_multicast:239.74.163.3,port={port}"
     node = 1
     summary = tmp / f"serve-{port}.json"
@@ -205,6 +238,10 @@ def run_phase(load: bool, seconds: float, port: int, broker: Mosquitto | None, r
     if not line.startswith("ready:"):
         proc.kill()
         raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
+    if load and rt_priority:
+        proc.stdout.readline()  # "modbus: ..." (the server process runs by then)
+        for child in children(proc.pid):  # serve's Modbus server process: the clients' side, below the drive
+            set_priority(child, load_priority)
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.3", port=port, hop_limit=0)
     rx = Tpdo(0x280 + node, 0x580 + node)
     notifier = can.Notifier(bus, [rx], timeout=0.05)
@@ -223,9 +260,16 @@ def run_phase(load: bool, seconds: float, port: int, broker: Mosquitto | None, r
         x0 = int.from_bytes(sdo(bus, rx, node, 0x6064).to_bytes(4, "little"), "little", signed=True)
         if load:
             telemetry = TelemetryCounter(broker.port)
-            lj = tmp / f"modbus-{port}.json"
-            loader = subprocess.Popen([sys.executable, __file__, "--modbus-load", str(mb_port), str(seconds), str(lj)])
-            time.sleep(0.5)  # clients connected and polling
+            # ten clients = ten processes (each its own interpreter, as separate client machines would be)
+            outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
+            t_start = time.time() + 3.0  # all clients start polling together, once their imports are done
+            loader = [
+                subprocess.Popen([sys.executable, __file__, "--modbus-load", str(mb_port), str(seconds), o,
+                                  "--load-priority", str(load_priority if rt_priority else 0),
+                                  "--load-start", f"{t_start + i * 1e-3:.6f}"])
+                for i, o in enumerate(outs)
+            ]
+            time.sleep(max(0.0, t_start - time.time()) + 0.1)  # clients polling
         rx.times.clear()
         n_sync = int(seconds / 1e-3)
         sync_times = np.zeros(n_sync)
@@ -265,13 +309,15 @@ def run_phase(load: bool, seconds: float, port: int, broker: Mosquitto | None, r
             out["telemetry_samples_per_s"] = (telemetry.samples - tel0) / seconds
             out["telemetry_batches"] = telemetry.batches
         if loader is not None:
-            loader.wait(timeout=seconds + 60)
-            out["modbus"] = json.loads((tmp / f"modbus-{port}.json").read_text())
+            for lp in loader:
+                lp.wait(timeout=seconds + 60)
+            out["modbus"] = modbus_summary(outs, seconds)
     finally:
         if telemetry is not None:
             telemetry.stop()
-        if loader is not None and loader.poll() is None:
-            loader.kill()
+        for lp in loader or []:
+            if lp.poll() is None:
+                lp.kill()
         notifier.stop()
         bus.shutdown()
         proc.send_signal(signal.SIGINT)
@@ -293,11 +339,17 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="off/load pairs")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and the master")
+    ap.add_argument("--load-priority", type=int, default=10,
+                    help="with --rt-priority: SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus "
+                    "server process, mosquitto), below the drive's, so that other jobs on a shared machine do not "
+                    "starve the load generator (0: normal priority)")
+    ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_side_channels.json"))
     ap.add_argument("--modbus-load", nargs=3, metavar=("PORT", "SECONDS", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.modbus_load:
-        modbus_load(int(args.modbus_load[0]), 10, 100.0, float(args.modbus_load[1]), args.modbus_load[2])
+        modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
+                    args.load_priority, args.load_start)
         return 0
     if args.rt_priority:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
@@ -305,11 +357,15 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
         broker = Mosquitto(tmp)
+        if args.rt_priority:
+            set_priority(broker.proc.pid, args.load_priority)
         try:
             for r in range(args.rounds):
                 for load in (False, True):
                     port = 46000 + os.getpid() % 400 + 2 * r + int(load)
-                    results.append(run_phase(load, args.seconds, port, broker, args.rt_priority, tmp))
+                    results.append(
+                        run_phase(load, args.seconds, port, broker, args.rt_priority, args.load_priority, tmp)
+                    )
         finally:
             broker.stop()
     machine = {"nproc": os.cpu_count(), "cpu": _cpu_model(), "python": platform.python_version(),

@@ -5,7 +5,7 @@ asyncio). In the drive's process every such microsecond is taken from the interp
 runtime thread needs each millisecond; ten clients polling at 100 Hz moved the SYNC -> TPDO latency by
 hundreds of microseconds. So:
 
-- the **server process** (:func:`_server_main`, started with ``multiprocessing`` "spawn"; it imports neither
+- the **server process** (:func:`_server_main`, a child interpreter joined by socket pairs; it imports neither
   the drive nor numba) runs ``pymodbus.server.ModbusTcpServer`` with a server context
   (:class:`ForwardingContext`) that forwards each register access over a pipe;
 - a **bridge thread** in ``serve`` (:class:`ModbusService`) answers each access with the register map of
@@ -21,11 +21,16 @@ server calls only ``async_getValues`` / ``async_setValues``, whose return value 
 
 from __future__ import annotations
 
-import multiprocessing
+import os
+import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from pathlib import Path
 
 from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
@@ -33,10 +38,11 @@ SUPPORTED_FUNCTIONS = (3, 4, 6, 16, 23)
 DEFAULT_ADDRESS = ("127.0.0.1", 5020)
 GATEWAY_NO_RESPONSE = 0x0B
 
-# pipe protocol (server process -> serve): ">BBBHH" op (0 read, 1 write, 2 count error, 3 unsupported function),
-# unit, function code, address, count, then the write values (">H" each). Reply: b"\x00" + words (">H" each)
-# or b"\x01" + exception code.
-_REQ = struct.Struct(">BBBHH")
+# pipe protocol (server process -> serve): ">IBBBHH" request id, op (0 read, 1 write, 2 count error,
+# 3 unsupported function), unit, function code, address, count, then the write values (">H" each).
+# Reply: ">I" request id, then b"\x00" + words (">H" each) or b"\x01" + exception code. Several requests may be
+# in flight (one per client connection); serve answers them in arrival order.
+_REQ = struct.Struct(">IBBBHH")
 
 
 def parse_host_port(text: str | None) -> tuple[str, int]:
@@ -69,12 +75,17 @@ class RegisterAccess:
         self.links = links
         self.writable = writable
 
-    def handle(self, op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int]) -> bytes:
+    def handle(
+        self, op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int], views: dict | None = None
+    ) -> bytes:
+        """One access. ``views``: unit -> snapshot shared by the accesses answered together (reads of one batch
+        see one drive state; a write empties it)."""
         from virtualaxis.services.modbus_map import (
             REASON_BAD_COUNT,
             REASON_UNSUPPORTED_FUNCTION,
             REASON_WRITES_DISABLED,
             RegisterError,
+            View,
             read_block,
             write_block,
         )
@@ -91,10 +102,17 @@ class RegisterAccess:
             if op == 0:
                 if not 1 <= count <= 125:
                     raise RegisterError(REASON_BAD_COUNT, f"count {count} out of 1..125", address=address)
-                words = read_block(link, address, count)
+                view = None
+                if views is not None:
+                    view = views.get(unit)
+                    if view is None:
+                        view = views[unit] = View(link)
+                words = read_block(link, address, count, view)
                 return b"\x00" + struct.pack(f">{len(words)}H", *words)
             if not self.writable:
                 raise RegisterError(REASON_WRITES_DISABLED, "writes are disabled", address=address)
+            if views is not None:
+                views.clear()
             write_block(link, address, list(values))
             return b"\x00"
         except RegisterError as exc:
@@ -123,19 +141,25 @@ class ModbusService:
     def start(self, timeout_s: float = 30.0) -> ModbusService:
         """Start the server process and the bridge; returns once the socket is bound (OSError if it cannot be)."""
         short_gil_slices()  # the bridge thread must not hold the drive's runtime thread for a 5 ms slice
-        ctx = multiprocessing.get_context("spawn")
-        ours, theirs = ctx.Pipe(duplex=True)
-        ctl_r, ctl_w = ctx.Pipe(duplex=False)  # stop signal (a message, or EOF when serve dies)
-        self._ctl = ctl_w
-        self._proc = ctx.Process(
-            target=_server_main,
-            args=(theirs, ctl_r, self.host, self.port),
-            name="virtualaxis-modbus",
-            daemon=True,
+        # a plain child interpreter (not multiprocessing's spawn, which would re-run the caller's __main__),
+        # joined by two socket pairs: access RPC and a stop signal (EOF when serve dies)
+        rpc_ours, rpc_theirs = socket.socketpair()
+        ctl_ours, ctl_theirs = socket.socketpair()
+        src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+        code = (
+            "import sys; from virtualaxis.services.modbus import _server_child; "
+            "_server_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))"
         )
-        self._proc.start()
-        theirs.close()
-        ctl_r.close()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(rpc_theirs.fileno()), str(ctl_theirs.fileno()), self.host, str(self.port)],
+            pass_fds=(rpc_theirs.fileno(), ctl_theirs.fileno()),
+            env=env,
+        )
+        rpc_theirs.close()
+        ctl_theirs.close()
+        ours = Connection(rpc_ours.detach())
+        self._ctl = Connection(ctl_ours.detach())
         self._conn = ours
         if not ours.poll(timeout_s):
             self.stop()
@@ -154,22 +178,31 @@ class ModbusService:
         return self
 
     def _serve_bridge(self) -> None:
+        """Answer forwarded accesses; the ones waiting together are answered in one go (one drive snapshot per
+        unit for their reads), so a burst of clients costs the drive's process one wake-up, not one each."""
         conn, handle = self._conn, self.access.handle
         unpack = _REQ.unpack_from
         size = _REQ.size
         while True:
             try:
-                msg = conn.recv_bytes()
+                batch = [conn.recv_bytes()]
+                while len(batch) < 64 and conn.poll():
+                    batch.append(conn.recv_bytes())
             except (EOFError, OSError):
                 return
-            op, unit, fc, address, count = unpack(msg)
-            values = struct.unpack_from(f">{(len(msg) - size) // 2}H", msg, size) if len(msg) > size else ()
+            views: dict = {}
+            replies = []
+            for msg in batch:
+                rid, op, unit, fc, address, count = unpack(msg)
+                values = struct.unpack_from(f">{(len(msg) - size) // 2}H", msg, size) if len(msg) > size else ()
+                try:
+                    reply = handle(op, unit, fc, address, count, values, views)
+                except Exception:  # noqa: BLE001 - never a dead bridge: device failure, as pymodbus does
+                    reply = bytes((1, 0x04))
+                replies.append(struct.pack(">I", rid) + reply)
             try:
-                reply = handle(op, unit, fc, address, count, values)
-            except Exception:  # noqa: BLE001 - never a dead bridge: device failure, as pymodbus does
-                reply = bytes((1, 0x04))
-            try:
-                conn.send_bytes(reply)
+                for r in replies:
+                    conn.send_bytes(r)
             except (EOFError, OSError):
                 return
 
@@ -182,10 +215,11 @@ class ModbusService:
             self._ctl.close()
             self._ctl = None
         if self._proc is not None:
-            self._proc.join(timeout=5.0)
-            if self._proc.is_alive():
+            try:
+                self._proc.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
                 self._proc.terminate()
-                self._proc.join(timeout=5.0)
+                self._proc.wait(timeout=5.0)
             self._proc = None
         if self._conn is not None:
             self._conn.close()
@@ -206,6 +240,11 @@ class ModbusService:
 
 
 # ============================================================================================ server process
+def _server_child(rpc_fd: int, ctl_fd: int, host: str, port: int) -> None:
+    """Entry of the server process (``python -c``): the two inherited socket fds as connections."""
+    _server_main(Connection(rpc_fd), Connection(ctl_fd), host, port)
+
+
 def _server_main(conn, ctl, host: str, port: int) -> None:
     """Entry of the server process: pymodbus on ``host:port``, every access forwarded over ``conn``; a message
     on ``ctl`` (or its EOF: serve is gone) stops it."""
@@ -216,17 +255,38 @@ def _server_main(conn, ctl, host: str, port: int) -> None:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     from pymodbus.server import ModbusTcpServer
 
-    lock = threading.Lock()
+    pending: dict[int, asyncio.Future] = {}
+    ids = iter(range(1, 1 << 62))
+    loop_box: list = []
 
-    def call(op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int] = ()) -> bytes:
-        msg = _REQ.pack(op, unit & 0xFF, fc & 0xFF, address & 0xFFFF, count & 0xFFFF)
+    async def call(op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int] = ()) -> bytes:
+        rid = next(ids) & 0xFFFFFFFF
+        msg = _REQ.pack(rid, op, unit & 0xFF, fc & 0xFF, address & 0xFFFF, count & 0xFFFF)
         if values:
             msg += struct.pack(f">{len(values)}H", *values)
-        with lock:
-            conn.send_bytes(msg)
-            return conn.recv_bytes()
+        fut = loop_box[0].create_future()
+        pending[rid] = fut
+        conn.send_bytes(msg)  # only the event loop's thread sends
+        return await fut
+
+    def read_replies() -> None:
+        loop = loop_box[0]
+
+        def resolve(rid: int, body: bytes) -> None:
+            fut = pending.pop(rid, None)
+            if fut is not None and not fut.done():
+                fut.set_result(body)
+
+        try:
+            while True:
+                msg = conn.recv_bytes()
+                loop.call_soon_threadsafe(resolve, struct.unpack_from(">I", msg)[0], msg[4:])
+        except (EOFError, OSError):
+            return
 
     async def serve() -> None:
+        loop_box.append(asyncio.get_running_loop())
+        threading.Thread(target=read_replies, daemon=True).start()
         server = ModbusTcpServer(
             ForwardingContext(call), address=(host, port), custom_pdu=custom_pdus(call)
         )
@@ -289,10 +349,11 @@ def _make_context_class():
             return []
 
         async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
-            return _decode_reply(self.call(0, device_id, func_code, address, count))
+            return _decode_reply(await self.call(0, device_id, func_code, address, count))
 
         async def async_setValues(self, device_id: int, func_code: int, address: int, values: Sequence[int]):
-            reply = self.call(1, device_id, func_code, address, len(values), [int(v) & 0xFFFF for v in values])
+            values = [int(v) & 0xFFFF for v in values]
+            reply = await self.call(1, device_id, func_code, address, len(values), values)
             return None if reply[0] == 0 else _exc(reply[1])
 
     return _ForwardingContext
@@ -312,8 +373,8 @@ def custom_pdus(call: Callable) -> list:
         WriteMultipleRegistersRequest,
     )
 
-    def refused(pdu, device_id: int, op: int, address: int):
-        reply = call(op, device_id, pdu.function_code, address, 0)
+    async def refused(pdu, device_id: int, op: int, address: int):
+        reply = await call(op, device_id, pdu.function_code, address, 0)
         return ExceptionResponse(pdu.function_code, _exc(reply[1]))
 
     class ReadHoldingAnyCount(ReadHoldingRegistersRequest):
@@ -322,7 +383,7 @@ def custom_pdus(call: Callable) -> list:
 
         async def datastore_update(self, context, device_id):
             if not 1 <= self.count <= 125:
-                return refused(self, device_id, 2, self.address)
+                return await refused(self, device_id, 2, self.address)
             return await super().datastore_update(context, device_id)
 
     class ReadInputAnyCount(ReadHoldingAnyCount):
@@ -345,7 +406,7 @@ def custom_pdus(call: Callable) -> list:
 
         async def datastore_update(self, context, device_id):
             if not (1 <= self.read_count <= 125 and 1 <= self.write_count <= 121):
-                return refused(self, device_id, 2, self.write_address)
+                return await refused(self, device_id, 2, self.write_address)
             return await super().datastore_update(context, device_id)
 
     class WriteMultipleCounted(WriteMultipleRegistersRequest):
@@ -356,7 +417,7 @@ def custom_pdus(call: Callable) -> list:
                 self.byte_count is not None
                 and (self.byte_count != self.count * 2 or self._payload_byte_count != self.byte_count)
             ):
-                return refused(self, device_id, 2, self.address)
+                return await refused(self, device_id, 2, self.address)
             return await super().datastore_update(context, device_id)
 
     class Unsupported(ModbusPDU):
@@ -366,7 +427,7 @@ def custom_pdus(call: Callable) -> list:
             self._raw = data
 
         async def datastore_update(self, context, device_id):
-            return refused(self, device_id, 3, 0)
+            return await refused(self, device_id, 3, 0)
 
     others = [
         type(f"UnsupportedFunction{fc:02d}", (Unsupported,), {"function_code": fc})

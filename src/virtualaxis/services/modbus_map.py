@@ -466,14 +466,15 @@ BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
 
 
 # ---------------------------------------------------------------------------------------------- access
-def read_block(link: AxisLink, address: int, count: int) -> list[int]:
-    """``count`` register words from PDU ``address`` (raises :class:`RegisterError` for a hole)."""
+def read_block(link: AxisLink, address: int, count: int, view: View | None = None) -> list[int]:
+    """``count`` register words from PDU ``address`` (raises :class:`RegisterError` for a hole). ``view``: a
+    snapshot to read from (requests answered together share one; default a fresh one)."""
     for a in range(address, address + count):
         if a not in BY_ADDRESS:
             raise RegisterError(
                 REASON_UNKNOWN_REGISTER, f"register {a + 40001} (address {a}) is not in the map", address=a
             )
-    view = View(link)
+    view = view if view is not None else View(link)
     out: list[int] = []
     a = address
     end = address + count
