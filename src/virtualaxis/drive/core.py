@@ -25,6 +25,7 @@ from pathlib import Path
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.drive import homing as hm
+from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults
@@ -300,6 +301,8 @@ class Drive:
             self._interp.reset(self._demand_m)
             self._prev_actual_m = self._demand_m
             self._fe_m = 0.0
+            self._limit_switches = 0  # 0x60FD bits 0/1 as last monitored
+            self._position_overflow = False
             self._index_seen_m: float | None = None
             self._update_scaling()
             self._apply_gains()
@@ -314,9 +317,14 @@ class Drive:
             self._publish_outputs()
 
     def power_on_reset(self) -> None:
-        """NMT reset node: application objects back to defaults, state machine restarted; the axis stays
-        where it is (the plant is not reset)."""
+        """NMT reset node / power-on reset: application objects back to defaults, state machine restarted,
+        and the plant restored: at rest, back inside the stroke (clear of the limit switches) if it had
+        left it (e.g. pushed into an end stop), at the same place otherwise; the plant time runs on."""
         with self._lock:
+            x = self.sim.state.table_position_m
+            x = x if math.isfinite(x) else 0.0
+            self.sim.reset(self._inside_stroke(x), keep_time=True)
+            self._axis = self.sim.state
             self._reset_all()
 
     def read_object(self, index: int, sub: int = 0) -> int | float:
@@ -352,6 +360,7 @@ class Drive:
             (0x6007, 0): (0, 3),
             (0x2002, 0): (0, 2),
             (0x2012, 0): (0, 1),
+            (0x2013, 0): (0, 1),
             (0x60C2, 2): (-6, 0),
             (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
         }
@@ -704,7 +713,8 @@ class Drive:
         Stopped or Reset Communication (``nmt_stopped``, ``nmt_reset_communication``). SYNC loss alone
         (``sync_timeout``) gets only the stack's EMCY 0x8100: in SYNC lockstep the plant does not advance
         without SYNC, and a lost set-point stream is caught by the RPDO event timer (0x1400+n:5). NMT events
-        count only while the drive is enabled (a master resetting communication at start-up must not fault a disabled drive)."""
+        count only while the drive is enabled (a master resetting communication at start-up must not fault a
+        disabled drive)."""
         with self._lock:
             code, stack_sent_emcy = {
                 "heartbeat_lost": (0x8130, True),
@@ -991,7 +1001,12 @@ class Drive:
         self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
 
     def _velocity_limit(self, v: float) -> float:
-        """Velocity modes: no motion outward beyond a software limit (bit 11)."""
+        """Velocity modes: no motion outward beyond a software limit or toward an active limit switch
+        (bit 11)."""
+        blocked = mon.blocked_direction(self) if self._limit_switches else 0
+        if blocked and v * blocked > 0.0:
+            self._internal_limit = True
+            return 0.0
         lim = self._limits_m()
         if lim is None:
             return v
@@ -1004,6 +1019,10 @@ class Drive:
         return v
 
     def _set_position(self, p: float, vff: float) -> None:
+        blocked = mon.blocked_direction(self) if self._limit_switches else 0
+        if blocked and (p - self._demand_m) * blocked > 0.0:  # no further toward an active limit switch
+            p, vff = self._demand_m, 0.0
+            self._internal_limit = True
         acc = (vff - self._last_vff) / self.cycle_s
         self._last_vff = vff
         self._demand_m, self._demand_v = p, vff
@@ -1249,12 +1268,16 @@ class Drive:
         self._prev_actual_m = self._axis.position_m
         ax = self._axis = self.sim.state
         self.counters["cycles"] += 1
+        if not (math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)):
+            raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
         if not self._power:
             self._demand_m = ax.position_m - self._zero_m
             self._profile.reset(self._demand_m)
             self._interp.reset(self._demand_m)
         if self._params_dirty:
             self._refresh_params()
+        mon.monitor_position_range(self, (ax.position_m - self._zero_m) * self._pc.inv_u)
+        mon.monitor_limit_switches(self, ax.position_m, ax.velocity_m_s)
         self._monitor(ax, dt)
         self._publish_outputs()
 

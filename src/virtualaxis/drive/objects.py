@@ -69,6 +69,8 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x2010, 0, "fault injection command (EMCY code; 0 clears injected faults)", "u16", "rw", 0),
     _o(0x2011, 0, "external force on the table [N]", "f32", "rw", 0.0),
     _o(0x2012, 0, "software limit reaction (0 clamp + SW bit 11, 1 fault EMCY 0x8612)", "u8", "rw", 0),
+    _o(0x2013, 0, "limit switch reaction (0 warning A07491/2 + stop, 1 fault F07491/2 0xFF10/0xFF11)", "u8", "rw",
+       1),
     _o(0x2020, 0, "motor temperature [C]", "f32", "ro", 20.0),
     *(_o(0x2030, i, f"fault number {i - 1} (r0947)", "u16", "ro", 0) for i in range(1, 9)),
     _o(0x2031, 0, "alarm number", "u16", "ro", 0),
@@ -79,6 +81,7 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x2110, 3, "targets clamped to software limits", "u32", "ro", 0),
     _o(0x2110, 4, "faults raised", "u32", "ro", 0),
     _o(0x2110, 5, "drive cycles run", "u32", "ro", 0),
+    _o(0x2110, 6, "exceptions caught in the drive cycle", "u32", "ro", 0),
     _o(
         0x6007,
         0,

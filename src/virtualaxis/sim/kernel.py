@@ -113,6 +113,10 @@ from virtualaxis.sim.layout import (
     P_R,
     P_RS,
     P_SCREW,
+    P_STOP_C,
+    P_STOP_HI,
+    P_STOP_K,
+    P_STOP_LO,
     P_SVPWM,
     P_SVSUB,
     P_TABLE,
@@ -605,6 +609,19 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
     return was_stuck, d_dir, temp, ffric, cforce, cg, lead_sc
 
 
+@njit(cache=True, fastmath=True, inline="always")
+def end_stop_force(x, v, lo, hi, k, c):
+    """Force of the hard end stops on the table [N]: a stiff, damped contact (spring ``k`` [N/m], damper ``c``
+    [N s/m]) beyond ``lo`` / ``hi`` [m]; it only pushes (never pulls the table back into the stop)."""
+    if x > hi:
+        f = -k * (x - hi) - c * v
+        return f if f < 0.0 else 0.0
+    if x < lo:
+        f = k * (lo - x) - c * v
+        return f if f > 0.0 else 0.0
+    return 0.0
+
+
 # _nrt=False: no reference counting (and no allocation possible) in the hot loop; every array is owned by the
 # caller for the duration of the call.
 @njit(cache=True, fastmath=True, _nrt=False)
@@ -665,6 +682,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     midx = int(pr[P_MOTOR_IDX])
     qenc, qscale, r_lead = pr[P_QENC], pr[P_QSCALE], pr[P_R]
     fb_motor = pr[P_FB] == 0.0 and r_lead > 0.0
+    stop_lo, stop_hi, stop_k, stop_c = pr[P_STOP_LO], pr[P_STOP_HI], pr[P_STOP_K], pr[P_STOP_C]
     for j in range(ncyc):
         blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc)
         # the sin recurrences restart from exact values at every position-loop sample
@@ -848,8 +866,11 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
             torque_act = actuator
             fx = f_ext[j]
             for _ in range(nsub):
+                fxs = fx
+                if stop_k != 0.0:
+                    fxs += end_stop_force(zview[tb], zview[n + tb], stop_lo, stop_hi, stop_k, stop_c)
                 was_stuck, d_dir, temp, ffric, cforce, cgap, lead_sc = _mech_step(
-                    mp, zview, wat, wbt, wk, wc, gtab, avec, ztmp, actuator, fx, was_stuck, d_dir, temp, lead_sc)
+                    mp, zview, wat, wbt, wk, wc, gtab, avec, ztmp, actuator, fxs, was_stuck, d_dir, temp, lead_sc)
             t_now += hc
             # feedback ring buffer (motor angle, table position) at the current-loop rate
             ri += 1

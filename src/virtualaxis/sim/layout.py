@@ -71,7 +71,11 @@ P_GI_I = 66  # current PI: T_current / T_i
 P_GI_W = 67  # speed PI: T_speed / T_n
 P_INV_RS = 68
 P_VMAX2 = 69  # V_max^2
-N_PARAMS = 70
+P_STOP_LO = 70  # hard end stop, negative end: table position where the contact begins [m]
+P_STOP_HI = 71  # hard end stop, positive end [m]
+P_STOP_K = 72  # end-stop contact stiffness [N/m] (0: no end stops)
+P_STOP_C = 73  # end-stop contact damping [N s/m]
+N_PARAMS = 74
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

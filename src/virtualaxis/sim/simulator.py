@@ -53,6 +53,29 @@ def _ratio(outer: float, inner: float) -> int:
     return int(round(outer / inner))
 
 
+#: hard end stops: where they sit beyond the usable stroke (+-stroke/2) [m] (chosen: 10 mm of over-travel,
+#: the usual clearance between the STOP cams / limit switches and the mechanical end of a ball-screw axis)
+END_STOP_OVERTRAVEL_M = 0.010
+#: end-stop contact stiffness [N/m] (chosen: steel stop behind a stiff buffer, 1e9 N/m = 1 mm at 1 MN) ...
+END_STOP_STIFFNESS_N_PER_M = 1e9
+#: ... limited so that the explicit contact force stays stable: omega h <= this at the table mass
+END_STOP_MAX_OMEGA_H = 0.2
+#: end-stop damping ratio at the table mass (chosen: well damped, a buffer does not ring)
+END_STOP_DAMPING_RATIO = 0.7
+
+
+def end_stops(cfg: AxisConfig) -> tuple[float, float, float, float]:
+    """(lo [m], hi [m], stiffness [N/m], damping [N s/m]) of the table's hard end stops: at +-(stroke/2 +
+    :data:`END_STOP_OVERTRAVEL_M`), stiffness :data:`END_STOP_STIFFNESS_N_PER_M` limited for stability of
+    the explicit contact at the mechanical step h (omega h <= :data:`END_STOP_MAX_OMEGA_H`)."""
+    half = cfg.axis.stroke_m / 2 + END_STOP_OVERTRAVEL_M
+    h = cfg.control.current_cycle_s / cfg.simulation.mechanical_substeps
+    m = cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
+    k = min(END_STOP_STIFFNESS_N_PER_M, (END_STOP_MAX_OMEGA_H / h) ** 2 * m)
+    c = 2.0 * END_STOP_DAMPING_RATIO * math.sqrt(k * m)
+    return -half, half, k, c
+
+
 def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     """Fill the kernel parameter vector from a validated config."""
     pr = np.zeros(L.N_PARAMS)
@@ -141,6 +164,8 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_NDOF] = dm.n
     pr[L.P_KC] = dm.contact_stiffness
     pr[L.P_HAS_CONTACT] = 1.0 if np.any(dm.contact_vector != 0) else 0.0
+    lo, hi, k, c = end_stops(cfg)
+    pr[L.P_STOP_LO], pr[L.P_STOP_HI], pr[L.P_STOP_K], pr[L.P_STOP_C] = lo, hi, k, c
     nz = np.flatnonzero(dm.motor_angle_vector)
     pr[L.P_MOTOR_IDX] = nz[0] if (len(nz) == 1 and dm.motor_angle_vector[nz[0]] == 1.0) else -1
     return pr
