@@ -87,6 +87,7 @@ CASES += [
     ("cfg-is-folder", ["modal", "--config", "{T}"], ["is a folder"]),
     ("cfg-dev-zero", ["modal", "--config", "/dev/zero"], ["/dev/zero", "larger than 4 MiB"]),
     ("cfg-is-a-trace", ["modal", "--config", _tr("good.csv")], ["good.csv", "not valid TOML"]),
+    ("cfg-fifo", ["modal", "--config", "{T}/fifo.csv"], ["fifo.csv", "not a regular file"]),
     ("cfg-unreadable-proc", ["modal", "--config", "/proc/self/mem"], ["/proc/self/mem", "cannot read"]),
     # ---- simulate: durations, seeds, profiles
     ("sim-duration-1e7", ["simulate", "--config", str(C4), "--profile", STEP, "--duration", "1e7", "--out",
@@ -274,6 +275,8 @@ CASES += [
      ["wide.csv", "row 1", "header row longer"]),
     ("prof-file-dev-zero", ["simulate", "--config", str(C4), "--profile", "file:/dev/zero", "--out", "{T}/t.csv"],
      ["/dev/zero", "not a regular file"]),
+    ("diag-sidecar-fifo", ["diagnose", "--config", str(C4), "{T}/sc.csv", "--out", "{T}/d"],
+     ["sc.toml", "not a regular file"]),
     ("diag-trace-missing", ["diagnose", "--config", str(C4), "{T}/none.csv", "--out", "{T}/d"],
      ["none.csv", "not found"]),
     ("diag-trace-folder", ["diagnose", "--config", str(C4), "{T}", "--out", "{T}/d"], ["is a folder"]),
@@ -304,6 +307,8 @@ def _setup(tmp: Path) -> None:
     os.symlink(tmp / "cfg.toml", tmp / "link.csv")
     os.symlink(tmp / "missing-target.csv", tmp / "dangling.csv")
     os.mkfifo(tmp / "fifo.csv")
+    (tmp / "sc.csv").write_bytes((D / "traces" / "good.csv").read_bytes())
+    os.mkfifo(tmp / "sc.toml")
     (tmp / "wide.csv").write_text("t," + "x" * 1_000_000 + "\n0,1\n")
     (tmp / "done").mkdir()
     for name in ("frf.csv", "report.json"):

@@ -594,6 +594,9 @@ def read_text_file(path: str | Path, what: str = "file", max_bytes: int = MAX_CO
     """A small UTF-8 text file's text (a BOM is accepted). Raises :class:`ConfigError` naming the file (and
     the line of the first byte that is not UTF-8) for a missing, unreadable, oversized or non-UTF-8 file."""
     p = Path(path)
+    if p.exists() and not p.is_dir() and not p.is_file() and not p.is_char_device():
+        # a FIFO or socket would block the read until someone writes to it
+        raise ConfigError(str(p), "", f"not a regular file (a pipe or socket); give a {what}")
     try:
         with p.open("rb") as fh:
             blob = fh.read(max_bytes + 1)

@@ -238,6 +238,8 @@ def read_sidecar(csv_path: Path) -> dict:
         return {}
     if side.is_dir():
         raise _err(str(side), "sidecar metadata path is a folder, not a TOML file")
+    if not side.is_file():
+        raise _err(str(side), "sidecar metadata is not a regular file (a device, pipe or socket)")
     try:
         return tomllib.loads(side.read_text(encoding="utf-8-sig"))
     except UnicodeDecodeError as exc:
