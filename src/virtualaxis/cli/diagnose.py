@@ -9,6 +9,7 @@ from pathlib import Path
 
 from virtualaxis.cli.outputs import add_force_argument, check_output_dir, staged_dir
 from virtualaxis.config import load_axis_config
+from virtualaxis.diagnosis.verdict import describe
 
 #: files written into --out
 OUT_NAMES = ("report.json", "report.html", "calibrated.toml")
@@ -36,6 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-hybrid", action="store_true", help="skip the data-driven residual models")
     add_force_argument(p)
     p.set_defaults(func=run)
+
 
 
 def run(args: argparse.Namespace) -> int:
@@ -88,10 +90,19 @@ def run(args: argparse.Namespace) -> int:
     print(f"conclusion: {report['conclusion']}")
     for e in report["effects"]:
         if e["accepted"]:
-            ps = ", ".join(f"{k}={v['value']:.4g} {v['unit']}" for k, v in e["params"].items())
-            print(f"  accepted {e['name']}: {ps}; held-out residual energy -{100 * e['heldout']['gain']:.0f} %")
-    for ch, r in report["final"]["heldout_rmse_ratio"].items():
-        print(f"  held-out RMSE {ch}: {report['baseline_heldout'][ch]['rmse']:.4g} -> "
-              f"{report['final']['heldout'][ch]['rmse']:.4g} ({r:.2f}x)")
+            ps = ", ".join(f"{k}={v['value']:.4g}"
+                           + (f" ± {v['stderr']:.2g}" if v["determined"] else " (not determined)")
+                           + f" {v['unit']}" for k, v in e["params"].items())
+            print(f"  accepted {e['name']}: {ps}; held-out residual energy -{100 * e['heldout']['gain']:.0f} %; "
+                  f"per channel: {describe(e['verdict'])}")
+    if report.get("model_form_mismatch"):
+        print(f"  {report['model_form_mismatch']['description']}")
+    v = report["final"]["verdict"]
+    print(f"  held-out RMSE nominal -> calibrated, per channel: {describe(v)}"
+          f"{'' if v['improves'] or not report['accepted'] else ' (NOT an improvement in every channel)'}")
+    hyb = report.get("hybrid")
+    if hyb and hyb.get("model"):
+        print(f"  learned residual model {hyb['model']} on top: "
+              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({describe(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0

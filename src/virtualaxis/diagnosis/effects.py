@@ -463,6 +463,52 @@ def relative_change(effect: str, cfg: AxisConfig, values: dict[str, float]) -> f
     return worst
 
 
+#: an extra mode damped this much is no resonance (it does not ring): a fit that needs it is a model-form
+#: mismatch the library does not describe (a wrong controller, a missing lag), not an answer
+MAX_RESONANCE_DAMPING = 0.2
+#: a fitted amplitude must differ from the model's value by this many standard errors to be determined
+MIN_SIGNIFICANCE = 3.0
+
+
+def implausible(effect: str, cfg: AxisConfig, values: dict[str, float], stderr: dict[str, float],
+                at_bound: list[str]) -> list[str]:
+    """Why a fitted effect is not a physical answer (empty list: it is). A parameter at a bound of its
+    physical range other than zero (the fit wanted more than the range allows), a "resonance" damped
+    >= :data:`MAX_RESONANCE_DAMPING`, an amplitude parameter not determined by the fit traces (standard error
+    infinite) or not distinguishable from the model's value (:data:`MIN_SIGNIFICANCE` standard errors)."""
+    why: list[str] = []
+    params = {p.name: p for p in effect_of(effect).params(cfg)}
+    for name in at_bound:
+        p = params.get(name)
+        if p is None or fx_is_zero_bound(p, values.get(name, math.nan)):
+            continue
+        why.append(f"{name} = {values.get(name, math.nan):.4g} {p.unit} at the bound of its range "
+                   f"[{p.lower:g}, {p.upper:g}]")
+    for key, v in values.items():
+        base = key.rsplit(JOINT_SEP, 1)[-1]
+        if base == "resonance_damping_ratio" and v >= MAX_RESONANCE_DAMPING:
+            why.append(f"a mode damped {v:.2f} (>= {MAX_RESONANCE_DAMPING}) is not a resonance")
+    amps = [p for p in params.values() if not p.shape and not is_discrete(p.name)]
+    significant = False
+    for p in amps:
+        se = float(stderr.get(p.name, math.nan))
+        v = float(values.get(p.name, p.nominal))
+        if se == math.inf:
+            why.append(f"{p.name} not determined by the fit traces")
+        elif math.isfinite(se) and abs(v - p.nominal) >= MIN_SIGNIFICANCE * se:
+            significant = True
+        elif not math.isfinite(se):
+            significant = True  # no uncertainty computed (e.g. differential evolution): not judged
+    if amps and not significant and not any("not determined" in w for w in why):
+        why.append("no fitted value differs from the model's by " f"{MIN_SIGNIFICANCE:g} standard errors")
+    return why
+
+
+def fx_is_zero_bound(p: Param, value: float) -> bool:
+    """True when ``value`` sits at a bound that is zero (no friction heating, no gap: a physical value)."""
+    return abs(value) <= 1e-12 * max(abs(p.upper), 1.0) and (p.lower == 0.0 or p.upper == 0.0)
+
+
 def effect_of(name: str) -> Effect:
     """An effect of the library by name, or several joined by "+" as one effect (a joint refit of
     accepted effects: parameters named ``effect/param``, applied in the order given)."""

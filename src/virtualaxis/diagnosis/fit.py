@@ -649,6 +649,8 @@ class Selection:
     n_sims: int
     joint: dict | None = None  # the joint refit of the accepted effects (see joint_refit)
     weights: Weights | None = None  # the channel weights every cost of the selection used
+    removed: list[dict] = field(default_factory=list)  # effects dropped again by a backward step
+    mismatch: dict | None = None  # the gap a library effect would explain only with implausible parameters
 
 
 def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit: dict, counts_hold: dict,
@@ -686,10 +688,14 @@ def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fi
     s["worst_channel_gain"] = worst
     change = fx.relative_change(r.effect, cur, r.values) if r.values else 0.0
     s["relative_change"] = change if math.isfinite(change) else None  # None: the effect was absent (JSON-safe)
-    pays = (change >= fx.MIN_RELATIVE_CHANGE and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
-            and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
-            and sig_ok and not r.error)
-    return {"result": r, "score": s, "pays": pays, "signature_ok": sig_ok, "screen_gain": screen_gain}
+    explains = (change >= fx.MIN_RELATIVE_CHANGE and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
+                and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
+                and sig_ok and not r.error)
+    why_not = fx.implausible(r.effect, cur, r.values, r.stderr, r.at_bound) if r.values and not r.error else []
+    s["implausible"] = why_not
+    pays = explains and not why_not
+    return {"result": r, "score": s, "pays": pays, "explains": explains, "signature_ok": sig_ok,
+            "screen_gain": screen_gain}
 
 
 def select_effects(
@@ -717,6 +723,9 @@ def select_effects(
     scale = MotionScale.from_commands([(traces[i].t, traces[i].pos_cmd) for i in all_idx])
     first_gain: dict[str, float] = {}
     w = weights
+    joint: dict | None = None
+    removed: list[dict] = []
+    mismatch: dict | None = None
     nominal_hold = 0.0
     for rnd in range(settings.max_rounds):
         if not remaining:
@@ -799,25 +808,115 @@ def select_effects(
         rounds.append(scored)
         best = scored[0] if scored and scored[0]["pays"] else None
         if best is None:
+            # a candidate that would explain the gap but whose parameters are not physical or not determined is
+            # not an answer: the gap is a model-form mismatch none of the library's effects describes
+            expl = [d for d in scored if d.get("explains") and d["score"].get("implausible")]
+            if expl:
+                d = min(expl, key=lambda d: d["score"]["ic_delta"])
+                mismatch = {"round": rnd + 1, "closest_effect": d["result"].effect,
+                            "values": d["result"].values, "why_not": d["score"]["implausible"],
+                            "heldout_gain": d["score"]["gain"], "target_channel": target_ch,
+                            "where": [{"channel": target_ch, "dimension": e["dimension"], "bin": e["bin"],
+                                       "share": e["share"], "concentration": e["share"] / max(e["time_fraction"],
+                                                                                            1e-12)}
+                                      for e in target.concentrations(target_ch)[:5]] if target_ch else []}
             break
         r = best["result"]
         cur = fx.EFFECTS[r.effect].apply(cur, r.values)
         accepted.append(Step(r.effect, r.values, r.stderr, cur, r.fit_metrics, r.holdout_metrics))
         remaining = [n for n in remaining if n != r.effect and not _conflicts(n, r.effect)]
-    joint = None
-    if len(accepted) >= 2 and settings.joint_refit:
-        if progress:
-            progress("round joint: refitting 1 candidates")
-        joint = joint_refit(cfg, accepted, traces, fit_idx, holdout_idx, w, settings, simulate, runner)
-        n_sims += joint.pop("n_sims")
-        if joint["accepted"]:
-            accepted = joint.pop("steps")
-            cur = accepted[-1].cfg
-        else:
-            joint.pop("steps")
-        if progress:
-            progress("refined joint")
-    return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims, joint, w)
+        if len(accepted) >= 2 and settings.joint_refit:
+            # refit all accepted effects together after each acceptance (effects that trade off leave the first
+            # one biased when it is held fixed), then try removing each (backward step)
+            if progress:
+                progress(f"round {rnd + 1}: joint refit of {len(accepted)} effects")
+            first = None
+            for _ in range(JOINT_PASSES):  # again from the joint values while a pass cuts the fit cost by 10 %
+                joint = joint_refit(cfg, accepted, traces, fit_idx, holdout_idx, w, settings, simulate, runner)
+                n_sims += joint.pop("n_sims")
+                steps = joint.pop("steps")
+                if first is None:
+                    first = joint
+                else:
+                    first.update({k: joint[k] for k in ("accepted", "joint_values", "joint_stderr", "fit_cost_joint",
+                                                        "heldout_cost_joint") if joint["accepted"]})
+                if not joint["accepted"]:
+                    break
+                accepted = steps
+                cur = accepted[-1].cfg
+                if joint["fit_cost_joint"] > 0.9 * joint["fit_cost_sequential"]:
+                    break
+            joint = first
+            accepted, dropped, k_sims = backward_step(cfg, accepted, traces, fit_idx, holdout_idx, w, settings,
+                                                      simulate)
+            n_sims += k_sims
+            if dropped:
+                removed.extend({"round": rnd + 1, **d} for d in dropped)
+                cur = accepted[-1].cfg if accepted else cfg
+                names = {d["effect"] for d in dropped}
+                remaining = [n for n in remaining if n not in names]  # not tried again
+    return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims, joint, w, removed, mismatch)
+
+
+def _rebuild(cfg: AxisConfig, steps: list[Step]) -> list[Step]:
+    """The steps' configs rebuilt from ``cfg`` (after one was removed)."""
+    out, c = [], cfg
+    for s in steps:
+        c = fx.EFFECTS[s.effect].apply(c, s.values)
+        out.append(Step(s.effect, s.values, s.stderr, c, s.fit_metrics, s.holdout_metrics))
+    return out
+
+
+def backward_step(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], fit_idx: list[int],
+                  holdout_idx: list[int], w: Weights, settings: FitSettings, simulate: SimulateFn
+                  ) -> tuple[list[Step], list[dict], int]:
+    """Try removing each accepted effect (the others kept at their values): one that no longer pays its way —
+    the held-out weighted energy without it rises by less than ``min_gain`` of what the full model leaves, or
+    the information criterion does not rise — is dropped (an early pick that a later, better effect explains).
+    Returns (kept steps, dropped effects with their figures, simulations run)."""
+    idx = holdout_idx or fit_idx
+    n_sims = 0
+
+    def energy(c: AxisConfig) -> tuple[float, dict, dict]:
+        nonlocal n_sims
+        res = [residuals(traces[i], simulate_trace(c, traces[i], simulate)) for i in idx]
+        n_sims += len(idx)
+        ssr = weighted_ssr(res, w)
+        return sum(ssr.values()), ssr, sample_counts(res)
+
+    dropped: list[dict] = []
+    # an effect whose jointly refitted values no longer differ from the model's (by MIN_RELATIVE_CHANGE and
+    # MIN_SIGNIFICANCE standard errors) was standing in for a bias of another effect's sequential fit
+    for s in list(accepted):
+        change = fx.relative_change(s.effect, cfg, s.values)
+        why = [w_ for w_ in fx.implausible(s.effect, cfg, s.values, s.stderr, []) if "standard errors" in w_]
+        if len(accepted) >= 2 and (change < fx.MIN_RELATIVE_CHANGE or why):
+            k = accepted.index(s)
+            dropped.append({"effect": s.effect, "values": s.values, "heldout_energy_rise_without": math.nan,
+                            "ic_delta_of_keeping": math.nan,
+                            "why": why[0] if why else f"changes the model by only {100 * change:.1f} %"})
+            accepted = _rebuild(cfg, accepted[:k] + accepted[k + 1:])
+    changed = True
+    while changed and len(accepted) >= 2:
+        changed = False
+        full, ssr_full, counts = energy(accepted[-1].cfg)
+        worst = None
+        for k, s in enumerate(accepted):
+            rest = _rebuild(cfg, accepted[:k] + accepted[k + 1:])
+            without, ssr_wo, _ = energy(rest[-1].cfg)
+            rise = (without - full) / max(full, 1e-300)
+            ic = info_criterion_delta(ssr_wo, ssr_full, counts, w, _n_free(s.effect, cfg))  # adding it back
+            if rise < settings.min_gain or ic >= 0:
+                if worst is None or rise < worst[1]:
+                    worst = (k, rise, ic, rest)
+        if worst is not None:
+            k, rise, ic, rest = worst
+            dropped.append({"effect": accepted[k].effect, "values": accepted[k].values,
+                            "heldout_energy_rise_without": rise, "ic_delta_of_keeping": ic,
+                            "why": f"without it the held-out residual energy rises by only {100 * rise:.1f} %"})
+            accepted = rest
+            changed = True
+    return accepted, dropped, n_sims
 
 
 def joint_refit(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], fit_idx: list[int],
@@ -862,6 +961,9 @@ def joint_refit(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], 
         "error": r.error, "seconds": r.seconds, "n_sims": r.n_sims, "steps": steps,
     }
 
+
+#: joint refit passes after an acceptance (each from the previous pass's values)
+JOINT_PASSES = 3
 
 # effects that change the same config keys cannot both be accepted
 _SAME_KEYS = {

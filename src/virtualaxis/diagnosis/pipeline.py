@@ -21,12 +21,14 @@ from virtualaxis.diagnosis.data import (
     default_simulate,
     pooled_metrics,
     residuals,
+    sample_counts,
     simulate_trace,
     split_by_condition,
 )
 from virtualaxis.diagnosis.fit import FitSettings, Runner, select_effects
 from virtualaxis.diagnosis.hybrid import fit_hybrid
 from virtualaxis.diagnosis.trace import CHANNEL_UNITS, Trace, check_units, read_trace
+from virtualaxis.diagnosis.verdict import channel_verdict
 from virtualaxis.diagnosis.where import localise
 
 NO_EFFECT = "no significant effect"
@@ -81,22 +83,30 @@ def trace_overrides(tr: Trace) -> dict:
     return {"control": known} if known else {}
 
 
-#: the nominal model's residual with the identified controller must not be larger than with the config's
-#: (geometric mean over channels of the ratio) for the identified gains or timing to be used: a guard against a
-#: failed identification, not the evidence (that is the replayed law). It cannot be strict: the withheld plant
-#: effect is in both residuals and may dominate them (P/P cascade, 1 kHz speed loop, Coulomb friction 90 N
-#: where the config says 40 N: the right timing gives a ratio of 0.9994; a wrong P/PI controller 0.45-0.66)
-CONTROLLER_CONFIRM_RATIO = 1.0
+#: closed-loop judgement of an identified controller: the nominal model simulated with it must leave at most this
+#: share of the RMSE the config's controller leaves (geometric mean over channels), on the fit traces (the config's
+#: controller "fails" there) and again on the held-out traces (it does clearly better where it was not identified)
+CLOSED_LOOP_RATIO = 0.7
 
 
-def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData], simulate: SimulateFn) -> list[dict]:
+def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData], simulate: SimulateFn,
+                      fit_idx: list[int] | None = None, hold_idx: list[int] | None = None) -> list[dict]:
     """Replay the config's (or the sidecar's) control law on every trace with a controller output
-    (:mod:`virtualaxis.diagnosis.controller`). Where it clearly does not fit and a law identified from the trace
-    does, simulate the nominal model with both controllers and use the identified gains for that trace if its
-    residual is not larger (the evidence is the law, checked on measured signals only, which no plant effect
-    enters; the simulation guards against a failed identification). Returns ``report.json["controller_check"]``."""
-    out = []
-    for tr, td in zip(traces, tds, strict=True):
+    (:mod:`virtualaxis.diagnosis.controller`), then judge the controller closed-loop.
+
+    The replay at the trace's rate is only a hint: a speed loop much faster than the trace (the normal case for
+    a drive: a PI loop at 125 us recorded at 1 kHz) cannot be replayed from the samples, and a plant effect
+    the replay does not see can make any law look wrong. So the config's control law is kept unless the nominal
+    model simulated closed-loop with the identified law (the median of the fit traces' identified gains, or the
+    speed-loop timing alone) leaves at most :data:`CLOSED_LOOP_RATIO` of the config's residual on the fit traces
+    (the config's controller fails there) AND again on the held-out traces with no channel worse beyond its
+    noise. Then it is used for every trace without a sidecar controller. Returns
+    ``report.json["controller_check"]``; the decision is in each entry's ``used`` and ``closed_loop``."""
+    fit_idx = list(range(len(traces))) if fit_idx is None else fit_idx
+    hold_idx = hold_idx or []
+    out: list[dict] = []
+    checks: dict[int, object] = {}
+    for k, (tr, td) in enumerate(zip(traces, tds, strict=True)):
         c0 = cfg.replace(**td.overrides) if td.overrides else cfg
         try:
             chk = check_controller(c0, tr.name, tr.t, tr.pos_cmd, tr.columns)
@@ -105,21 +115,77 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
             continue
         if chk is None:
             continue
-        if chk.used == "identified":
-            ctrl = {**td.overrides.get("control", {}), **chk.overrides["control"]}
-            trial = dataclasses.replace(td, overrides={**td.overrides, "control": ctrl})
-            ratio = _residual_ratio(td, simulate_trace(cfg, td, simulate), simulate_trace(cfg, trial, simulate))
-            chk.confirm_ratio = ratio
-            if ratio <= CONTROLLER_CONFIRM_RATIO:
-                td.overrides = trial.overrides
-            else:
+        checks[k] = chk
+    own = [k for k in checks if not tds[k].overrides.get("control")]  # no sidecar controller
+    cand = [k for k in own if checks[k].used == "identified"]
+    cand_fit = [k for k in cand if k in fit_idx] or cand
+    judgement: dict = {}
+    if cand_fit:
+        control = _median_overrides([checks[k].overrides["control"] for k in cand_fit])
+        targets = [k for k in range(len(tds)) if not tds[k].overrides.get("control")]
+        trial = {k: dataclasses.replace(tds[k], overrides={**tds[k].overrides, "control": control}) for k in targets}
+        f_idx = [k for k in fit_idx if k in trial]
+        h_idx = [k for k in hold_idx if k in trial]
+        r_fit, v_fit = _closed_loop_ratio(cfg, [tds[k] for k in f_idx], [trial[k] for k in f_idx], simulate)
+        r_hold, v_hold = (_closed_loop_ratio(cfg, [tds[k] for k in h_idx], [trial[k] for k in h_idx], simulate)
+                          if h_idx else (math.nan, {}))
+        fails = r_fit <= CLOSED_LOOP_RATIO
+        better = (r_hold <= CLOSED_LOOP_RATIO and not v_hold.get("worse_channels")) if h_idx else fails
+        use = fails and better
+        judgement = {"control": control, "ratio_fit": r_fit, "ratio_heldout": r_hold, "used": use,
+                     "verdict_fit": v_fit, "verdict_heldout": v_hold}
+        if use:
+            for k in targets:
+                tds[k].overrides = trial[k].overrides
+        why = (f"closed loop, the nominal model with the identified controller leaves {r_fit:.2f} x the config "
+               f"controller's residual on the fit traces" + (f" and {r_hold:.2f} x held out" if h_idx else ""))
+        for k in own:
+            chk = checks[k]
+            chk.confirm_ratio = r_fit
+            if use:
+                chk.used = "identified"
+                chk.overrides = {"control": control}
+                chk.note = (chk.note + "; " if chk.note else "") + f"used: {why}"
+            elif chk.used == "identified" or k in cand:
                 chk.used = "config"
-                chk.note += (f"; not used: the nominal model's residual with it is {ratio:.2f} x the config "
-                             f"controller's")
+                chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: {why} (needs <= "
+                            f"{CLOSED_LOOP_RATIO} on both, no held-out channel worse)")
+    for k, chk in checks.items():
         if chk.note:
-            tr.warnings.append(chk.note)
-        out.append(chk.as_dict())
+            traces[k].warnings.append(chk.note)
+        d = chk.as_dict()
+        if judgement:
+            d["closed_loop"] = {key: v for key, v in judgement.items() if key != "control"}
+        out.append(d)
     return out
+
+
+def _median_overrides(ovs: list[dict]) -> dict:
+    """One controller from several traces' identified ``control.*`` overrides: the most common key set, each
+    key's median."""
+    sets: dict[tuple, list[dict]] = {}
+    for o in ovs:
+        sets.setdefault(tuple(sorted(o)), []).append(o)
+    group = max(sets.values(), key=len)
+    return {key: float(np.median([float(o[key]) for o in group])) for key in group[0]}
+
+
+def _closed_loop_ratio(cfg: AxisConfig, a: list[TraceData], b: list[TraceData], simulate: SimulateFn
+                       ) -> tuple[float, dict]:
+    """Nominal model simulated closed-loop on traces ``a`` (config's controller) and ``b`` (same traces, other
+    controller): geometric mean over channels of pooled rmse(b) / rmse(a), and the per-channel verdict."""
+    if not a:
+        return math.nan, {}
+    ra = [residuals(td, simulate_trace(cfg, td, simulate)) for td in a]
+    rb = [residuals(td, simulate_trace(cfg, td, simulate)) for td in b]
+    ma, mb = pooled_metrics(ra), pooled_metrics(rb)
+    chans = [c for c in ma if c in mb]
+    if len(chans) > 1:
+        chans = [c for c in chans if c != "motor_pos"]  # its zero is arbitrary until aligned
+    logs = [math.log(mb[c]["rmse"] / ma[c]["rmse"]) for c in chans if ma[c]["rmse"] > 0 and mb[c]["rmse"] > 0]
+    n_eff = {c: float(n) / 20.0 for c, n in sample_counts(ra).items()}  # ~20-sample correlation of a residual
+    verdict = channel_verdict({c: ma[c]["rmse"] for c in chans}, {c: mb[c]["rmse"] for c in chans}, n_eff)
+    return (float(math.exp(np.mean(logs))) if logs else 1.0), verdict
 
 
 def with_identified_controller(cfg: AxisConfig, checks: list[dict], report: dict) -> AxisConfig:
@@ -142,21 +208,6 @@ def with_identified_controller(cfg: AxisConfig, checks: list[dict], report: dict
         merged[k] = float(np.median(vals))
     report["calibrated_controller"] = merged
     return cfg.replace(control=merged)
-
-
-def _residual_ratio(td: TraceData, pred_a: dict, pred_b: dict) -> float:
-    """Geometric mean over channels of rmse(b) / rmse(a) (motor angle left out when others exist: its zero is
-    arbitrary until aligned)."""
-    chans = [c for c in pred_a if c in pred_b and c in td.measured]
-    if len(chans) > 1:
-        chans = [c for c in chans if c != "motor_pos"]
-    logs = []
-    for c in chans:
-        ra = float(np.sqrt(np.mean((td.measured[c] - pred_a[c]) ** 2)))
-        rb = float(np.sqrt(np.mean((td.measured[c] - pred_b[c]) ** 2)))
-        if ra > 0 and rb > 0:
-            logs.append(np.log(rb / ra))
-    return float(np.exp(np.mean(logs))) if logs else 1.0
 
 
 def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray]) -> None:
@@ -208,7 +259,7 @@ def run_diagnosis(
     tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
     timing["read_s"] = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    controller_checks = check_controllers(cfg, traces, tds, simulate)
+    controller_checks = check_controllers(cfg, traces, tds, simulate, fit_idx, hold_idx)
     timing["controller_check_s"] = time.perf_counter() - t0
     # baseline
     t0 = time.perf_counter()
@@ -290,6 +341,12 @@ def _param_table(effect: str, cfg: AxisConfig, values: dict, stderr: dict) -> di
     return out
 
 
+def _n_eff(sel, res_list: list[dict]) -> dict[str, float]:
+    """Decorrelated sample count per channel of the residuals a verdict is made on."""
+    frac = sel.weights.n_eff_fraction if sel.weights else {}
+    return {ch: n * frac.get(ch, 1.0) for ch, n in sample_counts(res_list).items()}
+
+
 def _rmse(m: dict) -> dict:
     return {ch: v["rmse"] for ch, v in m.items()}
 
@@ -357,6 +414,20 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                for ch in baseline}
     spectra = {ch: {k: v for k, v in sp.items() if k not in ("f_hz", "psd")} for ch, sp in loc.spectra.items()}
     conclusion = " + ".join(accepted_names) if accepted_names else NO_EFFECT
+    mismatch = sel.mismatch
+    if mismatch:
+        where_txt = ", ".join(f"{e['dimension']} {e['bin']} ({100 * e['share']:.0f} % of it)"
+                              for e in mismatch["where"][:3])
+        mismatch["description"] = (
+            f"unexplained model-form mismatch in {mismatch['target_channel']}"
+            + (f", concentrated in {where_txt}" if where_txt else "")
+            + f": the closest library effect, {mismatch['closest_effect']}, would explain "
+            f"{100 * mismatch['heldout_gain']:.0f} % of the held-out residual only with parameters that are not an "
+            f"answer ({'; '.join(mismatch['why_not'])})")
+        notes = notes + [mismatch["description"]]
+        conclusion = (conclusion + " + " if accepted_names else "") + "unexplained model-form mismatch"
+    for r in sel.removed:
+        notes = notes + [f"{r['effect']} removed again after round {r['round']} (backward step): {r['why']}"]
     for n in accepted_names:
         loose = [k for k, v in entries[n]["params"].items() if not v["determined"]]
         if loose:
@@ -369,6 +440,10 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "down"]
     final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
     final_hold = cumulative[-1]["heldout_after"] if cumulative else base_hold
+    n_eff = _n_eff(sel, [base_res[i] for i in (hold_idx or fit_idx)])
+    for e in entries.values():  # per-channel before/after of every candidate, held out (or on the fit traces)
+        side = e["heldout"] if hold_idx else e["fit"]
+        e["verdict"] = channel_verdict(side["rmse_before"], side["rmse_after"], n_eff)
     return {
         "format": "virtualaxis-gap-diagnosis/1",
         "config": cfg.path,
@@ -398,7 +473,10 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                                  "n_eff_fraction": sel.weights.n_eff_fraction.get(ch, 1.0)}
                             for ch, sg in sel.weights.sigma.items()} if sel.weights else {},
         "cumulative": cumulative,
+        "model_form_mismatch": mismatch,
+        "removed_by_backward_step": sel.removed,
         "final": {"fit": final_fit, "heldout": final_hold,
+                  "verdict": channel_verdict(_rmse(base_hold or base_fit), _rmse(final_hold or final_fit), n_eff),
                   "heldout_rmse_ratio": {ch: base_hold[ch]["rmse"] / max(final_hold[ch]["rmse"], 1e-300)
                                          for ch in final_hold if ch in base_hold}},
         "hybrid": hyb,

@@ -232,10 +232,14 @@ def report_html(report: dict) -> str:
         rows = []
         for m in hyb["models"]:
             for ch, v in m["channels"].items():
+                worse = m.get("verdict", {}).get("channels", {}).get(ch, {}).get("worse", False)
                 rows.append([m["model"], ch, _g(v["heldout_rmse_before"]), _g(v["heldout_rmse_after"]),
-                             _g(v["ratio"])])
+                             _g(v["ratio"]), "worse beyond its noise" if worse else ""])
         parts.append(f"<h2>Data-driven residual model on top of the calibrated physics (judged on {hyb['judged_on']})"
-                     "</h2>" + _table(rows, ["model", "channel", "RMSE physics only", "RMSE hybrid", "ratio"]))
+                     "</h2>" + _table(
+                         rows, ["model", "channel", "RMSE physics only", "RMSE hybrid", "before / after", "verdict"])
+                     + f"<p>best: {html.escape(str(hyb.get('model')))}; improves (no channel worse beyond its noise): "
+                     f"{hyb.get('improves')}</p>")
     for title, b64 in _plots(report):
         parts.append(f"<h2>{html.escape(title)}</h2><img src='data:image/png;base64,{b64}'>")
     parts.append("<h2>Timing</h2>" + _table([[k, _g(v)] for k, v in report["timing"].items()], ["step", "value"]))
