@@ -51,6 +51,7 @@ class TraceData:
     force_ext: np.ndarray | None
     measured: dict[str, np.ndarray]
     overrides: dict = field(default_factory=dict)  # config sections overridden for this trace
+    post: dict = field(default_factory=dict)  # how the trace records the model's channels (alignment.apply_post)
 
     @classmethod
     def from_trace(cls, tr: Trace, overrides: dict | None = None) -> TraceData:
@@ -72,6 +73,10 @@ def simulate_trace(cfg: AxisConfig, td: TraceData, simulate: SimulateFn) -> dict
         x = np.asarray(x, dtype=float)
         if x.shape == td.t.shape and np.isfinite(x).all():
             pred[ch] = x
+    if td.post:
+        from virtualaxis.diagnosis.alignment import apply_post
+
+        pred = apply_post(td, pred, c.mechanics.lead_m)
     return pred
 
 
@@ -176,7 +181,7 @@ def perturbed_command(td: TraceData, rng: np.random.Generator) -> TraceData:
     """The trace with its command moved by white noise of ``CHAOS_PERTURBATION_M`` (far below any scale):
     simulating it gives another draw of the model's chaos (see :func:`chaos_floor`)."""
     return TraceData(td.name, td.t, td.pos_cmd + rng.normal(0.0, CHAOS_PERTURBATION_M, td.t.size),
-                     td.force_ext, td.measured, td.overrides)
+                     td.force_ext, td.measured, td.overrides, td.post)
 
 
 def chaos_floor(cfg: AxisConfig, traces: list[TraceData], simulate: SimulateFn,

@@ -200,6 +200,21 @@ def _asym_starts(cfg, hints):
     return [{"coulomb_n": fc + typ, "coulomb_negative_n": fcn + typ}]
 
 
+def _offset_params(cfg):
+    fs = _force_scale(cfg)
+    return [Param("force_offset_n", "N", -0.3 * fs, 0.3 * fs, max(0.02 * fs, 10.0),
+                  nominal=cfg.effects.force_offset_n)]
+
+
+def _offset_apply(cfg, v):
+    return cfg.replace(effects={"force_offset_n": v["force_offset_n"]})
+
+
+def _offset_starts(cfg, hints):
+    p = _offset_params(cfg)[0]
+    return [{"force_offset_n": p.nominal + p.typical}]
+
+
 # ---------------------------------------------------------------- inertia
 def _mass_params(cfg):
     m0 = cfg.mechanics.table_mass_kg
@@ -388,6 +403,10 @@ EFFECTS: dict[str, Effect] = {
                "direction: one direction carries more residual; force offset by direction",
                _asym_params, _asym_apply, _always, _asym_starts,
                (("friction.coulomb_n", "coulomb_n"), ("friction.coulomb_negative_n", "coulomb_negative_n"))),
+        Effect("force_offset", "constant external force on the table (gravity on an inclined axis, cable drag, "
+               "a force sensor's offset)",
+               "force/torque channel offset in both directions and at standstill; position only through the loop",
+               _offset_params, _offset_apply, _always, _offset_starts, (("effects.force_offset_n", "force_offset_n"),)),
         Effect("mass_error", "moving mass (inertia) different from the model",
                "acceleration phase, force channel proportional to the command acceleration",
                _mass_params, _mass_apply, _always, _mass_starts, (("mechanics.table_mass_kg", "table_mass_kg"),)),

@@ -13,6 +13,7 @@ import numpy as np
 from virtualaxis.config import AxisConfig, ControlParams
 from virtualaxis.config.errors import InputError
 from virtualaxis.diagnosis import effects as fx
+from virtualaxis.diagnosis.alignment import apply_post, find_alignment, find_start_transient
 from virtualaxis.diagnosis.contour import contour_report
 from virtualaxis.diagnosis.controller import check_controller
 from virtualaxis.diagnosis.data import (
@@ -273,6 +274,16 @@ def run_diagnosis(
                 td.measured.pop(c)
         if not td.measured:
             raise InputError(tr.path, "none of its channels can be compared with the model of this axis")
+    # how the trace records the model's channels: speed estimator, one-sample shifts, a start transient
+    alignment = find_alignment(tds, base_pred, cfg.mechanics.lead_m)
+    for td, p in zip(tds, base_pred, strict=True):
+        st = find_start_transient(td, p)
+        if st:
+            alignment.append(st)
+    for f in alignment:
+        notes.append(f["note"] if f["kind"] != "start_transient" else f"{f['trace']}: {f['note']}")
+    base_pred = [apply_post(td, p, cfg.mechanics.lead_m) if td.post else p for td, p in zip(tds, base_pred,
+                                                                                           strict=True)]
     base_res = [residuals(td, p) for td, p in zip(tds, base_pred, strict=True)]
     timing["baseline_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -314,6 +325,7 @@ def run_diagnosis(
     timing["total_s"] = time.perf_counter() - t_start
     report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
     report["controller_check"] = controller_checks
+    report["alignment"] = alignment
     report["contour"] = contour_report(tds, {"nominal": base_pred, "calibrated": final_pred})
     report["_calibrated_cfg"] = with_identified_controller(sel.final_cfg, controller_checks, report)
     report["_base_cfg"] = cfg

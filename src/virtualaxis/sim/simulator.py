@@ -196,6 +196,8 @@ class AxisSimulator:
         self._rng = np.random.default_rng(cfg.simulation.seed if seed is None else seed)
         # one-cycle buffers of the step API
         self._one = {k: np.zeros(1) for k in ("pos", "vel", "acc", "aux", "fext")}
+        self._force_offset = float(cfg.effects.force_offset_n)
+        self._one["fext"][0] = self._force_offset
         self._noise1 = np.zeros((1, 2))
         self._out1 = np.zeros((1, L.N_OUT))
         self._last = np.zeros(L.N_OUT)
@@ -268,7 +270,7 @@ class AxisSimulator:
         self._torque_setpoint = torque
 
     def set_external_force(self, force_n: float) -> None:
-        self._one["fext"][0] = force_n
+        self._one["fext"][0] = force_n + self._force_offset  # effects.force_offset_n: constant external force
 
     def advance(self, n_cycles: int = 1) -> None:
         """Run ``n_cycles`` position-loop cycles with the present set-points."""
@@ -378,6 +380,8 @@ class AxisSimulator:
         """
         n = len(pos)
         out = np.zeros((n, L.N_OUT))
+        if self._force_offset:  # effects.force_offset_n: constant external force on top of fext
+            fext = np.asarray(fext, dtype=float) + self._force_offset
         if aux is None:
             aux = np.zeros(n)
         noise = np.zeros((n, 2))
