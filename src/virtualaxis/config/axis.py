@@ -258,8 +258,9 @@ class EffectsParams:
     resonance_frequency_hz: float = _p(0.0, check=">=0", doc="extra mode on the table, 0 = none [Hz]")
     resonance_mass_kg: float = _p(0.0, check=">=0", doc="modal mass of the extra mode [kg]")
     resonance_damping_ratio: float = _p(0.02, check="0..1", doc="damping of the extra mode")
-    force_offset_n: float = _p(0.0, doc="constant external force on the table along +x (gravity on an inclined "
-                                        "axis, cable drag), added to any external force [N]")
+    force_offset_n: float = _p(0.0, doc="constant load force on the table against +x (gravity on an inclined "
+                                        "axis, cable drag): m a = F - F_friction - offset; subtracted from any "
+                                        "external force [N]")
 
 
 @dataclass(frozen=True, kw_only=True)

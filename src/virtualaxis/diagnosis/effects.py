@@ -403,8 +403,8 @@ EFFECTS: dict[str, Effect] = {
                "direction: one direction carries more residual; force offset by direction",
                _asym_params, _asym_apply, _always, _asym_starts,
                (("friction.coulomb_n", "coulomb_n"), ("friction.coulomb_negative_n", "coulomb_negative_n"))),
-        Effect("force_offset", "constant external force on the table (gravity on an inclined axis, cable drag, "
-               "a force sensor's offset)",
+        Effect("force_offset", "constant load force against +x (gravity on an inclined axis, cable drag): "
+               "m a = F - F_friction - offset",
                "force/torque channel offset in both directions and at standstill; position only through the loop",
                _offset_params, _offset_apply, _always, _offset_starts, (("effects.force_offset_n", "force_offset_n"),)),
         Effect("mass_error", "moving mass (inertia) different from the model",

@@ -196,7 +196,7 @@ class AxisSimulator:
         self._rng = np.random.default_rng(cfg.simulation.seed if seed is None else seed)
         # one-cycle buffers of the step API
         self._one = {k: np.zeros(1) for k in ("pos", "vel", "acc", "aux", "fext")}
-        self._force_offset = float(cfg.effects.force_offset_n)
+        self._force_offset = -float(cfg.effects.force_offset_n)  # a load against +x: external force -offset
         self._one["fext"][0] = self._force_offset
         self._noise1 = np.zeros((1, 2))
         self._out1 = np.zeros((1, L.N_OUT))
@@ -380,7 +380,7 @@ class AxisSimulator:
         """
         n = len(pos)
         out = np.zeros((n, L.N_OUT))
-        if self._force_offset:  # effects.force_offset_n: constant external force on top of fext
+        if self._force_offset:  # effects.force_offset_n: constant load, on top of fext
             fext = np.asarray(fext, dtype=float) + self._force_offset
         if aux is None:
             aux = np.zeros(n)
