@@ -19,7 +19,43 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true", help="short traces (10 mm stroke) and a handful of cases")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--list", action="store_true", help="list the cases and exit")
+    p.add_argument("--suite", choices=("reference", "own", "both"), default="reference",
+                   help="reference: cases made by the independent reference axis (virtualaxis.refaxis, the "
+                   "acceptance figures); own: cases made by our own simulator (second column); both")
     p.set_defaults(func=run)
+
+
+def _pct(x) -> str:  # "-" where the run had no case of that kind (NaN)
+    return "-" if x is None or x != x else f"{100 * x:.0f} %"
+
+
+def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
+    """The independent reference axis' cases (virtualaxis.gapbench)."""
+    from tqdm import tqdm
+
+    from virtualaxis.gapbench.reference import run_reference_bench
+    from virtualaxis.refaxis import case_names
+
+    names = [n.strip() for n in args.cases.split(",")] if args.cases else list(case_names())
+    bar = tqdm(total=len(names), desc="gap bench (reference axis)", unit="case")
+
+    def progress(ev: dict) -> None:
+        bar.update(1)
+        bar.write(f"{ev['case']:40s} truth={'+'.join(ev['truth']) or '-':32s} "
+                  f"found={'+'.join(ev['answer']) or ev['conclusion']}")
+
+    try:
+        out = run_reference_bench(out_dir, seed=args.seed, case_names=names, quick=args.quick, jobs=args.jobs,
+                                  progress=progress)
+    finally:
+        bar.close()
+    s = out["summary"]
+    print(f"reference axis: right effect first {_pct(s['right_effect_first'])}, clean cases with nothing accepted "
+          f"{_pct(s['clean_nothing_accepted'])}, no accepted effect outside the truth {_pct(s['none_outside_truth'])}, "
+          f"main parameter within 15 % {_pct(s['param_within_15pct'])}, held-out shrink >= 60 % on the effect's "
+          f"channel {_pct(s['shrink_ge_60pct'])}")
+    print(f"wrote {out_dir / 'reference.json'}")
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -31,6 +67,13 @@ def run(args: argparse.Namespace) -> int:
 
     from virtualaxis.diagnosis.bench import QUICK_CASES, all_cases, run_bench
 
+    if args.list and args.suite != "own":
+        from virtualaxis.refaxis import case_names
+
+        for n in case_names():
+            print(f"reference  {n}")
+        if args.suite == "reference":
+            return 0
     if args.list:
         for c in all_cases():
             print(f"{c.name:22s} {c.axis:10s} {'+'.join(c.effects) or '(clean)'}")
@@ -39,6 +82,11 @@ def run(args: argparse.Namespace) -> int:
         from virtualaxis.cli.main import CliError
 
         raise CliError("gap-bench needs --out DIR")
+    if args.suite in ("reference", "both"):
+        run_reference(args, Path(args.out) / "reference" if args.suite == "both" else Path(args.out))
+        if args.suite == "reference":
+            return 0
+        args.cases = None  # the reference's case names are not our own cases
     names = [n.strip() for n in args.cases.split(",")] if args.cases else None
     total = len(names) if names else (len(QUICK_CASES) if args.quick else len(all_cases()))
     bar = tqdm(total=total, desc="gap bench", unit="case")
@@ -48,17 +96,16 @@ def run(args: argparse.Namespace) -> int:
         bar.write(f"{ev['case']:22s} truth={'+'.join(ev['truth']) or '-':32s} "
                   f"found={'+'.join(ev['accepted']) or 'no significant effect'}")
 
+    own_dir = Path(args.out) / "own" if args.suite == "both" else Path(args.out)
     try:
-        out = run_bench(Path(args.out), seed=args.seed, case_names=names, quick=args.quick, jobs=args.jobs,
+        out = run_bench(own_dir, seed=args.seed, case_names=names, quick=args.quick, jobs=args.jobs,
                         progress=progress)
     finally:
         bar.close()
     s = out["summary"]
-    def pct(x) -> str:  # "-" where the run had no case of that kind (NaN)
-        return "-" if x is None or x != x else f"{100 * x:.0f} %"
-
-    print(f"top-1 {pct(s['top1_accuracy'])}, top-2 {pct(s['top2_accuracy'])}, "
+    pct = _pct
+    print(f"our own simulator: top-1 {pct(s['top1_accuracy'])}, top-2 {pct(s['top2_accuracy'])}, "
           f"false positives on clean cases {pct(s['false_positive_rate'])}, "
           f"parameters within 15 %: {pct(s['param_within_15pct'])}")
-    print(f"wrote {Path(args.out) / 'bench.json'}")
+    print(f"wrote {own_dir / 'bench.json'}")
     return 0

@@ -3,10 +3,11 @@ transient. Found from the nominal model's prediction before any effect is fitted
 prediction of the trace (``TraceData.post``, see :func:`apply_post`), and reported.
 
 - **Sample alignment of a channel**: drive traces differ in which sample a value belongs to (force row ``k`` =
-  force applied during ``[k-1, k)`` or ``[k, k+1)``). A controller-output or velocity channel whose residual
-  falls to :data:`SHIFT_RATIO` of its value when the prediction is moved by one sample — and not further at two
-  (that would be a delay, an effect, not a convention) — on every trace is shifted, with a warning. Position
-  channels are never shifted (a position lag is a dead time the effect library fits).
+  force applied during ``[k-1, k)`` or ``[k, k+1)``). A controller-output or velocity channel whose residual energy
+  falls by more than :data:`SHIFT_Z` standard errors when the prediction is moved by one sample (and not further
+  at two) on the pooled traces is aligned, with a warning, unless a position channel prefers a move too (then it
+  is a dead time, an effect the library fits).
+  Position channels are never shifted.
 - **Speed estimator's form**: the model's ``vel_meas`` is the table's velocity; a drive reports an estimate, e.g.
   ``(q[k] - q[k-1]) / T`` or ``(q[k] - q[k-2]) / 2T`` of its position. When the estimate formed from the model's
   position leaves at most :data:`ESTIMATOR_RATIO` of the state's residual, that form is used (an unexpressed
@@ -22,10 +23,8 @@ import math
 
 import numpy as np
 
-from virtualaxis.diagnosis.data import TraceData
+from virtualaxis.diagnosis.data import TraceData, correlation_time
 
-#: a one-sample shift of a channel is taken when it leaves at most this share of the residual rms on every trace
-SHIFT_RATIO = 0.7
 #: an estimator form replaces the model's velocity state when it leaves at most this share of the residual
 ESTIMATOR_RATIO = 0.8
 #: channels that may be shifted: controller outputs and velocity (positions: a lag is a dead time, an effect)
@@ -121,29 +120,65 @@ def find_alignment(tds: list[TraceData], preds: list[dict[str, np.ndarray]], lea
                              "note": f"vel_meas is a {best.replace('_', '-')} difference of the position (residual "
                                      f"{_rms(base):.3g} -> {best_r:.3g} m/s against the model's velocity state); "
                                      "the model's velocity is formed the same way"})
-    # one-sample alignment per channel, the same on every trace
+    # one-sample alignment per channel, the same on every trace: the residual energy with the prediction moved by
+    # one sample against unmoved, in standard errors of that difference; two samples must not be better still
     preds2 = [apply_post(td, p, lead_m) for td, p in zip(tds, preds, strict=True)]
+    for ch in ("pos_meas", "pos_fb"):
+        s_pos, z_pos = _best_shift(tds, preds2, ch)
+        if s_pos and z_pos > SHIFT_Z:
+            return findings  # the positions lag too: a dead time (an effect), not a recording convention
     for ch in SHIFTABLE:
-        items = [(td, p) for td, p in zip(tds, preds2, strict=True) if ch in td.measured and ch in p]
-        if not items:
-            continue
-        ratios: dict[int, list[float]] = {-2: [], -1: [], 1: [], 2: []}
-        for td, p in items:
-            r0 = _rms(td.measured[ch][4:-4] - p[ch][4:-4])
-            for s in ratios:
-                ratios[s].append(_rms(td.measured[ch][4:-4] - _shift(p[ch], s)[4:-4]) / max(r0, 1e-300))
-        for s in (-1, 1):
-            worst = max(ratios[s])
-            if worst <= SHIFT_RATIO and max(ratios[2 * s]) >= 0.9 * worst:
-                for td, _ in items:
-                    td.post.setdefault("shift", {})[ch] = s
-                findings.append({"kind": "channel_shift", "channel": ch, "samples": s,
-                                 "residual_ratio": worst,
-                                 "note": f"{ch} is recorded one sample {'later' if s > 0 else 'earlier'} than the "
-                                         f"model's convention (row k holds the value of sample k{-s:+d}); aligned "
-                                         f"(residual rms x {worst:.2f} on every trace)"})
-                break
+        s, z = _best_shift(tds, preds2, ch)
+        if s:
+            items = [td for td, p in zip(tds, preds2, strict=True) if ch in td.measured and ch in p]
+            for td in items:
+                td.post.setdefault("shift", {})[ch] = s
+            findings.append({"kind": "channel_shift", "channel": ch, "samples": s, "z": z,
+                             "note": f"{ch} is recorded one sample {'later' if s > 0 else 'earlier'} than the "
+                                     f"model's convention (row k holds the model's value of sample k{-s:+d}; the "
+                                     f"residual energy falls by {z:.0f} standard errors); aligned"})
     return findings
+
+
+#: a channel shift must be this many standard errors from zero
+SHIFT_Z = 5.0
+
+
+def _best_shift(tds: list[TraceData], preds: list[dict[str, np.ndarray]], ch: str) -> tuple[int, float]:
+    """(+-1, z) when moving the prediction of ``ch`` by one sample lowers the pooled residual energy by more than
+    :data:`SHIFT_Z` standard errors of that difference (the residual's correlation time allowed for) and a
+    move by two samples does not lower it further; else (0, best z)."""
+    ssr = {k: 0.0 for k in (-2, -1, 0, 1, 2)}
+    dd = {k: 0.0 for k in (-1, 1)}
+    n = 0
+    taus = []
+    for td, p in zip(tds, preds, strict=True):
+        if ch not in td.measured or ch not in p:
+            continue
+        m, x = td.measured[ch][4:-4], p[ch]
+        for k in ssr:
+            r = m - _shift(x, k)[4:-4]
+            ssr[k] += float(r @ r)
+            if k == 0:
+                taus.append(correlation_time(r))
+        for k in dd:
+            d = _shift(x, k)[4:-4] - x[4:-4]
+            dd[k] += float(d @ d)
+        n += m.size
+    if n < 100:
+        return 0, 0.0
+    best, best_z = 0, 0.0
+    tau = float(np.mean(taus))  # residual correlation time [samples]
+    for k in (-1, 1):
+        if dd[k] <= 0:
+            continue
+        sigma = math.sqrt(ssr[k] / n)
+        z = (ssr[0] - ssr[k]) / (2.0 * sigma * math.sqrt(dd[k]) * math.sqrt(tau))
+        if z > best_z:
+            best, best_z = k, z
+    if best and best_z > SHIFT_Z and ssr[2 * best] >= ssr[best]:
+        return best, best_z
+    return 0, best_z
 
 
 #: start transient: the first samples' speed above this share of the trace's top command speed ...
@@ -167,7 +202,7 @@ def find_start_transient(td: TraceData, pred: dict[str, np.ndarray]) -> dict | N
     r = x - pred[ch]
     off0 = abs(float(x[0] - td.pos_cmd[0]))
     med = float(np.median(np.abs(r))) or 1e-300
-    moving = v0 > START_SPEED_SHARE * vmax and v0 > 5 * abs(float(td.pos_cmd[5] - td.pos_cmd[0])) / (5 * dt)
+    moving = v0 > START_SPEED_SHARE * vmax  # the model starts at rest whatever the command does
     displaced = off0 > START_OFFSET_FACTOR * med and off0 > 5 * float(np.median(np.abs(x - td.pos_cmd)))
     if not (moving or displaced):
         return None

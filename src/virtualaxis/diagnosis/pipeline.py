@@ -88,6 +88,12 @@ def trace_overrides(tr: Trace) -> dict:
 #: share of the RMSE the config's controller leaves (geometric mean over channels), on the fit traces (the config's
 #: controller "fails" there) and again on the held-out traces (it does clearly better where it was not identified)
 CLOSED_LOOP_RATIO = 0.7
+#: ... and in at least one channel at most this share: a controller difference sets the following error, so it
+#: shows as a large, clear change of the position channel, where a plant effect leaves a partial one (a 125 us
+#: PI speed loop judged from 1 ms samples: the identified law cut the position residual only to 0.44-0.48 of the
+#: config's on the independent reference's clean two-mass axis, whose controller is the config's; a P/P cascade
+#: where the config says P/PI, with a withheld Coulomb friction dominating the force channel: 0.34)
+CLOSED_LOOP_BEST_CHANNEL = 0.4
 
 
 def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData], simulate: SimulateFn,
@@ -130,8 +136,12 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
         r_fit, v_fit = _closed_loop_ratio(cfg, [tds[k] for k in f_idx], [trial[k] for k in f_idx], simulate)
         r_hold, v_hold = (_closed_loop_ratio(cfg, [tds[k] for k in h_idx], [trial[k] for k in h_idx], simulate)
                           if h_idx else (math.nan, {}))
-        fails = r_fit <= CLOSED_LOOP_RATIO
-        better = (r_hold <= CLOSED_LOOP_RATIO and not v_hold.get("worse_channels")) if h_idx else fails
+        def clear(r: float, v: dict) -> bool:
+            best = min((c["ratio"] for c in v.get("channels", {}).values()), default=math.inf)
+            return r <= CLOSED_LOOP_RATIO and best <= CLOSED_LOOP_BEST_CHANNEL and not v.get("worse_channels")
+
+        fails = clear(r_fit, v_fit)
+        better = clear(r_hold, v_hold) if h_idx else fails
         use = fails and better
         judgement = {"control": control, "ratio_fit": r_fit, "ratio_heldout": r_hold, "used": use,
                      "verdict_fit": v_fit, "verdict_heldout": v_hold}
@@ -150,7 +160,8 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
             elif chk.used == "identified" or k in cand:
                 chk.used = "config"
                 chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: {why} (needs <= "
-                            f"{CLOSED_LOOP_RATIO} on both, no held-out channel worse)")
+                            f"{CLOSED_LOOP_RATIO}, one channel <= {CLOSED_LOOP_BEST_CHANNEL} and none worse, on "
+                            "both)")
     for k, chk in checks.items():
         if chk.note:
             traces[k].warnings.append(chk.note)

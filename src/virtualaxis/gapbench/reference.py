@@ -185,8 +185,9 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
     unknown = [n for n in names if n not in known]
     if unknown:
         raise InputError("--cases", f"unknown reference case(s) {', '.join(unknown)}; known: {', '.join(known)}")
-    results = []
+    results: list[dict] = []
     t0 = time.perf_counter()
+    out: dict = {}
     for k, name in enumerate(names):
         cdir = Path(out_dir) / name.replace("/", "__")
         cf = make_case(name, cdir, seed=seed + k, quick=quick)
@@ -198,11 +199,20 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
         ev = evaluate_reference_case(name, cf.truth, rep, _truth_metrics(cf, rep))
         results.append(ev)
         (cdir / "score.json").write_text(report_json(ev), encoding="utf-8")
+        out = _write_summary(out_dir, seed, quick, results, t0, complete=k == len(names) - 1)
         if progress:
             progress(ev)
+    return out
+
+
+def _write_summary(out_dir: Path, seed: int, quick: bool, results: list[dict], t0: float, complete: bool) -> dict:
+    """``reference.json`` after every case (a long run that is stopped keeps what it scored)."""
+    from virtualaxis.diagnosis.report import report_json
+
     summary = summarise_reference(results)
     summary["seconds"] = time.perf_counter() - t0
-    out = {"generator": "virtualaxis.refaxis", "seed": seed, "quick": quick, "summary": summary, "cases": results}
+    out = {"generator": "virtualaxis.refaxis", "seed": seed, "quick": quick, "complete": complete,
+           "summary": summary, "cases": results}
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     (Path(out_dir) / "reference.json").write_text(report_json(out), encoding="utf-8")
     return out
