@@ -1,10 +1,14 @@
-"""The whole gap bench: every withheld-effect case, pairs, clean cases, rigid force-driven axis.
+"""The whole gap bench.
 
-Prints top-1 / top-2 identification accuracy, the false-positive rate on clean cases, parameter recovery
-error and the held-out RMSE shrink per effect, and writes DIR/bench.json.
+``--suite reference`` (default): the independent reference axis' cases (``virtualaxis.refaxis``, written apart
+from the diagnosed model; the acceptance figures of issue #14): right effect first, nothing accepted on clean
+cases, no accepted effect outside the truth, main parameter within 15 %, held-out RMSE shrink >= 60 % on the
+effect's channel; writes DIR/reference.json. ``--suite own``: our own simulator's cases (second column): top-1 /
+top-2, false positives, parameter recovery, held-out shrink; writes DIR/bench.json.
 
-    python benchmarks/bench_gap.py --out /tmp/gap_bench [--seed 0] [--jobs 2] [--quick] [--cases a,b]
-    python benchmarks/bench_gap.py --out /tmp/gap_bench --rescore   # score a finished bench again
+    python benchmarks/bench_gap.py --out /tmp/gap_ref [--suite reference] [--seed 0] [--jobs 2] [--quick] [--cases a,b]
+    python benchmarks/bench_gap.py --out /tmp/gap_bench --suite own [--quick] [--cases a,b]
+    python benchmarks/bench_gap.py --out /tmp/gap_bench --suite own --rescore   # score a finished bench again
 """
 
 from __future__ import annotations
@@ -45,9 +49,13 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--cases", default=None)
     ap.add_argument("--rescore", action="store_true", help="score the bench in --out again, without diagnosing")
+    ap.add_argument("--suite", choices=("reference", "own"), default="reference")
     a = ap.parse_args()
     names = a.cases.split(",") if a.cases else None
     t0 = time.perf_counter()
+    if a.suite == "reference":
+        reference(a, names, t0)
+        return
 
     def progress(ev: dict) -> None:
         rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
@@ -82,6 +90,38 @@ def main() -> None:
         print(f"  {k:24s} {100 * v:6.1f} %  {100 * s['heldout_shrink_position'][k]:6.1f} %  "
               f"{100 * s['heldout_shrink_truth_model'][k]:6.1f} %  {100 * s['heldout_gap_closed'][k]:6.1f} %")
     print(f"wrote {Path(a.out) / 'bench.json'}")
+
+
+def reference(a, names, t0: float) -> None:
+    from virtualaxis.gapbench.reference import run_reference_bench
+
+    def progress(ev: dict) -> None:
+        rec = "; ".join(f"{k} {v['fitted']:.4g} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+                        for k, v in ev["param_recovery"].items())
+        ceil = ev["truth_model_ceiling"]
+        print(f"{ev['case']:42s} truth={'+'.join(ev['truth']) or '-':36s} found={'+'.join(ev['answer']) or '-':36s}"
+              f" first={int(ev['top1'])} outside={','.join(ev['outside_truth']) or '-'} | {rec or '-'} | "
+              f"{ev['effect_channel']} held-out RMSE -{100 * ev['shrink_on_effect_channel']:.0f} %"
+              + (f" (truth model {100 * ceil:.0f} %)" if ceil == ceil else "")
+              + (f" | {ev['model_form_mismatch']}" if ev["model_form_mismatch"] else "")
+              + f" | {ev['seconds']:.0f} s", flush=True)
+
+    out = run_reference_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs,
+                              progress=progress)
+    s = out["summary"]
+
+    def pct(x) -> str:
+        return "-" if x != x else f"{100 * x:.0f} %"
+
+    print(f"\nmachine: {_cpu()}; wall time {time.perf_counter() - t0:.0f} s; reference axis cases: "
+          f"{s['n_effect_cases']} with withheld effects, {s['n_clean_cases']} clean")
+    print(f"right effect first {pct(s['right_effect_first'])} (>= 90 %)   clean cases with nothing accepted "
+          f"{pct(s['clean_nothing_accepted'])} (100 %)   no accepted effect outside the truth "
+          f"{pct(s['none_outside_truth'])} (>= 90 %)")
+    print(f"main parameter within 15 %: {pct(s['param_within_15pct'])} (>= 90 %; median error "
+          f"{pct(s['param_rel_error_median'])})   held-out RMSE shrink >= 60 % on the effect's channel: "
+          f"{pct(s['shrink_ge_60pct'])}")
+    print(f"wrote {Path(a.out) / 'reference.json'}")
 
 
 if __name__ == "__main__":
