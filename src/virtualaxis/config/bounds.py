@@ -126,6 +126,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "effects.resonance_frequency_hz": (0.0, 1e5),
     "effects.resonance_mass_kg": (0.0, 1e6),
     "effects.resonance_damping_ratio": (0.0, 1.0),
+    "effects.force_offset_n": (-1e7, 1e7),
     # [limits]: 1e9 m is the schema's "no limit"
     "limits.max_velocity_m_s": (1e-6, 100.0),
     "limits.max_acceleration_m_s2": (1e-6, 1e5),
