@@ -84,9 +84,8 @@ def run(args: argparse.Namespace) -> int:
     with staged_dir(args.out) as stage:
         staged = write_outputs(report, stage)
     paths = {k: Path(args.out) / Path(v).name for k, v in staged.items()}
-    for w in report.get("warnings", []):
-        if "plausibility: " in w:
-            print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)
+    for w in report.get("warnings", []):  # repairs, plausibility findings, split notes: never silent
+        print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)
     print(f"conclusion: {report['conclusion']}")
     for e in report["effects"]:
         if e["accepted"]:
