@@ -1,0 +1,296 @@
+"""Issue #15 / #18 (drive side) through a real ``canopen`` master on a python-can ``virtual`` bus: fault
+reactions from the actual motion, controlword + target in one RPDO, loss of control (NMT), limit switches and
+end stops, defaults that do not fault, mode change while moving, drive-cycle exceptions and the
+fault-injection contract. The cross-process versions are in tests/test_field_udp.py."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import canopen
+import pytest
+from test_drive_rig import Rig
+
+UNIT_M = 1e-6  # one position unit (default feed constant)
+
+
+def _raw_rpdo2(rig: Rig, cw: int, target: int) -> None:
+    """The drive's default RPDO2 (0x300 + node id): controlword u16 + target position i32."""
+    rig.net.send_message(0x300 + rig.node.id, cw.to_bytes(2, "little") + target.to_bytes(4, "little", signed=True))
+
+
+def _start(rig: Rig, mode: int, **objects: int) -> None:
+    node = rig.node
+    for index, value in objects.items():
+        node.sdo[int(index, 16)].raw = value
+    node.sdo[0x6060].raw = mode
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.01)
+    rig.enable()
+
+
+def test_csp_following_error_fault_brakes_from_the_actual_speed():
+    """Item 1: CSP at 183 mm/s, following-error fault with 0x605E = 2 and 0x6085 = 10 m/s^2: the axis stops
+    in about v^2/2a (1.7 mm; before: coasted 44 mm), FAULT REACTION ACTIVE -> FAULT, EMCY 0x8611."""
+    r = Rig()
+    try:
+        _start(r, 8, **{"0x605E": 2, "0x6085": 10_000_000})
+        node = r.node
+        x = 0
+        for i in range(260):
+            x += round(183 * min(1.0, (i + 1) / 50))  # 183 mm/s after a 50 ms ramp
+            _raw_rpdo2(r, 0x0F, x)
+            r.sync(1)
+        v0 = node.sdo[0x606C].raw * UNIT_M
+        assert abs(v0 - 0.183) < 0.01
+        node.sdo[0x6065].raw = 100  # tighten the window: the following error (~2 mm without feed-forward) faults
+        seen = []
+        for _ in range(20):
+            x += 183
+            _raw_rpdo2(r, 0x0F, x)
+            r.sync(1)
+            sw = r.sw()
+            seen.append(sw & 0x6F)
+            if sw & 0x6F == 0x2F:
+                break
+        assert seen[-1] == 0x2F, [hex(s) for s in seen]  # fault reaction active
+        p0 = node.sdo[0x6064].raw
+        r.emcy.wait_for(0x8611)
+        states = []
+        for _ in range(60):  # the master sends nothing more
+            r.sync(5)
+            states.append(r.sw() & 0x6F)
+            if states[-1] == 0x28:
+                break
+        assert states[-1] == 0x28  # FAULT once stopped and held
+        r.sync(100)
+        travel_mm = (node.sdo[0x6064].raw - p0) * UNIT_M * 1e3
+        ideal_mm = v0 * v0 / (2 * 10.0) * 1e3
+        assert 0.5 * ideal_mm < travel_mm < 2.0 * ideal_mm, (travel_mm, ideal_mm)
+        assert abs(node.sdo[0x606C].raw) < 200  # at rest (< 0.2 mm/s)
+    finally:
+        r.close()
+
+
+def test_controlword_and_target_in_one_rpdo_start_the_move_to_the_new_target():
+    """Item 2: ``0x301+n [1f 00 b8 88 00 00]`` (default RPDO2: CW with new set-point + 0x607A = 35000) moves
+    the axis to 35000, not to the old target."""
+    r = Rig()
+    try:
+        _start(r, 1, **{"0x6081": 200_000, "0x6083": 2_000_000, "0x6084": 2_000_000})
+        node = r.node
+        node.sdo[0x607A].raw = 5_000  # an old target, not started
+        r.net.send_message(0x300 + node.id, bytes([0x1F, 0x00, 0xB8, 0x88, 0x00, 0x00]))
+        r.sync(2)
+        assert node.sdo[0x607A].raw == 35_000
+        assert r.sw() & 0x1000  # set-point acknowledged
+        _raw_rpdo2(r, 0x0F, 35_000)
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+        assert abs(node.sdo[0x6064].raw - 35_000) <= node.sdo[0x6067].raw
+    finally:
+        r.close()
+
+
+@pytest.mark.parametrize("command", ["stop", "reset_communication"])
+def test_nmt_stop_or_reset_communication_while_moving_is_a_loss_of_control(command):
+    """Item 3: PV at 50 mm/s, 0x6007 = 1: NMT Stopped / Reset Communication -> fault, the axis brakes
+    (0x605E = 2, quick stop 0x6085) instead of running on (before: 26 mm in 0.5 s and still moving)."""
+    r = Rig(lockstep=False)
+    try:
+        _start(r, 3, **{"0x6007": 1, "0x6083": 2_000_000, "0x6085": 2_000_000})
+        node = r.node
+        node.sdo[0x60FF].raw = 50_000
+        r.wait(lambda: abs(r.drive.state.velocity_actual_m_s - 0.05) < 0.002, timeout=3)
+        x0 = r.drive.state.position_actual_m
+        if command == "stop":
+            node.nmt.state = "STOPPED"
+        else:
+            node.nmt.send_command(0x82)
+        time.sleep(0.5)
+        s = r.drive.state
+        assert s.cia402_state == "FAULT"
+        assert s.faults[0].emcy_code == 0x8131
+        travel_mm = (s.position_actual_m - x0) * 1e3
+        assert travel_mm < 0.05**2 / (2 * 2.0) * 1e3 + 2.0, travel_mm  # ~0.6 mm ramp + reaction time
+        assert abs(s.velocity_actual_m_s) < 1e-3
+    finally:
+        r.close()
+
+
+def test_limit_switch_stops_every_mode_and_allows_motion_only_away():
+    """Item 4: PV toward the positive limit switch (software limits widened) stops with 0x6085 and faults
+    0xFF11 (0x2013 = 1); after a fault reset the axis may move away from the switch, not further toward it;
+    0x2013 = 0 gives warning + stop and stays enabled."""
+    r = Rig()
+    try:
+        _start(r, 3, **{"0x607D": 0, "0x6085": 5_000_000, "0x6083": 5_000_000})
+        node = r.node
+        node.sdo[0x607D][1].raw = -2_000_000
+        node.sdo[0x607D][2].raw = 2_000_000
+        node.sdo[0x60FF].raw = 200_000
+        r.wait(lambda: r.sw() & 0x08, sync=True, timeout=10)
+        r.emcy.wait_for(0xFF11)
+        r.sync(100)
+        half = r.drive.cfg.axis.stroke_m / 2
+        x = node.sdo[0x6064].raw * UNIT_M
+        assert half - 0.002 <= x < half - 0.002 + 0.2**2 / (2 * 5.0) + 0.002  # stopped just past the switch
+        assert node.sdo[0x60FD].raw & 0x2
+        # fault reset on the switch is allowed; toward the switch nothing moves
+        node.sdo[0x6040].raw = 0x80
+        r.enable()
+        r.sync(200)
+        assert abs(node.sdo[0x6064].raw * UNIT_M - x) < 1e-4
+        assert r.sw() & 0x800  # internal limit active
+        node.sdo[0x60FF].raw = -50_000  # away: allowed
+        r.sync(300)
+        assert node.sdo[0x6064].raw * UNIT_M < x - 0.005
+        assert r.sw() & 0x6F == 0x27
+        # warning variant: back toward the switch with 0x2013 = 0
+        node.sdo[0x2013].raw = 0
+        node.sdo[0x60FF].raw = 100_000
+        r.wait(lambda: node.sdo[0x2031].raw == 7492, sync=True, timeout=10)
+        r.sync(100)
+        assert r.sw() & 0x6F == 0x27 and r.sw() & 0x80  # enabled, warning bit 7
+        assert abs(node.sdo[0x606C].raw) < 1000
+    finally:
+        r.close()
+
+
+def test_huge_external_force_stops_at_the_end_stop_and_reset_node_restores_the_plant():
+    """Items 4 + #18: 0x2011 = -1e6 N on a disabled drive: the table stops at the hard end stop (before:
+    17 km, then NaN and a dead drive thread); enabling gives no NaN; NMT reset node puts the plant back
+    inside the stroke at rest."""
+    r = Rig()
+    try:
+        node = r.node
+        node.nmt.state = "OPERATIONAL"
+        node.sdo[0x2011].raw = -1e6
+        r.sync(1000)
+        half = r.drive.cfg.axis.stroke_m / 2
+        x = r.drive.state.table_position_m
+        assert -half - 0.012 < x < -half, x  # at the end stop (10 mm beyond the stroke end), not beyond
+        assert node.sdo[0x60FD].raw & 0x1
+        r.enable()
+        r.sync(200)
+        s = r.drive.state
+        assert math.isfinite(s.position_actual_m) and s.cia402_state in ("OPERATION ENABLED", "FAULT")
+        assert r.drive.counters["cycle_exceptions"] == 0
+        node.sdo[0x2011].raw = 0.0
+        node.nmt.state = "RESET"
+        node.nmt.wait_for_bootup(5)
+        r.sync(10)
+        s = r.drive.state
+        assert -half < s.table_position_m < half and abs(s.velocity_actual_m_s) < 1e-6
+        assert not node.sdo[0x60FD].raw & 0x3
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x2011].raw = float("nan")
+        assert exc.value.code == 0x06090030
+    finally:
+        r.close()
+
+
+def test_defaults_run_the_maximum_profile_velocity_without_a_fault():
+    """Item 5: PP at 0x607F (the maximum the defaults permit) and homing at 200 mm/s run without a
+    following-error fault (the commissioned window 0x6065 covers the lag v/Kv)."""
+    r = Rig()
+    try:
+        node = r.node
+        vmax = node.sdo[0x607F].raw
+        _start(r, 1, **{"0x6081": vmax, "0x6083": 5_000_000, "0x6084": 5_000_000})
+        node.sdo[0x607A].raw = 200_000
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+        assert r.sw() & 0x6F == 0x27, hex(r.sw())
+        assert abs(node.sdo[0x6064].raw - 200_000) <= node.sdo[0x6067].raw
+        assert not r.drive.faults
+    finally:
+        r.close()
+
+
+def test_mode_change_pv_to_pp_while_moving_decelerates_with_the_profile_deceleration():
+    """Item 7: PV at 100 mm/s, 0x6060 = 1: the axis decelerates with 0x6084 (2 m/s^2) from its actual
+    motion, no hard stop at the torque limit and no back-travel (before: -300 % in 4 ms, 0.4 mm back)."""
+    r = Rig()
+    try:
+        _start(r, 3, **{"0x6083": 2_000_000, "0x6084": 2_000_000})
+        node = r.node
+        node.sdo[0x60FF].raw = 100_000
+        r.sync(400)
+        x0 = node.sdo[0x6064].raw
+        node.sdo[0x6060].raw = 1
+        peak_pm, xmax = 0, x0
+        for _ in range(150):
+            r.sync(2)
+            s = r.drive.state
+            peak_pm = max(peak_pm, abs(node.sdo[0x6077].raw))
+            xmax = max(xmax, round(s.position_actual_m / UNIT_M))
+        r.sync(200)
+        x_end = node.sdo[0x6064].raw
+        assert peak_pm < 1500, peak_pm  # well below the -300 % hard stop
+        assert xmax - x_end < 20  # no back-travel
+        assert 2_000 < x_end - x0 < 5_000  # v^2/2a = 2.5 mm (+ the lag v/Kv of the position loop)
+        assert r.sw() & 0x6F == 0x27
+    finally:
+        r.close()
+
+
+def test_exception_in_the_drive_cycle_faults_0x6100_and_a_reset_clears_it(caplog):
+    """#18: a hook raising in the drive cycle -> EMCY 0x6100, log line with traceback, SDO still answers,
+    fault reset refused never (no persistent cause) and accepted once the cause is gone."""
+    r = Rig()
+    try:
+        node = r.node
+        _start(r, 3)
+
+        def broken(drive):
+            raise ValueError("test: cannot convert float NaN to integer")
+
+        r.drive.add_cycle_hook(broken)
+        r.sync(3)
+        r.emcy.wait_for(0x6100)
+        assert r.sw() & 0x6F == 0x28
+        assert node.sdo[0x2110][6].raw >= 1
+        assert "cannot convert float NaN" in caplog.text and "Traceback" in caplog.text
+        r.drive.remove_cycle_hook(broken)
+        node.sdo[0x6040].raw = 0x80
+        r.sync(1)
+        assert r.sw() & 0x6F == 0x40  # switch on disabled
+    finally:
+        r.close()
+
+
+def test_raise_fault_reaction_classes_and_persistent_cause():
+    """Contract: an encoder fault coasts (OFF2, pulses off at once), a fault with a cause cannot be reset
+    until clear_cause; 0x4210 from PP at 100 mm/s brakes with 0x605E (before: 11.3 mm of coasting)."""
+    r = Rig()
+    try:
+        node = r.node
+        _start(r, 3, **{"0x6083": 2_000_000, "0x6085": 10_000_000})
+        node.sdo[0x60FF].raw = 100_000
+        r.sync(300)
+        x0 = r.drive.state.position_actual_m
+        r.drive.raise_fault(0x4210, 95, cause="heat sink")
+        r.sync(100)
+        assert (r.drive.state.position_actual_m - x0) * 1e3 < 1.5  # v^2/2a = 0.5 mm
+        node.sdo[0x6040].raw = 0x80
+        r.sync(1)
+        assert r.sw() & 0x6F == 0x28  # refused: cause persists
+        r.drive.clear_cause("heat sink")
+        node.sdo[0x6040].raw = 0x00
+        node.sdo[0x6040].raw = 0x80
+        r.sync(1)
+        assert r.sw() & 0x6F == 0x40
+        # encoder loss: coast (no controlled braking possible)
+        r.enable()
+        node.sdo[0x60FF].raw = 100_000
+        r.sync(300)
+        r.drive.raise_fault(0x7305)
+        assert r.drive.cia402_state.name == "FAULT" and not r.drive.simulator.enabled
+        r.drive.set_warning(0x4210, True)
+        r.sync(1)
+        assert node.sdo[0x2031].raw == 30004
+        r.emcy.wait_for(0x4210)
+    finally:
+        r.close()
