@@ -294,3 +294,27 @@ def test_raise_fault_reaction_classes_and_persistent_cause():
         r.emcy.wait_for(0x4210)
     finally:
         r.close()
+
+
+def test_force_far_beyond_the_motor_faults_overspeed_instead_of_diverging():
+    """#18 root cause: 0x2011 = 1e6 N with PT enabled (seven legal writes) back-drives the motor far beyond its
+    speed; the drive switches the pulses off (0x8401 F07901 overspeed, OFF2), the table ends at the end stop,
+    no NaN, no cycle exception; a force beyond +-1e7 N is refused (0x06090031 / 0x06090032)."""
+    r = Rig()
+    try:
+        node = r.node
+        _start(r, 4)
+        node.sdo[0x6071].raw = 3000
+        node.sdo[0x2011].raw = 1e6
+        r.sync(500)
+        s = r.drive.state
+        assert s.cia402_state == "FAULT" and 0x8401 in [f.emcy_code for f in s.faults]
+        half = r.drive.cfg.axis.stroke_m / 2
+        assert half < s.table_position_m < half + 0.012
+        assert math.isfinite(node.sdo[0x6077].raw) and r.drive.counters["cycle_exceptions"] == 0
+        for value, code in ((1e30, 0x06090031), (-2e7, 0x06090032)):
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo[0x2011].raw = value
+            assert exc.value.code == code
+    finally:
+        r.close()

@@ -101,6 +101,9 @@ ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 #: commissioned following-error window = margin x steady lag at the maximum speed + EDS default (chosen: 1.5,
 #: the usual MD36400 setting of "lag plus half again")
 FE_WINDOW_MARGIN = 1.5
+#: 0x2011 external force limit [N] (chosen: 10 MN, beyond any machine-tool axis; larger values only drive the
+#: integration out of the range where the end-stop contact holds the table)
+MAX_EXTERNAL_FORCE_N = 1e7
 MOTOR_AMBIENT_C = 20.0
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
@@ -397,6 +400,9 @@ class Drive:
                 raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
         if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
+        if key == (0x2011, 0) and abs(value) > MAX_EXTERNAL_FORCE_N:
+            code = ABORT_VALUE_TOO_HIGH if value > 0 else ABORT_VALUE_TOO_LOW
+            raise ObjectAccessError(code, f"0x2011 external force {value:g} N beyond +-{MAX_EXTERNAL_FORCE_N:g} N")
         if key == (0x2010, 0) and value != 0 and value not in FAULT_TABLE:
             raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{value:04X} is not a known fault code")
 
@@ -1268,7 +1274,8 @@ class Drive:
         self._prev_actual_m = self._axis.position_m
         ax = self._axis = self.sim.state
         self.counters["cycles"] += 1
-        if not (math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)):
+        if not (math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s) and math.isfinite(ax.table_position_m)
+                and math.isfinite(ax.current_q_a)):
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
         if not self._power:
             self._demand_m = ax.position_m - self._zero_m
@@ -1277,6 +1284,7 @@ class Drive:
         if self._params_dirty:
             self._refresh_params()
         mon.monitor_position_range(self, (ax.position_m - self._zero_m) * self._pc.inv_u)
+        mon.monitor_overspeed(self, ax.velocity_m_s)
         mon.monitor_limit_switches(self, ax.position_m, ax.velocity_m_s)
         self._monitor(ax, dt)
         self._publish_outputs()

@@ -8,6 +8,10 @@
   While a switch is active, set-points toward it are held (position demand not further, velocity and
   torque toward it zero): the axis may move only away from the switch. A fault reset on the switch is
   allowed, so that the axis can be driven off it.
+- **Overspeed**: the axis faster than :data:`OVERSPEED_FACTOR` x 0x6080 (max motor speed, as table speed)
+  while the pulses are on -> fault 0x8401 (F07901), OFF2; the cause persists until the speed is back below
+  the limit. (A motor back-driven far beyond its speed by an external force cannot be controlled; the
+  inverter switches off, as SINAMICS does.)
 - **Position objects**: 0x6064 / 0x6062 are 32-bit; a position beyond their range saturates (never wraps)
   and raises fault 0x8600 (F07493) once.
 - (Following error, standstill, target reached, temperature and DC link are still in ``Drive._monitor``.)
@@ -28,6 +32,8 @@ S = Cia402State
 HM = 6
 LIMIT_CODES = (0xFF10, 0xFF11)  # negative, positive switch
 I32_MAX = 0x7FFFFFFF
+#: overspeed limit = this x 0x6080 (SINAMICS p2162 hysteresis above the maximum speed; chosen 1.2)
+OVERSPEED_FACTOR = 1.2
 
 
 def homing_owns_switches(drive: Drive) -> bool:
@@ -80,3 +86,13 @@ def monitor_position_range(drive: Drive, x_units: float) -> None:
     if over and not drive._position_overflow:
         drive._raise_fault(0x8600, I32_MAX if x_units > 0 else -I32_MAX - 1)
     drive._position_overflow = over
+
+
+def monitor_overspeed(drive: Drive, v_m_s: float) -> None:
+    """Fault 0x8401 (OFF2) when the axis runs faster than OVERSPEED_FACTOR x the maximum motor speed."""
+    over = abs(v_m_s) > OVERSPEED_FACTOR * drive._pc.max_speed_m_s
+    if over:
+        if drive._power and 0x8401 not in drive._causes:
+            drive._raise_fault(0x8401, int(round(v_m_s * drive._pc.inv_u)), cause="overspeed")
+    elif drive._causes.get(0x8401) == "overspeed":
+        del drive._causes[0x8401]

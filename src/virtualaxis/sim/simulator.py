@@ -171,6 +171,13 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     return pr
 
 
+def _finite(what: str, *values: float) -> None:
+    """Refuse NaN / inf at the plant's boundary (they would poison the state for good)."""
+    for v in values:
+        if not math.isfinite(v):
+            raise ValueError(f"{what} must be finite (got {v!r})")
+
+
 class AxisSimulator:
     """Control cascade + plant, stepped one position-loop cycle at a time (see docs/architecture.md)."""
 
@@ -259,17 +266,21 @@ class AxisSimulator:
         return ControlMode(int(self.st[L.S_MODE]))
 
     def set_position_setpoint(self, pos_m: float, vel_ff_m_s: float = 0.0, acc_ff_m_s2: float = 0.0) -> None:
+        _finite("position set-point", pos_m, vel_ff_m_s, acc_ff_m_s2)
         self._one["pos"][0] = pos_m
         self._one["vel"][0] = vel_ff_m_s
         self._one["acc"][0] = acc_ff_m_s2
 
     def set_velocity_setpoint(self, vel_m_s: float) -> None:
+        _finite("velocity set-point", vel_m_s)
         self._velocity_setpoint = vel_m_s
 
     def set_torque_setpoint(self, torque: float) -> None:
+        _finite("torque set-point", torque)
         self._torque_setpoint = torque
 
     def set_external_force(self, force_n: float) -> None:
+        _finite("external force", force_n)
         self._one["fext"][0] = force_n + self._force_offset  # effects.force_offset_n: constant external force
 
     def advance(self, n_cycles: int = 1) -> None:
