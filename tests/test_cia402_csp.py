@@ -188,13 +188,19 @@ def test_interpolation_over_the_communication_cycle():
         r.sync(1)
         assert r.drive.counters["cycles"] - c0 == 4
         demands = []
+        step = r.drive.step
+
+        def one_at_a_time(n: int = 1) -> None:  # record 0x6062 after each cycle the runtime runs
+            for _ in range(n):
+                step(1)
+                demands.append(r.drive.read_object(0x6062))
+
+        r.drive.step = one_at_a_time
         node.rpdo[2]["Controlword"].raw = 0x0F
         node.rpdo[2]["Target position"].raw = 400
         node.rpdo[2].transmit()
-        r.sync(1)  # applied at this SYNC
-        for _ in range(4):
-            r.drive.step(1)  # (the test steps the drive directly: one cycle at a time)
-            demands.append(node.sdo[0x6062].raw)
+        r.sync(1)  # applied at this SYNC, interpolated over the 4 cycles that follow it
+        r.wait(lambda: len(demands) >= 4)
         assert demands == [100, 200, 300, 400]
     finally:
         r.close()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import canopen
 import pytest
 from test_drive_rig import Rig, rig, seed_config  # noqa: F401  (fixture)
@@ -250,12 +252,16 @@ def test_cyclic_synchronous_velocity_with_offset():
         node.nmt.state = "OPERATIONAL"
         r.enable()
         node.sdo[0x60B1].raw = 5_000
+        r.sync(1)
+        assert node.sdo[0x606B].raw == 5_000  # offset only
         rpdo = node.rpdo[3]
         rpdo["Controlword"].raw = 0x0F
         rpdo["Target velocity"].raw = 20_000
         rpdo.transmit()
+        time.sleep(0.02)
+        assert node.sdo[0x606B].raw == 5_000  # synchronous RPDO: latched until the SYNC
         r.sync(1)
-        assert node.sdo[0x606B].raw == 5_000  # offset only: the RPDO target is applied at the SYNC, used after it
+        assert node.sdo[0x606B].raw == 25_000  # applied at the SYNC, used in the cycle that follows it
         r.sync(300)
         assert abs(node.sdo[0x606C].raw - 25_000) < 1_000
         assert r.sw() & 0x1000

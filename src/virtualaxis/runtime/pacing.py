@@ -9,10 +9,13 @@
   only when the loop falls more than ``max_lag_s`` behind are the missed cycles given up, and they are
   counted (:attr:`RuntimeStats.skipped`, and as overruns). Nothing is absorbed silently. SYNC frames are
   answered as they arrive (synchronous RPDOs applied, TPDOs sent with the values of the latest drive cycle).
-- **lockstep**: the plant advances only on SYNC: for each SYNC, every drive runs exactly one communication
-  cycle (0x1006 / position cycle, at least one drive cycle) and then its slave sends the TPDOs due. The
-  result depends only on the frames, never on the machine's speed. SDO, NMT, heartbeat and timers keep
-  running between SYNCs. The SYNC -> TPDO latency of axis k includes the cycles of axes 1..k.
+- **lockstep**: the plant advances only on SYNC. At a SYNC every slave first answers it as a drive does: the
+  synchronous RPDOs received before it are applied and the TPDOs due go out with the values at the SYNC
+  instant (the end of the previous communication cycle: what real-time pacing sends too); then every drive
+  runs exactly one communication cycle (0x1006 / position cycle, at least one drive cycle) on the new
+  set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
+  real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
+  machine's speed. SDO, NMT, heartbeat and timers keep running between SYNCs.
 
 Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
 (``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
@@ -126,6 +129,7 @@ class Runtime:
         self._notifier: can.Notifier | None = None
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
+        self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
 
     def now(self) -> float:
         return time.perf_counter() - self._t0
@@ -219,7 +223,7 @@ class Runtime:
     def _service(self, now: float) -> None:
         axes = self.axes
         stats = self.stats
-        lockstep = self.lockstep
+        stepping = self._stepping
         for ax in axes:
             counters = ax.slave.poll(now)
             self._flush(ax)
@@ -227,14 +231,27 @@ class Runtime:
                 continue
             if ax is axes[0]:
                 stats.syncs += len(counters)
+            if self.lockstep:
+                # answer the SYNC first (its RPDOs applied, the TPDOs due sent with the values at the SYNC
+                # instant = the end of the previous cycle); the cycles run once every axis has answered
+                ax.slave.on_sync(counters[0], now)
+                self._flush(ax)
+                stepping.append((ax, counters))
+                continue
             for counter in counters:
-                if lockstep:
-                    n = ax.sync_cycles()
-                    self._step(ax, n)
-                    if ax is axes[0]:
-                        stats.cycles += n
                 ax.slave.on_sync(counter, now)
                 self._flush(ax)
+        if stepping:
+            for ax, counters in stepping:
+                n = ax.sync_cycles()
+                self._step(ax, n)
+                for counter in counters[1:]:  # a backlog of SYNCs: one communication cycle per SYNC, in order
+                    ax.slave.on_sync(counter, now)
+                    self._flush(ax)
+                    self._step(ax, n)
+                if ax is axes[0]:
+                    stats.cycles += n * len(counters)
+            stepping.clear()
 
     def _run(self, duration_s: float | None = None) -> RuntimeStats:
         self.open()
@@ -277,6 +294,11 @@ class Runtime:
                                 ax.drive.record_overrun()
                         for ax in axes:
                             self._step(ax, 1)
+                            if wake.is_set() and len(axes) > 1:
+                                # a frame arrived meanwhile (a SYNC?): answer it before the next axis's
+                                # cycle, so no SYNC waits for the cycles of every axis
+                                wake.clear()
+                                self._service(perf() - self._t0)
                         stats.cycles += 1
                         next_cycle += period
                         t = perf()
