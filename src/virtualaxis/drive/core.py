@@ -1,5 +1,19 @@
 """The CiA 402 drive around an :class:`~virtualaxis.sim.AxisSimulator`: the one drive API.
 
+Data path of one cycle (what to read, in order):
+
+1. RPDO -> every mapped object stored, then the reactions (:meth:`Drive.write_objects`; an SDO write is
+   :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
+   0x6060 -> mode object;
+2. :meth:`Drive.step`: cycle hooks (fault injection), then the active stop (:mod:`~virtualaxis.drive.reactions`,
+   always from the actual motion) or the mode object's ``cycle`` (:mod:`~virtualaxis.drive.modes`: PP, PV,
+   PT, HM, CSP, CSV, CST) -> set-point -> plant (``AxisSimulator.advance``);
+3. monitors: travel (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed) and
+   ``Drive._monitor`` (following error, standstill, target reached via the mode object, temperature,
+   DC link) -> faults (:mod:`~virtualaxis.drive.faults`, reaction class per fault);
+4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
+   application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
+
 :class:`Drive` runs the power drive state machine, the modes of operation (PP, PV, PT, HM, CSP, CSV, CST),
 the monitoring (following error, software limits, target/velocity reached, standstill, motor temperature,
 DC link) and the fault handling (fault reaction, EMCY, fault buffer), one position-loop cycle at a time.
@@ -25,6 +39,7 @@ from pathlib import Path
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.drive import homing as hm
+from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
@@ -756,7 +771,8 @@ class Drive:
         self._notify("mode")
 
     def _enter_mode(self, mode: int) -> None:
-        """Start a mode from the present demand (bumpless)."""
+        """Start a mode: common set-point state reset here, then the mode object takes over from the actual
+        motion (:meth:`virtualaxis.drive.modes.OperatingMode.enter`)."""
         ax = self._axis
         if self._smode != ControlMode.POSITION or not self._power:
             self._demand_m = ax.position_m - self._zero_m
@@ -772,40 +788,7 @@ class Drive:
         self._tr_timer = WindowTimer()
         self._homing = None
         self._homing_started = False
-        if mode in (PV, CSV):
-            self._vramp.velocity_m_s = ax.velocity_m_s if self._power else 0.0
-            self._interp_v = LinearInterpolator()
-            self._interp_v.reset(self._vramp.velocity_m_s)
-            self._set_sim_mode(ControlMode.VELOCITY)
-            self.sim.set_velocity_setpoint(self._vramp.velocity_m_s)
-            if mode == CSV:
-                self._on_target_velocity()
-        elif mode in TORQUE_MODES:
-            # PT ramps from the torque the motor gives now (bumpless from CST), else from zero
-            from_torque = self._power and self._smode == ControlMode.TORQUE
-            self._torque_demand_nm = self._axis.torque_nm if from_torque else 0.0
-            self._set_sim_mode(ControlMode.TORQUE)
-        else:
-            v_act = ax.velocity_m_s if self._power else 0.0
-            if mode in (PP, HM, 0) and not rx.at_standstill(self):
-                # entered while moving (mode change): from the ACTUAL motion, decelerate to rest with the
-                # mode's deceleration (PP 0x6084, HM 0x609A, no mode 0x6085) instead of a hard stop
-                p = ax.position_m - self._zero_m + self._lag_m(v_act)
-                decel = {PP: float(self._obj(0x6084)) * self._u, HM: self._homing_accel()}.get(
-                    mode, float(self._obj(0x6085)) * self._u)
-                decel = max(decel, 1e-6)
-                stop_at = p + v_act * abs(v_act) / (2.0 * decel)
-                self._demand_m = p
-                self._profile.reset(p, v_act)
-                self._profile.set_target(stop_at, max(abs(v_act), 1e-9), decel, decel)
-                self._jerk.reset(p, 1)
-                self._pp_target_m = stop_at
-                self._last_vff = v_act
-                self._set_sim_mode(ControlMode.POSITION)
-                self.sim.set_position_setpoint(p + self._zero_m, v_act, 0.0)
-                return
-            self._set_sim_mode(ControlMode.POSITION)
-            self.sim.set_position_setpoint(p + self._zero_m, 0.0, 0.0)
+        modes.mode_object(mode).enter(self)
 
     def _interp_cycles(self) -> int:
         value = int(self._obj(0x60C2, 1))
@@ -907,75 +890,8 @@ class Drive:
         return max(float(self._obj(0x609A)) * self._u, 1e-6)
 
     def _run_mode(self) -> None:
-        mode, dt = self._mode, self.cycle_s
-        halt = bool(self._cw & 0x100)
-        if mode in (PP, HM, 0):
-            if mode == PP:
-                v, a, d = self._pp_limits()
-                if halt:
-                    dh = self._halt_decel()
-                    pv = self._profile.velocity_m_s
-                    stop_at = self._profile.position_m + pv * abs(pv) / (2 * dh)
-                    self._profile.set_target(stop_at, max(abs(pv), 1e-9), a, dh)
-                else:
-                    self._profile.set_target(self._pp_target_m, v, a, d)
-            elif mode == HM:
-                self._run_homing(halt)
-            else:
-                if self._profile.velocity_m_s == 0.0:  # no mode: hold (after a stop from motion, see _enter_mode)
-                    self._profile.set_target(self._profile.position_m, 1.0, 1.0, 1.0)
-            p, _ = self._profile.step()
-            pf = self._jerk.step(p)
-            vff = (pf - self._demand_m) / dt
-            if (
-                mode == PP
-                and not halt
-                and self._pp_pending is not None
-                and self._profile.done
-                and self._jerk.settled(p)
-            ):
-                self._pp_target_m = self._pp_pending
-                self._pp_pending = None
-                self._start_pp_move()
-                if not self._cw & 0x10:
-                    self._pp_ack = False
-            self._set_position(pf, vff)
-        elif mode == CSP:
-            p, slope = self._interp.step()
-            vff = slope / dt + int(self._obj(0x60B1)) * self._u
-            self._set_position(p, vff)
-        elif mode == PV:
-            requested = int(self._obj(0x60FF)) * self._u
-            clamped = self._clamp_velocity(requested)
-            target = self._velocity_limit(clamped)
-            self._internal_limit = self._internal_limit or clamped != requested
-            if halt:
-                v = self._vramp.step(0.0, self._halt_decel(), self._halt_decel())
-            else:
-                v = self._vramp.step(target, float(self._obj(0x6083)) * self._u, float(self._obj(0x6084)) * self._u)
-            self._demand_v = v
-            self.sim.set_velocity_setpoint(v)
-        elif mode == CSV:
-            v, _ = self._interp_v.step()
-            v = self._velocity_limit(v)
-            requested = (int(self._obj(0x60FF)) + int(self._obj(0x60B1))) * self._u
-            self._internal_limit = self._internal_limit or self._clamp_velocity(requested) != requested
-            self._demand_v = v
-            self.sim.set_velocity_setpoint(v)
-        elif mode == CST:
-            rated_nm = float(self._obj(0x6076)) / 1000.0
-            self._apply_torque((int(self._obj(0x6071)) + int(self._obj(0x60B2))) / 1000.0 * rated_nm, rated_nm)
-        elif mode == PT:
-            # profile torque: 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step)
-            rated_nm = float(self._obj(0x6076)) / 1000.0
-            target = self._pt_target_nm(rated_nm)
-            slope = float(self._obj(0x6087)) / 1000.0 * rated_nm * dt
-            d = target - self._torque_demand_nm
-            self._torque_demand_nm = target if slope <= 0 or abs(d) <= slope else (
-                self._torque_demand_nm + math.copysign(slope, d)
-            )
-            requested = int(self._obj(0x6071)) / 1000.0 * rated_nm
-            self._apply_torque(self._torque_demand_nm, rated_nm, requested_nm=requested)
+        """One cycle of the active mode object (set-point to the plant)."""
+        modes.mode_object(self._mode).cycle(self)
 
     def _pt_target_nm(self, rated_nm: float) -> float:
         """Where the profile-torque ramp goes: 0x6071 limited by 0x6072, zero while halted (CW bit 8) [N m]."""
@@ -1348,36 +1264,8 @@ class Drive:
                 self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
         elif self._rest_timer.held_s:
             self._rest_timer.held_s = 0.0
-        # target reached / velocity reached / speed zero
-        mode = self._mode
-        x = ax.position_m - self._zero_m
-        if mode == CSP:
-            cond = abs(self._interp.end - x) <= pc.position_window_m and self._interp.i >= self._interp.n
-            self._target_reached = self._tr_timer.update(cond, dt, pc.position_time_s)
-        elif mode == PP:
-            if self._cw & 0x100 and self._profile.velocity_m_s == 0.0:  # halted
-                self._target_reached = True
-            else:
-                cond = (
-                    self._profile.done
-                    and self._pp_pending is None
-                    and self._jerk.settled(self._profile.position_m)
-                    and abs(self._pp_target_m - x) <= pc.position_window_m
-                )
-                self._target_reached = self._tr_timer.update(cond, dt, pc.position_time_s)
-        elif mode == PV:
-            target = self._clamp_velocity(int(self.objects[(0x60FF, 0)]) * self._u) if not self._cw & 0x100 else 0.0
-            cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
-            self._target_reached = self._tr_timer.update(cond, dt, pc.velocity_time_s)
-        elif mode == PT:  # the ramp has arrived at its target
-            self._target_reached = self._torque_demand_nm == self._pt_target_nm(pc.rated_nm)
-        elif mode == HM:
-            self._target_reached = self._homing is None or self._homing.status in (
-                hm.HomingStatus.ATTAINED,
-                hm.HomingStatus.ERROR,
-            )
-        else:
-            self._target_reached = False
+        # target reached / velocity reached (the mode object's definition of bit 10)
+        self._target_reached = modes.mode_object(self._mode).target_reached(self, ax, dt)
         self._speed_zero = self._vz_timer.update(
             abs(ax.velocity_m_s) <= pc.velocity_threshold_m_s, dt, pc.velocity_threshold_time_s
         )
@@ -1413,27 +1301,10 @@ class Drive:
         if self._internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
         if self._state == S.OPERATION_ENABLED:
-            mode = self._mode
-            if mode == PP:
-                sw |= 0x1000 if self._pp_ack else 0
-                sw |= 0x2000 if self._fe_timer.held_s > 0 and self._fe_exceeded else 0
-            elif mode == PV:
-                sw |= 0x1000 if self._speed_zero_flag() else 0
-            elif mode == HM:
-                # bits 13/12/10: idle or interrupted 0/0/1 (0/1/1 once homed), in progress 0/0/0,
-                # attained 0/1/1, error 1/0/0 (1/0/1 at standstill)
-                run = self._homing
+            bits = modes.mode_object(self._mode).status_bits(self)  # bits 12 / 13 (HM: 10 too)
+            if bits & 0x8000:
                 sw &= ~0x3400
-                if run is None:
-                    sw |= 0x1400 if self._homed else 0x400
-                elif run.status == hm.HomingStatus.ATTAINED:
-                    sw |= 0x1400
-                elif run.status == hm.HomingStatus.ERROR:
-                    sw |= 0x2000 | (0x400 if abs(self._axis.velocity_m_s) < 1e-4 else 0)
-            elif mode in (CSP, CSV, CST):
-                sw |= 0x1000  # drive follows the command value
-                if mode == CSP and self._fe_exceeded:
-                    sw |= 0x2000
+            sw |= bits & 0x7FFF
         elif self._state == S.FAULT and self._faults and self._faults[0].emcy_code == 0x8611:
             sw |= 0x2000
         self._store((0x6041, 0), sw)

@@ -76,7 +76,7 @@ class StopRamp:
     decel_m_s2: float
     v_m_s: float  # ramp velocity (drive coordinate)
     p_m: float  # ramp position (drive coordinate)
-    velocity_control: bool  # the ramp runs on the speed set-point (PV/CSV), else on the position set-point
+    velocity_control: bool  # the ramp runs on the speed set-point (until standstill; then position hold)
     bound_s: float
     t_s: float = 0.0
     stopped_s: float = -1.0  # time the ramp reached zero and the axis standstill (-1: not yet)
@@ -91,12 +91,8 @@ class StopRamp:
         decel_obj = 0x6084 if kind == "slow" else 0x6085
         decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
-        if velocity_control:
-            drive._set_sim_mode(ControlMode.VELOCITY)
-            drive._vramp.velocity_m_s = v0
-        else:
-            drive._set_sim_mode(ControlMode.POSITION)
-            drive._last_vff = v0
+        drive._set_sim_mode(ControlMode.VELOCITY)
+        drive._vramp.velocity_m_s = v0
         drive._homing = None
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0)
         if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
@@ -119,8 +115,7 @@ def at_standstill(drive: Drive) -> bool:
 def run_stop(drive: Drive) -> None:
     """One cycle of the running stop: ramp, standstill, hold, then the state change (or 'braking failed')."""
     s: StopRamp = drive._stop
-    dt = drive.cycle_s
-    s.t_s += dt
+    s.t_s += drive.cycle_s
     ax = drive._axis
     threshold = standstill_threshold_m_s(drive)
     if s.kind == "hold":
@@ -130,18 +125,10 @@ def run_stop(drive: Drive) -> None:
         drive.sim.set_velocity_setpoint(0.0)
         drive._demand_v = 0.0
         ramp_done = True
-    elif s.velocity_control:
+    else:  # OFF1 / OFF3: the speed set-point ramps down from the actual speed
         v = drive._vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
         drive._demand_v = v
         drive.sim.set_velocity_setpoint(v)
-        ramp_done = v == 0.0
-    else:
-        v = s.v_m_s
-        dv = s.decel_m_s2 * dt
-        v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
-        s.v_m_s = v
-        s.p_m += v * dt
-        drive._set_position(s.p_m, v)
         ramp_done = v == 0.0
     if ramp_done and s.stopped_s < 0.0 and abs(ax.velocity_m_s) < threshold:
         s.stopped_s = s.t_s
