@@ -35,6 +35,8 @@ COMMANDS = (
     "demo",
     "diagnose",
     "gap_bench",
+    "fault",
+    "conformance",
 )
 
 

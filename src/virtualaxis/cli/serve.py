@@ -36,6 +36,8 @@ def register(sub) -> None:
         help="a (further) axis on the same bus, e.g. X=1:configs/seed000-hust.toml (repeatable)",
     )
     p.add_argument("--lockstep", action="store_true", help="advance the plants only on SYNC (deterministic)")
+    p.add_argument("--allow-fault-injection", action="store_true",
+                   help="accept fault injection (objects 0x5FF0.., `virtualaxis fault`); refused otherwise")
     p.add_argument("--eds", default=None, help="EDS file (default eds/virtualaxis.eds)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--status-interval", type=float, default=5.0, help="seconds between status lines (0: none)")
@@ -103,7 +105,8 @@ def run(args) -> int:
 
         bus = BitRateBus(bus, args.bitrate)
     try:
-        axes = [AxisNode(bus, s.node_id, c, name=s.name, eds_path=eds) for s, c in zip(specs, configs, strict=True)]
+        axes = [AxisNode(bus, s.node_id, c, name=s.name, eds_path=eds,
+                         allow_fault_injection=args.allow_fault_injection) for s, c in zip(specs, configs, strict=True)]
         runtime = Runtime(bus, axes, lockstep=args.lockstep)
     except ValueError as exc:
         bus.shutdown()

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import can
 
-from virtualaxis.canopen_slave import CanopenSlave
 from virtualaxis.config import AxisConfig, ConfigError, load_axis_config
 from virtualaxis.drive.canopen_app import Cia402Application
 from virtualaxis.drive.core import DEFAULT_EDS, Drive
+from virtualaxis.drive.injection import serve_with_injection
 from virtualaxis.resources import project_file
 
 DEFAULT_CONFIG = project_file("configs/seed000-hust.toml")
@@ -56,6 +56,7 @@ class AxisNode:
         seed: int | None = None,
         initial_position_m: float = 0.0,
         discrete=None,
+        allow_fault_injection: bool = False,
     ):
         self.name = name or cfg.axis.name
         self.node_id = node_id
@@ -68,7 +69,9 @@ class AxisNode:
             discrete=discrete,
         )
         self.app = Cia402Application(self.drive)
-        self.slave = CanopenSlave(bus, node_id, eds_path, app=self.app, store_path=store_path)
+        # the fault-injection channel (0x5FF0.., refused unless allowed) in front of the application
+        self.slave, self.injection = serve_with_injection(bus, node_id, self.drive, self.app, eds_path,
+                                                          allowed=allow_fault_injection, store_path=store_path)
         self.app.attach(self.slave)
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
 

@@ -1,0 +1,395 @@
+"""Fault injection for HIL rigs and controller CI: faults a real drive meets in the field, on demand.
+
+Built on the drive's fault-injection contract (docs/drive-api.md): cycle hooks, ``raise_fault`` with a
+persistent cause, ``clear_cause``, ``set_warning`` and the plant (``simulator``). Each fault acts where it
+acts on a real machine, so that the drive's own monitors, reactions and the CiA 301 stack respond:
+
+============================  ========  ===================================================================
+kind                          EMCY      how it is produced / how it clears
+============================  ========  ===================================================================
+``encoder_loss``              0x7305    position sensor signal lost: OFF2 (coast); reset refused until cleared
+``over_current``              0x2310    power-unit over-current trip: OFF2; the trip itself is the cause, a
+                                        reset succeeds at once (intermittent: re-trips while active)
+``motor_overtemperature``     0x4310    extra winding losses while the power stage is on: the drive's thermal
+                                        model rises, warning A07910 (statusword bit 7, 0x2031) at 0x200A,
+                                        fault 0x4310 at 0x200B; reset refused until the winding is below it
+``dc_link_undervoltage``      0x3220    supply lost: 0x605E reaction; reset refused until cleared
+``dc_link_overvoltage``       0x3210    regenerated energy not dissipated: 0x605E; refused until cleared
+``following_error``           0x8611    a brake (force opposing the motion, ``magnitude`` N, default 60 kN) on
+                                        the table: the drive's following-error monitor trips; clears when the
+                                        brake is released
+``limit_switch``              0xFF11/10 the hardware limit switch input (``magnitude`` > 0: plus, < 0: minus,
+                                        0: the direction of motion) reads active: the drive's limit-switch
+                                        monitor reacts (OFF3, fault or warning per 0x2013), motion only away
+``lost_rpdos``                (0x8250)  RPDO frames never reach the drive: the RPDO event timer (0x1400+n:5)
+                                        or the control loop decide (0x6007)
+``heartbeat_loss``            (0x8130)  the master's heartbeat never reaches the drive: consumer heartbeat
+                                        0x1016 expires (EMCY 0x8130, 0x1029 / 0x6007 reaction)
+``bus_off``                   0x8140    the CAN controller is bus-off: nothing sent or received; on recovery
+                                        (clear, or the off phase of an intermittent fault) EMCY 0x8140 and the
+                                        0x6007 reaction
+============================  ========  ===================================================================
+
+Intermittent variant of each: ``duty`` in (0, 1) and ``period_s``: active for ``duty * period_s`` of every
+period (drive time), e.g. a loose encoder connector.
+
+Channels: this Python API (:class:`FaultInjector`), CANopen objects 0x5FF0..0x5FF6 (:class:`InjectionApp`,
+refused with abort 0x08000022 unless the drive was served with ``--allow-fault-injection``), the CLI
+``virtualaxis fault``; Modbus / MQTT services plug in through :func:`FaultInjector.command` (a kind name or
+number plus options, the same refusal rules).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+#: kind name -> number used on the CANopen channel (0x5FF0 / 0x5FF1)
+KINDS: dict[str, int] = {
+    "encoder_loss": 1,
+    "over_current": 2,
+    "motor_overtemperature": 3,
+    "dc_link_undervoltage": 4,
+    "dc_link_overvoltage": 5,
+    "following_error": 6,
+    "limit_switch": 7,
+    "lost_rpdos": 8,
+    "heartbeat_loss": 9,
+    "bus_off": 10,
+}
+KIND_NAMES = {v: k for k, v in KINDS.items()}
+
+#: EMCY code a master sees for each kind (the one raised directly or by the drive's monitor / stack)
+EMCY_OF_KIND: dict[str, int] = {
+    "encoder_loss": 0x7305,
+    "over_current": 0x2310,
+    "motor_overtemperature": 0x4310,
+    "dc_link_undervoltage": 0x3220,
+    "dc_link_overvoltage": 0x3210,
+    "following_error": 0x8611,
+    "limit_switch": 0xFF11,
+    "lost_rpdos": 0x8250,
+    "heartbeat_loss": 0x8130,
+    "bus_off": 0x8140,
+}
+
+#: CANopen objects of the channel (manufacturer-specific area; listed in eds/virtualaxis.eds)
+OBJ_INJECT = 0x5FF0  # u8 w: inject kind number (with 0x5FF2..0x5FF4 as options); read: last injected
+OBJ_CLEAR = 0x5FF1  # u8 w: clear kind number (0xFF: all)
+OBJ_DUTY = 0x5FF2  # u16: duty cycle of the next injection [per mille], 0 or 1000 = permanent
+OBJ_PERIOD = 0x5FF3  # u32: period of the intermittent variant [ms]
+OBJ_MAGNITUDE = 0x5FF4  # i32: kind-specific magnitude (brake force [N], limit switch side, heating [K/s])
+OBJ_ACTIVE = 0x5FF5  # u32 ro: bit (kind number - 1) set while a kind is injected
+OBJ_ALLOWED = 0x5FF6  # u8 ro: 1 when the drive accepts injection
+CHANNEL_OBJECTS = range(OBJ_INJECT, OBJ_ALLOWED + 1)
+
+ABORT_DEVICE_STATE = 0x08000022
+ABORT_VALUE_INVALID = 0x06090030
+
+DEFAULT_BRAKE_FORCE_N = 60_000.0
+DEFAULT_HEATING_K_S = 60.0
+BRAKE_SPEED_SCALE_M_S = 0.005  # the brake force is proportional to speed below this (no chatter at rest)
+
+
+class InjectionRefused(Exception):
+    """An injection request is refused; ``code`` is the SDO abort code a CANopen master gets."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class Injection:
+    """One active injected fault."""
+
+    kind: str
+    duty: float = 1.0  # fraction of each period the fault is present (1: permanent)
+    period_s: float = 1.0
+    magnitude: float = 0.0
+    started_s: float = 0.0  # drive time at injection
+    present: bool = False  # the cause is present in this cycle
+    side: int = 0  # limit switch: +1 plus, -1 minus
+
+    def present_at(self, t_s: float) -> bool:
+        if self.duty >= 1.0:
+            return True
+        phase = ((t_s - self.started_s) % self.period_s) / self.period_s
+        return phase < self.duty
+
+
+class FaultInjector:
+    """Faults on demand for one :class:`~virtualaxis.drive.Drive` (and its CANopen slave, if served).
+
+    ``inject(kind, duty=1.0, period_s=1.0, magnitude=None)`` / ``clear(kind=None)``; ``active`` lists the
+    injected kinds. Thread-safe (takes the drive's lock)."""
+
+    def __init__(self, drive: Any, slave: Any = None, *, allowed: bool = True):
+        self.drive = drive
+        self.slave = slave
+        self.allowed = allowed
+        self._active: dict[str, Injection] = {}
+        self._cycles = 0
+        self._lock = threading.RLock()
+        self._drop_rpdo = False
+        self._drop_heartbeat = False
+        self._bus_off = False
+        self._switch_force = 0  # +1 / -1: limit switch input forced active
+        self._orig_switches: Callable | None = None
+        drive.add_cycle_hook(self._cycle)
+        if slave is not None:
+            self._wrap_slave(slave)
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def active(self) -> dict[str, Injection]:
+        with self._lock:
+            return dict(self._active)
+
+    def now_s(self) -> float:
+        """Drive time [s] as counted by the injector's cycle hook."""
+        return self._cycles * self.drive.cycle_s
+
+    def inject(self, kind: str, *, duty: float = 1.0, period_s: float = 1.0, magnitude: float | None = None) -> None:
+        """Inject ``kind`` (see :data:`KINDS`); ``duty`` < 1 makes it intermittent with ``period_s`` [s]."""
+        if not self.allowed:
+            raise InjectionRefused(ABORT_DEVICE_STATE, "fault injection is off (serve with --allow-fault-injection)")
+        if kind not in KINDS:
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind {kind!r} (known: {', '.join(KINDS)})")
+        if not (isinstance(duty, (int, float)) and 0.0 < duty <= 1.0):
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"duty must be in (0, 1] (got {duty!r})")
+        if not (isinstance(period_s, (int, float)) and math.isfinite(period_s) and 0.002 <= period_s <= 3600):
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"period_s must be 0.002..3600 s (got {period_s!r})")
+        if magnitude is not None and not math.isfinite(magnitude):
+            raise InjectionRefused(ABORT_VALUE_INVALID, "magnitude must be finite")
+        with self.drive._lock, self._lock:
+            self._release(kind)
+            inj = Injection(kind, float(duty), float(period_s), float(magnitude or 0.0), self.now_s())
+            if kind == "limit_switch":
+                inj.side = 1 if inj.magnitude > 0 else -1 if inj.magnitude < 0 else 0
+                if inj.side == 0:
+                    v = self.drive.simulator.state.velocity_m_s
+                    inj.side = -1 if v < 0 else 1
+            self._active[kind] = inj
+            self._apply(inj, inj.present_at(self.now_s()))
+
+    def clear(self, kind: str | None = None) -> None:
+        """Remove an injected fault (all with ``None``): its cause goes; the fault (if any) stays until the
+        master resets it, as on a real drive."""
+        if kind is not None and kind not in KINDS:
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind {kind!r} (known: {', '.join(KINDS)})")
+        with self.drive._lock, self._lock:
+            for k in [kind] if kind else list(self._active):
+                self._release(k)
+
+    def command(self, action: str, kind: str | int | None = None, **options: Any) -> None:
+        """One entry point for side channels (Modbus, MQTT): ``action`` "inject" / "clear", ``kind`` a name or
+        number of :data:`KINDS`; options as :meth:`inject`. Refusals raise :class:`InjectionRefused`."""
+        if isinstance(kind, int) and not isinstance(kind, bool):
+            if kind not in KIND_NAMES:
+                raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind number {kind}")
+            kind = KIND_NAMES[kind]
+        if action == "inject":
+            if kind is None:
+                raise InjectionRefused(ABORT_VALUE_INVALID, "inject needs a fault kind")
+            self.inject(kind, **options)
+        elif action == "clear":
+            if not self.allowed:
+                raise InjectionRefused(ABORT_DEVICE_STATE, "fault injection is off")
+            self.clear(kind)
+        else:
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown action {action!r} (inject, clear)")
+
+    def close(self) -> None:
+        """Remove every injection and the cycle hook."""
+        self.clear()
+        self.drive.remove_cycle_hook(self._cycle)
+
+    # ------------------------------------------------------------------ per cycle
+    def _cycle(self, drive: Any) -> None:
+        self._cycles += 1
+        if not self._active:
+            return
+        t = self.now_s()
+        for inj in list(self._active.values()):
+            present = inj.present_at(t)
+            if present != inj.present:
+                self._apply(inj, present)
+            if present:
+                self._continuous(inj)
+
+    def _continuous(self, inj: Injection) -> None:
+        drive = self.drive
+        if inj.kind == "following_error":
+            sim = drive.simulator
+            v = sim.state.velocity_m_s
+            brake = inj.magnitude or DEFAULT_BRAKE_FORCE_N
+            base = float(drive.read_object(0x2011, 0))
+            sim.set_external_force(base - brake * max(-1.0, min(1.0, v / BRAKE_SPEED_SCALE_M_S)))
+        elif inj.kind == "motor_overtemperature":
+            if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED" and hasattr(drive, "_motor_rise_k"):
+                drive._motor_rise_k += (inj.magnitude or DEFAULT_HEATING_K_S) * drive.cycle_s
+
+    def _apply(self, inj: Injection, present: bool) -> None:
+        """The cause appears (``present``) or goes."""
+        inj.present = present
+        drive, kind = self.drive, inj.kind
+        code = EMCY_OF_KIND[kind]
+        if kind in ("encoder_loss", "dc_link_undervoltage", "dc_link_overvoltage"):
+            if present:
+                if code not in drive.causes:
+                    drive.raise_fault(code, 0, cause=f"injected {kind}")
+            else:
+                drive.clear_cause(f"injected {kind}")
+        elif kind == "over_current":
+            if present and getattr(drive.cia402_state, "name", "") not in ("FAULT", "FAULT_REACTION_ACTIVE"):
+                drive.raise_fault(code, 0)
+        elif kind == "following_error":
+            if not present:
+                drive.simulator.set_external_force(float(drive.read_object(0x2011, 0)))
+        elif kind == "limit_switch":
+            self._force_switch(inj.side if present else 0)
+        elif kind == "lost_rpdos":
+            self._drop_rpdo = present
+        elif kind == "heartbeat_loss":
+            self._drop_heartbeat = present
+            if present and self.slave is None:  # not served: no consumer to expire; the reaction directly
+                drive.communication_error("heartbeat_lost", 0)
+        elif kind == "bus_off":
+            was = self._bus_off
+            self._bus_off = present
+            if was and not present:
+                self._recover_from_bus_off()
+            elif present and self.slave is None:
+                drive.communication_error("bus_off", 0)
+
+    def _release(self, kind: str) -> None:
+        inj = self._active.pop(kind, None)
+        if inj is not None and inj.present:
+            self._apply(inj, False)
+
+    def _recover_from_bus_off(self) -> None:
+        """Back on the bus: EMCY 0x8140 (recovered from bus off), then the 0x6007 reaction."""
+        if self.slave is not None:
+            self.slave.emcy(0x8140, 0x10, b"")
+        self.drive.communication_error("bus_off", 0)
+
+    def _force_switch(self, side: int) -> None:
+        """Force the limit switch input (the drive's ``_switches`` reading) active on ``side``."""
+        drive = self.drive
+        self._switch_force = side
+        if self._orig_switches is None and hasattr(drive, "_switches"):
+            orig = drive._switches
+            self._orig_switches = orig
+
+            def switches(x_plant_m: float, method: int | None = None) -> tuple[bool, bool, bool]:
+                neg, pos, home = orig(x_plant_m, method)
+                f = self._switch_force
+                return neg or f < 0, pos or f > 0, home
+
+            drive._switches = switches
+        if self._orig_switches is None and side:  # a drive without a switch input: the fault directly
+            drive.raise_fault(0xFF11 if side > 0 else 0xFF10, 0)
+
+    # ------------------------------------------------------------------ CAN side (served drive)
+    def _wrap_slave(self, slave: Any) -> None:
+        """Frame-level effects: lost RPDOs, lost master heartbeat, bus-off (nothing in or out)."""
+        receive, send = slave.receive, slave.send
+
+        def filtered_receive(msg: Any) -> None:
+            if self._bus_off:
+                return
+            cob = msg.arbitration_id
+            if self._drop_rpdo and cob in slave.pdo.rpdo_by_cob:
+                return
+            if self._drop_heartbeat and cob in slave.heartbeat_consumer.monitors:
+                return
+            receive(msg)
+
+        def filtered_send(cob_id: int, data: bytes | bytearray) -> None:
+            if self._bus_off:
+                slave.counters["tx_errors"] += 1
+                return
+            send(cob_id, data)
+
+        slave.receive = filtered_receive
+        slave.send = filtered_send
+
+
+class InjectionApp:
+    """The CANopen channel: wraps the drive's CiA 402 application for the slave and serves 0x5FF0..0x5FF6.
+
+    Writes are refused with abort 0x08000022 (not in the present device state) unless ``allowed``; an unknown
+    kind or a bad option with 0x06090030. Every other object goes to the wrapped application unchanged."""
+
+    def __init__(self, app: Any, injector: FaultInjector):
+        self._app = app
+        self.injector = injector
+
+    def __getattr__(self, name: str) -> Any:  # begin_pdo, end_pdo, on_nmt_state, ...
+        return getattr(self._app, name)
+
+    def validate_write(self, index: int, sub: int, value: Any) -> None:
+        if index in CHANNEL_OBJECTS:
+            from virtualaxis.canopen_slave import SdoAbort
+
+            if not self.injector.allowed:
+                raise SdoAbort(ABORT_DEVICE_STATE, "fault injection is off (serve --allow-fault-injection)")
+            if index in (OBJ_INJECT, OBJ_CLEAR) and value not in KIND_NAMES and not (index == OBJ_CLEAR and
+                                                                                    value in (0, 0xFF)):
+                raise SdoAbort(ABORT_VALUE_INVALID, f"unknown fault kind number {value}")
+            if index == OBJ_DUTY and not 0 <= value <= 1000:
+                raise SdoAbort(ABORT_VALUE_INVALID, "duty is 0..1000 per mille")
+            if index == OBJ_PERIOD and not 2 <= value <= 3_600_000:
+                raise SdoAbort(ABORT_VALUE_INVALID, "period is 2..3600000 ms")
+            return
+        self._app.validate_write(index, sub, value)
+
+    def after_write(self, index: int, sub: int, value: Any) -> None:
+        if index in CHANNEL_OBJECTS:
+            slave = self.injector.slave
+            if index == OBJ_INJECT:
+                duty = slave.read(OBJ_DUTY, 0)
+                self.injector.inject(
+                    KIND_NAMES[value],
+                    duty=1.0 if duty in (0, 1000) else duty / 1000.0,
+                    period_s=slave.read(OBJ_PERIOD, 0) / 1000.0,
+                    magnitude=float(slave.read(OBJ_MAGNITUDE, 0)) or None,
+                )
+            elif index == OBJ_CLEAR:
+                self.injector.clear(None if value in (0, 0xFF) else KIND_NAMES[value])
+            self._publish()
+            return
+        self._app.after_write(index, sub, value)
+
+    def before_read(self, index: int, sub: int) -> None:
+        if index in CHANNEL_OBJECTS:
+            self._publish()
+            return
+        self._app.before_read(index, sub)
+
+    def _publish(self) -> None:
+        slave = self.injector.slave
+        if slave is None or (OBJ_ACTIVE, 0) not in slave.od.entries:
+            return
+        bits = 0
+        for kind in self.injector.active:
+            bits |= 1 << (KINDS[kind] - 1)
+        slave.write_entry(slave.entry(OBJ_ACTIVE, 0), bits)
+        slave.write_entry(slave.entry(OBJ_ALLOWED, 0), 1 if self.injector.allowed else 0)
+
+
+def serve_with_injection(bus: Any, node_id: int, drive: Any, app: Any, eds_path: Any, *, allowed: bool,
+                         store_path: Any = None) -> tuple[Any, FaultInjector]:
+    """A CanopenSlave for ``app`` with the injection channel in front; returns (slave, injector)."""
+    from virtualaxis.canopen_slave import CanopenSlave
+
+    injector = FaultInjector(drive, allowed=allowed)
+    wrapper = InjectionApp(app, injector)
+    slave = CanopenSlave(bus, node_id, eds_path, app=wrapper, store_path=store_path)
+    injector.slave = slave
+    injector._wrap_slave(slave)
+    return slave, injector
