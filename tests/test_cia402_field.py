@@ -129,7 +129,7 @@ def test_limit_switch_stops_every_mode_and_allows_motion_only_away():
         node.sdo[0x607D][1].raw = -2_000_000
         node.sdo[0x607D][2].raw = 2_000_000
         node.sdo[0x60FF].raw = 200_000
-        r.wait(lambda: r.sw() & 0x08, sync=True, timeout=10)
+        r.wait(lambda: r.sw() & 0x08, sync=True, timeout=30)
         r.emcy.wait_for(0xFF11)
         r.sync(100)
         half = r.drive.cfg.axis.stroke_m / 2
@@ -149,7 +149,7 @@ def test_limit_switch_stops_every_mode_and_allows_motion_only_away():
         # warning variant: back toward the switch with 0x2013 = 0
         node.sdo[0x2013].raw = 0
         node.sdo[0x60FF].raw = 100_000
-        r.wait(lambda: node.sdo[0x2031].raw == 7492, sync=True, timeout=10)
+        r.wait(lambda: node.sdo[0x2031].raw == 7492, sync=True, timeout=30)
         r.sync(100)
         assert r.sw() & 0x6F == 0x27 and r.sw() & 0x80  # enabled, warning bit 7
         assert abs(node.sdo[0x606C].raw) < 1000
@@ -267,13 +267,15 @@ def test_raise_fault_reaction_classes_and_persistent_cause():
     r = Rig()
     try:
         node = r.node
-        _start(r, 3, **{"0x6083": 2_000_000, "0x6085": 10_000_000})
-        node.sdo[0x60FF].raw = 100_000
+        _start(r, 1, **{"0x6081": 100_000, "0x6083": 2_000_000, "0x6085": 10_000_000})
+        node.sdo[0x607A].raw = 200_000
+        node.sdo[0x6040].raw = 0x1F
         r.sync(300)
+        assert abs(node.sdo[0x606C].raw - 100_000) < 2_000
         x0 = r.drive.state.position_actual_m
         r.drive.raise_fault(0x4210, 95, cause="heat sink")
         r.sync(100)
-        assert (r.drive.state.position_actual_m - x0) * 1e3 < 1.5  # v^2/2a = 0.5 mm
+        assert (r.drive.state.position_actual_m - x0) * 1e3 < 1.0  # v^2/2a = 0.5 mm (before: 11.3 mm)
         node.sdo[0x6040].raw = 0x80
         r.sync(1)
         assert r.sw() & 0x6F == 0x28  # refused: cause persists
@@ -283,6 +285,7 @@ def test_raise_fault_reaction_classes_and_persistent_cause():
         r.sync(1)
         assert r.sw() & 0x6F == 0x40
         # encoder loss: coast (no controlled braking possible)
+        node.sdo[0x6060].raw = 3
         r.enable()
         node.sdo[0x60FF].raw = 100_000
         r.sync(300)
@@ -316,5 +319,27 @@ def test_force_far_beyond_the_motor_faults_overspeed_instead_of_diverging():
             with pytest.raises(canopen.SdoAbortedError) as exc:
                 node.sdo[0x2011].raw = value
             assert exc.value.code == code
+    finally:
+        r.close()
+
+
+def test_position_objects_saturate_with_a_fault_instead_of_wrapping():
+    """Item 4: with 1 position unit = 0.1 nm (0x6092:1 = 1.6e8 per 16 mm revolution) 2^31 units are 0.215 m;
+    PV past it: 0x6064 stops at 2^31 - 1 (no wrap to -2^31) and fault 0x8600 (F07493) is raised."""
+    r = Rig()
+    try:
+        node = r.node
+        node.sdo[0x6092][1].raw = 160_000_000
+        node.sdo[0x607D][1].raw = 0  # software limits off (min >= max)
+        node.sdo[0x607D][2].raw = 0
+        _start(r, 3, **{"0x6083": 2_000_000_000, "0x6085": 2_000_000_000, "0x6065": 0xFFFFFFFF,
+                        "0x607F": 2_000_000_000})
+        node.sdo[0x60FF].raw = 1_000_000_000  # 0.1 m/s
+        r.sync(2500)
+        r.emcy.wait_for(0x8600)
+        assert r.sw() & 0x08
+        r.sync(200)
+        assert node.sdo[0x6064].raw == 0x7FFFFFFF
+        assert 0.2147 < r.drive.state.table_position_m < 0.26  # braked with 0x6085 = 0.2 m/s^2
     finally:
         r.close()
