@@ -343,3 +343,23 @@ def test_position_objects_saturate_with_a_fault_instead_of_wrapping():
         assert 0.2147 < r.drive.state.table_position_m < 0.26  # braked with 0x6085 = 0.2 m/s^2
     finally:
         r.close()
+
+
+def test_sync_loss_in_csp_is_a_loss_of_control_in_real_time():
+    """Item 3: CSP paced by the wall clock, SYNC every 2 ms (0x1006 = 2000 us), 0x6007 = 1: SYNC stops ->
+    EMCY 0x8100 and fault 0x8100 (before: EMCY only, the drive stayed enabled). (In SYNC lockstep the plant
+    waits for SYNC and nothing is faulted: the other tests of this file run that way.)"""
+    r = Rig(lockstep=False)
+    try:
+        node = r.node
+        node.sdo[0x1006].raw = 2000
+        _start(r, 8, **{"0x6007": 1})
+        r.net.sync.start(0.002)
+        time.sleep(0.3)
+        assert r.sw() & 0x6F == 0x27
+        r.net.sync.stop()
+        r.emcy.wait_for(0x8100)
+        r.wait(lambda: r.sw() & 0x6F == 0x28, timeout=2)
+        assert r.drive.faults[0].emcy_code == 0x8100
+    finally:
+        r.close()

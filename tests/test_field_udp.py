@@ -151,7 +151,8 @@ def test_nmt_stop_while_moving_is_a_loss_of_control_across_processes():
             x1 = node.sdo[0x6064].raw
             time.sleep(0.1)
             assert node.sdo[0x6064].raw == x1  # at rest
-            assert (x1 - x0) * UNIT_M * 1e3 < 4.0  # ramp 0.6 mm + the SDO round trip before the NMT frame
+            # ramp 0.6 mm + the time between the SDO read of x0 and the NMT frame (a loaded host: tens of ms)
+            assert (x1 - x0) * UNIT_M * 1e3 < 10.0
         finally:
             net.disconnect()
     assert s.returncode == 0, s.stderr[-2000:]

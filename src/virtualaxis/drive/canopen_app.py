@@ -18,6 +18,11 @@ from virtualaxis.canopen_slave import CanopenSlave, NmtState, SdoAbort
 from virtualaxis.drive.core import ALIASES, Drive, ObjectAccessError
 from virtualaxis.drive.objects import SPECS
 
+#: SYNC loss = this many communication cycles (0x1006) of drive time without SYNC ...
+SYNC_LOSS_PERIODS = 5
+#: ... and at least this long [s] (chosen: a busy host delays a SYNC by a few ms, not by 20)
+SYNC_LOSS_MIN_S = 0.020
+
 
 class Cia402Application:
     """The bridge between one :class:`Drive` and one :class:`CanopenSlave`."""
@@ -28,6 +33,9 @@ class Cia402Application:
         self._entries: dict = {}
         self.nmt_state: NmtState | None = None
         self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
+        self._syncs_seen = 0
+        self._cycles_at_sync = 0
+        self._sync_loss_reported = False
 
     def attach(self, slave: CanopenSlave) -> None:
         """Connect to the slave (call before ``slave.boot``)."""
@@ -56,6 +64,7 @@ class Cia402Application:
         slave = self.slave
         if slave is None:
             return
+        self._watch_sync(slave)
         changes = self.drive.take_changes()
         if everything:
             changes = [(k[0], k[1], v) for k, v in self.drive.objects.items()]
@@ -103,6 +112,29 @@ class Cia402Application:
         if state == NmtState.STOPPED:
             self.drive.communication_error("nmt_stopped", 0)
             self.flush()
+
+    def _watch_sync(self, slave: CanopenSlave) -> None:
+        """SYNC loss as the drive sees it: after a SYNC has been seen in OPERATIONAL with 0x1006 set, the
+        drive ran :data:`SYNC_LOSS_PERIODS` communication cycles (at least :data:`SYNC_LOSS_MIN_S`) of its
+        own time without one -> ``communication_error("sync_loss")`` once (0x6007 in the CS modes). In SYNC
+        lockstep the drive never runs more than one period without SYNC; a late SYNC on a busy machine (the
+        stack's 1.5-period EMCY 0x8100) is not yet a loss of control."""
+        cycles = self.drive.counters["cycles"]
+        syncs = slave.counters["sync_received"]
+        if syncs != self._syncs_seen:
+            self._syncs_seen = syncs
+            self._cycles_at_sync = cycles
+            self._sync_loss_reported = False
+            return
+        if self._sync_loss_reported or slave.nmt_state != NmtState.OPERATIONAL or not syncs:
+            return
+        period_s = slave.sync.timeout_s / 1.5
+        if period_s <= 0.0:
+            return
+        ran_s = (cycles - self._cycles_at_sync) * self.drive.cycle_s
+        if ran_s > max(SYNC_LOSS_PERIODS * period_s, SYNC_LOSS_MIN_S):
+            self._sync_loss_reported = True
+            self.drive.communication_error("sync_loss", 0)
 
     def on_communication_error(self, kind: str, detail: int) -> None:
         self.drive.communication_error(kind, detail)

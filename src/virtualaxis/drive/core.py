@@ -731,17 +731,18 @@ class Drive:
     def communication_error(self, kind: str, detail: int = 0) -> None:
         """Loss of control: react per 0x6007 abort connection option (0 none, 1 fault, 2 disable voltage,
         3 quick stop; CiA 402) to heartbeat / life guarding lost, RPDO timeout (0x1400+n:5), bus off, NMT
-        Stopped or Reset Communication (``nmt_stopped``, ``nmt_reset_communication``). SYNC loss alone
-        (``sync_timeout``) gets only the stack's EMCY 0x8100: in SYNC lockstep the plant does not advance
-        without SYNC, and a lost set-point stream is caught by the RPDO event timer (0x1400+n:5). NMT events
-        count only while the drive is enabled (a master resetting communication at start-up must not fault a
-        disabled drive)."""
+        Stopped or Reset Communication (``nmt_stopped``, ``nmt_reset_communication``) and, in the cyclic
+        synchronous modes, SYNC loss (``sync_loss``: the CANopen application reports it when the drive ran
+        5 communication cycles 0x1006, at least 20 ms, of its own time without SYNC; never in SYNC
+        lockstep, where the plant waits for the SYNC). NMT events and SYNC loss count only while the drive
+        is enabled (a master resetting communication at start-up must not fault a disabled drive)."""
         with self._lock:
             code, stack_sent_emcy = {
                 "heartbeat_lost": (0x8130, True),
                 "life_guarding": (0x8130, True),
                 "rpdo_timeout": (0x8250, True),
                 "bus_off": (0x8140, True),
+                "sync_loss": (0x8100, True),
                 "nmt_stopped": (0x8131, False),
                 "nmt_reset_communication": (0x8131, False),
             }.get(kind, (None, True))
@@ -749,6 +750,8 @@ class Drive:
                 return
             enabled = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
             if kind.startswith("nmt_") and not enabled:
+                return
+            if kind == "sync_loss" and (not enabled or self._mode not in (CSP, CSV, CST)):
                 return
             option = int(self._obj(0x6007))
             if option == 1:
