@@ -363,3 +363,27 @@ def test_sync_loss_in_csp_is_a_loss_of_control_in_real_time():
         assert r.drive.faults[0].emcy_code == 0x8100
     finally:
         r.close()
+
+
+@pytest.mark.parametrize(("option", "max_mm"), [(3, 1.0), (0, None)])
+def test_quick_stop_on_the_current_limit_and_coast(option, max_mm):
+    """Item 1: controlword quick stop (0x02) at 100 mm/s: 0x605A = 3 brakes at the current limit (a few tenths of
+    a mm) then switch on disabled; 0x605A = 0 coasts (pulses off at once, the axis runs out on friction)."""
+    r = Rig()
+    try:
+        node = r.node
+        _start(r, 3, **{"0x605A": option, "0x6083": 2_000_000})
+        node.sdo[0x60FF].raw = 100_000
+        r.sync(300)
+        x0 = r.drive.state.position_actual_m
+        node.sdo[0x6040].raw = 0x02
+        r.sync(300)
+        s = r.drive.state
+        assert s.cia402_state == "SWITCH ON DISABLED"
+        travel_mm = (s.position_actual_m - x0) * 1e3
+        if max_mm is not None:
+            assert 0.0 < travel_mm < max_mm, travel_mm
+        else:
+            assert travel_mm > 1.0 and not r.drive.simulator.enabled  # coasted further than any ramp here
+    finally:
+        r.close()
