@@ -99,6 +99,8 @@ class CanopenSlave:
         self._applied_ahead = 0
         self._handlers: dict[int, Callable[[can.Message, float], None]] = {}
         self._in_error_reaction = False
+        #: called (no arguments) whenever the COB-IDs this node listens to change (a frame router's cache)
+        self.on_dispatch_change: Callable[[], None] | None = None
         self._hook_validate = getattr(app, "validate_write", None)
         self._hook_after = getattr(app, "after_write", None)
         self._hook_before_read = getattr(app, "before_read", None)
@@ -295,6 +297,13 @@ class CanopenSlave:
         handlers[HEARTBEAT_BASE + self.node_id] = self._on_guard
         handlers[NMT_COB] = self._on_nmt
         self._handlers = handlers
+        if self.on_dispatch_change is not None:
+            self.on_dispatch_change()
+
+    def listens_to(self, cob_id: int) -> bool:
+        """True if a frame on ``cob_id`` (11-bit, data or RTR) is for this node (NMT, SYNC, SDO, RPDOs, the
+        monitored heartbeats, node guarding)."""
+        return cob_id in self._handlers
 
     def entry_size(self, index: int, sub: int) -> int | None:
         entry = self.od.entries.get((index, sub))

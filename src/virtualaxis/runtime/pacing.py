@@ -79,15 +79,38 @@ class RuntimeStats:
         }
 
 
-class _Wake(can.Listener):
-    def __init__(self, event: threading.Event):
+class _Router(can.Listener):
+    """One listener for every axis of the bus: a frame goes only to the slaves that listen to its COB-ID
+    (cached per COB-ID, the cache dropped whenever a slave's COB-IDs change) and wakes the loop only then.
+    Frames for no axis are counted in ``unrouted`` and dropped (a node's controller filters them too)."""
+
+    def __init__(self, slaves: list, event: threading.Event):
+        self.slaves = slaves
         self.event = event
+        self.routes: dict[int, tuple] = {}
+        self.unrouted = 0
+        for slave in slaves:
+            slave.on_dispatch_change = self.routes.clear
 
     def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_extended_id or msg.is_error_frame:
+            self.unrouted += 1
+            return
+        cob = msg.arbitration_id
+        targets = self.routes.get(cob)
+        if targets is None:
+            targets = tuple(s for s in self.slaves if s.listens_to(cob))
+            self.routes[cob] = targets
+        if not targets:
+            self.unrouted += 1
+            return
+        for slave in targets:
+            slave.receive(msg)
         self.event.set()
 
     def on_error(self, exc: Exception) -> None:
-        pass
+        for slave in self.slaves:
+            slave.counters["internal_errors"] += 1
 
 
 class Runtime:
@@ -139,8 +162,8 @@ class Runtime:
         """Start receiving and boot every slave (boot-up frame, PRE-OPERATIONAL)."""
         if self._notifier is not None:
             return
-        listeners = [ax.slave.listener() for ax in self.axes] + [_Wake(self._wake)]
-        self._notifier = can.Notifier(self.bus, listeners, timeout=0.05)
+        self.router = _Router([ax.slave for ax in self.axes], self._wake)
+        self._notifier = can.Notifier(self.bus, [self.router], timeout=0.05)
         now = self.now()
         for ax in self.axes:
             ax.slave.boot(now)
