@@ -1,0 +1,100 @@
+"""``virtualaxis conformance``: CiA 301 / CiA 402 checks against any node on the bus, as a master would.
+
+    virtualaxis conformance --can socketcan:can0 --node-id 1 --junit conformance.xml --json conformance.json
+    virtualaxis conformance --can udp_multicast:239.74.163.2 --node-id 1 --only 301-SDO,limits
+
+One line per check (id, PASS / FAIL / SKIPPED with the reason, what was sent and what came back), a summary;
+exit status 1 if any check failed. See docs/conformance.md for the check list.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("conformance", help="CiA 301 / 402 conformance checks against a node on the bus")
+    p.add_argument("--can", default="socketcan:vcan0", help="bus INTERFACE:CHANNEL (default socketcan:vcan0)")
+    p.add_argument("--node-id", type=int, default=1, help="node id of the device under test (default 1)")
+    p.add_argument("--eds", default=None, help="the node's EDS (default: eds/virtualaxis.eds)")
+    p.add_argument("--only", default=None, metavar="IDS",
+                   help="comma-separated check ids, id prefixes or families (e.g. 301-SDO,limits)")
+    p.add_argument("--units-per-mm", type=float, default=1000.0,
+                   help="position units per mm of the node (default 1000: 1 unit = 1 um)")
+    p.add_argument("--sdo-timeout", type=float, default=1.0, help="SDO response timeout [s] (default 1)")
+    p.add_argument("--junit", default=None, help="write a JUnit XML report here")
+    p.add_argument("--json", default=None, help="write a JSON report here")
+    p.add_argument("--list", action="store_true", help="list the checks and exit")
+    p.set_defaults(func=run)
+
+
+def _out_path(opt: str, value: str | None) -> Path | None:
+    from virtualaxis.cli.errors import CliError
+
+    if value is None:
+        return None
+    path = Path(value)
+    if path.is_dir():
+        raise CliError(f"{opt} {path}: is a folder, expected a file path")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise CliError(f"{opt} {path}: folder {parent} does not exist")
+    return path
+
+
+def run(args) -> int:
+    from virtualaxis.cli.errors import CliError
+    from virtualaxis.conformance import runner
+
+    checks = runner.select(args.only)
+    if args.list:
+        for c in checks:
+            pad = " " * 25
+            print(f"{c.id:<14} {c.family:<9} {c.clause}\n{pad}stimulus: {c.stimulus}\n{pad}expected: {c.expected}")
+        return 0
+    if not checks:
+        raise CliError(f"--only {args.only!r} selects no check (ids: {', '.join(c.id for c in runner.REGISTRY)})")
+    if not 1 <= args.node_id <= 127:
+        raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
+    if not args.units_per_mm > 0:
+        raise CliError(f"--units-per-mm must be > 0 (got {args.units_per_mm})")
+    junit, json_out = _out_path("--junit", args.junit), _out_path("--json", args.json)
+    eds = args.eds
+    if eds is not None:
+        if not Path(eds).is_file():
+            raise CliError(f"--eds {eds}: file not found")
+        from virtualaxis.canopen_slave.od import validate_eds
+
+        validate_eds(Path(eds))
+    from virtualaxis.master import DEFAULT_EDS, connect
+    from virtualaxis.runtime import BusOpenError
+
+    try:
+        net = connect(args.can)
+    except BusOpenError as exc:
+        raise CliError(str(exc)) from None
+    t0 = time.monotonic()
+    try:
+        ctx = runner.Context(net, args.node_id, eds or DEFAULT_EDS, sdo_timeout_s=args.sdo_timeout,
+                             units_per_mm=args.units_per_mm)
+        ctx.node.sdo.RESPONSE_TIMEOUT = args.sdo_timeout
+        try:
+            ctx.read(0x1000)
+        except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here
+            raise CliError(f"node {args.node_id} does not answer on {args.can} (SDO read 0x1000: {exc})") from None
+        results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
+    finally:
+        net.disconnect()
+    s = runner.summary(results)
+    dt = time.monotonic() - t0
+    print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped "
+          f"in {dt:.1f} s (node {args.node_id} on {args.can})")
+    meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3)}
+    if junit:
+        runner.write_junit(junit, results)
+    if json_out:
+        runner.write_json(json_out, results, meta)
+    sys.stdout.flush()
+    return 1 if s["fail"] else 0

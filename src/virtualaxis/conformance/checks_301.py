@@ -1,0 +1,511 @@
+"""CiA 301 checks (communication profile): NMT, heartbeat, identity, SDO server, PDO, EMCY, SYNC, EDS.
+
+Sources: CiA 301 v4.2 clauses named per check, and the checklist lines (CL n) of docs/conformance.md.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+
+import canopen
+from canopen import objectdictionary as odm
+
+from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
+
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NO_SUB = 0x06090011
+ABORT_READ_ONLY = 0x06010002
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_LENGTH = (0x06070010, 0x06070012, 0x06070013)
+ABORT_UNKNOWN_CS = 0x05040001
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
+#: aborts that mean "the object exists and is writable, but not with this value / now"
+ABORT_WRITABLE_BUT = {0x06090030, 0x06090031, 0x06090032, 0x06090036, 0x08000020, 0x08000021, 0x08000022,
+                      0x08000000, 0x06040043, 0x06040047, 0x06010000}
+
+NMT_STATES = {0x00: "boot-up", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
+
+
+def _hb_state(ctx: Context, mark: int, timeout: float = 0.5) -> int:
+    f = ctx.frames.wait(mark, ctx.hb_cob, lambda d: len(d) == 1 and d[0] != 0, timeout)
+    if f is None:
+        raise Fail("no heartbeat frame")
+    return f[2][0] & 0x7F
+
+
+# ============================================================================ identity, NMT, heartbeat
+@check("301-ID-1", "nmt", "CiA 301 7.5.2.1 (0x1000); CiA 402 device type; CL 5",
+       "SDO read 0x1000", "low word 0x0192 (CiA 402 drive)")
+def device_type(ctx: Context) -> str:
+    v = ctx.read(0x1000)
+    if v & 0xFFFF != 0x0192:
+        raise Fail(f"0x1000 = 0x{v:08X}: device profile 0x{v & 0xFFFF:04X}, expected 0x0192")
+    return f"0x1000 = 0x{v:08X}"
+
+
+@check("301-ID-2", "nmt", "CiA 301 7.5.2.31 (0x1018); CL 5", "SDO read 0x1018:0..4",
+       "sub0 >= 4; vendor, product, revision, serial readable")
+def identity(ctx: Context) -> str:
+    n = ctx.read(0x1018, 0)
+    if n < 4:
+        raise Fail(f"0x1018:0 = {n}, expected >= 4 (identity incomplete)")
+    vals = [ctx.read(0x1018, s) for s in range(1, 5)]
+    return "identity " + ", ".join(f"0x{v:08X}" for v in vals)
+
+
+@check("301-NMT-1", "nmt", "CiA 301 7.3.2.2.1 (NMT reset node, boot-up); CL 1, 3",
+       "NMT 0x81", "boot-up 0x700+id [00], then PRE-OPERATIONAL; SW & 0x4F = 0x40")
+def reset_node(ctx: Context) -> str:
+    mark = ctx.frames.mark()
+    ctx.nmt(0x81)
+    f = ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", 3.0)
+    if f is None:
+        raise Fail("no boot-up frame within 3 s of NMT Reset Node")
+    ctx.note(f"boot-up {f[2].hex()}")
+    ctx.write(0x1017, 0, 20)
+    mark = ctx.frames.mark()
+    st = _hb_state(ctx, mark)
+    if st != 0x7F:
+        raise Fail(f"heartbeat state 0x{st:02X} after boot, expected 0x7F (pre-operational)")
+    sw = ctx.read(0x6041)
+    if sw & 0x4F != 0x40:
+        raise Fail(f"statusword 0x{sw:04X} after boot, expected & 0x4F = 0x40 (switch on disabled)")
+    return f"boot-up seen, heartbeat 0x7F, statusword 0x{sw:04X}"
+
+
+@check("301-HB-1", "nmt", "CiA 301 7.2.8.3.2.2 (heartbeat producer, 0x1017); CL 2",
+       "0x1017 = 40 ms, then 0", "heartbeats every 40 ms carrying the NMT state; none with 0")
+def heartbeat(ctx: Context) -> str:
+    ctx.write(0x1017, 0, 40)
+    mark = ctx.frames.mark()
+    time.sleep(0.5)
+    frames = ctx.frames.since(mark, ctx.hb_cob)
+    if len(frames) < 8:
+        raise Fail(f"{len(frames)} heartbeats in 0.5 s at 40 ms, expected about 12")
+    gaps = [b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False)]
+    mean = sum(gaps) / len(gaps)
+    if not 0.030 < mean < 0.055:
+        raise Fail(f"mean heartbeat period {mean * 1e3:.1f} ms, expected 40 ms")
+    ctx.write(0x1017, 0, 0)
+    time.sleep(0.1)
+    mark = ctx.frames.mark()
+    time.sleep(0.3)
+    n = len(ctx.frames.since(mark, ctx.hb_cob))
+    ctx.write(0x1017, 0, 50)
+    if n:
+        raise Fail(f"{n} heartbeats with 0x1017 = 0, expected none")
+    return f"{len(frames)} heartbeats, mean period {mean * 1e3:.1f} ms; none with 0x1017 = 0"
+
+
+@check("301-NMT-2", "nmt", "CiA 301 7.3.2.2.1 (NMT stop / start); CL 3",
+       "NMT 0x02, SDO read, NMT 0x01", "stopped: heartbeat 0x04 and no SDO answer; start: 0x05")
+def stop_start(ctx: Context) -> str:
+    ctx.write(0x1017, 0, 20)
+    mark = ctx.frames.mark()
+    ctx.nmt(0x02)
+    time.sleep(0.08)
+    st = _hb_state(ctx, ctx.frames.mark())
+    if st != 0x04:
+        raise Fail(f"heartbeat 0x{st:02X} after NMT stop, expected 0x04")
+    old = ctx.node.sdo.RESPONSE_TIMEOUT
+    ctx.node.sdo.RESPONSE_TIMEOUT = 0.15
+    answered = True
+    try:
+        _ = ctx.node.sdo[0x1000].raw
+    except canopen.SdoCommunicationError:
+        answered = False
+    except canopen.SdoAbortedError:
+        answered = True
+    finally:
+        ctx.node.sdo.RESPONSE_TIMEOUT = old
+    ctx.nmt(0x01)
+    time.sleep(0.08)
+    st2 = _hb_state(ctx, ctx.frames.mark())
+    ctx.nmt(0x80)
+    del mark
+    if answered:
+        raise Fail("SDO answered in STOPPED (CiA 301: only NMT and heartbeat / guarding)")
+    if st2 != 0x05:
+        raise Fail(f"heartbeat 0x{st2:02X} after NMT start, expected 0x05")
+    return "STOPPED 0x04 without SDO, OPERATIONAL 0x05"
+
+
+@check("301-NMT-3", "nmt", "CiA 301 7.3.2.2.1 (reset communication); CL 3",
+       "0x1017 = 30, NMT 0x82", "boot-up; communication objects (0x1017) back to their defaults; PRE-OP")
+def reset_comm(ctx: Context) -> str:
+    default = ctx.od[0x1017].default or 0
+    ctx.write(0x1017, 0, 30 if default != 30 else 31)
+    mark = ctx.frames.mark()
+    ctx.nmt(0x82)
+    if ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", 2.0) is None:
+        raise Fail("no boot-up after NMT Reset Communication")
+    time.sleep(0.05)
+    v = ctx.read(0x1017)
+    ctx.write(0x1017, 0, 50)
+    if v != default:
+        raise Fail(f"0x1017 = {v} after reset communication, expected the default {default}")
+    return f"boot-up, 0x1017 back to {default}"
+
+
+@check("301-GUARD-1", "nmt", "CiA 301 7.2.8.3.2.1 (node guarding); CL 4",
+       "RTR on 0x700+id twice (heartbeat off)", "state byte with toggle bit alternating")
+def guarding(ctx: Context) -> str:
+    if 0x100C not in ctx.od:
+        raise Skip("the EDS lists no guard time 0x100C: node guarding not offered")
+    ctx.write(0x1017, 0, 0)
+    time.sleep(0.05)
+    answers = []
+    for _ in range(2):
+        mark = ctx.frames.mark()
+        ctx.net.bus.send(_rtr(0x700 + ctx.node_id))
+        f = ctx.frames.wait(mark, ctx.hb_cob, None, 0.5)
+        if f is None:
+            raise Fail("no answer to a node-guarding RTR")
+        answers.append(f[2][0])
+    ctx.write(0x1017, 0, 50)
+    if (answers[0] ^ answers[1]) & 0x80 == 0:
+        raise Fail(f"toggle bit did not alternate: {[hex(a) for a in answers]}")
+    if answers[0] & 0x7F not in (0x04, 0x05, 0x7F):
+        raise Fail(f"state 0x{answers[0] & 0x7F:02X} in guarding reply")
+    return f"replies {[hex(a) for a in answers]}"
+
+
+def _rtr(cob: int):
+    import can
+
+    return can.Message(arbitration_id=cob, is_remote_frame=True, dlc=1, is_extended_id=False)
+
+
+# ============================================================================ SDO server
+def _unlisted_index(ctx: Context, start: int = 0x2000, stop: int = 0x5FFF) -> int:
+    for idx in range(start + 0x0F7, stop, 0x100):
+        if idx not in ctx.od:
+            return idx
+    raise Skip("no unlisted index found")
+
+
+@check("301-SDO-1", "sdo", "CiA 301 7.2.4.3.17 (abort codes); CL 6",
+       "SDO read of an index the EDS does not list", "abort 0x06020000")
+def sdo_no_object(ctx: Context) -> str:
+    idx = _unlisted_index(ctx)
+    code = ctx.expect_abort(ABORT_NO_OBJECT, lambda: ctx.raw_read(idx, 0), f"read 0x{idx:04X}")
+    return f"0x{idx:04X} -> 0x{code:08X}"
+
+
+@check("301-SDO-2", "sdo", "CiA 301 7.2.4.3.17; CL 6", "SDO read 0x1018:0x20 (past sub0)", "abort 0x06090011")
+def sdo_no_sub(ctx: Context) -> str:
+    code = ctx.expect_abort(ABORT_NO_SUB, lambda: ctx.raw_read(0x1018, 0x20), "read 0x1018:0x20")
+    return f"0x{code:08X}"
+
+
+@check("301-SDO-3", "sdo", "CiA 301 7.2.4.3.17; CL 6", "SDO write 0x1000 (ro)", "abort 0x06010002")
+def sdo_read_only(ctx: Context) -> str:
+    code = ctx.expect_abort(ABORT_READ_ONLY, lambda: ctx.raw_write(0x1000, 0, struct.pack("<I", 0x192)),
+                            "write 0x1000")
+    return f"0x{code:08X}"
+
+
+@check("301-SDO-4", "sdo", "CiA 301 7.2.4.3.17; CL 6", "SDO write 4 bytes to 0x6040 (UNSIGNED16)",
+       "abort 0x06070010 / 0x06070012")
+def sdo_length(ctx: Context) -> str:
+    code = ctx.expect_abort(ABORT_LENGTH, lambda: ctx.raw_write(0x6040, 0, b"\x06\x00\x00\x00"),
+                            "write 4 bytes to 0x6040")
+    return f"0x{code:08X}"
+
+
+@check("301-SDO-5", "sdo", "CiA 301 7.2.4.3.17; CL 6", "SDO request with command specifier 7",
+       "abort 0x05040001")
+def sdo_unknown_cs(ctx: Context) -> str:
+    resp = ctx.raw_sdo(bytes([0xE0, 0x00, 0x10, 0x00, 0, 0, 0, 0]))
+    if resp is None:
+        raise Fail("no answer to command specifier 7")
+    code = int.from_bytes(resp[4:8], "little")
+    if resp[0] != 0x80 or code != ABORT_UNKNOWN_CS:
+        raise Fail(f"answer {resp.hex(' ')}, expected abort 0x{ABORT_UNKNOWN_CS:08X}")
+    return f"0x{code:08X}"
+
+
+@check("301-SDO-6", "sdo", "CiA 301 7.2.4.3.3-7 (segmented / block upload); CL 8",
+       "segmented and block upload of 0x1008", "the EDS' device name (or a string) both ways")
+def sdo_segmented_block(ctx: Context) -> str:
+    if 0x1008 not in ctx.od:
+        raise Skip("the EDS lists no 0x1008 device name")
+    seg = ctx.node.sdo.upload(0x1008, 0)
+    ctx.note(f"segmented upload 0x1008 -> {seg!r}")
+    with ctx.node.sdo[0x1008].open("rb", block_transfer=True) as fh:
+        blk = fh.read()
+    ctx.note(f"block upload 0x1008 -> {blk!r}")
+    if seg != blk:
+        raise Fail(f"segmented {seg!r} != block {blk!r}")
+    return f"{len(seg)} bytes both ways"
+
+
+@check("301-SDO-7", "sdo", "CiA 402 6.2 (0x6060 value range); CL 7",
+       "0x6060 = a mode not set in 0x6502", "abort 0x06090030 and 0x6061 unchanged")
+def sdo_mode_unsupported(ctx: Context) -> str:
+    supported = ctx.read(0x6502)
+    mode = next((m for m in (2, 4, 5, 7, 9, 10, 8, 6, 3, 1) if not supported >> (m - 1) & 1), None)
+    if mode is None:
+        raise Skip("every mode 1..10 is supported")
+    before = ctx.read(0x6061)
+    ctx.expect_abort(0x06090030, lambda: ctx.write(0x6060, 0, mode), f"0x6060 = {mode}")
+    after = ctx.read(0x6061)
+    if after != before:
+        raise Fail(f"0x6061 changed {before} -> {after} after a refused mode")
+    return f"mode {mode} refused (0x6502 = 0x{supported:X}), 0x6061 stays {after}"
+
+
+# ============================================================================ PDO
+@check("301-PDO-1", "pdo", "CiA 301 7.5.2.35-36 (PDO mapping); CL 9",
+       "map 0x1000 (PDOMapping=0) into RPDO4 while invalid", "abort 0x06040041")
+def pdo_unmappable(ctx: Context) -> str:
+    cob = ctx.read(0x1403, 1)
+    ctx.write(0x1403, 1, cob | 0x80000000)
+    ctx.write(0x1603, 0, 0)
+    try:
+        code = ctx.expect_abort(ABORT_NOT_MAPPABLE, lambda: ctx.write(0x1603, 1, 0x10000020), "map 0x1000")
+    finally:
+        boot(ctx)
+    return f"0x{code:08X}"
+
+
+@check("301-PDO-2", "pdo", "CiA 301 7.5.2.35-36; CL 9", "RPDO4 mapping of 3 x 32 bit",
+       "abort 0x06040042 (longer than 64 bits)")
+def pdo_too_long(ctx: Context) -> str:
+    cob = ctx.read(0x1403, 1)
+    ctx.write(0x1403, 1, cob | 0x80000000)
+    ctx.write(0x1603, 0, 0)
+    wide = [v for v in _eds_entries(ctx) if v.pdo_mappable and v.data_type in (odm.INTEGER32, odm.UNSIGNED32)
+            and v.access_type in ("rw", "wo", "rww") and v.index >= 0x2000][:3]
+    if len(wide) < 3:
+        boot(ctx)
+        raise Skip("the EDS lists fewer than three writable mappable 32-bit objects")
+    try:
+        for s, v in enumerate(wide, 1):
+            ctx.write(0x1603, s, (v.index << 16) | (v.subindex << 8) | 32)
+        code = ctx.expect_abort((ABORT_PDO_LENGTH,), lambda: ctx.write(0x1603, 0, 3), "sub0 = 3 (96 bit)")
+    finally:
+        boot(ctx)
+    return f"0x{code:08X}"
+
+
+@check("301-PDO-3", "pdo", "CiA 301 7.2.2 (PDO mapping while valid); CL 9",
+       "write 0x1A00:0 = 0 while TPDO1 is valid", "abort (e.g. 0x08000022 / 0x06090030 / 0x06010000)")
+def pdo_change_while_valid(ctx: Context) -> str:
+    cob = ctx.read(0x1800, 1)
+    if cob & 0x80000000:
+        raise Skip("TPDO1 is not valid by default")
+    ctx.expect_abort(ABORT_WRITABLE_BUT | {0x06040043}, lambda: ctx.write(0x1A00, 0, 0), "0x1A00:0 = 0")
+    return "refused"
+
+
+@check("301-PDO-4", "pdo", "CiA 301 7.2.2.2 (synchronous TPDO, type 1); CL 10",
+       "TPDO1 type 1; 3 SYNC in PRE-OP, NMT start, 5 SYNC", "no TPDO in PRE-OP; one TPDO1 per SYNC in OP")
+def tpdo_sync(ctx: Context) -> str:
+    boot(ctx)
+    ctx.write(0x1800, 2, 1)
+    cob = ctx.read(0x1800, 1) & 0x7FF
+    ctx.net.subscribe(cob, ctx.frames.on_frame)
+    mark = ctx.frames.mark()
+    for _ in range(3):
+        ctx.sync_once()
+        time.sleep(0.01)
+    pre = len(ctx.frames.since(mark, cob))
+    ctx.nmt(0x01)
+    time.sleep(0.05)
+    mark = ctx.frames.mark()
+    for _ in range(5):
+        ctx.sync_once()
+        time.sleep(0.02)
+    time.sleep(0.02)
+    op = len(ctx.frames.since(mark, cob))
+    boot(ctx)
+    if pre:
+        raise Fail(f"{pre} TPDO1 frames in PRE-OPERATIONAL")
+    if op != 5:
+        raise Fail(f"{op} TPDO1 frames for 5 SYNC (type 1), expected 5")
+    return "0 in PRE-OP, 5 for 5 SYNC"
+
+
+@check("301-PDO-5", "pdo", "CiA 301 7.2.2 (RPDO writes the mapped objects); CL 11",
+       "RPDO1 [0x6040 = 0x0006] (default mapping), SDO read 0x6040", "0x6040 = 0x0006, state ready to switch on")
+def rpdo_writes(ctx: Context) -> str:
+    boot(ctx)
+    n = ctx.read(0x1600, 0)
+    first = ctx.read(0x1600, 1) if n else 0
+    if not n or first >> 16 != 0x6040:
+        raise Skip(f"RPDO1 does not map the controlword first (0x1600:1 = 0x{first:08X})")
+    size = sum((ctx.read(0x1600, s) & 0xFF) for s in range(1, n + 1)) // 8
+    cob = ctx.read(0x1400, 1) & 0x7FF
+    ctx.nmt(0x01)
+    time.sleep(0.03)
+    data = (0x0006).to_bytes(2, "little")
+    for s in range(2, n + 1):  # the other mapped objects keep their present values
+        m = ctx.read(0x1600, s)
+        data += ctx.raw_read(m >> 16, (m >> 8) & 0xFF)[: (m & 0xFF) // 8]
+    if len(data) != size:
+        raise Fail(f"RPDO1 mapping of {size} bytes, assembled {len(data)}")
+    ctx.net.send_message(cob, data)
+    ctx.note(f"RPDO 0x{cob:03X} [{data.hex(' ')}]")
+    time.sleep(0.05)
+    cw = ctx.read(0x6040)
+    sw = ctx.read(0x6041)
+    boot(ctx)
+    if cw != 6:
+        raise Fail(f"0x6040 = 0x{cw:04X} after the RPDO carried 0x0006")
+    if sw & 0x6F != 0x21:
+        raise Fail(f"statusword 0x{sw:04X} after CW 0x06 by RPDO, expected ready to switch on (0x21)")
+    return f"0x6040 = 0x{cw:04X}, SW 0x{sw:04X}"
+
+
+@check("301-EMCY-1", "emcy", "CiA 301 7.5.2.19 (0x1014 COB-ID EMCY)", "SDO read 0x1014",
+       "0x80 + node id (valid)")
+def emcy_cob(ctx: Context) -> str:
+    if 0x1014 not in ctx.od:
+        raise Skip("the EDS lists no 0x1014")
+    v = ctx.read(0x1014)
+    if v & 0x7FF != 0x80 + ctx.node_id or v & 0x80000000:
+        raise Fail(f"0x1014 = 0x{v:08X}, expected 0x{0x80 + ctx.node_id:X}")
+    return f"0x1014 = 0x{v:08X}"
+
+
+# ============================================================================ SYNC timeout (issue #15 item 6)
+@check("301-SYNC-1", "sync", "CiA 301 7.5.2.6 (0x1006) / 7.2.5 (SYNC consumer timeout 1.5 x period)",
+       "0x1006 = 20 ms, SYNC every 20 ms for 1 s, then SYNC stopped",
+       "no EMCY 0x8100 while SYNC runs; EMCY 0x8100 within 0.3 s after it stops")
+def sync_timeout(ctx: Context) -> str:
+    if 0x1006 not in ctx.od:
+        raise Skip("the EDS lists no 0x1006")
+    boot(ctx)
+    ctx.write(0x1006, 0, 20_000)
+    ctx.nmt(0x01)
+    ctx.start_sync(0.020)
+    mark = ctx.frames.mark()
+    time.sleep(1.0)
+    false_alarms = [c for c in ctx.emcy_codes(mark) if c == 0x8100]
+    ctx.stop_sync()
+    mark2 = ctx.frames.mark()
+    t0 = time.monotonic()
+    got = ctx.wait_emcy(mark2, 0x8100, 0.5)
+    dt = time.monotonic() - t0
+    boot(ctx)
+    if false_alarms:
+        raise Fail(f"{len(false_alarms)} EMCY 0x8100 while SYNC ran every 20 ms")
+    if got is None or dt > 0.3:
+        raise Fail("no EMCY 0x8100 within 0.3 s of the last SYNC (0x1006 = 20 ms)")
+    return f"no false alarm in 1 s; EMCY 0x8100 {dt * 1e3:.0f} ms after SYNC stopped"
+
+
+# ============================================================================ EDS consistency
+_SIZES = {odm.BOOLEAN: 1, odm.INTEGER8: 1, odm.UNSIGNED8: 1, odm.INTEGER16: 2, odm.UNSIGNED16: 2,
+          odm.INTEGER32: 4, odm.UNSIGNED32: 4, odm.REAL32: 4, odm.INTEGER64: 8, odm.UNSIGNED64: 8,
+          odm.REAL64: 8}
+_SKIP_WRITE = {0x1010, 0x1011, 0x6040, 0x1F51, 0x1F50}  # store / restore / controlword: side effects
+
+
+def _eds_entries(ctx: Context) -> list:
+    out = []
+    for obj in ctx.od.values():
+        if isinstance(obj, odm.ODVariable):
+            out.append(obj)
+        else:
+            out.extend(obj.values())
+    return out
+
+
+@check("301-EDS-1", "eds", "CiA 306 (EDS) / CiA 301 7.4.7 (access types)",
+       "every object the EDS lists: SDO upload; ro/const: write back; rw: write the value read back",
+       "answers with the EDS' data-type length; ro/const writes abort 0x06010002; wo reads 0x06010001; "
+       "rw writes accepted (or refused by value / state, not by access)")
+def eds_listed(ctx: Context) -> str:
+    boot(ctx)
+    problems: list[str] = []
+    n = 0
+    for var in _eds_entries(ctx):
+        idx, sub = var.index, var.subindex
+        name = f"0x{idx:04X}:{sub} {var.name}"
+        n += 1
+        try:
+            data = ctx.node.sdo.upload(idx, sub)
+            readable = True
+        except canopen.SdoAbortedError as exc:
+            data, readable = b"", False
+            if exc.code == 0x08000024:  # no data available (e.g. an empty error history entry): it exists
+                continue
+            if var.access_type == "wo":
+                if exc.code != ABORT_WRITE_ONLY:
+                    problems.append(f"{name}: wo read abort 0x{exc.code:08X}, expected 0x06010001")
+            else:
+                problems.append(f"{name}: read abort 0x{exc.code:08X} ({var.access_type} in the EDS)")
+                continue
+        if readable and var.access_type == "wo":
+            problems.append(f"{name}: wo in the EDS but readable")
+        if readable and var.data_type in _SIZES and len(data) != _SIZES[var.data_type]:
+            problems.append(f"{name}: {len(data)} bytes, EDS data type 0x{var.data_type:04X} has "
+                            f"{_SIZES[var.data_type]}")
+            continue
+        if idx in _SKIP_WRITE or not readable:
+            continue
+        try:
+            ctx.node.sdo.download(idx, sub, data)
+            wrote, code = True, 0
+        except canopen.SdoAbortedError as exc:
+            wrote, code = False, exc.code
+        if var.access_type in ("ro", "const"):
+            if wrote:
+                problems.append(f"{name}: {var.access_type} in the EDS but a write was accepted")
+            elif code != ABORT_READ_ONLY:
+                problems.append(f"{name}: write to {var.access_type} aborted 0x{code:08X}, expected 0x06010002")
+        elif not wrote and code not in ABORT_WRITABLE_BUT:
+            problems.append(f"{name}: rw in the EDS, write back refused 0x{code:08X}")
+    boot(ctx)
+    if problems:
+        raise Fail(f"{len(problems)} of {n} listed entries disagree with the EDS: " + "; ".join(problems[:6]))
+    return f"{n} listed entries answer with the EDS' access and data type"
+
+
+def _unlisted_probes(ctx: Context) -> list[tuple[int, int]]:
+    listed = set(ctx.od.indices) if hasattr(ctx.od, "indices") else {o.index for o in ctx.od.values()}
+    probes: list[tuple[int, int]] = []
+    for idx in sorted(listed):  # the neighbours of every listed object, and one sub past each record / array
+        for nb in (idx - 1, idx + 1):
+            if 0x1000 <= nb <= 0x9FFF and nb not in listed:
+                probes.append((nb, 0))
+        obj = ctx.od[idx]
+        if not isinstance(obj, odm.ODVariable):
+            subs = [v.subindex for v in obj.values()]
+            top = max(subs) + 1
+            if top <= 0xFE and not isinstance(obj, odm.ODArray):
+                probes.append((idx, top))
+    for idx in list(range(0x1000, 0x2000, 0x40)) + list(range(0x2000, 0x6000, 0x200)) + \
+            list(range(0x6000, 0xA000, 0x80)):  # a sparse sweep of the rest of the dictionary
+        probe = idx + 0x13
+        if probe not in listed:
+            probes.append((probe, 0))
+    seen, out = set(), []
+    for p in probes:
+        if p not in seen:
+            seen.add(p)
+            out.append(p)
+    return out
+
+
+@check("301-EDS-2", "eds", "CiA 306 / CiA 301 7.4 (objects not in the EDS)",
+       "SDO upload of unlisted indices (neighbours of listed ones, a sparse sweep) and of the sub past each record",
+       "abort 0x06020000 (no object) / 0x06090011 (no sub-index): nothing answers that the EDS does not list")
+def eds_unlisted(ctx: Context) -> str:
+    probes = _unlisted_probes(ctx)
+    answered = []
+    for idx, sub in probes:
+        try:
+            data = ctx.node.sdo.upload(idx, sub)
+            answered.append(f"0x{idx:04X}:{sub} -> {data.hex()}")
+        except canopen.SdoAbortedError as exc:
+            expected = ABORT_NO_SUB if sub else ABORT_NO_OBJECT
+            if exc.code not in (expected, ABORT_NO_OBJECT):
+                answered.append(f"0x{idx:04X}:{sub} abort 0x{exc.code:08X} (expected 0x{expected:08X})")
+    if answered:
+        raise Fail(f"{len(answered)} of {len(probes)} unlisted entries answered: " + "; ".join(answered[:6]))
+    return f"{len(probes)} unlisted entries all refused"

@@ -1,0 +1,614 @@
+"""CiA 402 checks (drive profile): state machine, modes of operation, faults, and the field behaviours
+of a machine-tool drive under faults and loss of control.
+
+Positions, velocities and accelerations are in the node's own units (0x6064 / 0x606C / 0x6085); distances
+are chosen in mm through ``ctx.units_per_mm`` (``--units-per-mm``, default 1000 = 1 um per unit). The master
+maps, as the standard allows (CiA 301 dynamic mapping): TPDO1 = statusword + position actual value, TPDO2 =
+velocity actual value (both on every SYNC), RPDO1 = controlword + target position (asynchronous), and runs
+SYNC every ``ctx.sync_period_s`` while the axis moves (a drive locked to SYNC advances only on SYNC).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import canopen
+
+from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
+
+STATE_MASK = 0x6F
+SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
+MODES = {1: "PP", 3: "PV", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
+MODE_BITS = {1: 0x1, 3: 0x4, 6: 0x20, 7: 0x40, 8: 0x80, 9: 0x100, 10: 0x200}
+
+
+def _is_fault(sw: int) -> bool:
+    return sw & 0x4F == 0x08 or sw & 0x4F == 0x0F
+
+
+@dataclass
+class Sample:
+    t: float
+    sw: int
+    pos: int
+    vel: int | None = None
+
+
+class Motion:
+    """Process-data set-up of the motion checks and the samples of TPDO1/TPDO2."""
+
+    def __init__(self, ctx: Context):
+        self.ctx = ctx
+        n = ctx.node_id
+        self.tpdo1, self.tpdo2, self.rpdo1 = 0x180 + n, 0x280 + n, 0x200 + n
+        boot(ctx)
+        try:
+            self._map(0x1800, 0x1A00, self.tpdo1, [0x60410010, 0x60640020], 1)
+            self._map(0x1801, 0x1A01, self.tpdo2, [0x606C0020], 1)
+            self._map(0x1400, 0x1600, self.rpdo1, [0x60400010, 0x607A0020], 255)
+        except canopen.SdoAbortedError as exc:
+            raise Skip(f"dynamic PDO mapping refused (abort 0x{exc.code:08X}): the motion checks need "
+                       "TPDO1 = 0x6041 + 0x6064, TPDO2 = 0x606C, RPDO1 = 0x6040 + 0x607A") from None
+        ctx.write(0x1017, 0, 50)
+        ctx.nmt(0x01)
+        time.sleep(0.03)
+        self._stream: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.target = 0
+        self.cw = 0x0F
+        self.step_units = 0.0
+
+    def _map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
+        ctx = self.ctx
+        ctx.write(comm, 1, cob | 0x80000000)
+        ctx.write(mapping, 0, 0)
+        for i, e in enumerate(entries, 1):
+            ctx.write(mapping, i, e)
+        ctx.write(mapping, 0, len(entries))
+        ctx.write(comm, 2, ttype)
+        ctx.write(comm, 1, cob)
+
+    def samples(self, mark: int) -> list[Sample]:
+        out: list[Sample] = []
+        vel = None
+        for t, cob, d in self.ctx.frames.since(mark):
+            if cob == self.tpdo2 and len(d) >= 4:
+                vel = int.from_bytes(d[0:4], "little", signed=True)
+                if out:
+                    out[-1].vel = vel
+            elif cob == self.tpdo1 and len(d) >= 6:
+                out.append(Sample(t, int.from_bytes(d[0:2], "little"), int.from_bytes(d[2:6], "little", signed=True),
+                                  vel))
+        return out
+
+    def last(self, timeout: float = 0.5) -> Sample:
+        mark = self.ctx.frames.mark()
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            s = self.samples(mark)
+            if len(s) >= 2:
+                return s[-1]
+            time.sleep(0.005)
+        raise Fail("no TPDO1 (statusword + position) on SYNC")
+
+    def rpdo(self, cw: int, target: int) -> None:
+        data = cw.to_bytes(2, "little") + int(target).to_bytes(4, "little", signed=True)
+        self.ctx.net.send_message(self.rpdo1, data)
+
+    def stream(self, start: int, velocity_units_s: float) -> None:
+        """CSP: every SYNC period, RPDO1 (CW 0x0F + target advanced by v * period), then SYNC."""
+        ctx = self.ctx
+        ctx.stop_sync()
+        self.target = float(start)
+        self.step_units = velocity_units_s * ctx.sync_period_s
+        self._stop.clear()
+
+        def run() -> None:
+            period = ctx.sync_period_s
+            nxt = time.monotonic()
+            while not self._stop.is_set():
+                self.target += self.step_units
+                self.rpdo(self.cw, round(self.target))
+                ctx.sync_once()
+                nxt += period
+                delay = nxt - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                else:
+                    nxt = time.monotonic()
+
+        self._stream = threading.Thread(target=run, daemon=True, name="conformance-csp")
+        self._stream.start()
+
+    def stop_stream(self) -> None:
+        self._stop.set()
+        if self._stream is not None:
+            self._stream.join(2.0)
+            self._stream = None
+
+    def wait(self, pred, timeout: float, what: str) -> Sample:
+        end = time.monotonic() + timeout
+        while True:
+            s = self.last()
+            if pred(s):
+                return s
+            if time.monotonic() > end:
+                raise Fail(f"{what} not reached in {timeout:g} s (SW 0x{s.sw:04X}, position {s.pos})")
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self.stop_stream()
+        self.ctx.stop_sync()
+
+
+def _enable_mode(ctx: Context, mode: int) -> None:
+    supported = ctx.read(0x6502)
+    if not supported & MODE_BITS.get(mode, 0):
+        raise Skip(f"mode {mode} ({MODES.get(mode, '?')}) not supported (0x6502 = 0x{supported:X})")
+    ctx.write(0x6060, 0, mode)
+    end = time.monotonic() + 0.5
+    while ctx.node.sdo[0x6061].raw != mode:
+        if time.monotonic() > end:
+            raise Fail(f"0x6061 did not follow 0x6060 = {mode} within 0.5 s")
+        time.sleep(0.005)
+    ctx.enable()
+
+
+# ============================================================================ state machine
+@check("402-SM-1", "sm", "CiA 402 6.1.3 (power drive state machine, transitions 2, 3, 4); CL 12",
+       "after reset: CW 0x06, 0x07, 0x0F by SDO", "SW & 0x6F = 0x21, 0x23, 0x27; whole chain well inside 0.8 s")
+def sm_enable(ctx: Context) -> str:
+    boot(ctx)
+    sw = ctx.sw()
+    if sw & 0x4F != 0x40:
+        raise Fail(f"SW 0x{sw:04X} after boot, expected switch on disabled")
+    t0 = time.monotonic()
+    for cw, exp in ((0x06, RTSO), (0x07, SO), (0x0F, OE)):
+        ctx.write(0x6040, 0, cw)
+        ctx.wait_sw(STATE_MASK, exp, 0.5, f"CW 0x{cw:02X}")
+    dt = time.monotonic() - t0
+    ctx.disable()
+    if dt > 0.8:
+        raise Fail(f"chain took {dt:.2f} s")
+    return f"0x21 -> 0x23 -> 0x27 in {dt * 1e3:.0f} ms"
+
+
+@check("402-SM-2", "sm", "CiA 402 6.1.3 (transitions 5, 6, 7, 8, 9, 4); CL 13",
+       "in operation enabled: CW 0x07, 0x0F, 0x06, then 0x07, 0x0F, 0x00",
+       "switched on 0x23, enabled 0x27, ready 0x21, ..., switch on disabled (SW & 0x4F = 0x40)")
+def sm_back(ctx: Context) -> str:
+    boot(ctx)
+    ctx.start_sync()  # stop reactions (0x605C, 0x605B) ramp over drive cycles: a SYNC-locked drive needs SYNC
+    ctx.enable()
+    seq = ((0x07, STATE_MASK, SO), (0x0F, STATE_MASK, OE), (0x06, STATE_MASK, RTSO), (0x07, STATE_MASK, SO),
+           (0x0F, STATE_MASK, OE), (0x00, 0x4F, 0x40))
+    for cw, mask, exp in seq:
+        ctx.write(0x6040, 0, cw)
+        ctx.wait_sw(mask, exp, 1.0, f"CW 0x{cw:02X}")
+    return "all transitions as specified"
+
+
+@check("402-SM-3", "sm", "CiA 402 6.1.3 (quick stop, transitions 11, 12, 16); 0x605A; CL 13, 14, 17",
+       "0x605A = 6, CW 0x02; CW 0x0F; 0x605A = 2, CW 0x02",
+       "quick stop active (SW & 0x6F = 0x07, bit 5 = 0), back to 0x27 with 0x0F; with 2: switch on disabled")
+def sm_quick_stop(ctx: Context) -> str:
+    boot(ctx)
+    try:
+        ctx.write(0x605A, 0, 6)
+    except canopen.SdoAbortedError as exc:
+        raise Skip(f"0x605A = 6 refused (0x{exc.code:08X})") from None
+    ctx.start_sync()
+    ctx.enable()
+    ctx.write(0x6040, 0, 0x02)
+    sw = ctx.wait_sw(STATE_MASK, QSA, 1.0, "quick stop (0x605A = 6)")
+    if sw & 0x20:
+        raise Fail(f"SW 0x{sw:04X}: bit 5 set in quick stop active")
+    ctx.write(0x6040, 0, 0x0F)
+    ctx.wait_sw(STATE_MASK, OE, 1.0, "CW 0x0F from quick stop active")
+    ctx.write(0x605A, 0, 2)
+    ctx.write(0x6040, 0, 0x02)
+    ctx.wait_sw(0x4F, 0x40, 1.5, "quick stop with 0x605A = 2 ends in switch on disabled")
+    return "0x07 (bit 5 = 0) -> 0x27; with 0x605A = 2 -> 0x40"
+
+
+# ============================================================================ modes
+@check("402-MODE-1", "modes", "CiA 402 6.2 (0x6060 / 0x6061); CL 18",
+       "0x6060 = every mode set in 0x6502", "0x6061 = the mode within 0.5 s")
+def modes_follow(ctx: Context) -> str:
+    boot(ctx)
+    supported = ctx.read(0x6502)
+    seen = []
+    for m, bit in MODE_BITS.items():
+        if supported & bit:
+            ctx.write(0x6060, 0, m)
+            end = time.monotonic() + 0.5
+            while (got := ctx.node.sdo[0x6061].raw) != m:
+                if time.monotonic() > end:
+                    raise Fail(f"0x6061 = {got} 0.5 s after 0x6060 = {m}")
+                time.sleep(0.005)
+            seen.append(m)
+    return f"modes {seen} displayed in 0x6061"
+
+
+@check("402-PP-1", "modes", "CiA 402 12 (profile position: set-point handshake, target reached); CL 19",
+       "PP, 0x6081 = 100 mm/s, 0x607A = actual + 10 mm, CW 0x1F then 0x0F",
+       "bit 12 = 1 (acknowledge), bit 12 = 0 after bit 4 drops, bit 10 = 1 inside 0x6067 at the target")
+def pp_move(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(100))
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        p0 = mo.last().pos
+        target = p0 + ctx.mm(10)
+        ctx.write(0x607A, 0, target)
+        ctx.write(0x6040, 0, 0x1F)
+        ctx.wait_sw(0x1000, 0x1000, 0.5, "set-point acknowledge (bit 12)")
+        ctx.write(0x6040, 0, 0x0F)
+        ctx.wait_sw(0x1000, 0x0000, 0.5, "bit 12 cleared after CW bit 4 = 0")
+        s = mo.wait(lambda s: s.sw & 0x400 and abs(s.pos - target) < ctx.mm(1), 3.0, "target reached")
+        window = ctx.read(0x6067)
+        if abs(s.pos - target) > window:
+            raise Fail(f"target reached at {s.pos}, target {target}, window {window}")
+        return f"moved {p0} -> {s.pos} (target {target}), handshake as specified"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+@check("402-PV-1", "modes", "CiA 402 11 (profile velocity: velocity reached, speed zero); CL 20",
+       "PV, 0x60FF = 50 mm/s, then 0", "bit 10 (velocity reached) at 50 mm/s; bit 12 (speed zero) at 0")
+def pv_move(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        _enable_mode(ctx, 3)
+        ctx.start_sync()
+        ctx.write(0x60FF, 0, ctx.mm(50))
+        ctx.wait_sw(0x400, 0x400, 1.5, "velocity reached (bit 10)")
+        v = ctx.read(0x606C)
+        if abs(v - ctx.mm(50)) > ctx.mm(5):
+            raise Fail(f"0x606C = {v} with bit 10 set, target {ctx.mm(50)}")
+        ctx.write(0x60FF, 0, 0)
+        ctx.wait_sw(0x1000, 0x1000, 1.5, "speed zero (bit 12)")
+        return f"0x606C = {v} at bit 10; bit 12 at rest"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+@check("402-CSP-1", "modes", "CiA 402 (cyclic synchronous position); CL 22",
+       "CSP, RPDO1 target advanced 50 mm/s every SYNC for 0.4 s", "the axis follows: bit 12 = 1, "
+       "|position - target| < 1 mm while moving and < 0x6067 after the stream stops")
+def csp_follow(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        _enable_mode(ctx, 8)
+        p0 = ctx.read(0x6064)
+        mo.stream(p0, ctx.mm(50))
+        time.sleep(0.4)
+        s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
+        err = abs(mo.target - s[0].pos)
+        mo.step_units = 0.0
+        time.sleep(0.3)
+        s2 = mo.last()
+        final = abs(round(mo.target) - s2.pos)
+        if not s2.sw & 0x1000:
+            raise Fail(f"SW 0x{s2.sw:04X}: bit 12 (drive follows the target) not set in CSP")
+        if s2.pos - p0 < ctx.mm(10):
+            raise Fail(f"moved {s2.pos - p0} units for a 20 mm stream")
+        if final > max(ctx.read(0x6067), ctx.mm(0.05)):
+            raise Fail(f"settled {final} units from the target")
+        return f"lag {err:.0f} units while moving, {final} units after; bit 12 set"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+@check("402-HM-1", "modes", "CiA 402 10 (homing, methods 35 / 37 on the current position); CL 21",
+       "HM, 0x6098 = 37 (or 35), 0x607C = 1 mm, CW 0x1F", "bits 12 and 10 set (homing attained), 0x6064 = 0x607C")
+def homing_current_position(ctx: Context) -> str:
+    boot(ctx)
+    for method in (37, 35):
+        try:
+            ctx.write(0x6098, 0, method)
+            break
+        except canopen.SdoAbortedError:
+            continue
+    else:
+        raise Skip("homing methods 37 and 35 both refused")
+    ctx.write(0x607C, 0, ctx.mm(1))
+    _enable_mode(ctx, 6)
+    ctx.start_sync()
+    try:
+        ctx.write(0x6040, 0, 0x1F)
+        ctx.wait_sw(0x3400, 0x1400, 2.0, "homing attained (bits 13/12/10 = 0/1/1)")
+        pos = ctx.read(0x6064)
+        if abs(pos - ctx.mm(1)) > ctx.mm(0.01):
+            raise Fail(f"0x6064 = {pos} after homing on the current position, expected 0x607C = {ctx.mm(1)}")
+        return f"method {method}: 0x6064 = {pos}"
+    finally:
+        ctx.disable()
+
+
+@check("402-FE-1", "modes", "CiA 402 (following error 0x6065 / 0x6066, EMCY 0x8611); CiA 301 EMCY; CL 15, 24",
+       "PP move at 100 mm/s with 0x6065 = 1 unit", "fault reaction -> fault (SW & 0x4F = 0x08), EMCY 0x8611 with "
+       "0x1001 bit 0, 0x603F = 0x8611, 0x1003:1 = 0x8611; CW 0x80 edge -> switch on disabled and EMCY 0x0000")
+def following_error_fault(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(100))
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        ctx.write(0x6065, 0, 1)
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        mark = ctx.frames.mark()
+        p0 = mo.last().pos
+        ctx.write(0x607A, 0, p0 + ctx.mm(20))
+        ctx.write(0x6040, 0, 0x1F)
+        ctx.write(0x6040, 0, 0x0F)
+        emcy = ctx.wait_emcy(mark, 0x8611, 2.0)
+        if emcy is None:
+            raise Fail(f"no EMCY 0x8611 (seen {[hex(c) for c in ctx.emcy_codes(mark)]})")
+        if not emcy[2] & 0x01:
+            raise Fail(f"EMCY 0x8611 with error register 0x{emcy[2]:02X} (bit 0 not set)")
+        ctx.wait_sw(0x4F, 0x08, 2.0, "fault state")
+        code = ctx.read(0x603F)
+        hist = ctx.read(0x1003, 1) & 0xFFFF if 0x1003 in ctx.od else 0x8611
+        if code != 0x8611 or hist != 0x8611:
+            raise Fail(f"0x603F = 0x{code:04X}, 0x1003:1 = 0x{hist:04X}, expected 0x8611")
+        mark = ctx.frames.mark()
+        ctx.write(0x6040, 0, 0x00)
+        ctx.write(0x6040, 0, 0x80)
+        ctx.wait_sw(0x4F, 0x40, 1.0, "fault reset (CW bit 7 edge)")
+        if ctx.wait_emcy(mark, 0x0000, 0.5) is None:
+            raise Fail("no EMCY 0x0000 (error reset) after the fault reset")
+        return "EMCY 0x8611, 0x603F / 0x1003 set, reset -> EMCY 0x0000"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+# ============================================================================ field behaviours (issue #15)
+def _stop_bound(v: float, a: float, reaction_s: float, margin: float) -> float:
+    return v * v / (2 * a) + abs(v) * reaction_s + margin
+
+
+@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085); issue #15 item 1",
+       "CSP at 100 mm/s, 0x605E = 2, 0x6085 = 10 m/s^2; 0x6065 tightened to 1 unit while moving; the master "
+       "keeps streaming", "the drive brakes from the ACTUAL speed: travel after the fault <= v^2/(2 a) + v * 20 ms "
+       "+ 1 mm, at rest (< 1 mm/s), then fault (SW & 0x4F = 0x08)")
+def fault_reaction_from_motion(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        a = ctx.mm(10_000)
+        ctx.write(0x605E, 0, 2)
+        ctx.write(0x6085, 0, a)
+        _enable_mode(ctx, 8)
+        p0 = ctx.read(0x6064)
+        v_cmd = ctx.mm(100)
+        mo.step_units = 0.0
+        mo.stream(p0, 0.0)
+        for i in range(1, 51):  # ramp to 100 mm/s over 50 SYNC periods
+            mo.step_units = v_cmd * ctx.sync_period_s * i / 50
+            time.sleep(ctx.sync_period_s)
+        time.sleep(0.25)
+        mark = ctx.frames.mark()
+        if 0x6066 in ctx.od:
+            ctx.write(0x6066, 0, 0)
+        ctx.write(0x6065, 0, 1)
+        end = time.monotonic() + 2.0
+        first = None
+        while first is None and time.monotonic() < end:
+            first = next((s for s in mo.samples(mark) if _is_fault(s.sw)), None)
+            time.sleep(0.005)
+        if first is None:
+            raise Fail("no fault within 2 s of 0x6065 = 1 while moving at 100 mm/s")
+        before = [s for s in mo.samples(mark) if s.t <= first.t and s.vel is not None]
+        v_f = abs(before[-1].vel) if before else v_cmd
+        time.sleep(1.5)
+        samples = mo.samples(mark)
+        last = samples[-1]
+        travel = abs(last.pos - first.pos)
+        bound = _stop_bound(v_f, a, 0.020, ctx.mm(1))
+        v_end = abs(last.vel or 0)
+        ctx.note(f"fault at SW 0x{first.sw:04X} pos {first.pos} v {v_f}; end pos {last.pos} v {v_end}")
+        if travel > bound:
+            raise Fail(f"travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
+                       f"{v_f / ctx.units_per_mm:.0f} mm/s, bound v^2/2a + margin = "
+                       f"{bound / ctx.units_per_mm:.2f} mm (coasting?)")
+        if v_end > ctx.mm(1):
+            raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1.5 s after the fault")
+        if last.sw & 0x4F != 0x08:
+            raise Fail(f"SW 0x{last.sw:04X} 1.5 s after the fault, expected fault (0x08)")
+        return (f"{travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
+                f"(bound {bound / ctx.units_per_mm:.2f} mm), at rest, fault")
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+@check("402-FLD-2", "rpdo", "CiA 301 7.2.2 (all PDO entries stored before the application reacts); CiA 402 12 "
+       "(new set-point); issue #15 item 2",
+       "PP, old 0x607A = actual + 5 mm by SDO; ONE RPDO1 [CW 0x1F, 0x607A = actual + 20 mm], then [0x0F, same]",
+       "the axis moves to actual + 20 mm (the target of the same PDO), not to the old target")
+def cw_and_target_in_one_rpdo(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(200))
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        p0 = mo.last().pos
+        ctx.write(0x607A, 0, p0 + ctx.mm(5))
+        new = p0 + ctx.mm(20)
+        mo.rpdo(0x1F, new)
+        ctx.note(f"RPDO1 [1f 00 {new.to_bytes(4, 'little', signed=True).hex(' ')}]")
+        time.sleep(0.05)
+        mo.rpdo(0x0F, new)
+        try:
+            s = mo.wait(lambda s: s.sw & 0x400 and s.pos - p0 > ctx.mm(1), 2.0, "target reached")
+        except Fail:
+            s = mo.last()
+        time.sleep(0.05)
+        s = mo.last()
+        if abs(s.pos - new) > max(ctx.read(0x6067), ctx.mm(0.05)):
+            raise Fail(f"axis at {s.pos} (moved {(s.pos - p0) / ctx.units_per_mm:.2f} mm); the RPDO's target was "
+                       f"{new} (+20 mm), the stale one {p0 + ctx.mm(5)} (+5 mm)")
+        return f"moved to {s.pos} (+{(s.pos - p0) / ctx.units_per_mm:.2f} mm)"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+def _loss_of_control(ctx: Context, command: int) -> str:
+    if 0x6007 not in ctx.od:
+        raise Skip("the EDS lists no abort connection option 0x6007")
+    mo = Motion(ctx)
+    try:
+        a = ctx.mm(2000)
+        ctx.write(0x6007, 0, 1)
+        ctx.write(0x605E, 0, 2)
+        ctx.write(0x6085, 0, a)
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        _enable_mode(ctx, 3)
+        ctx.start_sync()
+        ctx.write(0x60FF, 0, ctx.mm(50))
+        mo.wait(lambda s: s.vel is not None and abs(s.vel - ctx.mm(50)) < ctx.mm(3), 2.0, "50 mm/s")
+        p0 = mo.last().pos
+        mark = ctx.frames.mark()
+        ctx.nmt(command)
+        time.sleep(0.5)
+        if command == 0x82:
+            if ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", 1.0) is None:
+                raise Fail("no boot-up after reset communication")
+        else:
+            ctx.nmt(0x01)
+            time.sleep(0.05)
+        p1 = ctx.read(0x6064)
+        v1 = ctx.read(0x606C)
+        sw = ctx.read(0x6041)
+        travel = abs(p1 - p0)
+        bound = _stop_bound(ctx.mm(50), a, 0.1, ctx.mm(1))
+        name = "NMT Stop" if command == 0x02 else "NMT Reset Communication"
+        if travel > bound or abs(v1) > ctx.mm(1):
+            raise Fail(f"{name} at 50 mm/s with 0x6007 = 1: travelled {travel / ctx.units_per_mm:.1f} mm in 0.5 s, "
+                       f"velocity {v1 / ctx.units_per_mm:.1f} mm/s (bound {bound / ctx.units_per_mm:.1f} mm, at rest)")
+        if sw & 0x4F != 0x08:
+            raise Fail(f"SW 0x{sw:04X} after {name} with 0x6007 = 1 (fault), expected fault")
+        return f"{name}: {travel / ctx.units_per_mm:.2f} mm, at rest, fault 0x{ctx.read(0x603F):04X}"
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+@check("402-FLD-3", "loss", "CiA 402 (0x6007 abort connection option: NMT Stopped is a loss of control); "
+       "issue #15 item 3", "PV at 50 mm/s, 0x6007 = 1, NMT Stop; after 0.5 s NMT Start and read",
+       "the axis stopped (travel <= v^2/2a + v * 0.1 s + 1 mm, at rest) and is in fault")
+def loss_nmt_stop(ctx: Context) -> str:
+    return _loss_of_control(ctx, 0x02)
+
+
+@check("402-FLD-4", "loss", "CiA 402 (0x6007; NMT Reset Communication); issue #15 item 3",
+       "PV at 50 mm/s, 0x6007 = 1, NMT Reset Communication", "the axis stopped and is in fault")
+def loss_nmt_reset_comm(ctx: Context) -> str:
+    return _loss_of_control(ctx, 0x82)
+
+
+INJ_INJECT, INJ_CLEAR, INJ_DUTY, INJ_MAG, INJ_ALLOWED = 0x5FF0, 0x5FF1, 0x5FF2, 0x5FF4, 0x5FF6
+LIMIT_SWITCH_KIND = 7
+
+
+def _injection_offered(ctx: Context) -> None:
+    if INJ_ALLOWED not in ctx.od:
+        raise Skip("a generic node cannot be forced onto a limit switch and this one offers no fault-injection "
+                   "channel (0x5FF0..0x5FF6 not in the EDS)")
+    try:
+        allowed = ctx.read(INJ_ALLOWED)
+    except canopen.SdoAbortedError as exc:
+        raise Skip(f"fault-injection channel not readable (0x{exc.code:08X})") from None
+    if not allowed:
+        raise Skip("the node's fault-injection channel is off (0x5FF6 = 0; virtualaxis: serve "
+                   "--allow-fault-injection), so no limit switch can be forced")
+
+
+@check("402-FLD-5", "limits", "CiA 402 (0x60FD digital inputs; hardware limit switch stops in every mode); "
+       "issue #15 item 4", "in each supported mode of PP, PV, CSP, CSV, CST moving + at 30 mm/s: positive limit "
+       "switch forced through the fault-injection channel", "the axis stops (travel <= v^2/(2 0x6085) + v * 50 ms + "
+       "1 mm, at rest), 0x60FD bit 1, fault or warning (SW bit 7 / 11); motion toward the switch refused")
+def limit_switch_every_mode(ctx: Context) -> str:
+    boot(ctx)
+    _injection_offered(ctx)
+    supported = ctx.read(0x6502)
+    done = []
+    for mode in (1, 3, 8, 9, 10):
+        if not supported & MODE_BITS[mode]:
+            continue
+        done.append(_limit_switch_in(ctx, mode))
+    if not done:
+        raise Skip("none of PP, PV, CSP, CSV, CST supported")
+    return "; ".join(done)
+
+
+def _limit_switch_in(ctx: Context, mode: int) -> str:
+    mo = Motion(ctx)
+    name = MODES[mode]
+    try:
+        a = ctx.mm(5000)
+        ctx.write(0x6085, 0, a)
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        ctx.write(0x6081, 0, ctx.mm(30))
+        _enable_mode(ctx, mode)
+        p0 = ctx.read(0x6064)
+        v = ctx.mm(30)
+        if mode == 8:
+            mo.stream(p0, v)
+        else:
+            ctx.start_sync()
+            if mode == 1:
+                ctx.write(0x607A, 0, p0 + ctx.mm(200))
+                ctx.write(0x6040, 0, 0x1F)
+                ctx.write(0x6040, 0, 0x0F)
+            elif mode in (3, 9):
+                ctx.write(0x60FF, 0, v)
+            else:
+                ctx.write(0x6071, 0, 150)  # 15 % rated torque
+        try:
+            mo.wait(lambda s: s.vel is not None and s.vel > ctx.mm(5), 2.0, f"{name}: motion +")
+        except Fail as exc:
+            raise Fail(f"{name}: the axis did not move + before the switch was forced ({exc})") from None
+        time.sleep(0.1)
+        s0 = mo.last()
+        v0 = max(s0.vel or v, v)
+        ctx.write(INJ_MAG, 0, 1)
+        ctx.write(INJ_DUTY, 0, 0)
+        ctx.write(INJ_INJECT, 0, LIMIT_SWITCH_KIND)
+        time.sleep(0.6)
+        s1 = mo.last()
+        inputs = ctx.read(0x60FD)
+        travel = s1.pos - s0.pos
+        bound = _stop_bound(v0, a, 0.05, ctx.mm(1)) + abs(v0) * 0.05
+        if travel > bound or abs(s1.vel or 0) > ctx.mm(1):
+            raise Fail(f"{name}: {travel / ctx.units_per_mm:.1f} mm past the forced + limit switch, velocity "
+                       f"{(s1.vel or 0) / ctx.units_per_mm:.1f} mm/s "
+                       f"(bound {bound / ctx.units_per_mm:.1f} mm, at rest)")
+        if not inputs & 0x2:
+            raise Fail(f"{name}: 0x60FD = 0x{inputs:08X}, positive limit switch bit 1 not shown")
+        if not (_is_fault(s1.sw) or s1.sw & 0x880):
+            raise Fail(f"{name}: SW 0x{s1.sw:04X}: neither fault nor warning / internal limit at the switch")
+        return f"{name}: {travel / ctx.units_per_mm:.2f} mm, SW 0x{s1.sw:04X}"
+    finally:
+        try:
+            ctx.write(INJ_CLEAR, 0, LIMIT_SWITCH_KIND)
+        except canopen.SdoError:
+            pass
+        mo.close()
+        boot(ctx)

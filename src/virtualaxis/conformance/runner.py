@@ -1,0 +1,356 @@
+"""The conformance runner: a CANopen master (the ``canopen`` package) that runs checks against one node.
+
+A check is a function ``fn(ctx) -> str | None`` registered with :func:`check` (id, family, source clause,
+stimulus, expected). It raises :class:`Fail` (with what was sent and what came back) or :class:`Skip` (with
+the reason); anything it returns is the "got" text of a pass. Every SDO transfer and frame a check sends
+or waits for is recorded in ``ctx.trace`` and reported with its result.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import canopen
+
+
+class Fail(Exception):
+    """The node did not behave as the clause requires."""
+
+
+class Skip(Exception):
+    """The check cannot run against this node (the reason says why)."""
+
+
+@dataclass(frozen=True)
+class Check:
+    id: str
+    family: str  # planted-defect families: nmt, sdo, pdo, emcy, eds, sm, modes, reaction, rpdo, loss, limits, sync
+    clause: str  # source: standard clause / checklist line
+    stimulus: str
+    expected: str
+    fn: Callable[[Context], str | None]
+
+
+REGISTRY: list[Check] = []
+
+
+def check(id: str, family: str, clause: str, stimulus: str, expected: str):
+    """Register a check (decorator)."""
+
+    def deco(fn: Callable[[Context], str | None]) -> Callable[[Context], str | None]:
+        REGISTRY.append(Check(id, family, clause, stimulus, expected, fn))
+        return fn
+
+    return deco
+
+
+@dataclass
+class Result:
+    id: str
+    family: str
+    clause: str
+    status: str  # pass / fail / skipped
+    detail: str
+    trace: list[str] = field(default_factory=list)
+    duration_s: float = 0.0
+
+
+class FrameLog:
+    """Frames of the node seen by the master: EMCY, heartbeat / boot-up, TPDOs (by COB-ID)."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[float, int, bytes]] = []
+        self._cond = threading.Condition()
+
+    def on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._cond:
+            self.frames.append((time.monotonic(), can_id, bytes(data)))
+            self._cond.notify_all()
+
+    def mark(self) -> int:
+        with self._cond:
+            return len(self.frames)
+
+    def since(self, mark: int, cob: int | None = None) -> list[tuple[float, int, bytes]]:
+        with self._cond:
+            return [f for f in self.frames[mark:] if cob is None or f[1] == cob]
+
+    def wait(self, mark: int, cob: int, pred: Callable[[bytes], bool] | None = None,
+             timeout: float = 1.0) -> tuple[float, int, bytes] | None:
+        end = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for f in self.frames[mark:]:
+                    if f[1] == cob and (pred is None or pred(f[2])):
+                        return f
+                left = end - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+
+    def trim(self, keep: int = 20000) -> None:
+        with self._cond:
+            if len(self.frames) > keep * 2:
+                del self.frames[:-keep]
+
+
+class Context:
+    """What a check works with: the network, the node (``BaseNode402`` on the EDS), the EDS' dictionary,
+    frame logs and helpers that record every exchange in :attr:`trace`."""
+
+    def __init__(self, network: canopen.Network, node_id: int, eds: str, *, sdo_timeout_s: float = 1.0,
+                 units_per_mm: float = 1000.0, sync_period_s: float = 0.001):
+        self.net = network
+        self.node_id = node_id
+        self.eds = eds
+        self.node = canopen.BaseNode402(node_id, eds)
+        self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+        network.add_node(self.node)
+        self.od = self.node.object_dictionary
+        self.units_per_mm = units_per_mm
+        self.sync_period_s = sync_period_s
+        self.frames = FrameLog()
+        self.trace: list[str] = []
+        self._sync_task = None
+        self.emcy_cob = 0x80 + node_id
+        self.hb_cob = 0x700 + node_id
+        for cob in (self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id, 0x480 + node_id):
+            network.subscribe(cob, self.frames.on_frame)
+        self.state: dict[str, Any] = {}  # facts one check learns for later ones (e.g. PDO layout)
+
+    # ------------------------------------------------------------------ trace helpers
+    def note(self, text: str) -> None:
+        self.trace.append(text)
+
+    def read(self, index: int, sub: int = 0) -> int:
+        """SDO upload (raw value per the EDS type); an abort raises ``canopen.SdoAbortedError``."""
+        var = self.node.sdo[index] if sub == 0 and not self._is_container(index) else self.node.sdo[index][sub]
+        try:
+            value = var.raw
+        except canopen.SdoAbortedError as exc:
+            self.note(f"SDO read 0x{index:04X}:{sub} -> abort 0x{exc.code:08X}")
+            raise
+        self.note(f"SDO read 0x{index:04X}:{sub} -> {value!r}")
+        return value
+
+    def write(self, index: int, sub: int, value: Any) -> None:
+        var = self.node.sdo[index] if sub == 0 and not self._is_container(index) else self.node.sdo[index][sub]
+        try:
+            var.raw = value
+        except canopen.SdoAbortedError as exc:
+            self.note(f"SDO write 0x{index:04X}:{sub} = {value!r} -> abort 0x{exc.code:08X}")
+            raise
+        self.note(f"SDO write 0x{index:04X}:{sub} = {value!r} -> ok")
+
+    def raw_read(self, index: int, sub: int) -> bytes:
+        """SDO upload of raw bytes (no EDS needed for the entry)."""
+        try:
+            data = self.node.sdo.upload(index, sub)
+        except canopen.SdoAbortedError as exc:
+            self.note(f"SDO upload 0x{index:04X}:{sub} -> abort 0x{exc.code:08X}")
+            raise
+        self.note(f"SDO upload 0x{index:04X}:{sub} -> {data.hex(' ')}")
+        return data
+
+    def raw_write(self, index: int, sub: int, data: bytes) -> None:
+        try:
+            self.node.sdo.download(index, sub, data)
+        except canopen.SdoAbortedError as exc:
+            self.note(f"SDO download 0x{index:04X}:{sub} [{data.hex(' ')}] -> abort 0x{exc.code:08X}")
+            raise
+        self.note(f"SDO download 0x{index:04X}:{sub} [{data.hex(' ')}] -> ok")
+
+    def raw_sdo(self, request: bytes, timeout: float = 1.0) -> bytes | None:
+        """Send a raw SDO request frame (8 bytes) and return the response (or None)."""
+        got: list[bytes] = []
+        ev = threading.Event()
+
+        def on(can_id: int, data: bytearray, ts: float) -> None:
+            got.append(bytes(data))
+            ev.set()
+
+        cob_tx = 0x580 + self.node_id
+        self.net.subscribe(cob_tx, on)
+        try:
+            self.net.send_message(0x600 + self.node_id, request)
+            ev.wait(timeout)
+        finally:
+            self.net.unsubscribe(cob_tx, on)
+            # canopen's own SDO client subscribes too: re-add it (unsubscribe removed only ours)
+        self.note(f"SDO raw {request.hex(' ')} -> {got[0].hex(' ') if got else 'no answer'}")
+        return got[0] if got else None
+
+    def expect_abort(self, code: int | Iterable[int], fn: Callable[[], Any], what: str) -> int:
+        codes = {code} if isinstance(code, int) else set(code)
+        try:
+            fn()
+        except canopen.SdoAbortedError as exc:
+            if exc.code in codes:
+                return exc.code
+            raise Fail(f"{what}: abort 0x{exc.code:08X}, expected {' or '.join(f'0x{c:08X}' for c in codes)}") from None
+        raise Fail(f"{what}: accepted, expected abort {' or '.join(f'0x{c:08X}' for c in codes)}")
+
+    def _is_container(self, index: int) -> bool:
+        obj = self.od.get(index) if index in self.od else None
+        return obj is not None and not isinstance(obj, canopen.objectdictionary.Variable)
+
+    def nmt(self, command: int) -> None:
+        self.note(f"NMT 0x{command:02X} -> node {self.node_id}")
+        self.net.send_message(0, bytes((command, self.node_id)))
+
+    # ------------------------------------------------------------------ CiA 402 helpers
+    def sw(self) -> int:
+        return self.read(0x6041)
+
+    def wait_sw(self, mask: int, value: int, timeout: float = 1.0, what: str = "") -> int:
+        end = time.monotonic() + timeout
+        sw = self.node.sdo[0x6041].raw
+        while sw & mask != value:
+            if time.monotonic() > end:
+                self.note(f"statusword 0x{sw:04X}, waited for & 0x{mask:04X} == 0x{value:04X}")
+                raise Fail(f"{what or 'statusword'}: 0x{sw:04X} after {timeout:g} s, expected "
+                           f"(sw & 0x{mask:04X}) == 0x{value:04X}")
+            time.sleep(0.005)
+            sw = self.node.sdo[0x6041].raw
+        self.note(f"statusword 0x{sw:04X}")
+        return sw
+
+    def enable(self) -> None:
+        """Fault reset if needed, then shutdown / switch on / enable operation by SDO controlword."""
+        sw = self.node.sdo[0x6041].raw
+        if sw & 0x4F == 0x08:
+            self.write(0x6040, 0, 0x00)
+            self.write(0x6040, 0, 0x80)
+            self.wait_sw(0x4F, 0x40, 1.0, "fault reset")
+        for cw, mask, expect in ((0x06, 0x6F, 0x21), (0x07, 0x6F, 0x23), (0x0F, 0x6F, 0x27)):
+            self.write(0x6040, 0, cw)
+            self.wait_sw(mask, expect, 1.0, f"controlword 0x{cw:02X}")
+
+    def disable(self) -> None:
+        try:
+            self.node.sdo[0x6040].raw = 0x00
+        except canopen.SdoError:
+            pass
+
+    def emcy_codes(self, mark: int) -> list[int]:
+        return [int.from_bytes(d[0:2], "little") for _, _, d in self.frames.since(mark, self.emcy_cob)]
+
+    def wait_emcy(self, mark: int, code: int | None, timeout: float = 1.0) -> bytes | None:
+        f = self.frames.wait(mark, self.emcy_cob,
+                             None if code is None else (lambda d: int.from_bytes(d[0:2], "little") == code), timeout)
+        return None if f is None else f[2]
+
+    # ------------------------------------------------------------------ SYNC
+    def start_sync(self, period_s: float | None = None) -> None:
+        if self._sync_task is None:
+            self._sync_task = self.net.send_periodic(0x80, b"", period_s or self.sync_period_s)
+
+    def stop_sync(self) -> None:
+        if self._sync_task is not None:
+            self._sync_task.stop()
+            self._sync_task = None
+
+    def sync_once(self) -> None:
+        self.net.send_message(0x80, b"")
+
+    # ------------------------------------------------------------------ units
+    def mm(self, x_mm: float) -> int:
+        return int(round(x_mm * self.units_per_mm))
+
+
+def boot(ctx: Context, *, timeout: float = 3.0) -> None:
+    """Reset node and wait for the boot-up; heartbeat 50 ms so the master sees the NMT state."""
+    ctx.stop_sync()
+    mark = ctx.frames.mark()
+    ctx.nmt(0x81)
+    if ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", timeout) is None:
+        raise Fail("no boot-up frame after NMT Reset Node")
+    time.sleep(0.05)
+
+
+def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result], None] | None = None) -> list[Result]:
+    """Run ``checks`` in order; a check's exception other than Fail/Skip is a failure naming it."""
+    results: list[Result] = []
+    for chk in checks:
+        ctx.trace = []
+        t0 = time.monotonic()
+        try:
+            got = chk.fn(ctx)
+            status, detail = "pass", got or "as expected"
+        except Fail as exc:
+            status, detail = "fail", str(exc)
+        except Skip as exc:
+            status, detail = "skipped", str(exc)
+        except canopen.SdoAbortedError as exc:
+            status, detail = "fail", f"unexpected SDO abort 0x{exc.code:08X} ({exc})"
+        except canopen.SdoCommunicationError as exc:
+            status, detail = "fail", f"no SDO answer: {exc}"
+        except Exception as exc:  # noqa: BLE001 - a check must never stop the run
+            status, detail = "fail", f"{type(exc).__name__}: {exc}"
+        finally:
+            ctx.stop_sync()
+        res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-12:]),
+                     time.monotonic() - t0)
+        results.append(res)
+        ctx.frames.trim()
+        if progress is not None:
+            progress(res)
+        if status == "fail":
+            try:  # leave the node in a known state for the next check
+                ctx.disable()
+                boot(ctx)
+            except Exception:  # noqa: BLE001
+                pass
+    return results
+
+
+def select(ids: str | None) -> list[Check]:
+    """Checks whose id or family matches one of the comma-separated patterns (prefix match)."""
+    from virtualaxis.conformance import checks_301, checks_402  # noqa: F401 - registers the checks
+
+    if not ids:
+        return list(REGISTRY)
+    pats = [p.strip() for p in ids.split(",") if p.strip()]
+    chosen = [c for c in REGISTRY if any(c.id == p or c.id.startswith(p) or c.family == p for p in pats)]
+    return chosen
+
+
+def line(res: Result) -> str:
+    trace = " | ".join(res.trace[-3:])
+    return f"{res.id:<14} {res.status.upper():<7} {res.detail}" + (f"  [{trace}]" if trace else "")
+
+
+def summary(results: list[Result]) -> dict[str, int]:
+    out = {"pass": 0, "fail": 0, "skipped": 0}
+    for r in results:
+        out[r.status] += 1
+    return out
+
+
+def write_json(path: Path, results: list[Result], meta: dict) -> None:
+    path.write_text(json.dumps({"meta": meta, "summary": summary(results),
+                                "checks": [asdict(r) for r in results]}, indent=2))
+
+
+def write_junit(path: Path, results: list[Result], name: str = "virtualaxis.conformance") -> None:
+    s = summary(results)
+    suite = ET.Element("testsuite", name=name, tests=str(len(results)), failures=str(s["fail"]),
+                       skipped=str(s["skipped"]), errors="0",
+                       time=f"{sum(r.duration_s for r in results):.3f}")
+    for r in results:
+        case = ET.SubElement(suite, "testcase", classname=f"{name}.{r.family}", name=r.id, time=f"{r.duration_s:.3f}")
+        if r.status == "fail":
+            ET.SubElement(case, "failure", message=r.detail).text = "\n".join(r.trace)
+        elif r.status == "skipped":
+            ET.SubElement(case, "skipped", message=r.detail)
+        out = ET.SubElement(case, "system-out")
+        out.text = f"{r.clause}\n" + "\n".join(r.trace)
+    ET.indent(suite)
+    ET.ElementTree(suite).write(path, encoding="utf-8", xml_declaration=True)

@@ -1,0 +1,164 @@
+"""The conformance suite (``virtualaxis conformance``) against the emulator, and against the emulator with a
+planted defect per check family (planted here only, by monkeypatching our drive / stack in this process)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import canopen
+import pytest
+
+from virtualaxis.conformance import run_conformance
+from virtualaxis.conformance.runner import REGISTRY, select
+from virtualaxis.testing import start_virtual_axis
+
+CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+
+
+@pytest.mark.parametrize("lockstep", [False, True], ids=["realtime", "lockstep"])
+def test_suite_passes_against_the_emulator_across_processes(tmp_path, lockstep):
+    """`virtualaxis serve` (real time / SYNC lockstep, injection allowed) in one process, the suite in another:
+    every check passes; junit and JSON written; one line per check and a summary."""
+    with start_virtual_axis(transport="udp", lockstep=lockstep) as axis:
+        junit, js = tmp_path / "c.xml", tmp_path / "c.json"
+        proc = subprocess.run([*CLI, "conformance", "--can", axis.bus_spec, "--node-id", str(axis.node_id),
+                               "--junit", str(junit), "--json", str(js)], capture_output=True, text=True,
+                              timeout=120, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    report = json.loads(js.read_text())
+    bad = [c for c in report["checks"] if c["status"] != "pass"]
+    assert proc.returncode == 0 and not bad, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert len(report["checks"]) == len(select(None)) == len(REGISTRY)
+    assert proc.stdout.count("\n") >= len(REGISTRY) + 1 and "summary:" in proc.stdout
+    suite = ET.parse(junit).getroot()
+    assert suite.get("tests") == str(len(REGISTRY)) and suite.get("failures") == "0"
+
+
+def test_limit_switch_check_skips_with_a_reason_without_injection():
+    """A node that offers no way to force a limit switch: the check is skipped and says why."""
+    with start_virtual_axis(allow_fault_injection=False) as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            (res,) = run_conformance(net, axis.node_id, only="402-FLD-5")
+        finally:
+            net.disconnect()
+    assert res.status == "skipped" and "--allow-fault-injection" in res.detail, res
+
+
+def _wrong_read_only_abort(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    orig = slave.sdo_check_writable
+
+    def check(index, sub):
+        try:
+            return orig(index, sub)
+        except Exception as exc:  # the stack's SdoAbort
+            if getattr(exc, "code", None) == 0x06010002:
+                exc.code = 0x08000020  # wrong: "cannot be stored" instead of "read only"
+            raise
+
+    mp.setattr(slave, "sdo_check_writable", check)
+
+
+def _answers_unlisted(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    orig = slave.sdo_upload
+    mp.setattr(slave, "sdo_upload", lambda i, s: b"\x00\x00" if i == 0x6013 else orig(i, s))
+
+
+def _ignores_rpdo_ordering(axis, mp):
+    drive = axis.drives[axis.node_id]
+
+    def one_by_one(items, *, checked=False):
+        for index, sub, value in items:
+            drive.write_object(index, sub, value, checked=checked)
+
+    mp.setattr(drive, "write_objects", one_by_one)
+
+
+def _coasts_on_fault(axis, mp):
+    import virtualaxis.drive.reactions as rx
+
+    mp.setattr(rx, "fault_reaction_kind", lambda reaction_class, option: "coast")
+
+
+def _ignores_loss_of_control(axis, mp):
+    mp.setattr(axis.drives[axis.node_id], "communication_error", lambda kind, detail=0: None)
+
+
+def _ignores_limit_switches(axis, mp):
+    import virtualaxis.drive.monitoring as mon
+
+    mp.setattr(mon, "monitor_limit_switches", lambda drive, x, v: None)
+
+
+def _sync_timeout_false_alarm(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    orig_sync = slave._on_sync_frame
+    seen = []
+
+    def on_sync(msg, now_s):  # EMCY 0x8100 on every 3rd SYNC, whatever the timing
+        seen.append(1)
+        if len(seen) % 3 == 0:
+            slave.emcy(0x8100, 0x10)
+        return orig_sync(msg, now_s)
+
+    mp.setattr(slave, "_on_sync_frame", on_sync)
+    slave.rebuild_dispatch()
+
+
+def _mode_not_displayed(axis, mp):
+    drive = axis.drives[axis.node_id]
+    mp.setattr(drive, "_on_mode", lambda mode: None)
+
+
+def _statusword_ignores_disable_operation(axis, mp):
+    drive = axis.drives[axis.node_id]
+    orig = drive.write_object
+
+    def write(index, sub, value, *, checked=False):
+        if index == 0x6040 and value == 0x07 and drive.state.cia402_state == "OPERATION ENABLED":
+            return None  # transition 5 (disable operation) ignored
+        return orig(index, sub, value, checked=checked)
+
+    mp.setattr(drive, "write_object", write)
+
+
+DEFECTS = {
+    "sdo": (_wrong_read_only_abort, "301-SDO-3"),
+    "eds": (_answers_unlisted, "301-EDS-2"),
+    "rpdo": (_ignores_rpdo_ordering, "402-FLD-2"),
+    "reaction": (_coasts_on_fault, "402-FLD-1"),
+    "loss": (_ignores_loss_of_control, "402-FLD-3"),
+    "limits": (_ignores_limit_switches, "402-FLD-5"),
+    "sync": (_sync_timeout_false_alarm, "301-SYNC-1"),
+    "modes": (_mode_not_displayed, "402-MODE-1"),
+    "sm": (_statusword_ignores_disable_operation, "402-SM-2"),
+}
+
+
+def test_each_planted_defect_fails_its_family():
+    """One drive in this process; for each family a defect is planted (monkeypatch, undone after), the family's
+    checks run through a real master, and the named check fails while the unpatched drive passes it."""
+    failed_as_expected = {}
+    with start_virtual_axis(transport="virtual") as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            for family, (plant, check_id) in DEFECTS.items():
+                with pytest.MonkeyPatch.context() as mp:
+                    plant(axis, mp)
+                    res = {r.id: r for r in run_conformance(net, axis.node_id, only=check_id)}
+                axis.runtime.axes[0].slave.rebuild_dispatch()  # drop a patched handler from the dispatch table
+                failed_as_expected[family] = (res[check_id].status, res[check_id].detail)
+            clean = {r.id: r for r in run_conformance(net, axis.node_id,
+                                                      only=",".join(c for _, c in DEFECTS.values()))}
+        finally:
+            net.disconnect()
+    not_failed = {f: v for f, v in failed_as_expected.items() if v[0] != "fail"}
+    assert not not_failed, not_failed
+    assert all(r.status == "pass" for r in clean.values()), {k: (r.status, r.detail) for k, r in clean.items()}
