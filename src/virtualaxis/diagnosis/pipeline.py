@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from virtualaxis.config import AxisConfig, ControlParams
-from virtualaxis.config.errors import InputError
+from virtualaxis.config.errors import ConfigError, InputError
 from virtualaxis.diagnosis import effects as fx
 from virtualaxis.diagnosis.alignment import apply_post, find_alignment, find_start_transient
 from virtualaxis.diagnosis.contour import contour_report
@@ -133,9 +133,12 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
         trial = {k: dataclasses.replace(tds[k], overrides={**tds[k].overrides, "control": control}) for k in targets}
         f_idx = [k for k in fit_idx if k in trial]
         h_idx = [k for k in hold_idx if k in trial]
-        r_fit, v_fit = _closed_loop_ratio(cfg, [tds[k] for k in f_idx], [trial[k] for k in f_idx], simulate)
-        r_hold, v_hold = (_closed_loop_ratio(cfg, [tds[k] for k in h_idx], [trial[k] for k in h_idx], simulate)
-                          if h_idx else (math.nan, {}))
+        try:
+            r_fit, v_fit = _closed_loop_ratio(cfg, [tds[k] for k in f_idx], [trial[k] for k in f_idx], simulate)
+            r_hold, v_hold = (_closed_loop_ratio(cfg, [tds[k] for k in h_idx], [trial[k] for k in h_idx], simulate)
+                              if h_idx else (math.nan, {}))
+        except (ConfigError, ValueError, ArithmeticError) as exc:  # identified gains the schema or simulator refuse
+            r_fit, v_fit, r_hold, v_hold = math.inf, {"error": str(exc)}, math.inf, {"error": str(exc)}
         def clear(r: float, v: dict) -> bool:
             best = min((c["ratio"] for c in v.get("channels", {}).values()), default=math.inf)
             return r <= CLOSED_LOOP_RATIO and best <= CLOSED_LOOP_BEST_CHANNEL and not v.get("worse_channels")
@@ -414,6 +417,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "relative_change": s.get("relative_change"),
                 "signature_overlap": r.signature_overlap,
                 "pays_its_way": d["pays"],
+                "implausible": s.get("implausible", []),  # why its values are no answer (empty: they are)
                 "stage": r.stage,
                 "screen_gain": d.get("screen_gain", 0.0),
                 "n_simulations": r.n_sims,
