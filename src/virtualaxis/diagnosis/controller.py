@@ -244,8 +244,8 @@ def _identify(sig: _Signals, terms: tuple[str, ...], start: dict[str, float]) ->
 
 
 def _select_law(sig: _Signals, start: dict[str, float]) -> tuple[float, dict[str, float]]:
-    """P speed loop and position gain first; then forward selection of the optional terms. The gains carry
-    ``stderr`` (block jackknife, :func:`_gain_stderr`) and ``terms``."""
+    """P speed loop and position gain first; then forward selection of the optional terms (named in the gains'
+    ``terms``)."""
     terms: tuple[str, ...] = ()
     un, gains = _identify(sig, terms, start)
     while True:
@@ -256,7 +256,6 @@ def _select_law(sig: _Signals, start: dict[str, float]) -> tuple[float, dict[str
         if u2 >= TERM_GAIN * un or un - u2 < TERM_MIN_ABS:
             break
         un, gains, terms = u2, g2, (*terms, t)
-    gains["stderr"] = _gain_stderr(sig, terms, start)
     gains["terms"] = ",".join(terms)
     return un, gains
 
@@ -359,6 +358,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
             un2 = math.inf
         if un2 * SWITCH_RATIO < un_id:
             un_id, gid, timing = un2, g2, other
+            sig = fast if other == "fast" else sampled
     gid["speed_loop"] = SPEED_LOOP_TIMING[timing]
     cg = {k: float(v) for k, v in cg.items()}
     cg["speed_loop"] = SPEED_LOOP_TIMING[cfg_timing]
@@ -368,6 +368,9 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
         and un_id < WARN_UNEXPLAINED and gid["kp"] > 0 and gid["kv_per_s"] > 0
     retimed = conclusive and timing != cfg_timing
     retime = _retimed(cfg, timing, dt) if timing != cfg_timing else {}  # the speed-cycle change, if any
+    if switch:  # its uncertainty, for the report (the jackknife costs 5 identifications: only where it is used)
+        terms = tuple(t for t in str(gid.get("terms", "")).split(",") if t)
+        gid["stderr"] = _gain_stderr(sig, terms, cg)
     chk = ControllerCheck(name, ch, float(un_cfg), float(un_id), cg, gid,
                           "identified" if (switch or retimed) else "config", resolution=float(blur))
     if not conclusive:
