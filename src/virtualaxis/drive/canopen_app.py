@@ -20,8 +20,8 @@ from virtualaxis.drive.objects import SPECS
 
 #: SYNC loss = this many communication cycles (0x1006) of drive time without SYNC ...
 SYNC_LOSS_PERIODS = 5
-#: ... and at least this long [s] (chosen: a busy host delays a SYNC by a few ms, not by 20)
-SYNC_LOSS_MIN_S = 0.020
+#: ... and at least this long [s] (chosen: a busy host delays a SYNC by a few ms, rarely by tens of ms)
+SYNC_LOSS_MIN_S = 0.050
 
 
 class Cia402Application:

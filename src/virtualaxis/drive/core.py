@@ -733,7 +733,7 @@ class Drive:
         3 quick stop; CiA 402) to heartbeat / life guarding lost, RPDO timeout (0x1400+n:5), bus off, NMT
         Stopped or Reset Communication (``nmt_stopped``, ``nmt_reset_communication``) and, in the cyclic
         synchronous modes, SYNC loss (``sync_loss``: the CANopen application reports it when the drive ran
-        5 communication cycles 0x1006, at least 20 ms, of its own time without SYNC; never in SYNC
+        5 communication cycles 0x1006, at least 50 ms, of its own time without SYNC; never in SYNC
         lockstep, where the plant waits for the SYNC). NMT events and SYNC loss count only while the drive
         is enabled (a master resetting communication at start-up must not fault a disabled drive)."""
         with self._lock:
