@@ -8,8 +8,8 @@ acts on a real machine, so that the drive's own monitors, reactions and the CiA 
 kind                          EMCY      how it is produced / how it clears
 ============================  ========  ===================================================================
 ``encoder_loss``              0x7305    position sensor signal lost: OFF2 (coast); reset refused until cleared
-``over_current``              0x2310    power-unit over-current trip: OFF2; the trip itself is the cause, a
-                                        reset succeeds at once (intermittent: re-trips while active)
+``over_current``              0x2310    power-unit over-current trip: OFF2; a reset succeeds, but the power
+                                        stage trips again whenever it is enabled while the cause is there
 ``motor_overtemperature``     0x4310    extra winding losses while the power stage is on: the drive's thermal
                                         model rises, warning A07910 (statusword bit 7, 0x2031) at 0x200A,
                                         fault 0x4310 at 0x200B; reset refused until the winding is below it
@@ -25,9 +25,11 @@ kind                          EMCY      how it is produced / how it clears
                                         or the control loop decide (0x6007)
 ``heartbeat_loss``            (0x8130)  the master's heartbeat never reaches the drive: consumer heartbeat
                                         0x1016 expires (EMCY 0x8130, 0x1029 / 0x6007 reaction)
-``bus_off``                   0x8140    the CAN controller is bus-off: nothing sent or received; on recovery
-                                        (clear, or the off phase of an intermittent fault) EMCY 0x8140 and the
-                                        0x6007 reaction
+``bus_off``                   0x8140    the CAN controller is bus-off: nothing sent or received for
+                                        ``magnitude`` ms (default 500), then it recovers by itself as a CAN
+                                        controller does (a bus-off node hears no request to clear it): EMCY
+                                        0x8140 and the 0x6007 reaction; also on clear and after each off phase
+                                        of the intermittent variant
 ============================  ========  ===================================================================
 
 Intermittent variant of each: ``duty`` in (0, 1) and ``period_s``: active for ``duty * period_s`` of every
@@ -91,6 +93,7 @@ ABORT_VALUE_INVALID = 0x06090030
 
 DEFAULT_BRAKE_FORCE_N = 60_000.0
 DEFAULT_HEATING_K_S = 60.0
+DEFAULT_BUS_OFF_MS = 500.0  # a bus-off over CAN must end by itself: the node hears no request to clear it
 
 
 class InjectionRefused(Exception):
@@ -216,6 +219,9 @@ class FaultInjector:
             return
         t = self.now_s()
         for inj in list(self._active.values()):
+            if inj.kind == "bus_off" and inj.duty >= 1.0 and t - inj.started_s >= self._bus_off_s(inj):
+                self._release("bus_off")  # the CAN controller's automatic recovery (128 x 11 recessive bits)
+                continue
             present = inj.present_at(t)
             if present != inj.present:
                 self._apply(inj, present)
@@ -228,6 +234,9 @@ class FaultInjector:
             sim = drive.simulator
             base = float(drive.read_object(0x2011, 0))
             sim.set_external_force(base + self._brake_force(inj))
+        elif inj.kind == "over_current":  # the cause is still there: the power stage trips again when enabled
+            if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED":
+                drive.raise_fault(EMCY_OF_KIND["over_current"], 0)
         elif inj.kind == "motor_overtemperature":
             if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED" and hasattr(drive, "_motor_rise_k"):
                 drive._motor_rise_k += (inj.magnitude or DEFAULT_HEATING_K_S) * drive.cycle_s
@@ -290,6 +299,12 @@ class FaultInjector:
         inj = self._active.pop(kind, None)
         if inj is not None and inj.present:
             self._apply(inj, False)
+
+    @staticmethod
+    def _bus_off_s(inj: Injection) -> float:
+        """How long one (permanent-variant) bus-off lasts before the controller recovers by itself [s]:
+        ``magnitude`` ms, default :data:`DEFAULT_BUS_OFF_MS`."""
+        return (inj.magnitude or DEFAULT_BUS_OFF_MS) / 1000.0
 
     def _recover_from_bus_off(self) -> None:
         """Back on the bus: EMCY 0x8140 (recovered from bus off), then the 0x6007 reaction."""
