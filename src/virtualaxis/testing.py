@@ -29,9 +29,12 @@ from __future__ import annotations
 import atexit
 import contextlib
 import os
+import queue
 import random
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -155,7 +158,7 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
     cfg_path = Path(config) if config is not None else Path(DEFAULT_CONFIG)
     if not cfg_path.is_file():
         raise ValueError(f"virtual_axis: config {cfg_path} not found")
-    runtime = bus = proc = None
+    runtime = bus = proc = err_file = None
     net = canopen.Network()
     try:
         drives: dict[int, Any] = {}
@@ -183,19 +186,36 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
                 cmd.append("--lockstep")
             if allow_fault_injection:
                 cmd.append("--allow-fault-injection")
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            # stderr to a file and stdout drained by a thread: a chatty drive never blocks on a full pipe, and a
+            # silent or hung one cannot hold the start-up past ready_timeout_s
+            err_file = tempfile.TemporaryFile(mode="w+")
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err_file, text=True,
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
             _CHILDREN.add(proc)
+            lines: queue.Queue[str] = queue.Queue()
+
+            def pump() -> None:
+                for out_line in proc.stdout:
+                    lines.put(out_line)
+                lines.put("")
+
+            threading.Thread(target=pump, name="virtual-axis-stdout", daemon=True).start()
             deadline = time.monotonic() + ready_timeout_s
             line = ""
-            while time.monotonic() < deadline:
-                line = proc.stdout.readline()
+            while True:
+                try:
+                    line = lines.get(timeout=max(0.01, deadline - time.monotonic()))
+                except queue.Empty:
+                    line = "(no ready line in time)"
+                    break
                 if not line or line.startswith("ready:"):
                     break
             if not line.startswith("ready:"):
                 proc.kill()
-                out, err = proc.communicate()
-                raise RuntimeError(f"virtual_axis: `virtualaxis serve` did not start: {line!r} {err[-2000:]}")
+                proc.wait()
+                err_file.seek(0)
+                raise RuntimeError(f"virtual_axis: `virtualaxis serve` did not start in {ready_timeout_s} s: "
+                                   f"{line!r} {err_file.read()[-2000:]}")
         from virtualaxis.master import connect
 
         net = connect(spec)
@@ -224,11 +244,13 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
         if proc is not None:
             proc.terminate()
             try:
-                proc.communicate(timeout=10)
+                proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 proc.kill()
-                proc.communicate()
+                proc.wait()
             _CHILDREN.discard(proc)
+        if err_file is not None:
+            err_file.close()
 
 
 # ============================================================================ pytest hooks
