@@ -304,6 +304,9 @@ def test_every_fault_across_processes():
             cli = subprocess.run([*CLI, "fault", "--can", s.spec, "--node-id", str(NODE), "clear"],
                                  capture_output=True, text=True, timeout=60, cwd=ROOT)
             assert cli.returncode == 0 and "active: none" in cli.stdout, (cli.stdout, cli.stderr)
+            cli = subprocess.run([*CLI, "fault", "--can", s.spec, "--node-id", str(NODE), "list"],
+                                 capture_output=True, text=True, timeout=60, cwd=ROOT)
+            assert cli.returncode == 0 and "encoder_loss" in cli.stdout and "0x7305" in cli.stdout, cli.stderr
         finally:
             net.disconnect()
         out = os.environ.get("VA_FAULT_TABLE")

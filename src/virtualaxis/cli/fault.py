@@ -4,6 +4,7 @@
     virtualaxis fault --can socketcan:vcan0 --node-id 1 inject following_error --duty 0.3 --period 2
     virtualaxis fault --can socketcan:vcan0 --node-id 1 clear [KIND]
     virtualaxis fault --can socketcan:vcan0 --node-id 1 status
+    virtualaxis fault --can socketcan:vcan0 --node-id 1 list
 
 The drive must be served with ``--allow-fault-injection``; otherwise it answers abort 0x08000022, printed
 as an error. See docs/fault-injection.md.
@@ -40,6 +41,7 @@ def register(sub) -> None:
     clr = acts.add_parser("clear", help="remove an injected fault (all without KIND)")
     clr.add_argument("kind", nargs="?", choices=list(KINDS))
     acts.add_parser("status", help="print the injected faults")
+    acts.add_parser("list", help="the fault kinds (CAN number, EMCY) and which are injected on the node")
     p.set_defaults(func=run)
 
 
@@ -51,7 +53,7 @@ def run(args) -> int:
     from virtualaxis.runtime import BusOpenError
 
     if not args.action:
-        raise CliError("fault: give an action: inject KIND, clear [KIND] or status")
+        raise CliError("fault: give an action: inject KIND, clear [KIND], status or list")
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
     if args.action == "inject":
@@ -82,6 +84,12 @@ def run(args) -> int:
             bits = sdo[OBJ_ACTIVE].raw
             allowed = sdo[OBJ_ALLOWED].raw
             active = [name for n, name in KIND_NAMES.items() if bits >> (n - 1) & 1]
+            if args.action == "list":
+                from virtualaxis.drive.injection import EMCY_OF_KIND
+
+                for name, number in KINDS.items():
+                    emcy = "0xFF11/0xFF10" if name == "limit_switch" else f"0x{EMCY_OF_KIND[name]:04X}"
+                    print(f"{number:3d}  {name:24s} EMCY {emcy:13s} {'injected' if name in active else ''}")
             print(f"node {args.node_id}: injection {'allowed' if allowed else 'refused'}; active: "
                   f"{', '.join(active) or 'none'}; 0x603F = 0x{sdo[0x603F].raw:04X}")
         except canopen.SdoAbortedError as exc:
