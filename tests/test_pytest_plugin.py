@@ -91,14 +91,23 @@ def test_indirect_node_ids(virtual_axis):
         assert node.sdo[0x1018][1].raw is not None and node.id == nid
 
 
+@pytest.mark.virtual_axis(pacing="lockstep")
 def test_in_process_python_injection_api(virtual_axis):
-    assert virtual_axis.transport == "virtual"
+    assert virtual_axis.transport == "virtual" and virtual_axis.lockstep
+    cycles = virtual_axis.drives[1].counters["cycles"]
+    virtual_axis.sync(5)
+    import time
+    end = time.monotonic() + 3
+    while virtual_axis.drives[1].counters["cycles"] < cycles + 5 and time.monotonic() < end:
+        time.sleep(0.01)
+    time.sleep(0.05)
+    assert virtual_axis.drives[1].counters["cycles"] == cycles + 5  # one cycle per SYNC, none without
     virtual_axis.injector.inject("encoder_loss")
     import time
     end = time.monotonic() + 5
     while virtual_axis.node.sdo[0x603F].raw != 0x7305:
         assert time.monotonic() < end
-        time.sleep(0.01)
+        virtual_axis.sync(1)
 
 
 @pytest.mark.virtual_axis(transport="udp", allow_fault_injection=False)

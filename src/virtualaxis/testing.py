@@ -15,7 +15,8 @@ twice). In a test::
 Marker ``virtual_axis`` keywords (all optional): ``transport`` ``"virtual"`` (python-can ``virtual`` bus, drive in
 this process; default) or ``"udp"`` (``virtualaxis serve`` in a child process on ``udp_multicast``, hop_limit 0);
 ``config`` (axis config TOML path; default the seed axis), ``node_id`` (an int or a tuple of ints: several axes
-on one bus), ``lockstep`` (plant advances only on SYNC; default False), ``allow_fault_injection`` (default True),
+on one bus), ``lockstep`` (plant advances only on SYNC; default False; or ``pacing="lockstep"|"realtime"``),
+``allow_fault_injection`` (default True),
 ``heartbeat_ms`` (0x1017 set on start, default 100). Command-line options ``--virtual-axis-transport`` and
 ``--virtual-axis-config`` set the defaults for tests without those keywords; ``@pytest.mark.parametrize`` on
 ``virtual_axis`` with ``indirect=True`` and a dict of the same keywords parametrises it.
@@ -143,8 +144,14 @@ def _private_udp_spec() -> tuple[str, dict]:
 @contextlib.contextmanager
 def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None = None,
                        node_id: int | tuple[int, ...] = 1, lockstep: bool = False, allow_fault_injection: bool = True,
-                       heartbeat_ms: int = 100, ready_timeout_s: float = 60.0) -> Iterator[VirtualAxis]:
-    """Serve drive(s) and connect a master; the context manager behind the fixture (usable on its own)."""
+                       heartbeat_ms: int = 100, ready_timeout_s: float = 60.0,
+                       pacing: str | None = None) -> Iterator[VirtualAxis]:
+    """Serve drive(s) and connect a master; the context manager behind the fixture (usable on its own).
+    ``pacing`` ``"realtime"`` / ``"lockstep"`` is another way to say ``lockstep``."""
+    if pacing is not None:
+        if pacing not in ("realtime", "lockstep"):
+            raise ValueError(f"virtual_axis: pacing must be 'realtime' or 'lockstep' (got {pacing!r})")
+        lockstep = pacing == "lockstep"
     import canopen
 
     from virtualaxis.master import DEFAULT_EDS
