@@ -143,7 +143,7 @@ DEFECTS = {
 
 def test_each_planted_defect_fails_its_family():
     """One drive in this process; for each family a defect is planted (monkeypatch, undone after), the family's
-    checks run through a real master, and the named check fails while the unpatched drive passes it."""
+    check runs through a real master and fails (the unpatched emulator passes every check: the test above)."""
     failed_as_expected = {}
     with start_virtual_axis(transport="virtual") as axis:
         net = canopen.Network()
@@ -155,10 +155,7 @@ def test_each_planted_defect_fails_its_family():
                     res = {r.id: r for r in run_conformance(net, axis.node_id, only=check_id)}
                 axis.runtime.axes[0].slave.rebuild_dispatch()  # drop a patched handler from the dispatch table
                 failed_as_expected[family] = (res[check_id].status, res[check_id].detail)
-            clean = {r.id: r for r in run_conformance(net, axis.node_id,
-                                                      only=",".join(c for _, c in DEFECTS.values()))}
         finally:
             net.disconnect()
     not_failed = {f: v for f, v in failed_as_expected.items() if v[0] != "fail"}
     assert not not_failed, not_failed
-    assert all(r.status == "pass" for r in clean.values()), {k: (r.status, r.detail) for k, r in clean.items()}

@@ -373,29 +373,58 @@ def emcy_cob(ctx: Context) -> str:
 
 # ============================================================================ SYNC timeout (issue #15 item 6)
 @check("301-SYNC-1", "sync", "CiA 301 7.5.2.6 (0x1006) / 7.2.5 (SYNC consumer timeout 1.5 x period)",
-       "0x1006 = 20 ms, SYNC every 20 ms for 1 s, then SYNC stopped",
+       "0x1006 = 20 ms, SYNC every 20 ms for 0.8 s (repeated up to 3 x if the master's own gaps exceed 24 ms), "
+       "then SYNC stopped",
        "no EMCY 0x8100 while SYNC runs; EMCY 0x8100 within 0.3 s after it stops")
 def sync_timeout(ctx: Context) -> str:
     if 0x1006 not in ctx.od:
         raise Skip("the EDS lists no 0x1006")
+    period = 0.020
     boot(ctx)
-    ctx.write(0x1006, 0, 20_000)
+    ctx.write(0x1006, 0, round(period * 1e6))
     ctx.nmt(0x01)
-    ctx.start_sync(0.020)
-    mark = ctx.frames.mark()
-    time.sleep(1.0)
-    false_alarms = [c for c in ctx.emcy_codes(mark) if c == 0x8100]
-    ctx.stop_sync()
+    attempts = []
+    for _ in range(3):  # an attempt counts only if the master itself kept SYNC regular (a loaded host may not)
+        mark = ctx.frames.mark()
+        sent = _sync_for(ctx, period, 0.8)
+        gap = max(b - a for a, b in zip(sent, sent[1:], strict=False))
+        alarms = [c for c in ctx.emcy_codes(mark) if c == 0x8100]
+        attempts.append((gap, len(alarms)))
+        if gap <= 1.2 * period:
+            break
+    gap, alarms = attempts[-1]
     mark2 = ctx.frames.mark()
     t0 = time.monotonic()
     got = ctx.wait_emcy(mark2, 0x8100, 0.5)
     dt = time.monotonic() - t0
     boot(ctx)
-    if false_alarms:
-        raise Fail(f"{len(false_alarms)} EMCY 0x8100 while SYNC ran every 20 ms")
+    ctx.note("attempts (largest SYNC gap sent [ms], EMCY 0x8100): "
+             + ", ".join(f"({g * 1e3:.1f}, {n})" for g, n in attempts))
+    if gap > 1.2 * period:
+        raise Skip(f"this master could not send SYNC regularly enough to judge false alarms (largest gap "
+                   f"{gap * 1e3:.1f} ms for a {period * 1e3:.0f} ms period in 3 attempts)")
+    if alarms:
+        raise Fail(f"{alarms} EMCY 0x8100 while SYNC ran every {period * 1e3:.0f} ms (largest gap sent "
+                   f"{gap * 1e3:.1f} ms, timeout 1.5 x period)")
     if got is None or dt > 0.3:
         raise Fail("no EMCY 0x8100 within 0.3 s of the last SYNC (0x1006 = 20 ms)")
-    return f"no false alarm in 1 s; EMCY 0x8100 {dt * 1e3:.0f} ms after SYNC stopped"
+    return (f"no false alarm in 0.8 s (largest gap sent {gap * 1e3:.1f} ms); EMCY 0x8100 {dt * 1e3:.0f} ms after "
+            "SYNC stopped")
+
+
+def _sync_for(ctx: Context, period: float, duration: float) -> list[float]:
+    """Send SYNC every ``period`` for ``duration`` [s] from this thread; returns the send times."""
+    sent: list[float] = []
+    end = time.monotonic() + duration
+    nxt = time.monotonic()
+    while nxt < end:
+        delay = nxt - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        ctx.sync_once()
+        sent.append(time.monotonic())
+        nxt += period
+    return sent
 
 
 # ============================================================================ EDS consistency
