@@ -128,7 +128,34 @@ def _statusword_ignores_disable_operation(axis, mp):
     mp.setattr(drive, "write_object", write)
 
 
+def _ignores_nmt_stop(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    orig = slave._on_nmt
+
+    def on_nmt(msg, now_s):
+        if msg.data[:1] == b"\x02":
+            return None  # NMT Stop ignored: the node stays operational and keeps answering SDO
+        return orig(msg, now_s)
+
+    mp.setattr(slave, "_on_nmt", on_nmt)
+    slave.rebuild_dispatch()
+
+
+def _maps_anything(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    orig = slave._comm_validate
+
+    def validate(index, sub, value):
+        if 0x1600 <= index <= 0x17FF and sub > 0:
+            return None  # mapping entries not checked (0x1000 accepted into an RPDO)
+        return orig(index, sub, value)
+
+    mp.setattr(slave, "_comm_validate", validate)
+
+
 DEFECTS = {
+    "nmt": (_ignores_nmt_stop, "301-NMT-2"),
+    "pdo": (_maps_anything, "301-PDO-1"),
     "sdo": (_wrong_read_only_abort, "301-SDO-3"),
     "eds": (_answers_unlisted, "301-EDS-2"),
     "rpdo": (_ignores_rpdo_ordering, "402-FLD-2"),
