@@ -14,9 +14,11 @@ Data path of one cycle (what to read, in order):
 4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
    application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
 
-:class:`Drive` runs the power drive state machine, the modes of operation (PP, PV, PT, HM, CSP, CSV, CST),
-the monitoring (following error, software limits, target/velocity reached, standstill, motor temperature,
-DC link) and the fault handling (fault reaction, EMCY, fault buffer), one position-loop cycle at a time.
+:class:`Drive` runs the power drive state machine, the object access, the set-point limiters and the
+orchestration of one position-loop cycle; the modes of operation (PP, PV, PT, HM, CSP, CSV, CST) are objects
+that own their set-point state (:mod:`~virtualaxis.drive.modes`), stops are :mod:`~virtualaxis.drive.reactions`,
+travel monitors :mod:`~virtualaxis.drive.monitoring`; following error, standstill, target/velocity reached,
+motor temperature, DC link and the fault handling (EMCY, fault buffer) are here.
 Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
 (:mod:`virtualaxis.drive.canopen_app`) mirrors them into the slave's object dictionary, and services
 (Modbus, MQTT, conformance, fault injection) use the named API: :attr:`Drive.state`,
@@ -44,13 +46,7 @@ from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults
-from virtualaxis.drive.profiles import (
-    JerkFilter,
-    LinearInterpolator,
-    PositionProfile,
-    VelocityRamp,
-    WindowTimer,
-)
+from virtualaxis.drive.profiles import WindowTimer
 from virtualaxis.drive.settings import drive_settings
 from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
 from virtualaxis.drive.statemachine import (
@@ -113,6 +109,14 @@ _MONITOR_PARAMETER_INDICES = frozenset(
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 
+#: actual-value objects written every cycle by Drive._publish_outputs, in its order (none is an alias)
+_OUTPUT_KEYS = ((0x6061, 0), (0x6062, 0), (0x6063, 0), (0x6064, 0), (0x606B, 0), (0x606C, 0), (0x6077, 0),
+                (0x6078, 0), (0x6079, 0), (0x60F4, 0), (0x60FD, 0), (0x2020, 0), (0x2031, 0), (0x2110, 5))
+assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
+#: statusword base per state value: the state bits | 0x10 voltage enabled | 0x200 remote (keyed by the enum's
+#: string value: hashing a str is cheaper than an Enum member, and this runs every cycle)
+_STATE_SW = {state.value: bits | 0x10 | 0x200 for state, bits in STATE_BITS.items()}
+
 #: commissioned following-error window = margin x steady lag at the maximum speed + EDS default (chosen: 1.5,
 #: the usual MD36400 setting of "lag plus half again")
 FE_WINDOW_MARGIN = 1.5
@@ -148,6 +152,9 @@ class Drive:
         self.cfg = cfg
         self.name = name or cfg.axis.name
         self.settings = drive_settings(cfg)
+        half, inset = cfg.axis.stroke_m / 2, self.settings.limit_switch_inset_m
+        #: plant positions where the negative / positive limit switch and the home switch act [m]
+        self._switch_at_m = (-half + inset, half - inset, self.settings.home_switch_position_m)
         self.sim = AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=discrete)
         # compile the kernel now (a cold numba cache takes seconds), not in the first SYNC of a running bus
         AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=self.sim.dm).advance(1)
@@ -289,7 +296,6 @@ class Drive:
             self._stop: dict | None = None  # active stop ramp
             self._demand_m = self.sim.state.position_m
             self._demand_v = 0.0
-            self._torque_demand_nm = 0.0  # PT: torque after the 0x6087 ramp
             self._last_vff = 0.0
             self._target_reached = False
             self._internal_limit = False
@@ -299,24 +305,18 @@ class Drive:
             self._temperature_alarm = 0
             self._warnings.clear()
             self._motor_rise_k = 0.0
-            self._pp_ack = False
-            self._pp_pending: float | None = None
-            self._pp_target_m = self._demand_m
-            self._pp_bit4 = False
-            self._homing: hm.HomingRun | None = None
-            self._homing_started = False
             self._fe_timer = WindowTimer()
             self._fe_exceeded = False
             self._tr_timer = WindowTimer()
             self._vz_timer = WindowTimer()
             self._ss_timer = WindowTimer()
             self._rest_timer = WindowTimer()
-            self._profile = PositionProfile(self.cycle_s, self._demand_m)
-            self._jerk = JerkFilter()
-            self._jerk.reset(self._demand_m, 1)
-            self._vramp = VelocityRamp(self.cycle_s)
-            self._interp = LinearInterpolator()
-            self._interp.reset(self._demand_m)
+            # the mode objects and their set-point state (0x6060 value -> mode object; see drive.modes)
+            self._modes = modes.make_modes(self.cycle_s, self._demand_m)
+            self._mode_obj = self._modes[0]
+            self._gen = self._modes[0].gen  # the profile generator of no mode / PP / HM
+            self._hm: modes.Homing = self._modes[HM]
+            self._csp: modes.CyclicPosition = self._modes[CSP]
             self._prev_actual_m = self._demand_m
             self._fe_m = 0.0
             self._limit_switches = 0  # 0x60FD bits 0/1 as last monitored
@@ -403,10 +403,7 @@ class Drive:
         if key == (0x6098, 0):
             if value not in hm.SUPPORTED_METHODS:
                 raise ObjectAccessError(ABORT_VALUE_INVALID, f"homing method {value} is not supported")
-            if self._homing is not None and self._homing.status in (
-                hm.HomingStatus.IN_PROGRESS,
-                hm.HomingStatus.RETURNING,
-            ):
+            if self._hm.in_progress():
                 raise ObjectAccessError(ABORT_DEVICE_STATE, "homing method cannot change while homing")
         if key[0] in (0x608F, 0x6091, 0x6092):
             if value <= 0:
@@ -496,9 +493,9 @@ class Drive:
         elif index == 0x6060:
             self._on_mode(int(value))
         elif index == 0x607A:
-            self._on_target_position(int(value))
-        elif index in (0x60FF, 0x60B1) and self._mode == CSV:
-            self._on_target_velocity()
+            self._mode_obj.on_target_position(self, int(value))
+        elif index in (0x60FF, 0x60B1):
+            self._mode_obj.on_target_velocity(self)
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6080):
@@ -523,6 +520,7 @@ class Drive:
             gear_shaft_revs=int(o[(0x6091, 2)]),
         )
         self._u = self.scaling.metres_per_unit
+        self._inc_per_m = self.scaling.increments_per_metre
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
@@ -634,7 +632,7 @@ class Drive:
         self._power = False
         self._stop = None
         self._demand_v = 0.0
-        self._homing = None
+        self._hm.run = None
 
     def _start_stop(self, kind: str, then: Cia402State | str | None) -> None:
         """Stop FROM THE ACTUAL MOTION (see :mod:`virtualaxis.drive.reactions`); ``then``: the state once
@@ -650,9 +648,11 @@ class Drive:
         rx.run_stop(self)
 
     def _enter_mode_idle_hold(self) -> None:
-        self._profile.reset(self._demand_m)
-        self._jerk.reset(self._demand_m, 1)
-        self._interp.reset(self._demand_m)
+        """The position set-point generators at rest at the demand (after a stop)."""
+        p = self._demand_m
+        self._gen.profile.reset(p)
+        self._gen.jerk.reset(p, 1)
+        self._csp.interp.reset(p)
 
     # ================================================================================ faults
     def _raise_fault(
@@ -678,7 +678,7 @@ class Drive:
                 self._power_off()
                 self._set_state(S.FAULT)
             else:
-                self._homing = None
+                self._hm.run = None
                 self._start_stop(kind, then=S.FAULT)
         elif self._state is S.FAULT_REACTION_ACTIVE and kind == "coast":
             # a fault that forbids braking under control (encoder, over-current) during a stop ramp: OFF2
@@ -767,6 +767,7 @@ class Drive:
         if mode == self._mode:
             return
         self._mode = mode
+        self._mode_obj = self._modes.get(mode, self._modes[0])
         self._store((0x6061, 0), mode)
         if self._state == S.OPERATION_ENABLED and self._stop is None:
             self._enter_mode(mode)
@@ -774,24 +775,27 @@ class Drive:
         self._notify("mode")
 
     def _enter_mode(self, mode: int) -> None:
-        """Start a mode: common set-point state reset here, then the mode object takes over from the actual
-        motion (:meth:`virtualaxis.drive.modes.OperatingMode.enter`)."""
+        """Start the active mode (``mode`` = 0x6060): the set-point state reset (the shared profile generator
+        and every mode object's own state), then the mode object takes over from the actual motion
+        (:meth:`virtualaxis.drive.modes.OperatingMode.enter`)."""
         ax = self._axis
         if self._smode != ControlMode.POSITION or not self._power:
             self._demand_m = ax.position_m - self._zero_m
         p = self._demand_m
         self._last_vff = 0.0
-        self._profile.reset(p, 0.0)
-        self._jerk.reset(p, 1)
-        self._interp.reset(p)
-        self._pp_target_m = p
-        self._pp_pending = None
-        self._pp_ack = False
+        self._gen.reset(p)
+        for m in self._modes.values():  # every mode's own state at rest (PP handshake, homing run, CSP)
+            m.reset(self, p)
+        self._restart_target_window()
+        self._mode_obj.enter(self)
+
+    def _restart_target_window(self) -> None:
+        """Target reached (bit 10) false and its 0x6068 window timer restarted (new set-point / mode)."""
         self._target_reached = False
         self._tr_timer = WindowTimer()
-        self._homing = None
-        self._homing_started = False
-        modes.mode_object(mode).enter(self)
+
+    def _state_enabled(self) -> bool:
+        return self._state is S.OPERATION_ENABLED
 
     def _interp_cycles(self) -> int:
         value = int(self._obj(0x60C2, 1))
@@ -819,89 +823,15 @@ class Drive:
         self._internal_limit = True
         return min(max(target_m, lim[0]), lim[1])
 
-    def _on_target_position(self, value: int) -> None:
-        if self._mode == CSP and self._state == S.OPERATION_ENABLED and self._stop is None:
-            target = self._check_limit(value * self._u, value)
-            if target is not None:
-                self._interp.new_target(target, self._interp_cycles())
-
-    def _on_target_velocity(self) -> None:
-        if self._state == S.OPERATION_ENABLED and self._stop is None and hasattr(self, "_interp_v"):
-            v = (int(self._obj(0x60FF)) + int(self._obj(0x60B1))) * self._u
-            self._interp_v.new_target(self._clamp_velocity(v), self._interp_cycles())
-
     def _mode_controlword(self, old_cw: int, cw: int) -> None:
-        """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt)."""
-        if self._state != S.OPERATION_ENABLED or self._stop is not None:
-            self._pp_bit4 = bool(cw & 0x10)
-            return
-        rising4 = bool(cw & 0x10) and not old_cw & 0x10
-        if self._mode == PP:
-            if rising4:
-                if not self._pp_ack or cw & 0x20:
-                    value = int(self._obj(0x607A))
-                    base_units = self._pp_pending if self._pp_pending is not None else self._pp_target_m
-                    if cw & 0x40:  # relative to the last target
-                        target = base_units + value * self._u
-                    else:
-                        target = value * self._u
-                    target_l = self._check_limit(target, value)
-                    if target_l is not None:
-                        if cw & 0x20 or self._profile.done and self._jerk.settled(self._profile.position_m):
-                            self._pp_target_m = target_l
-                            self._pp_pending = None
-                            self._start_pp_move()
-                        else:
-                            self._pp_pending = target_l
-                        self._pp_ack = True
-                        self._target_reached = False
-                        self._tr_timer = WindowTimer()
-            elif not cw & 0x10 and self._pp_pending is None:
-                self._pp_ack = False
-        elif self._mode == HM:
-            if rising4:
-                self._start_homing()
-            elif (
-                not cw & 0x10
-                and self._homing is not None
-                and self._homing.status in (hm.HomingStatus.IN_PROGRESS, hm.HomingStatus.RETURNING)
-            ):
-                self._homing = None  # bit 4 dropped: homing interrupted
-                self._homing_started = False
-                self._profile.set_target(self._profile.position_m, 1, 1, self._homing_accel())
-        self._pp_bit4 = bool(cw & 0x10)
-
-    def _start_pp_move(self) -> None:
-        o = self.objects
-        jerk_on = int(o[(0x6086, 0)]) == 3 and float(o[(0x60A4, 1)]) > 0
-        if jerk_on and self._jerk.settled(self._profile.position_m) and self._profile.done:
-            t_j = float(o[(0x6083, 0)]) / float(o[(0x60A4, 1)])
-            self._jerk.reset(self._profile.position_m, max(1, int(round(t_j / self.cycle_s))))
-        elif not jerk_on and self._jerk.n != 1 and self._jerk.settled(self._profile.position_m):
-            self._jerk.reset(self._profile.position_m, 1)
-
-    def _pp_limits(self) -> tuple[float, float, float]:
-        o, u = self.objects, self._u
-        v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
-        return min(v, self._params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+        """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt): the mode object's,
+        in OPERATION ENABLED without a stop running."""
+        if self._state == S.OPERATION_ENABLED and self._stop is None:
+            self._mode_obj.controlword(self, old_cw, cw)
 
     def _halt_decel(self) -> float:
         option = int(self._obj(0x605D))
         return float(self._obj(0x6085 if option >= 2 else 0x6084)) * self._u
-
-    def _homing_accel(self) -> float:
-        return max(float(self._obj(0x609A)) * self._u, 1e-6)
-
-    def _run_mode(self) -> None:
-        """One cycle of the active mode object (set-point to the plant)."""
-        modes.mode_object(self._mode).cycle(self)
-
-    def _pt_target_nm(self, rated_nm: float) -> float:
-        """Where the profile-torque ramp goes: 0x6071 limited by 0x6072, zero while halted (CW bit 8) [N m]."""
-        if self._cw & 0x100:
-            return 0.0
-        t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
-        return max(-t_max, min(t_max, int(self._obj(0x6071)) / 1000.0 * rated_nm))
 
     def _clamp_velocity(self, v: float) -> float:
         """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
@@ -954,101 +884,13 @@ class Drive:
         self.sim.set_position_setpoint(p + self._zero_m, vff, acc)
 
     # ================================================================================ homing
+    # ================================================================================ switches
     def _switches(self, x_plant_m: float, method: int | None = None) -> tuple[bool, bool, bool]:
-        half = self.cfg.axis.stroke_m / 2
-        inset = self.settings.limit_switch_inset_m
-        neg = x_plant_m <= -half + inset
-        pos = x_plant_m >= half - inset
-        h = self.settings.home_switch_position_m
-        home = x_plant_m <= h if method in (21, 22) else x_plant_m >= h
-        return neg, pos, home
-
-    def _start_homing(self) -> None:
-        method = int(self._obj(0x6098))
-        x = self._axis.position_m
-        neg, pos, home = self._switches(x, method)
-        phases = hm.method_phases(method, neg, pos, home)
-        if phases is None:
-            self._homing = hm.HomingRun(method, [], x, status=hm.HomingStatus.ERROR, error="unsupported method")
-            return
-        self._homing = hm.HomingRun(method, phases, x)
-        self._homing_started = True
-        self._homed = False
-        self._profile.reset(self._demand_m, 0.0)
-        self._jerk.reset(self._demand_m, 1)
-        if not phases:
-            self._homing.home_m = x
-            self._finish_homing()
-
-    def _run_homing(self, halt: bool) -> None:
-        run = self._homing
-        acc = self._homing_accel()
-        if run is None or run.status in (hm.HomingStatus.ATTAINED, hm.HomingStatus.ERROR):
-            self._profile.set_target(
-                self._profile.position_m if self._profile.velocity_m_s == 0 else self._profile.target_m,
-                1.0,
-                acc,
-                acc,
-            )
-            return
-        if halt:
-            pv = self._profile.velocity_m_s
-            self._profile.set_target(self._profile.position_m + pv * abs(pv) / (2 * acc), max(abs(pv), 1e-9), acc, acc)
-            self._homing = None  # halted: interrupted
-            return
-        x_plant = self._axis.position_m
-        if run.status == hm.HomingStatus.RETURNING:
-            self._profile.set_target(run.home_m - self._zero_m, self.objects[(0x6099, 2)] * self._u, acc, acc)
-            if self._profile.done and abs(self._axis.velocity_m_s) < 1e-4:
-                self._finish_homing()
-            return
-        phase = run.phase
-        fast = float(self._obj(0x6099, 1)) * self._u
-        slow = float(self._obj(0x6099, 2)) * self._u
-        speed = fast if phase.fast else slow
-        far = phase.direction * 10.0 * max(self.cfg.axis.stroke_m, 0.1)
-        self._profile.set_target(self._profile.position_m + far, speed, acc, acc)
-        neg, pos, home = self._switches(x_plant, run.method)
-        hit = False
-        latched = x_plant
-        if phase.signal == "index":
-            period = self._lead_m() * int(self._obj(0x6091, 2)) / int(self._obj(0x6091, 1))
-            crossing = hm.index_crossed(self._prev_actual_m, x_plant, self.settings.index_pulse_offset_m, period)
-            if crossing is not None and (crossing - self._prev_actual_m) * phase.direction > 0:
-                hit, latched = True, crossing
-        else:
-            value = {"neg": neg, "pos": pos, "home": home}[phase.signal]
-            hit = value == phase.value
-        # an unexpected limit switch in the direction of travel is a homing error
-        if not hit and (
-            (phase.direction > 0 and pos and phase.signal != "pos")
-            or (phase.direction < 0 and neg and phase.signal != "neg")
-        ):
-            run.status = hm.HomingStatus.ERROR
-            run.error = "limit switch reached"
-            pv = self._profile.velocity_m_s
-            self._profile.set_target(self._profile.position_m + pv * abs(pv) / (2 * acc), max(abs(pv), 1e-9), acc, acc)
-            return
-        if hit:
-            run.phase_index += 1
-            if run.phase is None:
-                run.home_m = latched
-                run.status = hm.HomingStatus.RETURNING
-
-    def _finish_homing(self) -> None:
-        run = self._homing
-        home_offset_m = int(self._obj(0x607C)) * self._u
-        # shift the position reference: the home point reads as the home offset
-        old_zero = self._zero_m
-        self._zero_m = run.home_m - home_offset_m
-        shift = self._zero_m - old_zero
-        self._demand_m -= shift
-        self._profile.reset(self._profile.position_m - shift, 0.0)
-        self._jerk.reset(self._profile.position_m, 1)
-        self._pp_target_m = self._profile.position_m
-        run.status = hm.HomingStatus.ATTAINED
-        self._homed = True
-        self._notify("homed")
+        """Limit switches (negative, positive) and home switch at plant position ``x_plant_m`` [m]; the home
+        switch is active below its position for methods 21 / 22, above it otherwise."""
+        neg_at, pos_at, h = self._switch_at_m
+        home = x_plant_m <= h if method == 21 or method == 22 else x_plant_m >= h
+        return x_plant_m <= neg_at, x_plant_m >= pos_at, home
 
     # ================================================================================ cycle
     def step(self, n_cycles: int = 1) -> None:
@@ -1185,7 +1027,7 @@ class Drive:
             if self._stop is not None:
                 self._run_stop()
             elif self._state == S.OPERATION_ENABLED:
-                self._run_mode()
+                self._mode_obj.cycle(self)
             elif self._state == S.QUICK_STOP_ACTIVE:
                 self._set_sim_mode(ControlMode.POSITION)
                 self._set_position(self._demand_m, 0.0)
@@ -1198,8 +1040,8 @@ class Drive:
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
         if not self._power:
             self._demand_m = ax.position_m - self._zero_m
-            self._profile.reset(self._demand_m)
-            self._interp.reset(self._demand_m)
+            self._gen.profile.reset(self._demand_m)
+            self._csp.interp.reset(self._demand_m)
         if self._params_dirty:
             self._refresh_params()
         mon.monitor_position_range(self, (ax.position_m - self._zero_m) * self._pc.inv_u)
@@ -1268,7 +1110,7 @@ class Drive:
         elif self._rest_timer.held_s:
             self._rest_timer.held_s = 0.0
         # target reached / velocity reached (the mode object's definition of bit 10)
-        self._target_reached = modes.mode_object(self._mode).target_reached(self, ax, dt)
+        self._target_reached = self._mode_obj.target_reached(self, ax, dt)
         self._speed_zero = self._vz_timer.update(
             abs(ax.velocity_m_s) <= pc.velocity_threshold_m_s, dt, pc.velocity_threshold_time_s
         )
@@ -1296,7 +1138,7 @@ class Drive:
 
     # ================================================================================ outputs
     def _update_statusword(self) -> None:
-        sw = STATE_BITS[self._state] | 0x10 | 0x200  # voltage enabled, remote
+        sw = _STATE_SW[self._state._value_]  # state bits + voltage enabled + remote
         if self._warning or self._alarm:
             sw |= 0x80
         if self._target_reached:
@@ -1304,7 +1146,7 @@ class Drive:
         if self._internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
         if self._state == S.OPERATION_ENABLED:
-            bits = modes.mode_object(self._mode).status_bits(self)  # bits 12 / 13 (HM: 10 too)
+            bits = self._mode_obj.status_bits(self)  # bits 12 / 13 (HM: 10 too)
             if bits & 0x8000:
                 sw &= ~0x3400
             sw |= bits & 0x7FFF
@@ -1316,31 +1158,40 @@ class Drive:
         return bool(getattr(self, "_speed_zero", False))
 
     def _publish_outputs(self) -> None:
+        """Statusword and actual values into the objects (changed ones marked for the OD mirror). Hot path:
+        the output objects are no aliases, so they are compared and stored directly (not via _store)."""
         ax, pc, o = self._axis, self._pc, self.objects
-        store = self._store
         self._update_statusword()
         inv_u = pc.inv_u
         x = ax.position_m - self._zero_m
-        store((0x6061, 0), self._mode)
-        store((0x6062, 0), _i32(self._demand_m * inv_u))
-        store((0x6063, 0), _i32(x * self.scaling.increments_per_metre))
-        store((0x6064, 0), _i32(x * inv_u))
-        store((0x606B, 0), _i32(self._demand_v * inv_u))
-        store((0x606C, 0), _i32(ax.velocity_m_s * inv_u))
         torque_pm = _i16(ax.torque_nm / pc.rated_nm * 1000.0) if pc.rated_nm else 0
-        store((0x6077, 0), torque_pm)
-        store((0x6078, 0), _i16(ax.current_q_a / pc.rated_a * 1000.0) if pc.rated_a else 0)
-        if self._mode not in TORQUE_MODES:
-            store((0x6074, 0), torque_pm)
-        store((0x6079, 0), clamp_to_dtype(ax.dc_link_v * 1000, "u32"))
         fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0
         self._fe_m = fe
-        store((0x60F4, 0), _i32(fe * inv_u))
         neg, pos, home = self._switches(ax.position_m, int(o[(0x6098, 0)]))
-        store((0x60FD, 0), (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0))
-        store((0x2020, 0), round(MOTOR_AMBIENT_C + self._motor_rise_k, 2))
-        store((0x2031, 0), self._alarm)
-        store((0x2110, 5), self.counters["cycles"] & 0xFFFFFFFF)
+        values = (
+            self._mode,
+            _i32(self._demand_m * inv_u),
+            _i32(x * self._inc_per_m),
+            _i32(x * inv_u),
+            _i32(self._demand_v * inv_u),
+            _i32(ax.velocity_m_s * inv_u),
+            torque_pm,
+            _i16(ax.current_q_a / pc.rated_a * 1000.0) if pc.rated_a else 0,
+            clamp_to_dtype(ax.dc_link_v * 1000, "u32"),
+            _i32(fe * inv_u),
+            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
+            round(MOTOR_AMBIENT_C + self._motor_rise_k, 2),
+            self._alarm,
+            self.counters["cycles"] & 0xFFFFFFFF,
+        )
+        changed = self._changed
+        for key, value in zip(_OUTPUT_KEYS, values, strict=True):
+            if o[key] != value:
+                o[key] = value
+                changed.add(key)
+        if self._mode not in TORQUE_MODES and o[(0x6074, 0)] != torque_pm:
+            o[(0x6074, 0)] = torque_pm
+            changed.add((0x6074, 0))
 
     def record_overrun(self, n: int = 1) -> None:
         """The runtime reports cycles that started late (shown in 0x2110:2 and the counters)."""
@@ -1473,14 +1324,18 @@ class _Params:
 
 
 def _i32(x: float) -> int:
-    if not math.isfinite(x):  # (never expected: the cycle guards the plant; saturate instead of raising)
+    """``x`` rounded and saturated to INTEGER32 (NaN: 0)."""
+    try:
+        v = round(x)
+    except (OverflowError, ValueError):  # (never expected: the cycle guards the plant; saturate, don't raise)
         return 0 if math.isnan(x) else (0x7FFFFFFF if x > 0 else -0x80000000)
-    v = int(round(x))
     return -0x80000000 if v < -0x80000000 else 0x7FFFFFFF if v > 0x7FFFFFFF else v
 
 
 def _i16(x: float) -> int:
-    if not math.isfinite(x):
+    """``x`` rounded and saturated to INTEGER16 (NaN: 0)."""
+    try:
+        v = round(x)
+    except (OverflowError, ValueError):
         return 0 if math.isnan(x) else (0x7FFF if x > 0 else -0x8000)
-    v = int(round(x))
     return -0x8000 if v < -0x8000 else 0x7FFF if v > 0x7FFF else v

@@ -3,14 +3,20 @@
 - ``enter(drive)``: take over the axis FROM ITS ACTUAL MOTION (a mode change while moving decelerates with
   the new mode's own deceleration; velocity and torque modes start from the actual speed / torque);
 - ``cycle(drive)``: one position-loop cycle: the mode's set-point to the plant (position + feed-forward,
-  speed or torque);
+  speed or torque) through the drive's set-point limiters (``Drive._set_position``, ``_velocity_limit``,
+  ``_apply_torque``);
 - ``stop(drive, decel_m_s2)``: ramp to rest with the given deceleration (halt, controlword bit 8);
+- ``controlword(drive, old_cw, cw)``: the mode-specific controlword bits 4, 5, 6, 8 (PP set-point
+  handshake, HM start / interrupt); ``on_target_position`` / ``on_target_velocity``: a target object written
+  (CSP / CSV take it into their interpolators);
 - ``target_reached(drive, ax, dt)`` and ``status_bits(drive)``: statusword bits 10 / 12 / 13.
 
-The drive (``virtualaxis.drive.core.Drive``) owns the state those objects act on (set-point generators,
-the PP set-point handshake, the homing run); the objects hold no state of their own, so the drive's
-power-on reset resets everything. Stops for faults / quick stop / limit switches are not the mode's: they
-run in :mod:`virtualaxis.drive.reactions`, from the actual speed, whatever the mode.
+Each mode object OWNS its state: the set-point generator it runs (PP / HM / no mode: the shared
+:class:`ProfileGenerator`; PV: a velocity ramp; PT: the torque ramp; CSP / CSV: interpolators) and its
+protocol state (PP: the set-point handshake; HM: the homing run). :func:`make_modes` builds a fresh set per
+drive at power-on reset, so the reset clears all of it. Stops for faults / quick stop / limit switches are
+not the mode's: they run in :mod:`virtualaxis.drive.reactions`, from the actual speed, whatever the mode.
+The drive keeps the state machine, the objects, the set-point limiting and the monitors.
 """
 
 from __future__ import annotations
@@ -20,13 +26,42 @@ from typing import TYPE_CHECKING
 
 from virtualaxis.drive import homing as hm
 from virtualaxis.drive import reactions as rx
-from virtualaxis.drive.profiles import LinearInterpolator
+from virtualaxis.drive.profiles import JerkFilter, LinearInterpolator, PositionProfile, VelocityRamp
 from virtualaxis.sim import ControlMode
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
 
 PP, PV, PT, HM, CSP, CSV, CST = 1, 3, 4, 6, 8, 9, 10
+_ACTIVE_HOMING = (hm.HomingStatus.IN_PROGRESS, hm.HomingStatus.RETURNING)
+
+
+class ProfileGenerator:
+    """The position set-point generator of the profile modes (no mode, PP, HM): online trapezoid
+    (:class:`PositionProfile`) + jerk filter, and the end point it is commanded to (``target_m``, drive
+    coordinate [m]). One instance per drive, shared by those modes (a mode change hands it over)."""
+
+    def __init__(self, cycle_s: float, position_m: float):
+        self.profile = PositionProfile(cycle_s, position_m)
+        self.jerk = JerkFilter()
+        self.jerk.reset(position_m, 1)
+        self.target_m = position_m
+
+    def reset(self, position_m: float) -> None:
+        """At rest at ``position_m`` (profile, jerk filter and target)."""
+        self.profile.reset(position_m, 0.0)
+        self.jerk.reset(position_m, 1)
+        self.target_m = position_m
+
+    def settled(self) -> bool:
+        """Profile at its target and the jerk filter drained [-]."""
+        return self.profile.done and self.jerk.settled(self.profile.position_m)
+
+    def brake(self, a_m_s2: float, d_m_s2: float) -> None:
+        """Re-target to stop from the present profile speed with deceleration ``d_m_s2`` [m/s^2]."""
+        pr = self.profile
+        pv = pr.velocity_m_s
+        pr.set_target(pr.position_m + pv * abs(pv) / (2 * d_m_s2), max(abs(pv), 1e-9), a_m_s2, d_m_s2)
 
 
 class OperatingMode:
@@ -35,7 +70,13 @@ class OperatingMode:
     number = 0
     control = ControlMode.POSITION
 
+    def __init__(self, gen: ProfileGenerator):
+        self.gen = gen
+
     # ------------------------------------------------------------------ enter
+    def reset(self, d: Drive, p_m: float) -> None:
+        """The mode's own state at rest at ``p_m`` (before :meth:`enter`; the drive resets the generator)."""
+
     def enter(self, d: Drive) -> None:
         """Take over from the actual motion: in position control, a moving axis decelerates with
         :meth:`entry_decel_m_s2` to rest from where it is (no hard stop), else hold the demand."""
@@ -45,11 +86,12 @@ class OperatingMode:
             p = ax.position_m - d._zero_m + d._lag_m(v_act)  # bumpless: speed set-point = actual speed
             decel = max(self.entry_decel_m_s2(d), 1e-6)
             stop_at = p + v_act * abs(v_act) / (2.0 * decel)
+            gen = self.gen
             d._demand_m = p
-            d._profile.reset(p, v_act)
-            d._profile.set_target(stop_at, max(abs(v_act), 1e-9), decel, decel)
-            d._jerk.reset(p, 1)
-            d._pp_target_m = stop_at
+            gen.profile.reset(p, v_act)
+            gen.profile.set_target(stop_at, max(abs(v_act), 1e-9), decel, decel)
+            gen.jerk.reset(p, 1)
+            gen.target_m = stop_at
             d._last_vff = v_act
             d._set_sim_mode(ControlMode.POSITION)
             d.sim.set_position_setpoint(p + d._zero_m, v_act, 0.0)
@@ -63,22 +105,33 @@ class OperatingMode:
 
     # ------------------------------------------------------------------ cycle
     def cycle(self, d: Drive) -> None:
-        if d._profile.velocity_m_s == 0.0:  # hold (after a stop from motion, see enter)
-            d._profile.set_target(d._profile.position_m, 1.0, 1.0, 1.0)
+        pr = self.gen.profile
+        if pr.velocity_m_s == 0.0:  # hold (after a stop from motion, see enter)
+            pr.set_target(pr.position_m, 1.0, 1.0, 1.0)
         self._profile_step(d)
 
     def _profile_step(self, d: Drive) -> float:
         """Step the position profile (+ jerk filter) and send it to the position loop; returns the position."""
-        p, _ = d._profile.step()
-        pf = d._jerk.step(p)
+        gen = self.gen
+        p, _ = gen.profile.step()
+        pf = gen.jerk.step(p)
         d._set_position(pf, (pf - d._demand_m) / d.cycle_s)
         return p
 
     def stop(self, d: Drive, decel_m_s2: float) -> None:
         """Ramp the position profile to rest with ``decel_m_s2``."""
-        pv = d._profile.velocity_m_s
-        stop_at = d._profile.position_m + pv * abs(pv) / (2 * decel_m_s2)
-        d._profile.set_target(stop_at, max(abs(pv), 1e-9), max(d._profile.a_max, 1e-9), decel_m_s2)
+        pr = self.gen.profile
+        self.gen.brake(max(pr.a_max, 1e-9), decel_m_s2)
+
+    # ------------------------------------------------------------------ objects
+    def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
+        """Mode-specific controlword bits (4, 5, 6, 8) in OPERATION ENABLED without a stop running."""
+
+    def on_target_position(self, d: Drive, value: int) -> None:
+        """0x607A written (raw position units)."""
+
+    def on_target_velocity(self, d: Drive) -> None:
+        """0x60FF / 0x60B1 written."""
 
     # ------------------------------------------------------------------ status
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
@@ -94,63 +147,218 @@ class ProfilePosition(OperatingMode):
 
     number = PP
 
+    def __init__(self, gen: ProfileGenerator):
+        super().__init__(gen)
+        self.ack = False  # statusword bit 12 "set-point acknowledge"
+        self.pending_m: float | None = None  # buffered set-point (single set-point, not change immediately)
+
+    def reset(self, d: Drive, p_m: float) -> None:
+        self.ack = False
+        self.pending_m = None
+
     def entry_decel_m_s2(self, d: Drive) -> float:
         return float(d._obj(0x6084)) * d._u
 
+    def limits(self, d: Drive) -> tuple[float, float, float]:
+        """Profile velocity (0x6081 limited by 0x607F and 0x6080), acceleration 0x6083, deceleration 0x6084
+        [m/s, m/s^2, m/s^2]."""
+        o, u = d.objects, d._u
+        v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
+        return min(v, d._params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+
     def cycle(self, d: Drive) -> None:
+        gen = self.gen
         halt = bool(d._cw & 0x100)
-        v, a, dec = d._pp_limits()
+        v, a, dec = self.limits(d)
         if halt:
-            dh = d._halt_decel()
-            pv = d._profile.velocity_m_s
-            d._profile.set_target(d._profile.position_m + pv * abs(pv) / (2 * dh), max(abs(pv), 1e-9), a, dh)
+            gen.brake(a, d._halt_decel())
         else:
-            d._profile.set_target(d._pp_target_m, v, a, dec)
+            gen.profile.set_target(gen.target_m, v, a, dec)
         p = self._profile_step(d)
-        if not halt and d._pp_pending is not None and d._profile.done and d._jerk.settled(p):
-            d._pp_target_m = d._pp_pending
-            d._pp_pending = None
-            d._start_pp_move()
+        if not halt and self.pending_m is not None and gen.profile.done and gen.jerk.settled(p):
+            gen.target_m = self.pending_m
+            self.pending_m = None
+            self.start_move(d)
             if not d._cw & 0x10:
-                d._pp_ack = False
+                self.ack = False
+
+    def start_move(self, d: Drive) -> None:
+        """A new set-point takes effect: the jerk filter length from 0x6086 / 0x60A4 (only when at rest)."""
+        o, gen = d.objects, self.gen
+        pr = gen.profile
+        jerk_on = int(o[(0x6086, 0)]) == 3 and float(o[(0x60A4, 1)]) > 0
+        if jerk_on and gen.jerk.settled(pr.position_m) and pr.done:
+            t_j = float(o[(0x6083, 0)]) / float(o[(0x60A4, 1)])
+            gen.jerk.reset(pr.position_m, max(1, int(round(t_j / d.cycle_s))))
+        elif not jerk_on and gen.jerk.n != 1 and gen.jerk.settled(pr.position_m):
+            gen.jerk.reset(pr.position_m, 1)
+
+    def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
+        """Set-point handshake: rising bit 4 takes 0x607A (bit 6 relative, bit 5 change immediately)."""
+        if cw & 0x10 and not old_cw & 0x10:
+            if not self.ack or cw & 0x20:
+                value = int(d._obj(0x607A))
+                base = self.pending_m if self.pending_m is not None else self.gen.target_m
+                target = base + value * d._u if cw & 0x40 else value * d._u
+                target_l = d._check_limit(target, value)
+                if target_l is not None:
+                    if cw & 0x20 or self.gen.settled():
+                        self.gen.target_m = target_l
+                        self.pending_m = None
+                        self.start_move(d)
+                    else:
+                        self.pending_m = target_l
+                    self.ack = True
+                    d._restart_target_window()
+        elif not cw & 0x10 and self.pending_m is None:
+            self.ack = False
 
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
         pc = d._pc
-        if d._cw & 0x100 and d._profile.velocity_m_s == 0.0:  # halted
+        gen = self.gen
+        pr = gen.profile
+        if d._cw & 0x100 and pr.velocity_m_s == 0.0:  # halted
             return True
         x = ax.position_m - d._zero_m
         cond = (
-            d._profile.done
-            and d._pp_pending is None
-            and d._jerk.settled(d._profile.position_m)
-            and abs(d._pp_target_m - x) <= pc.position_window_m
+            pr.done
+            and self.pending_m is None
+            and gen.jerk.settled(pr.position_m)
+            and abs(gen.target_m - x) <= pc.position_window_m
         )
         return d._tr_timer.update(cond, dt, pc.position_time_s)
 
     def status_bits(self, d: Drive) -> int:
-        sw = 0x1000 if d._pp_ack else 0
+        sw = 0x1000 if self.ack else 0
         return sw | (0x2000 if d._fe_timer.held_s > 0 and d._fe_exceeded else 0)
 
 
 class Homing(OperatingMode):
-    """HM (6): the methods of :mod:`virtualaxis.drive.homing` on the simulated switches."""
+    """HM (6): the methods of :mod:`virtualaxis.drive.homing` on the simulated switches; ``run`` is the
+    homing run in progress / last finished (None: idle or interrupted)."""
 
     number = HM
 
+    def __init__(self, gen: ProfileGenerator):
+        super().__init__(gen)
+        self.run: hm.HomingRun | None = None
+
+    def reset(self, d: Drive, p_m: float) -> None:
+        self.run = None
+
+    def in_progress(self) -> bool:
+        return self.run is not None and self.run.status in _ACTIVE_HOMING
+
+    @staticmethod
+    def accel_m_s2(d: Drive) -> float:
+        """Homing acceleration 0x609A [m/s^2]."""
+        return max(float(d._obj(0x609A)) * d._u, 1e-6)
+
     def entry_decel_m_s2(self, d: Drive) -> float:
-        return d._homing_accel()
+        return self.accel_m_s2(d)
+
+    def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
+        """Rising bit 4 starts homing; bit 4 dropped while homing interrupts it (decelerating)."""
+        if cw & 0x10 and not old_cw & 0x10:
+            self.start(d)
+        elif not cw & 0x10 and self.in_progress():
+            self.run = None  # bit 4 dropped: homing interrupted
+            pr = self.gen.profile
+            pr.set_target(pr.position_m, 1, 1, self.accel_m_s2(d))
+
+    def start(self, d: Drive) -> None:
+        method = int(d._obj(0x6098))
+        x = d._axis.position_m
+        neg, pos, home = d._switches(x, method)
+        phases = hm.method_phases(method, neg, pos, home)
+        if phases is None:
+            self.run = hm.HomingRun(method, [], x, status=hm.HomingStatus.ERROR, error="unsupported method")
+            return
+        self.run = hm.HomingRun(method, phases, x)
+        d._homed = False
+        self.gen.profile.reset(d._demand_m, 0.0)
+        self.gen.jerk.reset(d._demand_m, 1)
+        if not phases:
+            self.run.home_m = x
+            self.finish(d)
 
     def cycle(self, d: Drive) -> None:
-        d._run_homing(bool(d._cw & 0x100))
+        self._phase_step(d, bool(d._cw & 0x100))
         self._profile_step(d)
 
+    def _phase_step(self, d: Drive, halt: bool) -> None:
+        """One cycle of the homing phases: the profile's target for this cycle, switch / index detection."""
+        run = self.run
+        pr = self.gen.profile
+        acc = self.accel_m_s2(d)
+        if run is None or run.status in (hm.HomingStatus.ATTAINED, hm.HomingStatus.ERROR):
+            pr.set_target(pr.position_m if pr.velocity_m_s == 0 else pr.target_m, 1.0, acc, acc)
+            return
+        if halt:
+            self.gen.brake(acc, acc)
+            self.run = None  # halted: interrupted
+            return
+        x_plant = d._axis.position_m
+        if run.status == hm.HomingStatus.RETURNING:
+            pr.set_target(run.home_m - d._zero_m, d.objects[(0x6099, 2)] * d._u, acc, acc)
+            if pr.done and abs(d._axis.velocity_m_s) < 1e-4:
+                self.finish(d)
+            return
+        phase = run.phase
+        fast = float(d._obj(0x6099, 1)) * d._u
+        slow = float(d._obj(0x6099, 2)) * d._u
+        speed = fast if phase.fast else slow
+        far = phase.direction * 10.0 * max(d.cfg.axis.stroke_m, 0.1)
+        pr.set_target(pr.position_m + far, speed, acc, acc)
+        neg, pos, home = d._switches(x_plant, run.method)
+        hit = False
+        latched = x_plant
+        if phase.signal == "index":
+            period = d._lead_m() * int(d._obj(0x6091, 2)) / int(d._obj(0x6091, 1))
+            crossing = hm.index_crossed(d._prev_actual_m, x_plant, d.settings.index_pulse_offset_m, period)
+            if crossing is not None and (crossing - d._prev_actual_m) * phase.direction > 0:
+                hit, latched = True, crossing
+        else:
+            value = {"neg": neg, "pos": pos, "home": home}[phase.signal]
+            hit = value == phase.value
+        # an unexpected limit switch in the direction of travel is a homing error
+        if not hit and (
+            (phase.direction > 0 and pos and phase.signal != "pos")
+            or (phase.direction < 0 and neg and phase.signal != "neg")
+        ):
+            run.status = hm.HomingStatus.ERROR
+            run.error = "limit switch reached"
+            self.gen.brake(acc, acc)
+            return
+        if hit:
+            run.phase_index += 1
+            if run.phase is None:
+                run.home_m = latched
+                run.status = hm.HomingStatus.RETURNING
+
+    def finish(self, d: Drive) -> None:
+        """Home found and returned to: shift the position reference (home point reads as 0x607C)."""
+        run = self.run
+        gen = self.gen
+        home_offset_m = int(d._obj(0x607C)) * d._u
+        old_zero = d._zero_m
+        d._zero_m = run.home_m - home_offset_m
+        shift = d._zero_m - old_zero
+        d._demand_m -= shift
+        gen.profile.reset(gen.profile.position_m - shift, 0.0)
+        gen.jerk.reset(gen.profile.position_m, 1)
+        gen.target_m = gen.profile.position_m
+        run.status = hm.HomingStatus.ATTAINED
+        d._homed = True
+        d._notify("homed")
+
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
-        return d._homing is None or d._homing.status in (hm.HomingStatus.ATTAINED, hm.HomingStatus.ERROR)
+        return self.run is None or self.run.status in (hm.HomingStatus.ATTAINED, hm.HomingStatus.ERROR)
 
     def status_bits(self, d: Drive) -> int:
         # bits 13/12/10: idle or interrupted 0/0/1 (0/1/1 once homed), in progress 0/0/0, attained 0/1/1,
         # error 1/0/0 (1/0/1 at standstill); returned with 0x8000 = "replace bit 10"
-        run = d._homing
+        run = self.run
         if run is None:
             return 0x8000 | (0x1400 if d._homed else 0x400)
         if run.status == hm.HomingStatus.ATTAINED:
@@ -161,9 +369,18 @@ class Homing(OperatingMode):
 
 
 class CyclicPosition(OperatingMode):
-    """CSP (8): 0x607A every cycle, interpolated over 0x60C2, velocity offset 0x60B1 as feed-forward."""
+    """CSP (8): 0x607A every cycle, interpolated over 0x60C2 (``interp``), velocity offset 0x60B1 as
+    feed-forward."""
 
     number = CSP
+
+    def __init__(self, gen: ProfileGenerator):
+        super().__init__(gen)
+        self.interp = LinearInterpolator()
+        self.interp.reset(gen.target_m)
+
+    def reset(self, d: Drive, p_m: float) -> None:
+        self.interp.reset(p_m)
 
     def enter(self, d: Drive) -> None:
         # the master's next target takes over; until then the demand is the actual position (+ lag)
@@ -171,21 +388,28 @@ class CyclicPosition(OperatingMode):
         v_act = d._axis.velocity_m_s if moving else 0.0
         if moving and d._smode != ControlMode.POSITION:
             d._demand_m += d._lag_m(v_act)
-            d._interp.reset(d._demand_m)
+            self.interp.reset(d._demand_m)
         d._set_sim_mode(ControlMode.POSITION)
         d.sim.set_position_setpoint(d._demand_m + d._zero_m, v_act, 0.0)
 
+    def on_target_position(self, d: Drive, value: int) -> None:
+        if d._state_enabled() and d._stop is None:
+            target = d._check_limit(value * d._u, value)
+            if target is not None:
+                self.interp.new_target(target, d._interp_cycles())
+
     def cycle(self, d: Drive) -> None:
-        p, slope = d._interp.step()
-        d._set_position(p, slope / d.cycle_s + int(d._obj(0x60B1)) * d._u)
+        p, slope = self.interp.step()
+        d._set_position(p, slope / d.cycle_s + int(d.objects[(0x60B1, 0)]) * d._u)
 
     def stop(self, d: Drive, decel_m_s2: float) -> None:
-        d._interp.reset(d._demand_m)  # no further targets: hold (a CS mode follows the master)
+        self.interp.reset(d._demand_m)  # no further targets: hold (a CS mode follows the master)
 
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
         pc = d._pc
         x = ax.position_m - d._zero_m
-        cond = abs(d._interp.end - x) <= pc.position_window_m and d._interp.i >= d._interp.n
+        it = self.interp
+        cond = abs(it.end - x) <= pc.position_window_m and it.i >= it.n
         return d._tr_timer.update(cond, dt, pc.position_time_s)
 
     def status_bits(self, d: Drive) -> int:
@@ -193,32 +417,38 @@ class CyclicPosition(OperatingMode):
 
 
 class ProfileVelocity(OperatingMode):
-    """PV (3): 0x60FF ramped with 0x6083 / 0x6084, from the actual speed."""
+    """PV (3): 0x60FF ramped with 0x6083 / 0x6084 (``vramp``), from the actual speed."""
 
     number = PV
     control = ControlMode.VELOCITY
 
+    def __init__(self, gen: ProfileGenerator):
+        super().__init__(gen)
+        self.vramp = VelocityRamp(gen.profile.dt_s)
+        self.interp_v = LinearInterpolator()  # CSV: the cyclic velocity targets
+
     def enter(self, d: Drive) -> None:
-        d._vramp.velocity_m_s = d._axis.velocity_m_s if d._power else 0.0
-        d._interp_v = LinearInterpolator()
-        d._interp_v.reset(d._vramp.velocity_m_s)
+        self.vramp.velocity_m_s = d._axis.velocity_m_s if d._power else 0.0
+        self.interp_v = LinearInterpolator()
+        self.interp_v.reset(self.vramp.velocity_m_s)
         d._set_sim_mode(ControlMode.VELOCITY)
-        d.sim.set_velocity_setpoint(d._vramp.velocity_m_s)
+        d.sim.set_velocity_setpoint(self.vramp.velocity_m_s)
 
     def cycle(self, d: Drive) -> None:
-        requested = int(d._obj(0x60FF)) * d._u
+        o, u = d.objects, d._u
+        requested = int(o[(0x60FF, 0)]) * u
         clamped = d._clamp_velocity(requested)
         target = d._velocity_limit(clamped)
         d._internal_limit = d._internal_limit or clamped != requested
         if d._cw & 0x100:
             self.stop(d, d._halt_decel())
             return
-        v = d._vramp.step(target, float(d._obj(0x6083)) * d._u, float(d._obj(0x6084)) * d._u)
+        v = self.vramp.step(target, float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u)
         d._demand_v = v
         d.sim.set_velocity_setpoint(v)
 
     def stop(self, d: Drive, decel_m_s2: float) -> None:
-        v = d._vramp.step(0.0, decel_m_s2, decel_m_s2)
+        v = self.vramp.step(0.0, decel_m_s2, decel_m_s2)
         d._demand_v = v
         d.sim.set_velocity_setpoint(v)
 
@@ -233,18 +463,24 @@ class ProfileVelocity(OperatingMode):
 
 
 class CyclicVelocity(ProfileVelocity):
-    """CSV (9): 0x60FF + 0x60B1 every cycle, interpolated over 0x60C2."""
+    """CSV (9): 0x60FF + 0x60B1 every cycle, interpolated over 0x60C2 (``interp_v``)."""
 
     number = CSV
 
     def enter(self, d: Drive) -> None:
         super().enter(d)
-        d._on_target_velocity()
+        self.on_target_velocity(d)
+
+    def on_target_velocity(self, d: Drive) -> None:
+        if d._state_enabled() and d._stop is None:
+            v = (int(d._obj(0x60FF)) + int(d._obj(0x60B1))) * d._u
+            self.interp_v.new_target(d._clamp_velocity(v), d._interp_cycles())
 
     def cycle(self, d: Drive) -> None:
-        v, _ = d._interp_v.step()
+        v, _ = self.interp_v.step()
         v = d._velocity_limit(v)
-        requested = (int(d._obj(0x60FF)) + int(d._obj(0x60B1))) * d._u
+        o = d.objects
+        requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * d._u
         d._internal_limit = d._internal_limit or d._clamp_velocity(requested) != requested
         d._demand_v = v
         d.sim.set_velocity_setpoint(v)
@@ -257,32 +493,44 @@ class CyclicVelocity(ProfileVelocity):
 
 
 class ProfileTorque(OperatingMode):
-    """PT (4): 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step)."""
+    """PT (4): 0x6071 ramped with 0x6087 (per mille of rated torque per second; 0 = step); ``torque_nm``
+    is the ramp's output [N m]."""
 
     number = PT
     control = ControlMode.TORQUE
 
+    def __init__(self, gen: ProfileGenerator):
+        super().__init__(gen)
+        self.torque_nm = 0.0
+
     def enter(self, d: Drive) -> None:
         # ramps from the torque the motor gives now (bumpless from CST), else from zero
         from_torque = d._power and d._smode == ControlMode.TORQUE
-        d._torque_demand_nm = d._axis.torque_nm if from_torque else 0.0
+        self.torque_nm = d._axis.torque_nm if from_torque else 0.0
         d._set_sim_mode(ControlMode.TORQUE)
+
+    def target_nm(self, d: Drive, rated_nm: float) -> float:
+        """Where the ramp goes: 0x6071 limited by 0x6072, zero while halted (CW bit 8) [N m]."""
+        if d._cw & 0x100:
+            return 0.0
+        t_max = float(d._obj(0x6072)) / 1000.0 * rated_nm
+        return max(-t_max, min(t_max, int(d._obj(0x6071)) / 1000.0 * rated_nm))
 
     def cycle(self, d: Drive) -> None:
         rated_nm = float(d._obj(0x6076)) / 1000.0
-        target = d._pt_target_nm(rated_nm)
+        target = self.target_nm(d, rated_nm)
         slope = float(d._obj(0x6087)) / 1000.0 * rated_nm * d.cycle_s
-        diff = target - d._torque_demand_nm
-        d._torque_demand_nm = target if slope <= 0 or abs(diff) <= slope else (
-            d._torque_demand_nm + math.copysign(slope, diff))
+        diff = target - self.torque_nm
+        self.torque_nm = target if slope <= 0 or abs(diff) <= slope else (
+            self.torque_nm + math.copysign(slope, diff))
         requested = int(d._obj(0x6071)) / 1000.0 * rated_nm
-        d._apply_torque(d._torque_demand_nm, rated_nm, requested_nm=requested)
+        d._apply_torque(self.torque_nm, rated_nm, requested_nm=requested)
 
     def stop(self, d: Drive, decel_m_s2: float) -> None:
-        d._torque_demand_nm = 0.0  # (the halt of PT is its ramp to zero torque, handled in cycle)
+        self.torque_nm = 0.0  # (the halt of PT is its ramp to zero torque, handled in cycle)
 
     def target_reached(self, d: Drive, ax, dt: float) -> bool:  # the ramp has arrived at its target
-        return d._torque_demand_nm == d._pt_target_nm(d._pc.rated_nm)
+        return self.torque_nm == self.target_nm(d, d._pc.rated_nm)
 
 
 class CyclicTorque(ProfileTorque):
@@ -291,8 +539,9 @@ class CyclicTorque(ProfileTorque):
     number = CST
 
     def cycle(self, d: Drive) -> None:
-        rated_nm = float(d._obj(0x6076)) / 1000.0
-        d._apply_torque((int(d._obj(0x6071)) + int(d._obj(0x60B2))) / 1000.0 * rated_nm, rated_nm)
+        o = d.objects
+        rated_nm = float(o[(0x6076, 0)]) / 1000.0
+        d._apply_torque((int(o[(0x6071, 0)]) + int(o[(0x60B2, 0)])) / 1000.0 * rated_nm, rated_nm)
 
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
         return False
@@ -301,13 +550,14 @@ class CyclicTorque(ProfileTorque):
         return 0x1000
 
 
-#: 0x6060 value -> mode object (0: no mode)
-MODES: dict[int, OperatingMode] = {
-    m.number: m
-    for m in (OperatingMode(), ProfilePosition(), ProfileVelocity(), ProfileTorque(), Homing(),
-              CyclicPosition(), CyclicVelocity(), CyclicTorque())
-}
+MODE_CLASSES: tuple[type[OperatingMode], ...] = (
+    OperatingMode, ProfilePosition, ProfileVelocity, ProfileTorque, Homing, CyclicPosition, CyclicVelocity,
+    CyclicTorque)
 
 
-def mode_object(number: int) -> OperatingMode:
-    return MODES.get(number, MODES[0])
+def make_modes(cycle_s: float, position_m: float) -> dict[int, OperatingMode]:
+    """A fresh set of mode objects for one drive: 0x6060 value -> mode object (0: no mode), sharing one
+    :class:`ProfileGenerator` at rest at ``position_m`` (drive coordinate [m])."""
+    gen = ProfileGenerator(cycle_s, position_m)
+    return {cls.number: cls(gen) for cls in MODE_CLASSES}
+

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from virtualaxis.drive import homing as hm
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.statemachine import Cia402State
 
@@ -38,9 +37,7 @@ OVERSPEED_FACTOR = 1.2
 
 def homing_owns_switches(drive: Drive) -> bool:
     """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18)."""
-    run = drive._homing
-    return drive._mode == HM and run is not None and run.status in (
-        hm.HomingStatus.IN_PROGRESS, hm.HomingStatus.RETURNING)
+    return drive._mode == HM and drive._hm.in_progress()
 
 
 def blocked_direction(drive: Drive) -> int:

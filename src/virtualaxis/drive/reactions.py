@@ -22,9 +22,10 @@ fault 0x8400 (F07900) is raised and the pulses are switched off.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from virtualaxis.drive.profiles import VelocityRamp
 from virtualaxis.drive.statemachine import Cia402State
 from virtualaxis.sim import ControlMode
 
@@ -82,6 +83,7 @@ class StopRamp:
     stopped_s: float = -1.0  # time the ramp reached zero and the axis standstill (-1: not yet)
     v0_m_s: float = 0.0
     hold_s: float = HOLD_S  # hold at standstill before the state change [s]
+    vramp: VelocityRamp = field(default_factory=lambda: VelocityRamp(1e-3))  # the OFF1/OFF3 speed ramp
 
     @classmethod
     def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
@@ -92,9 +94,10 @@ class StopRamp:
         decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
         drive._set_sim_mode(ControlMode.VELOCITY)
-        drive._vramp.velocity_m_s = v0
-        drive._homing = None
-        ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0)
+        drive._hm.run = None
+        ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
+                   vramp=VelocityRamp(drive.cycle_s))
+        ramp.vramp.velocity_m_s = v0
         if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
             ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
             if velocity_control:
@@ -126,7 +129,7 @@ def run_stop(drive: Drive) -> None:
         drive._demand_v = 0.0
         ramp_done = True
     else:  # OFF1 / OFF3: the speed set-point ramps down from the actual speed
-        v = drive._vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
+        v = s.vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
         drive._demand_v = v
         drive.sim.set_velocity_setpoint(v)
         ramp_done = v == 0.0
