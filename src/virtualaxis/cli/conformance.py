@@ -68,9 +68,12 @@ def run(args) -> int:
         from virtualaxis.canopen_slave.od import validate_eds
 
         validate_eds(Path(eds))
+    import logging
+
     from virtualaxis.master import DEFAULT_EDS, connect
     from virtualaxis.runtime import BusOpenError
 
+    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # its SDO timeouts are reported by us, once
     try:
         net = connect(args.can)
     except BusOpenError as exc:

@@ -61,6 +61,9 @@ def run(args) -> int:
             raise CliError(f"--duty must be in (0, 1] (got {args.duty})")
         if not 0.002 <= args.period <= 3600:
             raise CliError(f"--period must be 0.002..3600 s (got {args.period})")
+    import logging
+
+    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # its SDO timeouts are reported by us, once
     try:
         net = connect(args.can)
     except BusOpenError as exc:

@@ -1,0 +1,28 @@
+"""``virtualaxis conformance`` refuses bad input with one ``error:`` line naming the option (exit 2), never a
+traceback; ``--list`` prints the checks with their source, stimulus and expectation."""
+
+from __future__ import annotations
+
+from virtualaxis.cli.main import main
+from virtualaxis.conformance.runner import select
+
+
+def test_bad_input_is_one_error_line(tmp_path, capsys):
+    for args, needle in (
+        (["--can", "bogus"], "bus 'bogus'"),
+        (["--can", "virtual:x", "--only", "XYZ"], "--only 'XYZ' selects no check"),
+        (["--can", "virtual:x", "--junit", str(tmp_path / "missing" / "x.xml")], "--junit"),
+        (["--can", "virtual:x", "--node-id", "0"], "--node-id must be 1..127"),
+        (["--can", "virtual:x", "--eds", str(tmp_path / "none.eds")], "--eds"),
+        (["--can", "virtual:va-nobody-here", "--sdo-timeout", "0.1"], "does not answer"),
+    ):
+        code = main(["conformance", *args])
+        err = capsys.readouterr().err
+        assert code == 2 and needle in err and "Traceback" not in err and err.startswith("error:"), (args, err)
+
+
+def test_list_names_every_check(capsys):
+    assert main(["conformance", "--list"]) == 0
+    out = capsys.readouterr().out
+    for c in select(None):
+        assert c.id in out and c.clause in out
