@@ -373,9 +373,9 @@ def emcy_cob(ctx: Context) -> str:
 
 # ============================================================================ SYNC timeout (issue #15 item 6)
 @check("301-SYNC-1", "sync", "CiA 301 7.5.2.6 (0x1006) / 7.2.5 (SYNC consumer timeout 1.5 x period)",
-       "0x1006 = 20 ms, SYNC every 20 ms for 0.8 s (repeated up to 3 x if the master's own gaps exceed 24 ms), "
-       "then SYNC stopped",
-       "no EMCY 0x8100 while SYNC runs; EMCY 0x8100 within 0.3 s after it stops")
+       "0x1006 = 20 ms, SYNC every 20 ms for 0.8 s, then SYNC stopped",
+       "no EMCY 0x8100 while SYNC runs (one after a gap of the master's own over 24 ms is excused); EMCY 0x8100 "
+       "within 0.3 s after it stops")
 def sync_timeout(ctx: Context) -> str:
     if 0x1006 not in ctx.od:
         raise Skip("the EDS lists no 0x1006")
@@ -383,33 +383,31 @@ def sync_timeout(ctx: Context) -> str:
     boot(ctx)
     ctx.write(0x1006, 0, round(period * 1e6))
     ctx.nmt(0x01)
-    attempts = []
-    for _ in range(3):  # an attempt counts only if the master itself kept SYNC regular (a loaded host may not)
-        mark = ctx.frames.mark()
-        sent = _sync_for(ctx, period, 0.8)
-        gap = max(b - a for a, b in zip(sent, sent[1:], strict=False))
-        alarms = [c for c in ctx.emcy_codes(mark) if c == 0x8100]
-        attempts.append((gap, len(alarms)))
-        if gap <= 1.2 * period:
-            break
-    gap, alarms = attempts[-1]
+    mark = ctx.frames.mark()
+    sent = _sync_for(ctx, period, 0.8)
+    alarms = [t for t, _, d in ctx.frames.since(mark, ctx.emcy_cob) if int.from_bytes(d[0:2], "little") == 0x8100]
+    # an EMCY 0x8100 is a false alarm unless the master itself left a gap of more than 1.2 x period in the
+    # 150 ms before it arrived (a loaded master host may; the drive is then right to report it)
+    false, excused = [], []
+    for t in alarms:
+        recent = [x for x in sent if t - 0.15 <= x <= t] + [x for x in sent if x > t][:1]
+        gap = max((b - a for a, b in zip(recent, recent[1:], strict=False)), default=0.0)
+        (excused if gap > 1.2 * period else false).append(gap)
     mark2 = ctx.frames.mark()
     t0 = time.monotonic()
     got = ctx.wait_emcy(mark2, 0x8100, 0.5)
     dt = time.monotonic() - t0
     boot(ctx)
-    ctx.note("attempts (largest SYNC gap sent [ms], EMCY 0x8100): "
-             + ", ".join(f"({g * 1e3:.1f}, {n})" for g, n in attempts))
-    if gap > 1.2 * period:
-        raise Skip(f"this master could not send SYNC regularly enough to judge false alarms (largest gap "
-                   f"{gap * 1e3:.1f} ms for a {period * 1e3:.0f} ms period in 3 attempts)")
-    if alarms:
-        raise Fail(f"{alarms} EMCY 0x8100 while SYNC ran every {period * 1e3:.0f} ms (largest gap sent "
-                   f"{gap * 1e3:.1f} ms, timeout 1.5 x period)")
+    biggest = max(b - a for a, b in zip(sent, sent[1:], strict=False))
+    ctx.note(f"{len(sent)} SYNC sent, largest gap {biggest * 1e3:.1f} ms; EMCY 0x8100: {len(false)} false, "
+             f"{len(excused)} after a real gap of the master")
+    if false:
+        raise Fail(f"{len(false)} EMCY 0x8100 while SYNC ran every {period * 1e3:.0f} ms without a gap over "
+                   f"{1.2 * period * 1e3:.0f} ms (timeout 1.5 x period)")
     if got is None or dt > 0.3:
         raise Fail("no EMCY 0x8100 within 0.3 s of the last SYNC (0x1006 = 20 ms)")
-    return (f"no false alarm in 0.8 s (largest gap sent {gap * 1e3:.1f} ms); EMCY 0x8100 {dt * 1e3:.0f} ms after "
-            "SYNC stopped")
+    return (f"no false alarm in 0.8 s (largest gap sent {biggest * 1e3:.1f} ms); EMCY 0x8100 {dt * 1e3:.0f} ms "
+            "after SYNC stopped")
 
 
 def _sync_for(ctx: Context, period: float, duration: float) -> list[float]:
