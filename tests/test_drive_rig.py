@@ -83,6 +83,7 @@ class Rig:
                 name=f"axis{nid}",
                 initial_position_m=x0,
                 discrete=seed_discrete() if c is cfg else None,
+                allow_fault_injection=True,  # the rig's tests inject faults by 0x2010
             )
             for nid, (c, x0) in nodes.items()
         }

@@ -336,6 +336,9 @@ def test_injection_refused_without_the_flag():
                     call()
                 assert err.value.code == 0x08000022
             assert inj.active == [] and node.sdo[0x5FF6].raw == 0
+            with pytest.raises(canopen.SdoAbortedError) as err:  # the drive's own injection object is gated too
+                node.sdo[0x2010].raw = 0x4210
+            assert err.value.code == 0x08000022
             cli = subprocess.run([*CLI, "fault", "--can", s.spec, "--node-id", str(NODE), "inject", "over_current"],
                                  capture_output=True, text=True, timeout=60, cwd=ROOT)
             assert cli.returncode == 2 and "--allow-fault-injection" in cli.stderr, cli.stderr

@@ -84,7 +84,7 @@ def test_rpdo_target_and_fault_reaction_across_processes():
     """CW new-set-point + 0x607A = 35000 in the default RPDO2 moves to 35000; then PV at 100 mm/s and an
     injected 0x4210 (0x605E = 2, 0x6085 = 10 m/s^2): TPDO1 shows 0x0237 -> 0x023F (fault reaction active)
     -> 0x0238 (fault), EMCY 0x4210, and the axis brakes in ~v^2/2a (0.5 mm; before: 11 mm of coasting)."""
-    with served("--duration", "60") as s:
+    with served("--duration", "60", "--allow-fault-injection") as s:
         net, node, log = _master(s.spec)
         try:
             node.nmt.state = "OPERATIONAL"
@@ -130,7 +130,7 @@ def test_rpdo_target_and_fault_reaction_across_processes():
 def test_nmt_stop_while_moving_is_a_loss_of_control_across_processes():
     """0x6007 = 1, PV at 50 mm/s, NMT Stop: the drive faults (0x8131) and brakes; after NMT Start the master
     reads FAULT and the axis at rest (before: kept moving, 26 mm in 0.5 s)."""
-    with served("--duration", "60") as s:
+    with served("--duration", "60", "--allow-fault-injection") as s:
         net, node, _log = _master(s.spec)
         try:
             node.nmt.state = "OPERATIONAL"

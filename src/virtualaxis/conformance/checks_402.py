@@ -399,6 +399,14 @@ def fault_reaction_from_motion(ctx: Context) -> str:
             mo.step_units = v_cmd * ctx.sync_period_s * i / 50
             time.sleep(ctx.sync_period_s)
         time.sleep(0.25)
+        # judge the stop only from speed: wait (up to 2 s on a loaded host) until the axis really runs
+        cruise_mark = ctx.frames.mark()
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end:
+            moving = [s for s in mo.samples(cruise_mark) if s.vel is not None]
+            if moving and abs(moving[-1].vel) >= 0.8 * v_cmd:
+                break
+            time.sleep(0.01)
         mark = ctx.frames.mark()
         if 0x6066 in ctx.od:
             ctx.write(0x6066, 0, 0)
@@ -412,6 +420,9 @@ def fault_reaction_from_motion(ctx: Context) -> str:
             raise Fail("no fault within 2 s of 0x6065 = 1 while moving at 100 mm/s")
         before = [s for s in mo.samples(mark) if s.t <= first.t and s.vel is not None]
         v_f = abs(before[-1].vel) if before else v_cmd
+        if v_f < 0.5 * v_cmd:
+            raise Fail(f"the fault came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
+                       f"{v_cmd / ctx.units_per_mm:.0f} mm/s: the stop from motion cannot be judged")
         time.sleep(1.0)
         samples = mo.samples(mark)
         last = samples[-1]

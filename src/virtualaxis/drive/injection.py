@@ -86,6 +86,7 @@ OBJ_PERIOD = 0x5FF3  # u32: period of the intermittent variant [ms]
 OBJ_MAGNITUDE = 0x5FF4  # i32: kind-specific magnitude (brake force [N], limit switch side, heating [K/s])
 OBJ_ACTIVE = 0x5FF5  # u32 ro: bit (kind number - 1) set while a kind is injected
 OBJ_ALLOWED = 0x5FF6  # u8 ro: 1 when the drive accepts injection
+OBJ_LEGACY_INJECT = 0x2010  # the drive's own injection object (EMCY code), gated like the channel
 CHANNEL_OBJECTS = range(OBJ_INJECT, OBJ_ALLOWED + 1)
 
 ABORT_DEVICE_STATE = 0x08000022
@@ -357,7 +358,8 @@ class FaultInjector:
 class InjectionApp:
     """The CANopen channel: wraps the drive's CiA 402 application for the slave and serves 0x5FF0..0x5FF6.
 
-    Writes are refused with abort 0x08000022 (not in the present device state) unless ``allowed``; an unknown
+    Writes (and writes of the drive's own injection object 0x2010) are refused with abort 0x08000022 (not in
+    the present device state) unless ``allowed``; an unknown
     kind or a bad option with 0x06090030. Every other object goes to the wrapped application unchanged."""
 
     def __init__(self, app: Any, injector: FaultInjector):
@@ -368,6 +370,10 @@ class InjectionApp:
         return getattr(self._app, name)
 
     def validate_write(self, index: int, sub: int, value: Any) -> None:
+        if index == OBJ_LEGACY_INJECT and not self.injector.allowed:
+            from virtualaxis.canopen_slave import SdoAbort
+
+            raise SdoAbort(ABORT_DEVICE_STATE, "fault injection is off (serve --allow-fault-injection)")
         if index in CHANNEL_OBJECTS:
             from virtualaxis.canopen_slave import SdoAbort
 
