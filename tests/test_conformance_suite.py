@@ -153,7 +153,13 @@ def _maps_anything(axis, mp):
     mp.setattr(slave, "_comm_validate", validate)
 
 
+def _no_heartbeat_consumer(axis, mp):
+    slave = axis.runtime.axes[0].slave
+    mp.setattr(slave.heartbeat_consumer, "poll", lambda now_s: None)  # 0x1016 timeouts never detected
+
+
 DEFECTS = {
+    "emcy": (_no_heartbeat_consumer, "301-HB-2"),
     "nmt": (_ignores_nmt_stop, "301-NMT-2"),
     "pdo": (_maps_anything, "301-PDO-1"),
     "sdo": (_wrong_read_only_abort, "301-SDO-3"),

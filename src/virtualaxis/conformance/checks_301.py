@@ -536,3 +536,207 @@ def eds_unlisted(ctx: Context) -> str:
     if answered:
         raise Fail(f"{len(answered)} of {len(probes)} unlisted entries answered: " + "; ".join(answered[:6]))
     return f"{len(probes)} unlisted entries all refused"
+
+
+# ============================================================================ consumer heartbeat, more SDO / PDO
+@check("301-HB-2", "emcy", "CiA 301 7.2.8.3.2.2 / 7.5.2.16 (0x1016 heartbeat consumer); EMCY 0x8130; CL 2, 4",
+       "0x1016:1 = node 0x7E, 100 ms; 5 heartbeats 0x77E [05] every 40 ms, then none",
+       "EMCY 0x8130 with error register bit 4 within 0.5 s of the last heartbeat; 0x1001 bit 4 set")
+def consumer_heartbeat(ctx: Context) -> str:
+    if 0x1016 not in ctx.od or ctx.read(0x1016, 0) < 1:
+        raise Skip("the EDS lists no consumer heartbeat time 0x1016")
+    boot(ctx)
+    ctx.write(0x1016, 1, (0x7E << 16) | 100)
+    mark = ctx.frames.mark()
+    for _ in range(5):
+        ctx.net.send_message(0x77E, b"\x05")
+        time.sleep(0.04)
+    early = [c for c in ctx.emcy_codes(mark) if c == 0x8130]
+    t0 = time.monotonic()
+    got = ctx.wait_emcy(mark, 0x8130, 0.5)
+    dt = time.monotonic() - t0
+    er = ctx.read(0x1001)
+    boot(ctx)
+    if early:
+        raise Fail("EMCY 0x8130 while the consumed heartbeat still arrived every 40 ms (timeout 100 ms)")
+    if got is None:
+        raise Fail(f"no EMCY 0x8130 within 0.5 s after the consumed heartbeat (0x7E, 100 ms) stopped "
+                   f"(seen {[hex(c) for c in ctx.emcy_codes(mark)]})")
+    if not got[2] & 0x10:
+        raise Fail(f"EMCY 0x8130 with error register 0x{got[2]:02X}: bit 4 (communication) not set")
+    if not er & 0x10:
+        raise Fail(f"0x1001 = 0x{er:02X} after the heartbeat timeout: bit 4 (communication) not set")
+    return f"EMCY 0x8130 [{got.hex(' ')}] {dt * 1e3:.0f} ms into the wait after the last heartbeat, 0x1001 = 0x{er:02X}"
+
+
+@check("301-SDO-8", "sdo", "CiA 301 7.2.4.3.4 (segmented upload, toggle bit); 0x05030000; CL 6",
+       "initiate a segmented upload of 0x1008, then a segment request with toggle = 1 first", "abort 0x05030000")
+def sdo_toggle(ctx: Context) -> str:
+    cand = [v for v in _eds_entries(ctx) if v.data_type in (odm.VISIBLE_STRING, odm.OCTET_STRING)
+            and v.access_type in ("ro", "rw", "const")]
+    if not cand:
+        raise Skip("the EDS lists no readable string object for a segmented upload")
+    idx, sub = cand[0].index, cand[0].subindex
+    resp = ctx.raw_sdo(bytes([0x40, idx & 0xFF, idx >> 8, sub, 0, 0, 0, 0]))
+    if resp is None:
+        raise Fail(f"no answer to the upload of 0x{idx:04X}:{sub}")
+    if resp[0] & 0xE2 != 0x40:
+        raise Skip(f"0x{idx:04X}:{sub} is uploaded expedited ([{resp.hex(' ')}]): no segment to toggle")
+    resp = ctx.raw_sdo(bytes([0x70, 0, 0, 0, 0, 0, 0, 0]))
+    if resp is None:
+        raise Fail("no answer to a segment request with the wrong toggle bit")
+    code = int.from_bytes(resp[4:8], "little")
+    if resp[0] != 0x80 or code != 0x05030000:
+        raise Fail(f"answer [{resp.hex(' ')}] to toggle = 1 in the first segment request, expected abort 0x05030000")
+    return f"0x{idx:04X}:{sub}: abort 0x{code:08X}"
+
+
+@check("301-SDO-9", "sdo", "CiA 301 7.2.4.3.17 (0x06010001); CL 6", "SDO upload of a write-only object the EDS lists",
+       "abort 0x06010001")
+def sdo_write_only(ctx: Context) -> str:
+    wo = [v for v in _eds_entries(ctx) if v.access_type == "wo"]
+    if not wo:
+        raise Skip("the EDS lists no write-only object")
+    v = wo[0]
+    code = ctx.expect_abort(ABORT_WRITE_ONLY, lambda: ctx.raw_read(v.index, v.subindex),
+                            f"read of wo 0x{v.index:04X}:{v.subindex}")
+    return f"0x{v.index:04X}:{v.subindex} ({v.name}) -> 0x{code:08X}"
+
+
+_UNSIGNED = {odm.UNSIGNED8: 1, odm.UNSIGNED16: 2, odm.UNSIGNED32: 4}
+
+
+@check("301-SDO-10", "sdo", "CiA 301 7.2.4.3.17 (0x06090031 value too high); CiA 306 HighLimit; CL 6",
+       "SDO write of HighLimit + 1 to a rw UNSIGNED object (index >= 0x2000) the EDS limits",
+       "abort 0x06090031 (or 0x06090030), the value unchanged")
+def sdo_high_limit(ctx: Context) -> str:
+    for v in _eds_entries(ctx):
+        size = _UNSIGNED.get(v.data_type)
+        if (size and v.max is not None and v.access_type == "rw" and v.index >= 0x2000
+                and v.max + 1 < 1 << (8 * size)):
+            before = ctx.raw_read(v.index, v.subindex)
+            code = ctx.expect_abort((0x06090031, 0x06090030),
+                                    lambda v=v, size=size: ctx.raw_write(v.index, v.subindex,
+                                                                         (v.max + 1).to_bytes(size, "little")),
+                                    f"0x{v.index:04X}:{v.subindex} = {v.max + 1} (HighLimit {v.max})")
+            after = ctx.raw_read(v.index, v.subindex)
+            if after != before:
+                raise Fail(f"0x{v.index:04X}:{v.subindex} changed {before.hex()} -> {after.hex()} (write refused)")
+            return f"0x{v.index:04X}:{v.subindex} = {v.max + 1} (HighLimit {v.max}) -> 0x{code:08X}"
+    raise Skip("the EDS lists no rw UNSIGNED object (>= 0x2000) with a HighLimit below the type's maximum")
+
+
+@check("301-SDO-11", "sdo", "CiA 301 7.2.4.3.9-15 (block download); CL 8",
+       "block download of 0x1017 = 77, then expedited read", "0x1017 = 77")
+def sdo_block_download(ctx: Context) -> str:
+    if 0x1017 not in ctx.od:
+        raise Skip("the EDS lists no 0x1017")
+    try:
+        with ctx.node.sdo[0x1017].open("wb", size=2, block_transfer=True) as fh:
+            fh.write((77).to_bytes(2, "little"))
+    except canopen.SdoAbortedError as exc:
+        raise Fail(f"block download of 0x1017 aborted 0x{exc.code:08X}") from None
+    ctx.note("block download 0x1017 = 77")
+    v = ctx.read(0x1017)
+    ctx.write(0x1017, 0, 50)
+    if v != 77:
+        raise Fail(f"0x1017 = {v} after a block download of 77")
+    return "0x1017 = 77 after a block download"
+
+
+def _remap(ctx: Context, comm: int, entries: list[int], ttype: int) -> int:
+    """CiA 301 remapping of PDO ``comm`` (0x14xx / 0x18xx): invalid, entries, type, valid. Returns the COB-ID."""
+    mapping = comm + 0x200
+    cob = ctx.read(comm, 1) & 0x7FF
+    ctx.write(comm, 1, cob | 0x80000000)
+    ctx.write(mapping, 0, 0)
+    for n, e in enumerate(entries, 1):
+        ctx.write(mapping, n, e)
+    ctx.write(mapping, 0, len(entries))
+    ctx.write(comm, 2, ttype)
+    ctx.write(comm, 1, cob)
+    return cob
+
+
+@check("301-PDO-6", "pdo", "CiA 301 7.5.2.35 (transmission type 1..240: every n-th SYNC); CL 10",
+       "TPDO1 = 0x6041, type 3; NMT start; 12 SYNC", "4 TPDO1 frames (one every 3rd SYNC)")
+def tpdo_every_third(ctx: Context) -> str:
+    boot(ctx)
+    try:
+        cob = _remap(ctx, 0x1800, [0x60410010], 3)
+    except canopen.SdoAbortedError as exc:
+        boot(ctx)
+        raise Skip(f"TPDO1 remapping refused (0x{exc.code:08X})") from None
+    ctx.nmt(0x01)
+    time.sleep(0.05)
+    mark = ctx.frames.mark()
+    for _ in range(12):
+        ctx.sync_once()
+        time.sleep(0.015)
+    time.sleep(0.03)
+    n = len(ctx.frames.since(mark, cob))
+    boot(ctx)
+    if n != 4:
+        raise Fail(f"{n} TPDO1 frames for 12 SYNC with transmission type 3, expected 4")
+    return "4 TPDO1 for 12 SYNC"
+
+
+@check("301-PDO-7", "pdo", "CiA 301 7.5.2.35 (event timer, sub 5; type 255); CL 10",
+       "TPDO1 = 0x6041, type 255, inhibit 0, event timer 50 ms; NMT start; 0.45 s without change",
+       "a TPDO1 every 50 ms (median gap 40..60 ms, at least 6 frames)")
+def tpdo_event_timer(ctx: Context) -> str:
+    if ctx.read(0x1800, 0) < 5:
+        raise Skip("0x1800 has no event timer (sub 5)")
+    boot(ctx)
+    cob = _remap(ctx, 0x1800, [0x60410010], 255)
+    cobid = ctx.read(0x1800, 1)
+    ctx.write(0x1800, 1, cobid | 0x80000000)
+    try:
+        ctx.write(0x1800, 3, 0)
+    except canopen.SdoAbortedError:
+        pass
+    ctx.write(0x1800, 5, 50)
+    ctx.write(0x1800, 1, cobid)
+    ctx.nmt(0x01)
+    time.sleep(0.1)
+    mark = ctx.frames.mark()
+    time.sleep(0.45)
+    fr = ctx.frames.since(mark, cob)
+    boot(ctx)
+    gaps = sorted(b[0] - a[0] for a, b in zip(fr, fr[1:], strict=False))
+    if len(fr) < 6:
+        raise Fail(f"{len(fr)} TPDO1 frames in 0.45 s with event timer 50 ms, expected about 9")
+    med = gaps[len(gaps) // 2]
+    if not 0.040 <= med <= 0.060:
+        raise Fail(f"median TPDO1 gap {med * 1e3:.1f} ms with event timer 50 ms")
+    return f"{len(fr)} TPDO1 in 0.45 s, median gap {med * 1e3:.1f} ms"
+
+
+@check("301-PDO-8", "pdo", "CiA 301 7.2.2.2 (synchronous RPDO acts at the next SYNC); CL 11",
+       "RPDO1 = 0x6040, type 1; no SYNC; RPDO [06 00]; 0.1 s; one SYNC",
+       "before the SYNC 0x6040 and the state unchanged; after it 0x6040 = 6, ready to switch on")
+def rpdo_sync(ctx: Context) -> str:
+    boot(ctx)
+    try:
+        cob = _remap(ctx, 0x1400, [0x60400010], 1)
+    except canopen.SdoAbortedError as exc:
+        boot(ctx)
+        raise Skip(f"RPDO1 remapping refused (0x{exc.code:08X})") from None
+    ctx.nmt(0x01)
+    time.sleep(0.03)
+    ctx.net.send_message(cob, b"\x06\x00")
+    ctx.note(f"RPDO 0x{cob:03X} [06 00], no SYNC")
+    time.sleep(0.1)
+    cw_before = ctx.read(0x6040)
+    sw_before = ctx.read(0x6041)
+    ctx.sync_once()
+    try:
+        ctx.wait_sw(0x6F, 0x21, 0.5, "ready to switch on after the SYNC")
+        cw_after = ctx.read(0x6040)
+    finally:
+        boot(ctx)
+    if cw_before == 6 or sw_before & 0x6F == 0x21:
+        raise Fail(f"the synchronous RPDO acted before the SYNC (0x6040 = 0x{cw_before:04X}, SW 0x{sw_before:04X})")
+    if cw_after != 6:
+        raise Fail(f"0x6040 = 0x{cw_after:04X} after the SYNC, expected 0x0006")
+    return f"before SYNC 0x6040 = 0x{cw_before:04X}, SW 0x{sw_before:04X}; after: 0x6040 = 6, ready to switch on"

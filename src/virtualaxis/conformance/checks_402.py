@@ -20,8 +20,8 @@ from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
 
 STATE_MASK = 0x6F
 SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
-MODES = {1: "PP", 3: "PV", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
-MODE_BITS = {1: 0x1, 3: 0x4, 6: 0x20, 7: 0x40, 8: 0x80, 9: 0x100, 10: 0x200}
+MODES = {1: "PP", 3: "PV", 4: "PT", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
+MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 7: 0x40, 8: 0x80, 9: 0x100, 10: 0x200}
 
 
 def _is_fault(sw: int) -> bool:
@@ -602,7 +602,7 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
         ctx.write(INJ_MAG, 0, 1)
         ctx.write(INJ_DUTY, 0, 0)
         ctx.write(INJ_INJECT, 0, LIMIT_SWITCH_KIND)
-        time.sleep(0.4)
+        time.sleep(0.15)
         s1 = mo.last()
         inputs = ctx.read(0x60FD)
         travel = s1.pos - s0.pos
@@ -623,3 +623,257 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
             pass
         mo.close()
         boot(ctx)
+
+
+# ============================================================================ PP halt, software limits, fault reset
+def _toward_origin(ctx: Context) -> int:
+    """+1 or -1: the direction from the present position toward 0 (NMT Reset Node does not move the axis back,
+    so a check moves toward the middle of the travel, away from the limit switches)."""
+    return -1 if ctx.read(0x6064) > 0 else 1
+
+
+def _pp_to(ctx: Context, mo: Motion, target: int, timeout: float) -> Sample:
+    """A PP move to ``target`` (mode 1 enabled, SYNC running); returns the sample at target reached."""
+    ctx.write(0x607A, 0, target)
+    ctx.write(0x6040, 0, 0x1F)
+    ctx.wait_sw(0x1000, 0x1000, 0.5, "set-point acknowledge (bit 12)")
+    ctx.write(0x6040, 0, 0x0F)
+    return mo.wait(lambda s: s.sw & 0x400 and abs(s.pos - target) < ctx.mm(0.5), timeout, f"PP target {target}")
+
+
+@check("402-PP-2", "modes", "CiA 402 6.2 / 12 (controlword bit 8 halt in profile position, 0x605D); CL 19",
+       "PP 40 mm toward the middle at 100 mm/s; CW 0x11F after 0.1 s",
+       "at rest (|0x606C| < 1 mm/s) within 0.5 s, short of the target, bit 10 = 1 (halted at standstill)")
+def pp_halt(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(100))
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        p0 = mo.last().pos
+        target = p0 + _toward_origin(ctx) * ctx.mm(40)
+        ctx.write(0x607A, 0, target)
+        ctx.write(0x6040, 0, 0x1F)
+        time.sleep(0.1)
+        ctx.write(0x6040, 0, 0x11F)
+        s = mo.wait(lambda s: s.vel is not None and abs(s.vel) < ctx.mm(1) and s.sw & 0x400, 0.8,
+                    "standstill with bit 10 after halt")
+        time.sleep(0.05)
+        s = mo.last()
+        if abs(s.pos - p0) < ctx.mm(1):
+            raise Fail(f"the move did not start before the halt (position {s.pos}, start {p0})")
+        if abs(target - s.pos) < ctx.mm(10):
+            raise Fail(f"halt did not stop the move short of the target ({s.pos}, target {target})")
+        return f"halted at {s.pos} ({(s.pos - p0) / ctx.units_per_mm:+.1f} mm of 40), SW 0x{s.sw:04X}"
+    finally:
+        mo.close()
+        ctx.disable()
+
+
+@check("402-PP-3", "modes", "CiA 402 12.3 (0x607D software position limits, SW bit 11 internal limit); CL 25",
+       "0x607D = actual -/+ 5 mm (the move side) and +/- 1 m; PP target 20 mm beyond it",
+       "the axis stays within 0x607D (+ 0x6067); SW bit 11, or fault with EMCY 0x8612")
+def software_limit(ctx: Context) -> str:
+    if 0x607D not in ctx.od:
+        raise Skip("the EDS lists no software position limits 0x607D")
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(100))
+        ctx.write(0x6083, 0, ctx.mm(2000))
+        ctx.write(0x6084, 0, ctx.mm(2000))
+        d = _toward_origin(ctx)
+        p0 = ctx.read(0x6064)
+        limit = p0 + d * ctx.mm(5)
+        lo, hi = (p0 - ctx.mm(1000), limit) if d > 0 else (limit, p0 + ctx.mm(1000))
+        try:
+            ctx.write(0x607D, 1, lo)
+            ctx.write(0x607D, 2, hi)
+        except canopen.SdoAbortedError as exc:
+            raise Skip(f"0x607D not writable (0x{exc.code:08X})") from None
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        mark = ctx.frames.mark()
+        target = p0 + d * ctx.mm(25)
+        ctx.write(0x607A, 0, target)
+        ctx.write(0x6040, 0, 0x1F)
+        time.sleep(0.4)
+        s = mo.last()
+        window = max(ctx.read(0x6067), ctx.mm(0.05))
+        beyond = (s.pos - limit) * d
+        em = ctx.wait_emcy(mark, 0x8612, 0.05)
+        if beyond > window:
+            raise Fail(f"moved to {s.pos}, {beyond} units beyond the 0x607D limit {limit} (target {target})")
+        if not (s.sw & 0x800 or (_is_fault(s.sw) and em is not None)):
+            raise Fail(f"SW 0x{s.sw:04X}: neither bit 11 (internal limit) nor fault with EMCY 0x8612 for a target "
+                       "beyond 0x607D")
+        return f"stopped at {s.pos} (limit {limit}, target {target}), SW 0x{s.sw:04X}"
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+@check("402-FLT-1", "reaction", "CiA 402 6.1.3 (transitions 13, 14, 15: fault reset only on a rising edge of "
+       "CW bit 7); 0x603F; CiA 301 0x1003, EMCY; CL 15, 16",
+       "following error in PP (0x6065 = 1); then CW 0x0F and 0x00 (no edge); then CW 0x80",
+       "fault; EMCY code = 0x603F = 0x1003:1 low word; no reset without the edge; the edge -> switch on disabled "
+       "and EMCY 0x0000")
+def fault_reset_edge(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(50))
+        ctx.write(0x6065, 0, 1)
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        mark = ctx.frames.mark()
+        p0 = mo.last().pos
+        ctx.write(0x607A, 0, p0 + _toward_origin(ctx) * ctx.mm(5))
+        ctx.write(0x6040, 0, 0x1F)
+        ctx.write(0x6040, 0, 0x0F)
+        ctx.wait_sw(0x4F, 0x08, 2.0, "fault after a following error")
+        codes = [c for c in ctx.emcy_codes(mark) if c]
+        if not codes:
+            raise Fail("fault without an EMCY")
+        code = ctx.read(0x603F)
+        hist = ctx.read(0x1003, 1) & 0xFFFF if 0x1003 in ctx.od else code
+        if not (code == hist == codes[-1]):
+            raise Fail(f"EMCY 0x{codes[-1]:04X}, 0x603F = 0x{code:04X}, 0x1003:1 = 0x{hist:04X}: not the same code")
+        for cw in (0x0F, 0x00):
+            ctx.write(0x6040, 0, cw)
+            time.sleep(0.05)
+            sw = ctx.sw()
+            if sw & 0x4F != 0x08:
+                raise Fail(f"left fault without a rising edge of CW bit 7 (CW 0x{cw:02X} -> SW 0x{sw:04X})")
+        mark = ctx.frames.mark()
+        ctx.write(0x6040, 0, 0x80)
+        ctx.wait_sw(0x4F, 0x40, 1.0, "fault reset (CW bit 7 edge)")
+        if ctx.wait_emcy(mark, 0x0000, 0.5) is None:
+            raise Fail("no EMCY 0x0000 (error reset) after the fault reset")
+        return f"fault 0x{code:04X} (EMCY = 0x603F = 0x1003:1); stays in fault on 0x0F / 0x00; reset on 0x80 + EMCY 0"
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+# ============================================================================ real hardware limit switches
+@check("402-FLD-6", "limits", "CiA 402 (0x60FD bit 1 positive limit switch; the drive stops in every mode); "
+       "issue #15 item 4", "0x607D max widened by 20 % (if finite); the axis driven onto the REAL + switch in PV "
+       "(search), then from a few mm before it in PP, PT, CSP, CSV, CST (each supported one); then PV away",
+       "0x60FD bit 1; the axis stops (travel past the switch <= v^2/(2 0x6085) + v * 50 ms + 1 mm, at rest), fault "
+       "or warning (SW bit 3 / 7 / 11); the axis can move away from the switch")
+def real_limit_switch_every_mode(ctx: Context) -> str:
+    if 0x60FD not in ctx.od:
+        raise Skip("the EDS lists no digital inputs 0x60FD (limit switches not visible)")
+    boot(ctx)
+    supported = ctx.read(0x6502)
+    if not supported & MODE_BITS[3]:
+        raise Skip("profile velocity (the search mode) not supported")
+    x_sw = None
+    done = []
+    mo = Motion(ctx)
+    try:
+        a = ctx.mm(5000)
+        ctx.write(0x6085, 0, a)
+        ctx.write(0x6083, 0, ctx.mm(5000))
+        ctx.write(0x6084, 0, ctx.mm(5000))
+        lo, hi = (ctx.read(0x607D, 1), ctx.read(0x607D, 2)) if 0x607D in ctx.od else (-2**31, 2**31 - 1)
+        if hi < 2**31 - 1 and lo > -2**31:  # finite software limits: widen the maximum by 20 % of the range
+            ctx.write(0x607D, 2, min(hi + (hi - lo) // 5, 2**31 - 1))
+        for mode in (3, 1, 4, 8, 9, 10):
+            if supported & MODE_BITS[mode]:
+                res, x_sw = _onto_switch(ctx, mo, mode, x_sw, a)
+                done.append(res)
+    finally:
+        mo.close()
+        boot(ctx)
+    return "; ".join(done)
+
+
+def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) -> tuple[str, int]:
+    """Drive onto the + switch in ``mode`` (approach first if ``x_sw`` is known and far), check the stop,
+    move away in PV. Returns the result text and the switch position [units]."""
+    name = MODES[mode]
+    try:
+        ctx.write(0x6040, 0, 0x00)
+        ctx.wait_sw(0x4F, 0x40, 1.0, "switch on disabled before the mode change")
+        p_start = ctx.read(0x6064)
+        if x_sw is not None and x_sw - p_start > ctx.mm(20):  # approach: PP to 5 mm before the switch found
+            ctx.write(0x6081, 0, ctx.mm(200))
+            _enable_mode(ctx, 1)
+            ctx.start_sync()
+            _pp_to(ctx, mo, x_sw - ctx.mm(5), 3.0)
+            ctx.write(0x6040, 0, 0x06)
+            ctx.wait_sw(STATE_MASK, RTSO, 1.0, "ready to switch on before the mode change")
+        if x_sw is not None:
+            v, timeout = ctx.mm(50), 1.0
+        else:
+            vmax = ctx.read(0x607F) if 0x607F in ctx.od else ctx.mm(500)
+            v, timeout = min(int(vmax * 0.5), ctx.mm(300)), 3.0
+        ctx.write(0x6081, 0, v)
+        ctx.stop_sync()
+        _enable_mode(ctx, mode)
+        p0 = ctx.read(0x6064)
+        mark = ctx.frames.mark()
+        if ctx.read(0x60FD) & 0x2:
+            raise Fail(f"{name}: + limit switch already active at {p0} before the move")
+        if mode == 8:
+            mo.stream(p0, v)
+        else:
+            ctx.start_sync()
+            if mode == 1:
+                ctx.write(0x607A, 0, p0 + ctx.mm(200))
+                ctx.write(0x6040, 0, 0x1F)
+                ctx.write(0x6040, 0, 0x0F)
+            elif mode in (3, 9):
+                ctx.write(0x60FF, 0, v)
+            else:
+                ctx.write(0x6071, 0, 150)  # 15 % rated torque
+        end = time.monotonic() + timeout
+        hit = None
+        while hit is None and time.monotonic() < end:
+            time.sleep(0.02)
+            if ctx.node.sdo[0x60FD].raw & 0x2:
+                hit = mo.samples(mark)
+        if hit is None:
+            ctx.note(f"no switch: 0x6064 = {ctx.read(0x6064)}, 0x606C = {ctx.read(0x606C)}, SW 0x{ctx.sw():04X}")
+            if x_sw is None:
+                raise Skip(f"no + limit switch (0x60FD bit 1) met within {timeout:g} s at "
+                           f"{v / ctx.units_per_mm:.0f} mm/s from {p0}")
+            raise Fail(f"{name}: 0x60FD bit 1 not set although the axis reached {ctx.read(0x6064)} "
+                       f"(switch found at {x_sw})")
+        time.sleep(0.15)
+        s1 = mo.last()
+        inputs = ctx.read(0x60FD)
+        moving = [s for s in hit if s.vel is not None]
+        v0 = max(abs(moving[-1].vel), v) if moving else v
+        x_at = hit[-1].pos if hit else p0
+        found = x_sw if x_sw is not None else x_at
+        travel = s1.pos - x_at
+        bound = _stop_bound(v0, a, 0.05, ctx.mm(1)) + abs(v0) * 0.02  # + the 20 ms SDO poll of 0x60FD
+        if travel > bound or abs(s1.vel or 0) > ctx.mm(1):
+            raise Fail(f"{name}: {travel / ctx.units_per_mm:.1f} mm past the + limit switch from "
+                       f"{v0 / ctx.units_per_mm:.0f} mm/s, velocity {(s1.vel or 0) / ctx.units_per_mm:.1f} mm/s "
+                       f"(bound {bound / ctx.units_per_mm:.1f} mm, at rest)")
+        if not inputs & 0x2:
+            raise Fail(f"{name}: 0x60FD = 0x{inputs:08X} at the switch: bit 1 not set")
+        if not (_is_fault(s1.sw) or s1.sw & 0x880):
+            raise Fail(f"{name}: SW 0x{s1.sw:04X}: neither fault nor warning / internal limit at the switch")
+        mo.stop_stream()
+        # move away: fault reset if needed, PV backwards
+        ctx.write(0x6040, 0, 0x00)
+        ctx.start_sync()
+        ctx.write(0x60FF, 0, 0)
+        _enable_mode(ctx, 3)
+        x1 = ctx.read(0x6064)
+        ctx.write(0x60FF, 0, -ctx.mm(50))
+        time.sleep(0.15)
+        x2 = ctx.read(0x6064)
+        ctx.note(f"away: SW 0x{ctx.sw():04X}, 0x606C = {ctx.read(0x606C)}, 0x60FD = 0x{ctx.read(0x60FD):X}")
+        ctx.write(0x60FF, 0, 0)
+        if x1 - x2 < ctx.mm(2):
+            raise Fail(f"{name}: could not move away from the + limit switch in PV (0x6064 {x1} -> {x2})")
+        return (f"{name}: {travel / ctx.units_per_mm:.2f} mm past the switch at {x_at}, SW 0x{s1.sw:04X}, "
+                f"away {(x2 - x1) / ctx.units_per_mm:.1f} mm", found)
+    finally:
+        mo.stop_stream()
