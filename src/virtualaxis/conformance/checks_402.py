@@ -619,7 +619,7 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
     finally:
         try:
             ctx.write(INJ_CLEAR, 0, LIMIT_SWITCH_KIND)
-        except canopen.SdoError:
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError):
             pass
         mo.close()
         boot(ctx)
@@ -860,11 +860,23 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         if not (_is_fault(s1.sw) or s1.sw & 0x880):
             raise Fail(f"{name}: SW 0x{s1.sw:04X}: neither fault nor warning / internal limit at the switch")
         mo.stop_stream()
-        # move away: fault reset if needed, PV backwards
+        # move away: targets to zero, fault reset if needed (once more if the fault comes back while the axis
+        # settles on the switch), PV backwards
         ctx.write(0x6040, 0, 0x00)
         ctx.start_sync()
         ctx.write(0x60FF, 0, 0)
-        _enable_mode(ctx, 3)
+        if mode in (4, 10):
+            ctx.write(0x6071, 0, 0)
+        time.sleep(0.05)
+        try:
+            _enable_mode(ctx, 3)
+        except Fail as exc:
+            ctx.note(f"{name}: enable for the move away: {exc}; once more")
+            time.sleep(0.2)
+            try:
+                _enable_mode(ctx, 3)
+            except Fail as exc2:
+                raise Fail(f"{name}: cannot enable PV to move away from the + switch: {exc2}") from None
         x1 = ctx.read(0x6064)
         ctx.write(0x60FF, 0, -ctx.mm(50))
         time.sleep(0.15)

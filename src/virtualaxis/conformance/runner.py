@@ -236,7 +236,7 @@ class Context:
     def disable(self) -> None:
         try:
             self.node.sdo[0x6040].raw = 0x00
-        except canopen.SdoError:
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError):
             pass
 
     def emcy_codes(self, mark: int) -> list[int]:
