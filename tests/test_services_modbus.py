@@ -37,6 +37,10 @@ class Server:
         assert self.client.connect()
 
     def read(self, number: int, count: int = 1, unit: int = 1, fc: int = 3) -> list[int]:
+        """Registers as a client reads them once the drive's present state is published: reads are answered
+        from an image published every ``image_period_s``, so wait for one publication that started after the
+        drive was last changed (the tests step the drive by hand; it does not move while they read)."""
+        self.svc.sync()
         f = self.client.read_holding_registers if fc == 3 else self.client.read_input_registers
         r = f(number - 40001, count=count, device_id=unit)
         assert not r.isError(), f"read {number} x{count}: {r}"
@@ -378,3 +382,32 @@ def test_two_axes_one_server_unit_id_is_node_id_and_agrees_with_sdo():
         if srv is not None:
             srv.close()
         rig.close()
+
+
+def test_reads_are_answered_from_the_published_image_without_serve(server):
+    """Valid reads never reach serve's bridge (the drive's process): they come from the shared-memory image,
+    which equals the map evaluated on the drive, word for word, and is at most one publication old."""
+    from virtualaxis.services.modbus_map import BY_ADDRESS, read_block
+
+    drive = server.links[1].drive
+    link = server.links[1]
+    csp_enable(drive)
+    csp_ramp(drive, 0.05, 200)
+    server.svc.sync()
+    before = link.requests
+    addrs = sorted(BY_ADDRESS)
+    image = {}
+    for a in addrs:  # one word at a time: any word of the map, halves of 32-bit pairs too
+        image[a] = server.client.read_holding_registers(a, count=1, device_id=1).registers[0]
+    assert link.requests == before, "a valid read was forwarded to serve"
+    assert server.svc.stats()["units"][1]["requests"] == before + len(addrs)
+    for a in addrs:  # the drive has not moved since: the image is the map's own evaluation
+        assert image[a] == read_block(link, a, 1)[0], f"register {a + 40001}"
+    # the drive moves on; without waiting, a read may lag by at most one publication (the period, plus one build)
+    csp_ramp(drive, 0.05, 1, x0_m=0.05 * 0.2)
+    cycles_now = drive.state.cycles
+    w = server.client.read_holding_registers(40376 - 40001, count=2, device_id=1).registers
+    assert (w[0] << 16 | w[1]) in (cycles_now - 1, cycles_now)
+    server.svc.sync()
+    w = server.client.read_holding_registers(40376 - 40001, count=2, device_id=1).registers
+    assert (w[0] << 16 | w[1]) == cycles_now

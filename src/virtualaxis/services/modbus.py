@@ -1,17 +1,21 @@
-"""Modbus TCP server of the served axes: pymodbus in a process of its own, the register map in ``serve``.
+"""Modbus TCP server of the served axes: pymodbus in a process of its own, reads from a published image.
 
-Why two processes: pymodbus costs ~100-150 us of Python per request (framing, transaction handling,
-asyncio). In the drive's process every such microsecond is taken from the interpreter lock the drive's
-runtime thread needs each millisecond; ten clients polling at 100 Hz moved the SYNC -> TPDO latency by
-hundreds of microseconds. So:
+Why: pymodbus costs ~100-150 us of Python per request (framing, transaction handling, asyncio), and even the
+map's own evaluation (~40-100 us per request) is taken from the interpreter lock the drive's runtime thread
+needs each millisecond; ten clients polling at 100 Hz moved the SYNC -> TPDO p99 by milliseconds. So:
 
+- ``serve`` publishes every unit's complete **register image** (all registers, scaled and saturated as the
+  map defines) into shared memory every ``image_period_s`` (default 10 ms; one image costs ~45 us), see
+  :mod:`virtualaxis.services.register_image`;
 - the **server process** (:func:`_server_main`, a child interpreter joined by socket pairs; it imports neither
   the drive nor numba) runs ``pymodbus.server.ModbusTcpServer`` with a server context
-  (:class:`ForwardingContext`) that forwards each register access over a pipe;
-- a **bridge thread** in ``serve`` (:class:`ModbusService`) answers each access with the register map of
-  :mod:`virtualaxis.services.modbus_map` on the live drive: only the map's own work (tens of microseconds,
-  one drive snapshot per request) runs in the drive's process. Nothing is cached: a read shows the drive's
-  state of that moment, a write is applied before the response leaves.
+  (:class:`ForwardingContext`) that answers valid **reads from the image** without talking to ``serve``. A
+  read therefore shows the drive's state of at most one publication period (plus one image build) ago,
+  like the cyclically updated map of a real drive;
+- everything else (writes, and the refused accesses whose reason goes to the last-error registers) is
+  forwarded over a pipe to a **bridge thread** in ``serve`` (:class:`ModbusService`), which validates and
+  applies it with the register map of :mod:`virtualaxis.services.modbus_map` on the live drive, then
+  republishes that unit's image before it answers: a read after a write (FC23's read too) sees the write.
 
 pymodbus specifics handled here: request classes for FC03/04/23 that decode any count (pymodbus raises
 while decoding a count > 125, which it answers with exception 01; the map answers 03), one class per other
@@ -32,6 +36,7 @@ from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 
+from virtualaxis.services.register_image import DEFAULT_PERIOD_S
 from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16, 23)
@@ -123,7 +128,15 @@ class RegisterAccess:
 class ModbusService:
     """The Modbus TCP server of ``links`` (``AxisLink``, unit id = node id): :meth:`start` / :meth:`stop`."""
 
-    def __init__(self, links: list, *, host: str = "127.0.0.1", port: int = 5020, writable: bool = False):
+    def __init__(
+        self,
+        links: list,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 5020,
+        writable: bool = False,
+        image_period_s: float = DEFAULT_PERIOD_S,
+    ):
         ids = [link.unit_id for link in links]
         if len(set(ids)) != len(ids):
             raise ValueError(f"Modbus unit ids must be unique (got {ids})")
@@ -132,6 +145,10 @@ class ModbusService:
         self.port = port
         self.writable = writable
         self.access = RegisterAccess(self.links, writable=writable)
+        if image_period_s <= 0:
+            raise ValueError(f"Modbus register image period must be > 0 s (got {image_period_s})")
+        self.image_period_s = image_period_s
+        self.image = None  # ImagePublisher while running
         self.bound_port: int | None = None
         self._proc = None
         self._conn = None
@@ -140,7 +157,11 @@ class ModbusService:
 
     def start(self, timeout_s: float = 30.0) -> ModbusService:
         """Start the server process and the bridge; returns once the socket is bound (OSError if it cannot be)."""
+        from virtualaxis.services.register_image import ImagePublisher
+
         short_gil_slices()  # the bridge thread must not hold the drive's runtime thread for a 5 ms slice
+        self.image = ImagePublisher(self.links, self.image_period_s).start()
+        units = ",".join(str(u) for u in self.links)
         # a plain child interpreter (not multiprocessing's spawn, which would re-run the caller's __main__),
         # joined by two socket pairs: access RPC and a stop signal (EOF when serve dies)
         rpc_ours, rpc_theirs = socket.socketpair()
@@ -149,10 +170,11 @@ class ModbusService:
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
         code = (
             "import sys; from virtualaxis.services.modbus import _server_child; "
-            "_server_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))"
+            "_server_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5], sys.argv[6])"
         )
         self._proc = subprocess.Popen(
-            [sys.executable, "-c", code, str(rpc_theirs.fileno()), str(ctl_theirs.fileno()), self.host, str(self.port)],
+            [sys.executable, "-c", code, str(rpc_theirs.fileno()), str(ctl_theirs.fileno()), self.host, str(self.port),
+             self.image.name, units],
             pass_fds=(rpc_theirs.fileno(), ctl_theirs.fileno()),
             env=env,
         )
@@ -192,6 +214,7 @@ class ModbusService:
                 return
             views: dict = {}
             replies = []
+            touched: set[int] = set()
             for msg in batch:
                 rid, op, unit, fc, address, count = unpack(msg)
                 values = struct.unpack_from(f">{(len(msg) - size) // 2}H", msg, size) if len(msg) > size else ()
@@ -200,6 +223,13 @@ class ModbusService:
                 except Exception:  # noqa: BLE001 - never a dead bridge: device failure, as pymodbus does
                     reply = bytes((1, 0x04))
                 replies.append(struct.pack(">I", rid) + reply)
+                if unit in self.links:
+                    touched.add(unit)
+            for unit in touched:  # a write / a new last error is in the image before the reply leaves
+                try:
+                    self.image.publish(unit)
+                except Exception:  # noqa: BLE001 - the periodic publication retries
+                    pass
             try:
                 for r in replies:
                     conn.send_bytes(r)
@@ -227,33 +257,58 @@ class ModbusService:
         if self._bridge is not None:
             self._bridge.join(timeout=5.0)
             self._bridge = None
+        if self.image is not None:
+            self.image.close()
+            self.image = None
+
+    def sync(self, timeout_s: float = 5.0) -> None:
+        """Wait until the published image shows the drives' state at least as new as at this call (one
+        publication that started after it)."""
+        if self.image is not None:
+            self.image.sync(timeout_s)
 
     def stats(self) -> dict:
         return {
             "address": f"{self.host}:{self.bound_port or self.port}",
             "writable": self.writable,
+            "image_period_s": self.image_period_s,
+            "image_build_us_mean": (
+                round(self.image.build_s_total / self.image.builds * 1e6, 1)
+                if self.image is not None and self.image.builds
+                else None
+            ),
             "units": {
-                uid: {"requests": link.requests, "exceptions": link.exceptions, "last_error": link.last_error_reason}
+                uid: {
+                    "requests": link.requests + (self.image.reads(uid) if self.image is not None else 0),
+                    "exceptions": link.exceptions,
+                    "last_error": link.last_error_reason,
+                }
                 for uid, link in self.links.items()
             },
         }
 
 
 # ============================================================================================ server process
-def _server_child(rpc_fd: int, ctl_fd: int, host: str, port: int) -> None:
-    """Entry of the server process (``python -c``): the two inherited socket fds as connections."""
-    _server_main(Connection(rpc_fd), Connection(ctl_fd), host, port)
+def _server_child(rpc_fd: int, ctl_fd: int, host: str, port: int, image_name: str, units: str) -> None:
+    """Entry of the server process (``python -c``): the two inherited socket fds as connections, the shared
+    memory block of the register image and the published unit ids (comma-separated)."""
+    _server_main(Connection(rpc_fd), Connection(ctl_fd), host, port, image_name, [int(u) for u in units.split(",")])
 
 
-def _server_main(conn, ctl, host: str, port: int) -> None:
-    """Entry of the server process: pymodbus on ``host:port``, every access forwarded over ``conn``; a message
-    on ``ctl`` (or its EOF: serve is gone) stops it."""
+def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[int]) -> None:
+    """Entry of the server process: pymodbus on ``host:port``; valid reads answered from the register image
+    ``image_name``, every other access forwarded over ``conn``; a message on ``ctl`` (or its EOF: serve is
+    gone) stops it."""
     import asyncio
     import logging
 
     leave_realtime()  # clients are not the drive: never compete with it at real-time priority
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     from pymodbus.server import ModbusTcpServer
+
+    from virtualaxis.services.register_image import ImageReader
+
+    image = ImageReader(image_name, units)
 
     pending: dict[int, asyncio.Future] = {}
     ids = iter(range(1, 1 << 62))
@@ -288,7 +343,7 @@ def _server_main(conn, ctl, host: str, port: int) -> None:
         loop_box.append(asyncio.get_running_loop())
         threading.Thread(target=read_replies, daemon=True).start()
         server = ModbusTcpServer(
-            ForwardingContext(call), address=(host, port), custom_pdu=custom_pdus(call)
+            ForwardingContext(call, image), address=(host, port), custom_pdu=custom_pdus(call)
         )
         try:
             await server.serve_forever(background=True)
@@ -337,10 +392,12 @@ def _make_context_class():
     from pymodbus.datastore import ModbusServerContext
 
     class _ForwardingContext(ModbusServerContext):
-        """pymodbus server context forwarding every access to ``call`` (no data blocks of its own)."""
+        """pymodbus server context: valid reads from the register ``image`` (an ``ImageReader``), every other access
+        forwarded to ``call`` (no data blocks of its own)."""
 
-        def __init__(self, call: Callable):  # no base init: it would require data blocks
+        def __init__(self, call: Callable, image=None):  # no base init: it would require data blocks
             self.call = call
+            self.image = image
             self.old_simulator = True  # the server then uses this object as is
             self.simdevices = []
             self._devices = {}
@@ -349,6 +406,11 @@ def _make_context_class():
             return []
 
         async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
+            image = self.image
+            if image is not None and image.covers(address, count):
+                words = image.read(device_id, address, count)
+                if words is not None:
+                    return words
             return _decode_reply(await self.call(0, device_id, func_code, address, count))
 
         async def async_setValues(self, device_id: int, func_code: int, address: int, values: Sequence[int]):
@@ -359,8 +421,8 @@ def _make_context_class():
     return _ForwardingContext
 
 
-def ForwardingContext(call: Callable):  # noqa: N802 - a class built on first use (pymodbus imported lazily)
-    return _make_context_class()(call)
+def ForwardingContext(call: Callable, image=None):  # noqa: N802 - a class built on first use (lazy pymodbus)
+    return _make_context_class()(call, image)
 
 
 def custom_pdus(call: Callable) -> list:
