@@ -149,6 +149,7 @@ class ModbusService:
             raise ValueError(f"Modbus register image period must be > 0 s (got {image_period_s})")
         self.image_period_s = image_period_s
         self.image = None  # ImagePublisher while running
+        self._image_reads: dict[int, int] = {}  # reads answered from the image, as of stop()
         self.bound_port: int | None = None
         self._proc = None
         self._conn = None
@@ -258,6 +259,7 @@ class ModbusService:
             self._bridge.join(timeout=5.0)
             self._bridge = None
         if self.image is not None:
+            self._image_reads = {uid: self.image.reads(uid) for uid in self.links}  # kept for stats()
             self.image.close()
             self.image = None
 
@@ -266,6 +268,11 @@ class ModbusService:
         publication that started after it)."""
         if self.image is not None:
             self.image.sync(timeout_s)
+
+    def _reads_from_image(self, uid: int) -> int:
+        if self.image is not None:
+            return self.image.reads(uid)
+        return self._image_reads.get(uid, 0)
 
     def stats(self) -> dict:
         return {
@@ -279,7 +286,7 @@ class ModbusService:
             ),
             "units": {
                 uid: {
-                    "requests": link.requests + (self.image.reads(uid) if self.image is not None else 0),
+                    "requests": link.requests + self._reads_from_image(uid),
                     "exceptions": link.exceptions,
                     "last_error": link.last_error_reason,
                 }
