@@ -150,6 +150,7 @@ class ModbusService:
         self.image_period_s = image_period_s
         self.image = None  # ImagePublisher while running
         self._image_reads: dict[int, int] = {}  # reads answered from the image, as of stop()
+        self._image_build_us: float | None = None  # mean image build time, as of stop()
         self.bound_port: int | None = None
         self._proc = None
         self._conn = None
@@ -260,6 +261,9 @@ class ModbusService:
             self._bridge = None
         if self.image is not None:
             self._image_reads = {uid: self.image.reads(uid) for uid in self.links}  # kept for stats()
+            self._image_build_us = (
+                round(self.image.build_s_total / self.image.builds * 1e6, 1) if self.image.builds else None
+            )
             self.image.close()
             self.image = None
 
@@ -282,7 +286,7 @@ class ModbusService:
             "image_build_us_mean": (
                 round(self.image.build_s_total / self.image.builds * 1e6, 1)
                 if self.image is not None and self.image.builds
-                else None
+                else self._image_build_us
             ),
             "units": {
                 uid: {
