@@ -143,6 +143,17 @@ class Motion:
         self.ctx.stop_sync()
 
 
+def _start_pp(ctx: Context, mo: Motion, velocity_mm_s: float) -> float:
+    """Profile position enabled under SYNC with 0x6081 = ``velocity_mm_s``, 0x6083/0x6084 = 2 m/s^2; the actual
+    position (units) to move from."""
+    ctx.write(0x6081, 0, ctx.mm(velocity_mm_s))
+    ctx.write(0x6083, 0, ctx.mm(2000))
+    ctx.write(0x6084, 0, ctx.mm(2000))
+    _enable_mode(ctx, 1)
+    ctx.start_sync()
+    return mo.last().pos
+
+
 def _enable_mode(ctx: Context, mode: int) -> None:
     supported = ctx.read(0x6502)
     if not supported & MODE_BITS.get(mode, 0):
@@ -238,12 +249,7 @@ def modes_follow(ctx: Context) -> str:
 def pp_move(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
-        ctx.write(0x6081, 0, ctx.mm(100))
-        ctx.write(0x6083, 0, ctx.mm(2000))
-        ctx.write(0x6084, 0, ctx.mm(2000))
-        _enable_mode(ctx, 1)
-        ctx.start_sync()
-        p0 = mo.last().pos
+        p0 = _start_pp(ctx, mo, velocity_mm_s=100)
         target = p0 + ctx.mm(10)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
@@ -452,12 +458,7 @@ def fault_reaction_from_motion(ctx: Context) -> str:
 def cw_and_target_in_one_rpdo(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
-        ctx.write(0x6081, 0, ctx.mm(200))
-        ctx.write(0x6083, 0, ctx.mm(2000))
-        ctx.write(0x6084, 0, ctx.mm(2000))
-        _enable_mode(ctx, 1)
-        ctx.start_sync()
-        p0 = mo.last().pos
+        p0 = _start_pp(ctx, mo, velocity_mm_s=200)
         ctx.write(0x607A, 0, p0 + ctx.mm(5))
         new = p0 + ctx.mm(20)
         mo.rpdo(0x1F, new)
@@ -647,12 +648,7 @@ def _pp_to(ctx: Context, mo: Motion, target: int, timeout: float) -> Sample:
 def pp_halt(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
-        ctx.write(0x6081, 0, ctx.mm(100))
-        ctx.write(0x6083, 0, ctx.mm(2000))
-        ctx.write(0x6084, 0, ctx.mm(2000))
-        _enable_mode(ctx, 1)
-        ctx.start_sync()
-        p0 = mo.last().pos
+        p0 = _start_pp(ctx, mo, velocity_mm_s=100)
         target = p0 + _toward_origin(ctx) * ctx.mm(40)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
