@@ -166,14 +166,22 @@ class SampleBuffer:
             return [self._q[i] for i in range(min(n, len(self._q)))]
 
     def commit(self, batch: list[dict]) -> None:
-        """Remove the published ``batch`` (the samples still at the head; ones dropped meanwhile are not
-        counted twice)."""
+        """Remove the published ``batch`` from the head and count all of it published.
+
+        A sample of the batch that the sampler dropped from the full buffer while the batch was being written
+        (``add`` drops the oldest, which may be in flight) was delivered all the same: it moves from
+        ``dropped`` to ``published``, so the counters stay exact (``taken = published + dropped + buffered``)
+        and ``dropped`` counts exactly the samples a subscriber never sees."""
         with self._lock:
             first = batch[0]["seq"]
             last = batch[-1]["seq"]
+            popped = 0
             while self._q and first <= self._q[0]["seq"] <= last:
                 self._q.popleft()
-                self.published += 1
+                popped += 1
+            dropped_in_flight = len(batch) - popped
+            self.dropped -= dropped_in_flight
+            self.published += len(batch)
 
     def __len__(self) -> int:
         return len(self._q)
