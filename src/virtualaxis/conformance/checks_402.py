@@ -569,6 +569,23 @@ def limit_switch_every_mode(ctx: Context) -> str:
     return "; ".join(done)
 
 
+def _start_positive(ctx: Context, mo: Motion, mode: int, p0: int, v: int) -> None:
+    """Start motion in the + direction in ``mode`` (enabled): CSP streams set-points from ``p0`` at ``v``
+    (inc/s); PP moves to ``p0`` + 200 mm; PV/CSV command ``v``; the torque modes 15 % rated torque."""
+    if mode == 8:
+        mo.stream(p0, v)
+        return
+    ctx.start_sync()
+    if mode == 1:
+        ctx.write(0x607A, 0, p0 + ctx.mm(200))
+        ctx.write(0x6040, 0, 0x1F)
+        ctx.write(0x6040, 0, 0x0F)
+    elif mode in (3, 9):
+        ctx.write(0x60FF, 0, v)
+    else:
+        ctx.write(0x6071, 0, 150)  # 15 % rated torque
+
+
 def _limit_switch_in(ctx: Context, mode: int) -> str:
     mo = Motion(ctx)
     name = MODES[mode]
@@ -581,18 +598,7 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
         _enable_mode(ctx, mode)
         p0 = ctx.read(0x6064)
         v = ctx.mm(30)
-        if mode == 8:
-            mo.stream(p0, v)
-        else:
-            ctx.start_sync()
-            if mode == 1:
-                ctx.write(0x607A, 0, p0 + ctx.mm(200))
-                ctx.write(0x6040, 0, 0x1F)
-                ctx.write(0x6040, 0, 0x0F)
-            elif mode in (3, 9):
-                ctx.write(0x60FF, 0, v)
-            else:
-                ctx.write(0x6071, 0, 150)  # 15 % rated torque
+        _start_positive(ctx, mo, mode, p0, v)
         try:
             mo.wait(lambda s: s.vel is not None and s.vel > ctx.mm(5), 2.0, f"{name}: motion +")
         except Fail as exc:
@@ -813,18 +819,7 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         mark = ctx.frames.mark()
         if ctx.read(0x60FD) & 0x2:
             raise Fail(f"{name}: + limit switch already active at {p0} before the move")
-        if mode == 8:
-            mo.stream(p0, v)
-        else:
-            ctx.start_sync()
-            if mode == 1:
-                ctx.write(0x607A, 0, p0 + ctx.mm(200))
-                ctx.write(0x6040, 0, 0x1F)
-                ctx.write(0x6040, 0, 0x0F)
-            elif mode in (3, 9):
-                ctx.write(0x60FF, 0, v)
-            else:
-                ctx.write(0x6071, 0, 150)  # 15 % rated torque
+        _start_positive(ctx, mo, mode, p0, v)
         end = time.monotonic() + timeout
         hit = None
         while hit is None and time.monotonic() < end:
