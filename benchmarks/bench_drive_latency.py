@@ -33,7 +33,6 @@ import platform
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -46,7 +45,8 @@ sys.path.insert(0, str(REPO / "src"))
 
 from virtualaxis.config import load_axis_config  # noqa: E402
 
-CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+sys.path.insert(0, str(REPO / "benchmarks"))
+from _master import CLI, SdoReply, TpdoClock, _cpu_model, cpu_seconds, latency_stats, sdo, sync_loop  # noqa: E402
 
 
 def all_effects_config(path: Path) -> Path:
@@ -65,58 +65,6 @@ def all_effects_config(path: Path) -> Path:
     )
     path.write_text(cfg.to_toml(header="bench_drive_latency: seed000-hust with every plant effect on"))
     return path
-
-
-class TpdoClock(can.Listener):
-    """Receive timestamps of the TPDOs per COB-ID."""
-
-    def __init__(self, cob_ids: list[int]):
-        self.times: dict[int, list[float]] = {c: [] for c in cob_ids}
-
-    def on_message_received(self, msg: can.Message) -> None:
-        lst = self.times.get(msg.arbitration_id)
-        if lst is not None:
-            lst.append(msg.timestamp)
-
-
-def sdo_upload(bus: can.BusABC, node_id: int, index: int, sub: int, replies: list, event: threading.Event) -> None:
-    event.clear()
-    data = bytes([0x40, index & 0xFF, index >> 8, sub, 0, 0, 0, 0])
-    bus.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
-    if not event.wait(1.0):
-        raise RuntimeError("SDO timeout")
-
-
-class SdoReply(can.Listener):
-    def __init__(self, node_ids):
-        self.cobs = {0x580 + n for n in node_ids}
-        self.event = threading.Event()
-        self.last = None
-
-    def on_message_received(self, msg):
-        if msg.arbitration_id in self.cobs:
-            self.last = msg
-            self.event.set()
-
-
-def sdo(bus, reply: SdoReply, node_id: int, index: int, sub: int = 0, value: int | None = None, size: int = 4):
-    reply.event.clear()
-    if value is None:
-        data = bytes([0x40, index & 0xFF, index >> 8, sub, 0, 0, 0, 0])
-    else:
-        cmd = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-        data = bytes([cmd, index & 0xFF, index >> 8, sub]) + int(value).to_bytes(4, "little", signed=value < 0)
-    bus.send(can.Message(arbitration_id=0x600 + node_id, data=data, is_extended_id=False))
-    if not reply.event.wait(1.0):
-        raise RuntimeError(f"SDO timeout 0x{index:04X}:{sub}")
-    if reply.last.data[0] == 0x80:
-        raise RuntimeError(f"SDO abort 0x{int.from_bytes(reply.last.data[4:8], 'little'):08X} on 0x{index:04X}")
-    return int.from_bytes(reply.last.data[4:8], "little")
-
-
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 SPINDLE = REPO / "configs" / "spindle.toml"
@@ -181,33 +129,11 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         for lst in clock.times.values():
             lst.clear()
         n_sync = int(seconds / period_s)
-        sync_times = np.zeros(n_sync)
         cpu0, wall0 = cpu_seconds(proc.pid), time.perf_counter()
-        t_next = time.perf_counter() + 0.01
-        sync_msg = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
         with tqdm(
             total=n_sync, desc=f"SYNC {period_s * 1e6:.0f} us, {n_axes} axis", unit="sync", mininterval=1, leave=False
-        ) as bar:
-            for k in range(n_sync):
-                while True:
-                    left = t_next - time.perf_counter()
-                    if left <= 0:
-                        break
-                    time.sleep(left - 3e-4 if left > 4e-4 else 0)
-                for nid in node_ids:  # target for the next cycle: 20 mm sine at 0.5 Hz
-                    target = x0[nid] + int(20_000 * np.sin(2 * np.pi * 0.5 * k * period_s))
-                    bus.send(
-                        can.Message(
-                            arbitration_id=0x300 + nid,
-                            data=(0x0F).to_bytes(2, "little") + target.to_bytes(4, "little", signed=True),
-                            is_extended_id=False,
-                        )
-                    )
-                sync_times[k] = time.time()
-                bus.send(sync_msg)
-                t_next += period_s
-                if k % 1000 == 0:
-                    bar.update(1000 if k else 1)
+        ) as bar:  # target for the next cycle: 20 mm sine at 0.5 Hz, then SYNC
+            sync_times = sync_loop(bus, x0, period_s, n_sync, bar=bar)
         time.sleep(0.2)
         cpu1, wall1 = cpu_seconds(proc.pid), time.perf_counter()
         result = {
@@ -221,21 +147,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
         }
         for nid, cob in zip(node_ids, tpdo_cobs, strict=True):
-            times = np.array(clock.times[cob])
-            n_tpdo = len(times)
-            if n_tpdo == n_sync:  # one TPDO per SYNC, in order (the bus keeps the order): pair them
-                lat = (times - sync_times) * 1e6
-            else:  # some were never sent: pair each SYNC with the first TPDO after it (an estimate)
-                idx = np.minimum(np.searchsorted(times, sync_times), max(n_tpdo - 1, 0))
-                lat = (times[idx] - sync_times) * 1e6 if n_tpdo else np.array([])
-            result[f"node{nid}"] = {
-                "tpdos": int(n_tpdo),
-                "missed_cycles": int(n_sync - n_tpdo),  # SYNCs that got no TPDO at all
-                "late_tpdos": int(np.count_nonzero(lat > period_s * 1e6)),  # arrived after the next SYNC
-                "latency_us_p50": float(np.percentile(lat, 50)) if len(lat) else None,
-                "latency_us_p99": float(np.percentile(lat, 99)) if len(lat) else None,
-                "latency_us_max": float(lat.max()) if len(lat) else None,
-            }
+            result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
+                                    if k != "latency_us_p999"}
         result["sdo_rtt_us_p50"] = float(np.percentile(rtts, 50) * 1e6)
         result["sdo_rtt_us_p99"] = float(np.percentile(rtts, 99) * 1e6)
     finally:
@@ -407,17 +320,6 @@ def scale(args) -> int:
                                            "results": results}, indent=2))
     print(f"wrote {args.json}")
     return 0
-
-
-def _cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":

@@ -1,25 +1,37 @@
 """Do the side channels disturb the drive? SYNC -> TPDO latency and missed cycles of a CSP move at 1 ms SYNC,
-without and with the side-channel load, in the same run; Modbus response times under that load.
+without and with the side-channel load, in the same run; Modbus response times under that load; where each
+latency accrues (hop timestamps) and which thread waited for a CPU (per-thread run-queue time).
 
-Each phase starts its own ``virtualaxis serve`` process (real-time pacing, 1 ms drive cycle) on a host-local
-``udp_multicast`` bus (hop_limit 0); this process is the CANopen master (SYNC + a synchronous CSP target RPDO
-every 1 ms, TPDO2 = statusword + position answered on every SYNC, a 20 mm sine at 0.5 Hz).
+Each phase starts its own ``virtualaxis serve`` process (real-time pacing, 1 ms drive cycle, ``--bitrate`` 0 by
+default: the raw latency of the runtime, as ``bench_drive_latency.py``) on a host-local ``udp_multicast`` bus
+(hop_limit 0); this process is the CANopen master (``_master.py``: SYNC + a synchronous CSP target RPDO every
+1 ms, TPDO2 = statusword + position answered on every SYNC, a 20 mm sine at 0.5 Hz).
 
-- phase ``off``: ``serve`` without side channels;
-- phase ``load``: ``serve --modbus ... --mqtt ...`` (telemetry 100 Hz in batches of 10 to a mosquitto broker
-  started here on a free loopback port, read by a paho subscriber in this process) and **ten Modbus TCP clients**
-  (ten processes), each polling 50 registers (40110-40121 and 40340-40377: two FC03 requests) at 100 Hz; a
-  client a whole period behind skips the missed polls (counted), so ``polls/s`` is the load delivered.
+Phases (``--phases``, alternated ``--rounds`` times so that drifting machine load hits all alike):
 
-With ``--rt-priority N`` serve and the master run at SCHED_FIFO N, the load side (clients, serve's Modbus server
-process, mosquitto) at ``--load-priority`` (10) below it: on a shared machine other jobs would otherwise starve
-the load generator and the drive would be measured without the load it is meant to carry.
+- ``off``: ``serve`` without side channels;
+- ``load``: ``serve --modbus ... --mqtt ...`` (telemetry 100 Hz in batches of 10 to a mosquitto broker started
+  here on a free loopback port, counted by a paho subscriber in a process of its own) and **ten Modbus TCP
+  clients** (ten processes), each polling 50 registers (40110-40121 and 40340-40377: two FC03 requests) at
+  100 Hz; a client a whole period behind skips the missed polls (counted), so ``polls/s`` is the load delivered;
+- ``modbus`` / ``mqtt``: only that half of the load (to separate the causes).
 
-Phases alternate (off, load, off, load, ...; ``--rounds``) so that drifting machine load hits both alike.
-Latency = TPDO receive time minus SYNC send time (both in this process). Missed = SYNCs without a TPDO.
+Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
+priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
+server process, mosquitto, the MQTT subscriber) runs at normal priority (``--load-priority 0``, the default;
+clients of a real drive sit on other machines) or at SCHED_FIFO ``--load-priority`` below the drive.
+``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``) pins serve's runtime and CAN receive threads and the master to
+DRIVE_CPUS and everything else of the run to LOAD_CPUS (an isolated-core deployment, see docs/side-channels.md).
 
-    python benchmarks/bench_side_channels.py                    # 2 rounds of 30 s per phase
-    python benchmarks/bench_side_channels.py --seconds 10 --rounds 1 --rt-priority 20
+Latency = kernel receive timestamp of the TPDO in the master's socket minus that of the master's own SYNC as
+looped back (the instant the SYNC was on the "wire", also the instant serve's socket got it); nothing of the
+master's user-space receive or send path is in it. Missed = SYNCs without a TPDO; late = TPDOs after the next
+SYNC. Hops (``serve --latency-probe``): SYNC wire -> serve's receive thread has it (``rx thread``) -> serve's
+runtime thread sends the TPDO (``runtime``) -> TPDO in the master's socket (``back``); ``master send`` =
+master's ``time.time()`` before ``send`` -> its SYNC on the wire (not part of the latency).
+
+    python benchmarks/bench_side_channels.py --seconds 20 --rounds 2 --rt-priority 20
+    python benchmarks/bench_side_channels.py --seconds 10 --rounds 1 --rt-priority 20 --phases off,modbus,mqtt,load
 """
 
 from __future__ import annotations
@@ -27,10 +39,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -42,62 +52,48 @@ import can
 import numpy as np
 from tqdm import tqdm
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _master import (  # noqa: E402
+    CLI,
+    REPO,
+    SYNC_COB,
+    SdoReply,
+    TpdoClock,
+    children,
+    free_port,
+    latency_stats,
+    machine_info,
+    pair,
+    percentiles_us,
+    schedstat_delta,
+    sdo,
+    set_affinity,
+    set_priority,
+    setup_csp,
+    sync_loop,
+    thread_schedstat,
+    wait_port,
+)
 
-CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
 POLL_RANGES = ((40110, 12), (40340, 38))  # 50 registers per poll
 CLIENTS = 10
+PERIOD_S = 1e-3
+DRIVE_THREADS = ("runtime", "can-rx")  # serve's threads on the SYNC -> TPDO path (OS names, latency_probe)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_port(port: int, timeout_s: float = 10.0) -> None:
-    end = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            if time.monotonic() > end:
-                raise
-            time.sleep(0.02)
-
-
-# ------------------------------------------------------------------------------------ Modbus load (subprocess)
-def set_priority(pid: int, priority: int) -> None:
-    """SCHED_FIFO ``priority`` for ``pid`` and all its threads (0: SCHED_OTHER)."""
+# ------------------------------------------------------------------------------------ load side (subprocesses)
+def _become_load(priority: int, cpus: set[int] | None) -> None:
+    # in a plant the clients run on other machines: here at normal priority or FIFO below the drive
     policy, param = (os.SCHED_FIFO, priority) if priority else (os.SCHED_OTHER, 0)
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            os.sched_setscheduler(int(tid), policy, os.sched_param(param))
-        except OSError:
-            pass
+    os.sched_setscheduler(0, policy, os.sched_param(param))
+    if cpus:
+        os.sched_setaffinity(0, cpus)
 
 
-def children(pid: int) -> list[int]:
-    out = []
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            out += [int(c) for c in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
-        except OSError:
-            pass
-    return out
-
-
-def modbus_load(
-    port: int, clients: int, rate_hz: float, seconds: float, out: str, priority: int = 0, start_unix: float = 0.0
-) -> None:
+def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: str, start_unix: float = 0.0) -> None:
     """``clients`` threads, each with its own TCP connection, polling POLL_RANGES at ``rate_hz``."""
     from pymodbus.client import ModbusTcpClient
 
-    # in a plant the clients run on other machines: here below the drive's priority (or at normal priority)
-    policy, param = (os.SCHED_FIFO, priority) if priority else (os.SCHED_OTHER, 0)
-    os.sched_setscheduler(0, policy, os.sched_param(param))
     results: list[list[float]] = [[] for _ in range(clients)]
     errors = [0] * clients
     late = [0] * clients
@@ -136,6 +132,32 @@ def modbus_load(
     Path(out).write_text(json.dumps({"errors": int(sum(errors)), "skipped_polls": int(sum(late))}))
 
 
+def telemetry_count(port: int, out: str) -> None:
+    """A paho subscriber counting telemetry samples until SIGTERM; writes ``{"samples", "batches"}``."""
+    import paho.mqtt.client as mqtt
+
+    count = {"samples": 0, "batches": 0, "t_first": None, "t_last": None}
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    def on_message(client, userdata, m):
+        count["batches"] += 1
+        count["samples"] += len(json.loads(m.payload)["samples"])
+        count["t_last"] = time.time()
+        count["t_first"] = count["t_first"] or count["t_last"]
+
+    c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+    c.on_connect = lambda c, u, f, rc, p: c.subscribe("virtualaxis/+/+/telemetry", qos=0)
+    c.on_message = on_message
+    c.connect("127.0.0.1", port)
+    c.loop_start()
+    Path(out + ".ready").write_text("1")
+    stop.wait()
+    c.loop_stop()
+    c.disconnect()
+    Path(out).write_text(json.dumps(count))
+
+
 def modbus_summary(outs: list[str], seconds: float) -> dict:
     """Response times and delivered load of all client processes."""
     rt = np.concatenate([np.load(o + ".npy") for o in outs])
@@ -152,38 +174,6 @@ def modbus_summary(outs: list[str], seconds: float) -> dict:
     }
 
 
-# ------------------------------------------------------------------------------------ the master
-class Tpdo(can.Listener):
-    def __init__(self, cob: int, sdo_cob: int):
-        self.cob = cob
-        self.sdo_cob = sdo_cob
-        self.times: list[float] = []
-        self.reply = threading.Event()
-        self.last: can.Message | None = None
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id == self.cob:
-            self.times.append(msg.timestamp)
-        elif msg.arbitration_id == self.sdo_cob:
-            self.last = msg
-            self.reply.set()
-
-
-def sdo(bus: can.BusABC, rx: Tpdo, node: int, index: int, sub: int = 0, value: int | None = None, size: int = 4):
-    rx.reply.clear()
-    if value is None:
-        data = bytes([0x40, index & 0xFF, index >> 8, sub, 0, 0, 0, 0])
-    else:
-        cmd = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
-        data = bytes([cmd, index & 0xFF, index >> 8, sub]) + int(value).to_bytes(4, "little", signed=value < 0)
-    bus.send(can.Message(arbitration_id=0x600 + node, data=data, is_extended_id=False))
-    if not rx.reply.wait(2.0):
-        raise RuntimeError(f"SDO timeout 0x{index:04X}:{sub}")
-    if rx.last.data[0] == 0x80:
-        raise RuntimeError(f"SDO abort 0x{int.from_bytes(rx.last.data[4:8], 'little'):08X} on 0x{index:04X}")
-    return int.from_bytes(rx.last.data[4:8], "little")
-
-
 class Mosquitto:
     def __init__(self, workdir: Path):
         exe = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
@@ -198,214 +188,292 @@ class Mosquitto:
         self.proc.wait(timeout=10)
 
 
-class TelemetryCounter:
-    def __init__(self, port: int):
-        import paho.mqtt.client as mqtt
+# ------------------------------------------------------------------------------------ hops
+def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: np.ndarray, node: int,
+         raw: Path | None = None) -> dict:
+    """Split every SYNC -> TPDO latency at serve's timestamps (module doc); percentiles per hop [us] and, for
+    the slowest 1 % of the SYNCs, the mean of each hop (where the tail accrues)."""
+    if not probe_file.exists():
+        return {}
+    p = np.load(probe_file)
+    s_kernel, s_user = p["sync_kernel_s"], p["sync_user_s"]
+    tx = p["tx_s"][p["tx_cob"] == 0x280 + node]
+    n = len(wire_sync)
+    if len(s_kernel) != n:  # pair serve's SYNCs with the master's by kernel time
+        idx = np.clip(np.searchsorted(s_kernel, wire_sync - 5e-4), 0, max(len(s_kernel) - 1, 0))
+        s_kernel, s_user = s_kernel[idx], s_user[idx]
+    tx_lat = pair(tx, s_user)
+    back = pair(tpdo, s_user + tx_lat) if len(tpdo) else np.full(n, np.nan)
+    parts = {
+        "master_send": wire_sync - user_sync,
+        "to_serve_socket": s_kernel - wire_sync,
+        "serve_rx_thread": s_user - s_kernel,
+        "serve_runtime": tx_lat,
+        "back_to_master": back,
+    }
+    total = pair(tpdo, wire_sync)
+    out = {k: percentiles_us(v) for k, v in parts.items()}
+    # serve's cyclic garbage collections inside the measured window (each holds every thread of serve)
+    in_win = (p["gc_start_s"] >= wire_sync[0]) & (p["gc_start_s"] <= wire_sync[-1] + 0.1)
+    gc_s, gc_gen, gc_t = p["gc_s"][in_win], p["gc_gen"][in_win], p["gc_start_s"][in_win]
+    out["gc"] = {f"gen{g}": {"count": int(np.sum(gc_gen == g)),
+                             "max_us": float(gc_s[gc_gen == g].max() * 1e6) if np.any(gc_gen == g) else 0.0,
+                             "total_ms": float(gc_s[gc_gen == g].sum() * 1e3)} for g in (0, 1, 2)}
+    ok = np.isfinite(total)
+    if ok.sum() >= 100:
+        cut = np.percentile(total[ok], 99)
+        tail = ok & (total >= cut)
+        out["tail_1pct_mean_us"] = {k: float(np.nanmean(v[tail]) * 1e6) for k, v in parts.items() if k != "master_send"}
+        out["tail_1pct_mean_us"]["total"] = float(np.mean(total[tail]) * 1e6)
+        # tail SYNCs during which serve collected garbage (a collection started between SYNC and TPDO)
+        t0, t1 = wire_sync[tail], wire_sync[tail] + total[tail]
+        i0, i1 = np.searchsorted(gc_t, t0 - 0.05), np.searchsorted(gc_t, t1)
+        out["tail_1pct_with_gc_share"] = float(np.mean(i1 > i0))
+    if raw is not None:
+        np.savez(raw, wire_sync=wire_sync, user_sync=user_sync, tpdo=tpdo, s_kernel=s_kernel, s_user=s_user, tx=tx,
+                 gc_start_s=p["gc_start_s"], gc_gen=p["gc_gen"], gc_s=p["gc_s"])
+    return out
 
-        self.batches = 0
-        self.samples = 0
-        self.c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-        self.c.on_connect = lambda c, u, f, rc, p: c.subscribe("virtualaxis/+/+/telemetry", qos=0)
-        self.c.on_message = self._on
-        self.c.connect("127.0.0.1", port)
-        self.c.loop_start()
 
-    def _on(self, client, userdata, m):
-        self.batches += 1
-        self.samples += len(json.loads(m.payload)["samples"])
-
-    def stop(self):
-        self.c.loop_stop()
-        self.c.disconnect()
-
-
-def run_phase(
-    load: bool, seconds: float, port: int, broker: Mosquitto | None, rt_priority: int, load_priority: int, tmp: Path
-) -> dict:
+# ------------------------------------------------------------------------------------ one phase
+def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
+    modbus_on = phase in ("load", "modbus")
+    mqtt_on = phase in ("load", "mqtt")
     spec = f"udp_multicast:239.74.163.3,port={port}"
     node = 1
     summary = tmp / f"serve-{port}.json"
+    probe = tmp / f"probe-{port}.npz"
     args = [*CLI, "serve", "--can", spec, "--node-id", str(node), "--status-interval", "0",
-            "--duration", str(seconds + 60), "--json", str(summary)]
+            "--duration", str(seconds + 60), "--json", str(summary), "--bitrate", str(opts.bitrate),
+            "--latency-probe", str(probe)]
     mb_port = free_port()
-    if load:
-        args += ["--modbus", f"127.0.0.1:{mb_port}", "--mqtt", f"mqtt://127.0.0.1:{broker.port}", "--machine", "bench"]
-    if rt_priority:
-        args += ["--rt-priority", str(rt_priority)]
+    if modbus_on:
+        args += ["--modbus", f"127.0.0.1:{mb_port}"]
+    if mqtt_on:
+        args += ["--mqtt", f"mqtt://127.0.0.1:{broker.port}", "--machine", "bench"]
+    if opts.rt_priority:
+        args += ["--rt-priority", str(opts.rt_priority)]
+    args += opts.serve_args
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     if not line.startswith("ready:"):
         proc.kill()
         raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
-    if load and rt_priority:
-        proc.stdout.readline()  # "modbus: ..." (the server process runs by then)
-        for child in children(proc.pid):  # serve's Modbus server process: the clients' side, below the drive
-            set_priority(child, load_priority)
+    for _ in range(int(modbus_on) + int(mqtt_on)):
+        proc.stdout.readline()  # "modbus: ..." / "mqtt: ..." (the server process runs by then)
+    load_pids = children(proc.pid)  # serve's Modbus server process: the clients' side
+    for child in load_pids:
+        set_priority(child, opts.load_priority)
+        set_affinity(child, opts.load_cpus)
+    if opts.drive_cpus is not None:  # serve: SYNC path on the drive CPUs, its other threads with the load
+        for tid in os.listdir(f"/proc/{proc.pid}/task"):
+            name = Path(f"/proc/{proc.pid}/task/{tid}/comm").read_text().strip()
+            try:
+                os.sched_setaffinity(int(tid), opts.drive_cpus if name in DRIVE_THREADS else opts.load_cpus)
+            except OSError:
+                pass
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.3", port=port, hop_limit=0)
-    rx = Tpdo(0x280 + node, 0x580 + node)
-    notifier = can.Notifier(bus, [rx], timeout=0.05)
-    loader = telemetry = None
-    out: dict = {"phase": "load" if load else "off", "seconds": seconds}
+    clock = TpdoClock([0x280 + node, SYNC_COB])
+    reply = SdoReply([node])
+    notifier = can.Notifier(bus, [clock, reply], timeout=0.05)
+    loader: list[subprocess.Popen] = []
+    counter = None
+    outs: list[str] = []
+    out: dict = {"phase": phase, "seconds": seconds}
+    load_flags = ["--load-priority", str(opts.load_priority)]
+    if opts.load_cpus:
+        load_flags += ["--load-cpus", ",".join(map(str, sorted(opts.load_cpus)))]
     try:
-        sdo(bus, rx, node, 0x6060, value=8, size=1)
-        sdo(bus, rx, node, 0x6065, value=50_000)
-        sdo(bus, rx, node, 0x1401, 2, value=1, size=1)
-        sdo(bus, rx, node, 0x1801, 2, value=1, size=1)
-        for tpdo, base in ((0x1800, 0x180), (0x1802, 0x380), (0x1803, 0x480)):
-            sdo(bus, rx, node, tpdo, 1, value=0x80000000 | (base + node))
-        bus.send(can.Message(arbitration_id=0x000, data=bytes([0x01, node]), is_extended_id=False))
-        for cw in (0x06, 0x07, 0x0F):
-            sdo(bus, rx, node, 0x6040, value=cw, size=2)
-        x0 = int.from_bytes(sdo(bus, rx, node, 0x6064).to_bytes(4, "little"), "little", signed=True)
-        if load:
-            telemetry = TelemetryCounter(broker.port)
+        x0 = setup_csp(bus, reply, node)
+        if mqtt_on:
+            tel_out = str(tmp / f"telemetry-{port}.json")
+            counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
+                                        *load_flags])
+        if modbus_on:
             # ten clients = ten processes (each its own interpreter, as separate client machines would be)
             outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
             t_start = time.time() + 3.0  # all clients start polling together, once their imports are done
             loader = [
                 subprocess.Popen([sys.executable, __file__, "--modbus-load", str(mb_port), str(seconds), o,
-                                  "--load-priority", str(load_priority if rt_priority else 0),
-                                  "--load-start", f"{t_start + i * 1e-3:.6f}"])
+                                  *load_flags, "--load-start", f"{t_start + i * 1e-3:.6f}"])
                 for i, o in enumerate(outs)
             ]
             time.sleep(max(0.0, t_start - time.time()) + 0.1)  # clients polling
-        rx.times.clear()
-        n_sync = int(seconds / 1e-3)
-        sync_times = np.zeros(n_sync)
-        t_next = time.perf_counter() + 0.01
-        sync_msg = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
-        tel0 = telemetry.samples if telemetry else 0
-        for k in tqdm(range(n_sync), desc=f"phase {out['phase']}", unit="sync", mininterval=1, leave=False):
-            while True:
-                left = t_next - time.perf_counter()
-                if left <= 0:
-                    break
-                time.sleep(left - 3e-4 if left > 4e-4 else 0)
-            target = x0 + int(20_000 * np.sin(2 * np.pi * 0.5 * k * 1e-3))
-            bus.send(can.Message(arbitration_id=0x300 + node,
-                                 data=(0x0F).to_bytes(2, "little") + target.to_bytes(4, "little", signed=True),
-                                 is_extended_id=False))
-            sync_times[k] = time.time()
-            bus.send(sync_msg)
-            t_next += 1e-3
+        if counter is not None:
+            end = time.monotonic() + 10
+            while not Path(tel_out + ".ready").exists() and time.monotonic() < end:
+                time.sleep(0.05)
+            time.sleep(0.5)
+        overruns0 = sdo(bus, reply, node, 0x2110, 2)  # drive cycle overruns (OD 0x2110:2) before the window
+        clock.clear()
+        n_sync = int(seconds / PERIOD_S)
+        st0, mst0, t0 = thread_schedstat(proc.pid), thread_schedstat(os.getpid()), time.perf_counter()
+        with tqdm(total=n_sync, desc=f"phase {phase}", unit="sync", mininterval=1, leave=False) as bar:
+            spin = (opts.master_spin_us * 1e-6 if opts.master_spin_us is not None
+                    else (0.0 if opts.rt_priority else 3e-4))
+            user_sync = sync_loop(bus, {node: x0}, PERIOD_S, n_sync, spin_s=spin, bar=bar)
         time.sleep(0.2)
-        times = np.array(rx.times)
-        if len(times) == n_sync:
-            lat = (times - sync_times) * 1e6
-        else:
-            idx = np.minimum(np.searchsorted(times, sync_times), max(len(times) - 1, 0))
-            lat = (times[idx] - sync_times) * 1e6 if len(times) else np.array([np.nan])
-        out.update(
-            syncs=n_sync,
-            tpdos=int(len(times)),
-            missed_cycles=int(n_sync - len(times)),
-            late_tpdos=int(np.count_nonzero(lat > 1000)),
-            latency_us_p50=float(np.percentile(lat, 50)),
-            latency_us_p99=float(np.percentile(lat, 99)),
-            latency_us_max=float(np.max(lat)),
-        )
-        if telemetry is not None:
-            out["telemetry_samples_per_s"] = (telemetry.samples - tel0) / seconds
-            out["telemetry_batches"] = telemetry.batches
-        if loader is not None:
+        wall = time.perf_counter() - t0
+        out["window_overruns"] = sdo(bus, reply, node, 0x2110, 2) - overruns0
+        out["serve_threads"] = schedstat_delta(st0, thread_schedstat(proc.pid), wall)
+        out["master_threads"] = schedstat_delta(mst0, thread_schedstat(os.getpid()), wall)
+        tpdo = np.array(clock.times[0x280 + node])
+        wire_sync = np.array(clock.times[SYNC_COB])
+        if len(wire_sync) != n_sync:  # own SYNCs lost in the master's socket: fall back to the send times
+            out["wire_sync_missing"] = int(n_sync - len(wire_sync))
+            wire_sync = user_sync
+        out["syncs"] = n_sync
+        out.update(latency_stats(tpdo, wire_sync, PERIOD_S))
+        out["user_reference"] = {k: v for k, v in latency_stats(tpdo, user_sync, PERIOD_S).items()
+                                 if k.startswith("latency")}
+        if counter is not None:
+            counter.send_signal(signal.SIGTERM)
+            counter.wait(timeout=10)
+            c = json.loads(Path(tel_out).read_text())
+            span = (c["t_last"] - c["t_first"]) if c["t_first"] else 0.0
+            out["telemetry_samples_per_s"] = c["samples"] / span if span > 0 else 0.0
+            out["telemetry_batches"] = c["batches"]
+        if loader:
             for lp in loader:
                 lp.wait(timeout=seconds + 60)
             out["modbus"] = modbus_summary(outs, seconds)
     finally:
-        if telemetry is not None:
-            telemetry.stop()
-        for lp in loader or []:
+        for lp in [*loader, *([counter] if counter else [])]:
             if lp.poll() is None:
                 lp.kill()
         notifier.stop()
         bus.shutdown()
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)  # (SIGINT is ignored by a process started in the background)
         try:
             proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.communicate()
+    if "syncs" in out:
+        raw = Path(opts.raw) / f"{len(list(Path(opts.raw).glob('*.npz'))):02d}-{phase}.npz" if opts.raw else None
+        out["hops"] = hops(probe, wire_sync, user_sync, tpdo, node, raw)
     if summary.exists():
         s = json.loads(summary.read_text())
-        out["drive_overruns"] = s["runtime"]["overruns"]
+        out["drive_overruns"] = s["runtime"]["overruns"]  # the whole life of serve (start-up included)
+        out["drive_max_late_ms"] = s["runtime"]["max_late_ms"]
         if "mqtt" in s:
             out["mqtt"] = next(iter(s["mqtt"].values()))
+    else:
+        out["drive_overruns"] = None
     return out
+
+
+def _cpus(text: str) -> set[int]:
+    return {int(c) for c in text.split(",") if c != ""}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seconds", type=float, default=30.0, help="per phase")
-    ap.add_argument("--rounds", type=int, default=2, help="off/load pairs")
-    ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and the master")
-    ap.add_argument("--load-priority", type=int, default=10,
-                    help="with --rt-priority: SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus "
-                    "server process, mosquitto), below the drive's, so that other jobs on a shared machine do not "
-                    "starve the load generator (0: normal priority)")
-    ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--seconds", type=float, default=20.0, help="per phase")
+    ap.add_argument("--rounds", type=int, default=2, help="passes over --phases")
+    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt")
+    ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and of the master")
+    ap.add_argument("--load-priority", type=int, default=0,
+                    help="SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus server process, "
+                    "mosquitto, the MQTT subscriber); 0 (default): normal priority")
+    ap.add_argument("--pin", default=None, metavar="DRIVE_CPUS:LOAD_CPUS",
+                    help="e.g. 1:0 -- serve's runtime + CAN receive threads and the master on DRIVE_CPUS, the rest "
+                    "of the run (serve's side-channel threads, clients, broker) on LOAD_CPUS")
+    ap.add_argument("--master-spin-us", type=float, default=None,
+                    help="the master spins this long before each SYNC instead of sleeping (default: 0 under "
+                    "--rt-priority, where the kernel wakes a FIFO thread in time; 300 otherwise)")
+    ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
+    ap.add_argument("--serve-arg", action="append", default=[], dest="serve_args",
+                    help="extra argument for serve (repeatable), e.g. --serve-arg=--telemetry-rate=100")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_side_channels.json"))
+    ap.add_argument("--raw", default=None, metavar="DIR", help="also save every phase's timestamps (.npz) in DIR")
+    ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--load-cpus", default="", help=argparse.SUPPRESS)
     ap.add_argument("--modbus-load", nargs=3, metavar=("PORT", "SECONDS", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--telemetry-count", nargs=2, metavar=("PORT", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.modbus_load:
-        modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
-                    args.load_priority, args.load_start)
+    if args.modbus_load or args.telemetry_count:
+        _become_load(args.load_priority, _cpus(args.load_cpus) or None)
+        if args.modbus_load:
+            modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
+                        args.load_start)
+        else:
+            telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1])
         return 0
-    if args.rt_priority:
+    phases = [p.strip() for p in args.phases.split(",") if p.strip()]
+    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt")]
+    if bad:
+        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt)")
+    args.drive_cpus = args.load_cpus = None
+    if args.pin:
+        d, _, lo = args.pin.partition(":")
+        args.drive_cpus, args.load_cpus = _cpus(d), _cpus(lo)
+        os.sched_setaffinity(0, args.drive_cpus)
+    if args.rt_priority:  # the master at the drive's priority: it measures the drive, not its own starvation
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
     results = []
+    load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmpd:
         tmp = Path(tmpd)
         broker = Mosquitto(tmp)
-        if args.rt_priority:
-            set_priority(broker.proc.pid, args.load_priority)
+        set_priority(broker.proc.pid, args.load_priority)
+        set_affinity(broker.proc.pid, args.load_cpus)
         try:
             for r in range(args.rounds):
-                for load in (False, True):
-                    port = 46000 + os.getpid() % 400 + 2 * r + int(load)
-                    results.append(
-                        run_phase(load, args.seconds, port, broker, args.rt_priority, args.load_priority, tmp)
-                    )
+                for i, phase in enumerate(phases):
+                    port = 46000 + os.getpid() % 400 + len(phases) * r + i
+                    results.append(run_phase(phase, args.seconds, port, broker, args, tmp))
         finally:
             broker.stop()
-    machine = {"nproc": os.cpu_count(), "cpu": _cpu_model(), "python": platform.python_version(),
-               "load_average_at_end": os.getloadavg()}
+    machine = machine_info()
+    machine["load_average_at_start"] = load0
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, Python {machine['python']}, "
-          f"load average {machine['load_average_at_end']}")
-    print(f"{'phase':>6} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} {'overruns':>8} "
-          f"{'MB p50 us':>9} {'MB p99 us':>9} {'polls/s':>8} {'tele/s':>7}")
+          f"load average {load0[0]:.2f} at start, {machine['load_average_at_end'][0]:.2f} at end")
+    print(f"{'phase':>6} {'p50 us':>7} {'p99 us':>7} {'p99.9':>7} {'max us':>8} {'missed':>6} {'late':>5} "
+          f"{'overrun':>7} {'MB p50':>7} {'MB p99':>7} {'polls/s':>7} {'tele/s':>6}")
     for r in results:
         mb = r.get("modbus", {})
-        print(f"{r['phase']:>6} {r['latency_us_p50']:>8.0f} {r['latency_us_p99']:>8.0f} {r['latency_us_max']:>9.0f} "
-              f"{r['missed_cycles']:>7} {r['late_tpdos']:>6} {r.get('drive_overruns', -1):>8} "
-              f"{mb.get('response_us_p50', float('nan')):>9.0f} {mb.get('response_us_p99', float('nan')):>9.0f} "
-              f"{mb.get('polls_per_s', 0):>8.0f} {r.get('telemetry_samples_per_s', 0):>7.0f}")
-    off = [r for r in results if r["phase"] == "off"]
-    on = [r for r in results if r["phase"] == "load"]
-    summary = {
-        "p99_off_us_median": float(np.median([r["latency_us_p99"] for r in off])),
-        "p99_load_us_median": float(np.median([r["latency_us_p99"] for r in on])),
-        "missed_off": sum(r["missed_cycles"] for r in off),
-        "missed_load": sum(r["missed_cycles"] for r in on),
-    }
-    summary["p99_shift_us"] = summary["p99_load_us_median"] - summary["p99_off_us_median"]
-    print(f"p99 off {summary['p99_off_us_median']:.0f} us, with load {summary['p99_load_us_median']:.0f} us "
-          f"(shift {summary['p99_shift_us']:+.0f} us); missed cycles off {summary['missed_off']}, "
-          f"load {summary['missed_load']}")
-    Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "summary": summary,
+        print(f"{r['phase']:>6} {r['latency_us_p50']:>7.0f} {r['latency_us_p99']:>7.0f} {r['latency_us_p999']:>7.0f} "
+              f"{r['latency_us_max']:>8.0f} {r['missed_cycles']:>6} {r['late_tpdos']:>5} "
+              f"{r.get('window_overruns', '?'):>7} "
+              f"{mb.get('response_us_p50', float('nan')):>7.0f} {mb.get('response_us_p99', float('nan')):>7.0f} "
+              f"{mb.get('polls_per_s', 0):>7.0f} {r.get('telemetry_samples_per_s', 0):>6.0f}")
+    print("\nhops [us] p50 / p99 / max; tail = mean over the slowest 1 % of SYNCs; serve's threads: CPU % / "
+          "run-queue wait % of the phase")
+    for r in results:
+        h = r.get("hops", {})
+        cols = []
+        for k in ("serve_rx_thread", "serve_runtime", "back_to_master", "master_send"):
+            v = h.get(k, {})
+            cols.append(f"{k} {v.get('p50', float('nan')):.0f}/{v.get('p99', float('nan')):.0f}/"
+                        f"{v.get('max', float('nan')):.0f}")
+        tail = h.get("tail_1pct_mean_us", {})
+        th = r.get("serve_threads", {})
+        thr = " ".join(f"{n} {v['cpu_share'] * 100:.0f}/{v['runqueue_wait_share'] * 100:.1f}"
+                       for n, v in sorted(th.items()) if v["cpu_share"] > 0.005 or v["runqueue_wait_share"] > 0.001)
+        print(f"{r['phase']:>6} " + "; ".join(cols))
+        print(f"{'':>6} tail: " + ", ".join(f"{k} {v:.0f}" for k, v in tail.items())
+              + f" (with a GC: {h.get('tail_1pct_with_gc_share', float('nan')) * 100:.0f} %) | threads: {thr}")
+        g = h.get("gc", {})
+        print(f"{'':>6} serve GC: " + ", ".join(f"{k} {v['count']}x max {v['max_us']:.0f} us" for k, v in g.items()))
+    summary = {}
+    for ph in phases:
+        rs = [r for r in results if r["phase"] == ph]
+        summary[ph] = {"p99_us_median": float(np.median([r["latency_us_p99"] for r in rs])),
+                       "p50_us_median": float(np.median([r["latency_us_p50"] for r in rs])),
+                       "missed": sum(r["missed_cycles"] for r in rs)}
+    if "off" in summary:
+        for ph in summary:
+            summary[ph]["p99_shift_vs_off_us"] = summary[ph]["p99_us_median"] - summary["off"]["p99_us_median"]
+    print("\n" + "; ".join(f"{ph}: p99 {s['p99_us_median']:.0f} us"
+                           + (f" ({s['p99_shift_vs_off_us']:+.0f})" if "p99_shift_vs_off_us" in s else "")
+                           + f", missed {s['missed']}" for ph, s in summary.items()))
+    args_out = {k: (sorted(v) if isinstance(v, set) else v) for k, v in vars(args).items()}
+    Path(args.json).write_text(json.dumps({"machine": machine, "args": args_out, "summary": summary,
                                            "results": results}, indent=2))
     print(f"wrote {args.json}")
     return 0
-
-
-def _cpu_model() -> str:
-    try:
-        for line in subprocess.run(["lscpu"], capture_output=True, text=True).stdout.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":

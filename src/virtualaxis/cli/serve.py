@@ -57,6 +57,8 @@ def register(sub) -> None:
         metavar="N",
         help="run the process with SCHED_FIFO priority N (1..99; needs the right to do so; 0: off)",
     )
+    p.add_argument("--latency-probe", default=None, metavar="FILE",
+                   help="benchmarks: record SYNC receive / PDO send timestamps into FILE (.npz) at stop")
     from virtualaxis.services.serve_options import add_arguments as add_side_channel_arguments
 
     add_side_channel_arguments(p)  # --modbus, --mqtt, ... (virtualaxis.services)
@@ -104,6 +106,10 @@ def run(args) -> int:
         from virtualaxis.runtime.bitrate import BitRateBus
 
         bus = BitRateBus(bus, args.bitrate)
+    if args.latency_probe:
+        from virtualaxis.services.latency_probe import ProbeBus
+
+        bus = ProbeBus(bus)
     try:
         axes = [AxisNode(bus, s.node_id, c, name=s.name, eds_path=eds,
                          allow_fault_injection=args.allow_fault_injection) for s, c in zip(specs, configs, strict=True)]
@@ -126,6 +132,9 @@ def run(args) -> int:
         runtime.stop()
         bus.shutdown()
         raise CliError(str(exc)) from None
+    from virtualaxis.services.latency_probe import name_threads
+
+    name_threads()  # OS thread names = Python thread names (top -H, /proc/PID/task/*/comm)
     names = ", ".join(f"{a.name} (node {a.node_id})" for a in axes)
     mode = "lockstep (plant advances on SYNC)" if args.lockstep else f"real time, {runtime.period_s * 1e3:g} ms cycle"
     print(f"ready: serving {names} on {args.can}; {mode}", flush=True)
@@ -184,6 +193,8 @@ def run(args) -> int:
     summary["axes_exceptions"] = {a.name: a.exceptions for a in axes}
     if args.json:
         _write_json(Path(args.json), summary)
+    if args.latency_probe:
+        bus.write(args.latency_probe)
     if not healthy:
         what = (f"the runtime thread stopped: {st.thread_error.strip().splitlines()[-1]}" if st.thread_error
                 else f"{st.drive_exceptions} drive-cycle exception(s), last: {st.last_exception}")
