@@ -1,4 +1,4 @@
-"""MQTT telemetry of the served axes (aiomqtt), in its own thread and asyncio loop.
+"""MQTT telemetry of the served axes (aiomqtt), published by a process of its own.
 
 Topics per axis under ``virtualaxis/<machine>/<axis>/`` (payloads JSON, units in the field names, schemas in
 ``docs/schemas/``):
@@ -10,11 +10,23 @@ Topics per axis under ``virtualaxis/<machine>/<axis>/`` (payloads JSON, units in
 - ``telemetry``: batches of samples (QoS 0, not retained; default 100 Hz in batches of 10);
 - ``faults``: fault raised / cleared events (QoS 1, not retained).
 
-The drive never waits for the broker: a sampler thread copies ``drive.state`` into a bounded ring buffer per
-axis at the sample rate; the publisher (one MQTT connection per axis) drains it in batches. With the broker
-absent, restarted or lost, samples stay in the buffer; when it is full the oldest are dropped and counted
-(``samples_dropped``), and the connection is retried with exponential backoff. Invariant, exact at any time:
-``samples_taken = samples_published + samples_dropped + samples_buffered``.
+Where the work runs (the drive's process keeps only what must touch the drive):
+
+- in ``serve``, a **sampler thread** (:class:`MqttService`) takes one ``drive.state`` per axis at the sample
+  rate and writes its raw values into a **shared-memory ring** (:class:`TelemetryRing`, no lock: a sequence
+  counter per slot); it forwards drive events (state transitions, faults, recorded by a drive observer) and
+  the current state (10 per second) as small JSON messages over a socket pair;
+- the **publisher process** (:func:`_publisher_child`, a plain child interpreter at normal priority that
+  imports neither the drive nor numba) drains the ring every 10 ms into a bounded buffer per axis
+  (:class:`SampleBuffer`), encodes the JSON and runs the asyncio / aiomqtt clients (one connection per axis).
+  Its counters are published back into the shared memory (a sequence lock), so ``serve`` shows them
+  (``MqttService.channels``, ``stats()``).
+
+The drive never waits for the broker: with the broker absent, restarted or lost, samples stay in the buffer;
+when it is full the oldest are dropped and counted (``samples_dropped``), and the connection is retried with
+exponential backoff. Invariant, exact at any time: ``samples_taken = samples_published + samples_dropped +
+samples_buffered``. When ``serve`` dies the publisher notices the closed socket pair and drops its
+connections without a DISCONNECT, so the broker publishes the last will.
 """
 
 from __future__ import annotations
@@ -24,16 +36,22 @@ import json
 import os
 import re
 import ssl
+import struct
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
-from virtualaxis.drive.core import Drive
-from virtualaxis.services.threads import short_gil_slices
+from virtualaxis.services.threads import leave_realtime, short_gil_slices
+
+if TYPE_CHECKING:  # the publisher process must not import the drive (numba)
+    from virtualaxis.drive.core import Drive
 
 TOPIC_ROOT = "virtualaxis"
 SCHEMA_VERSION = 1
@@ -41,6 +59,7 @@ ENV_USERNAME = "VIRTUALAXIS_MQTT_USERNAME"
 ENV_PASSWORD = "VIRTUALAXIS_MQTT_PASSWORD"
 ENV_PASSWORD_FILE = "VIRTUALAXIS_MQTT_PASSWORD_FILE"
 ENV_CA_FILE = "VIRTUALAXIS_MQTT_CA_FILE"
+STATE_FORWARD_PERIOD_S = 0.1  # serve -> publisher: the current state this often (the retained state's freshness)
 
 
 class MqttSettingsError(ValueError):
@@ -161,6 +180,13 @@ class SampleBuffer:
             self._q.append(sample)
             self.taken += 1
 
+    def lose(self, n: int) -> None:
+        """``n`` samples taken but lost before they reached the buffer (overwritten in the shared-memory
+        ring while the publisher process stalled): counted taken and dropped."""
+        with self._lock:
+            self.taken += n
+            self.dropped += n
+
     def peek(self, n: int) -> list[dict]:
         with self._lock:
             return [self._q[i] for i in range(min(n, len(self._q)))]
@@ -196,30 +222,168 @@ class SampleBuffer:
             }
 
 
-@dataclass
-class AxisChannel:
-    """One axis' MQTT side: its drive, node id, NMT state getter, sample buffer and pending fault events."""
+# ---------------------------------------------------------------------------------------------- shared memory
+_U64 = struct.Struct("=Q")
+_SLOT = struct.Struct("=Q6d")  # seq, drive time [s], position [m], following error [m], velocity [m/s], I [A], T [Nm]
+RING_SLOTS = 4096  # per axis: 41 s at 100 Hz of publisher-process stall before samples are lost in the ring
+# header words (u64) of one axis block
+_W_BEGIN, _W_END, _SAMPLER_LATE, _CSEQ = 0, 1, 2, 3  # written by serve (0-2) / the publisher (3 on)
+_COUNTER_NAMES = ("samples_taken", "samples_published", "samples_dropped", "samples_buffered", "batches_published",
+                  "connects", "connect_attempts", "disconnects", "events_published", "events_dropped",
+                  "events_buffered", "connected")
+_COUNTERS = struct.Struct(f"={len(_COUNTER_NAMES)}Q")
+_COUNTERS_AT = 4 * 8
+_ERROR_AT = _COUNTERS_AT + _COUNTERS.size
+_ERROR_BYTES = 256  # u16 length + UTF-8 text of the last connection error
+_SLOTS_AT = _ERROR_AT + _ERROR_BYTES + (-(_ERROR_AT + _ERROR_BYTES) % 8)
+BLOCK_BYTES = _SLOTS_AT + RING_SLOTS * _SLOT.size
 
-    name: str
-    node_id: int
-    drive: Drive
-    nmt_state: Callable[[], str] | None
-    buffer: SampleBuffer
-    event_capacity: int
-    events: deque = field(default_factory=deque)
-    states: deque = field(default_factory=lambda: deque(maxlen=32))  # DriveState snapshots of drive events
-    events_dropped: int = 0
-    events_published: int = 0
-    state_dirty: bool = True
-    connects: int = 0
-    connect_attempts: int = 0
-    disconnects: int = 0
-    batches_published: int = 0
-    connected: bool = False
-    last_error: str = ""
-    seq: int = 0
-    lead_m: float = 0.01
-    sampler_late: int = 0
+
+class TelemetryRing:
+    """One block per axis in shared memory: the sample ring (serve writes, the publisher reads) and the
+    publisher's counters (the publisher writes under a sequence lock, serve reads).
+
+    Sample ring: serve announces slot ``w`` by setting ``w_begin = w + 1``, writes the slot (its ``seq`` = w)
+    and then sets ``w_end = w + 1``. A reader takes the slots below ``w_end``; a slot whose seq is no longer
+    the one expected, or that ``w_begin`` has lapped while it was copied, was overwritten and counts as
+    dropped -- so no torn sample is ever published."""
+
+    def __init__(self, buf: memoryview, n_axes: int):
+        self.buf = buf
+        self.n = n_axes
+
+    @staticmethod
+    def size(n_axes: int) -> int:
+        return BLOCK_BYTES * max(1, n_axes)
+
+    def _word(self, axis: int, i: int) -> int:
+        return _U64.unpack_from(self.buf, axis * BLOCK_BYTES + 8 * i)[0]
+
+    def _set(self, axis: int, i: int, value: int) -> None:
+        _U64.pack_into(self.buf, axis * BLOCK_BYTES + 8 * i, value)
+
+    # ---------------------------------------------------------------- serve's side
+    def write(self, axis: int, values: tuple) -> None:
+        """Append one sample (the six floats of ``_SLOT`` after seq) of ``axis``."""
+        w = self._word(axis, _W_END)
+        self._set(axis, _W_BEGIN, w + 1)
+        _SLOT.pack_into(self.buf, axis * BLOCK_BYTES + _SLOTS_AT + (w % RING_SLOTS) * _SLOT.size, w, *values)
+        self._set(axis, _W_END, w + 1)
+
+    def set_sampler_late(self, axis: int, n: int) -> None:
+        self._set(axis, _SAMPLER_LATE, n)
+
+    def counters(self, axis: int) -> tuple[dict, str]:
+        """The publisher's counters of ``axis`` and its last error (consistent: sequence-locked)."""
+        base = axis * BLOCK_BYTES
+        for _ in range(10_000):  # (a publisher that died mid-export leaves the lock odd: last read is returned)
+            s1 = self._word(axis, _CSEQ)
+            values = _COUNTERS.unpack_from(self.buf, base + _COUNTERS_AT)
+            n = struct.unpack_from("=H", self.buf, base + _ERROR_AT)[0]
+            err = bytes(self.buf[base + _ERROR_AT + 2 : base + _ERROR_AT + 2 + min(n, _ERROR_BYTES - 2)])
+            if s1 == self._word(axis, _CSEQ) and not s1 & 1:
+                break
+            time.sleep(0)
+        return dict(zip(_COUNTER_NAMES, values, strict=True)), err.decode("utf-8", "replace")
+
+    # ---------------------------------------------------------------- the publisher's side
+    def sampler_late(self, axis: int) -> int:
+        return self._word(axis, _SAMPLER_LATE)
+
+    def read(self, axis: int, start: int) -> tuple[list[tuple], int, int]:
+        """Samples of ``axis`` from seq ``start`` on: (samples ``(seq, t, x, fe, v, i, tq)``, next seq, lost)."""
+        w_end = self._word(axis, _W_END)
+        lost = 0
+        if w_end - start > RING_SLOTS:
+            lost = w_end - RING_SLOTS - start
+            start = w_end - RING_SLOTS
+        base = axis * BLOCK_BYTES + _SLOTS_AT
+        out = []
+        for seq in range(start, w_end):
+            sample = _SLOT.unpack_from(self.buf, base + (seq % RING_SLOTS) * _SLOT.size)
+            if sample[0] != seq or self._word(axis, _W_BEGIN) > seq + RING_SLOTS:
+                lost += 1  # overwritten while we read it
+                continue
+            out.append(sample)
+        return out, w_end, lost
+
+    def export(self, axis: int, counters: dict, last_error: str) -> None:
+        base = axis * BLOCK_BYTES
+        s = self._word(axis, _CSEQ)
+        self._set(axis, _CSEQ, s + 1)  # odd: being written
+        _COUNTERS.pack_into(self.buf, base + _COUNTERS_AT, *(int(counters.get(k, 0)) for k in _COUNTER_NAMES))
+        err = last_error.encode("utf-8", "replace")[: _ERROR_BYTES - 2]
+        struct.pack_into("=H", self.buf, base + _ERROR_AT, len(err))
+        self.buf[base + _ERROR_AT + 2 : base + _ERROR_AT + 2 + len(err)] = err
+        self._set(axis, _CSEQ, s + 2)
+
+
+# ---------------------------------------------------------------------------------------------- serve's side
+def state_fields(s, nmt_state: str) -> dict:
+    """The drive part of a ``state`` message from a ``DriveState`` (JSON-ready; the publisher adds the head,
+    the time stamp and its counters)."""
+    active = [f.as_dict() for f in s.faults if not f.acknowledged] if s.fault_active else []
+    return {
+        "time_s": round(s.time_s, 6),
+        "nmt_state": nmt_state,
+        "cia402_state": s.cia402_state,
+        "mode": s.mode,
+        "mode_name": s.mode_name,
+        "statusword": s.statusword,
+        "fault_active": s.fault_active,
+        "error_code": f"0x{s.error_code:04X}",
+        "active_faults": active,
+        "alarm_number": s.alarm_number,
+        "homed": s.homed,
+        "position_mm": round(s.position_actual_m * 1e3, 6),
+    }
+
+
+class BufferView:
+    """serve's view of an axis' sample buffer in the publisher process (counters as in :class:`SampleBuffer`)."""
+
+    def __init__(self, ch: AxisChannel):
+        self._ch = ch
+
+    def counters(self) -> dict:
+        c = self._ch.counters()
+        return {k: c[k] for k in ("samples_taken", "samples_published", "samples_dropped", "samples_buffered")}
+
+    @property
+    def taken(self) -> int:
+        return self._ch.counters()["samples_taken"]
+
+    @property
+    def published(self) -> int:
+        return self._ch.counters()["samples_published"]
+
+    @property
+    def dropped(self) -> int:
+        return self._ch.counters()["samples_dropped"]
+
+    def __len__(self) -> int:
+        return self._ch.counters()["samples_buffered"]
+
+
+class AxisChannel:
+    """One axis' MQTT side as ``serve`` sees it: its drive, the events waiting to be forwarded, and the
+    publisher process' counters (read from shared memory; kept after stop)."""
+
+    def __init__(self, service: MqttService, index: int, name: str, node_id: int, drive: Drive,
+                 nmt_state: Callable[[], str] | None):
+        self.service = service
+        self.index = index
+        self.name = name
+        self.node_id = node_id
+        self.drive = drive
+        self.nmt_state = nmt_state
+        self.states: deque = deque(maxlen=32)  # DriveState snapshots of drive events, not yet forwarded
+        self.events: deque = deque(maxlen=1024)  # fault events, not yet forwarded
+        self.buffer = BufferView(self)
+        self.sampler_late = 0
+        lead = drive.cfg.mechanics.lead_m
+        self.lead_m = lead if lead > 0 else 0.01
+        self._final: tuple[dict, str] | None = None
 
     def nmt(self) -> str:
         if self.nmt_state is None:  # a drive not served on CANopen has no NMT state
@@ -229,51 +393,305 @@ class AxisChannel:
         except Exception:  # noqa: BLE001 - a diagnostic field, never worth a crash
             return "UNKNOWN"
 
+    def _read(self) -> tuple[dict, str]:
+        if self._final is not None:
+            return self._final
+        ring = self.service.ring
+        if ring is None:
+            return dict.fromkeys(_COUNTER_NAMES, 0), ""
+        return ring.counters(self.index)
 
-def sample_of(ch: AxisChannel, seq: int) -> dict:
-    """One telemetry sample of the axis' current drive state (units in the field names)."""
-    s = ch.drive.state
-    return {
-        "seq": seq,
-        "t_s": round(s.time_s, 6),
-        "position_mm": round(s.position_actual_m * 1e3, 6),
-        "following_error_um": round(s.following_error_m * 1e6, 4),
-        "velocity_mm_min": round(s.velocity_actual_m_s * 6e4, 3),
-        "speed_rpm": round(s.velocity_actual_m_s / ch.lead_m * 60.0, 3),
-        "current_a": round(s.current_a, 4),
-        "torque_nm": round(s.torque_nm, 4),
-    }
+    def counters(self) -> dict:
+        return self._read()[0]
+
+    @property
+    def last_error(self) -> str:
+        return self._read()[1]
+
+    connects = property(lambda self: self.counters()["connects"])
+    connect_attempts = property(lambda self: self.counters()["connect_attempts"])
+    disconnects = property(lambda self: self.counters()["disconnects"])
+    batches_published = property(lambda self: self.counters()["batches_published"])
+    events_published = property(lambda self: self.counters()["events_published"])
+    events_dropped = property(lambda self: self.counters()["events_dropped"])
+    connected = property(lambda self: bool(self.counters()["connected"]))
 
 
-# ---------------------------------------------------------------------------------------------- service
 class MqttService:
-    """MQTT telemetry of ``axes`` (``(name, node_id, drive, nmt_state_getter)``) in a background thread."""
+    """MQTT telemetry of ``axes`` (``(name, node_id, drive, nmt_state_getter)``): a sampler thread here, the
+    publisher in a process of its own (module doc)."""
 
     def __init__(self, settings: MqttSettings, axes: list[tuple[str, int, Drive, Callable[[], str] | None]]):
         settings.validate()
         self.settings = settings
         self.channels: list[AxisChannel] = []
-        for name, node_id, drive, nmt in axes:
+        for i, (name, node_id, drive, nmt) in enumerate(axes):
             if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name):
                 raise MqttSettingsError(f"axis name {name!r} is not usable in an MQTT topic")
-            ch = AxisChannel(name, node_id, drive, nmt, SampleBuffer(settings.buffer_samples), settings.event_buffer)
-            lead = drive.cfg.mechanics.lead_m
-            ch.lead_m = lead if lead > 0 else 0.01
-            self.channels.append(ch)
+            self.channels.append(AxisChannel(self, i, name, node_id, drive, nmt))
+        self.ring: TelemetryRing | None = None
+        self._shm = None
+        self._proc: subprocess.Popen | None = None
+        self._conn = None
+        self._ctl = None
         self._stop = threading.Event()
         self._sampler: threading.Thread | None = None
-        self._thread: threading.Thread | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
         self._observers: list[tuple[Drive, Callable]] = []
 
+    def _observer(self, ch: AxisChannel) -> Callable:
+        def on_event(event: str, state) -> None:  # runs under the drive's lock: cheap and non-blocking only
+            ch.states.append(state)  # each transition gets its own state message (bounded: the newest 32)
+            if event not in ("fault", "fault_cleared"):
+                return
+            rec = state.faults[0] if state.faults else None
+            ch.events.append({
+                "event": event,
+                "time_s": round(state.time_s, 6),
+                "ts_unix_s": round(time.time(), 3),
+                "cia402_state": state.cia402_state,
+                "error_code": f"0x{state.error_code:04X}",
+                "emcy_code": f"0x{rec.emcy_code:04X}" if rec else "0x0000",
+                "fault_number": f"F{rec.fault_number:05d}" if rec else "",
+                "fault_value": int(rec.value) if rec else 0,
+                "text": rec.text if rec else "",
+                "injected": bool(rec.injected) if rec else False,
+            })
+
+        return on_event
+
+    # -------------------------------------------------------------------------------- lifecycle
+    def start(self) -> MqttService:
+        import socket
+        from multiprocessing import shared_memory
+        from multiprocessing.connection import Connection
+
+        short_gil_slices()
+        self._shm = shared_memory.SharedMemory(create=True, size=TelemetryRing.size(len(self.channels)))
+        self._shm.buf[:] = b"\x00" * self._shm.size
+        self.ring = TelemetryRing(self._shm.buf, len(self.channels))
+        spec = {
+            "settings": {k: getattr(self.settings, k) for k in self.settings.__dataclass_fields__},
+            "axes": [{"name": ch.name, "node_id": ch.node_id, "lead_m": ch.lead_m} for ch in self.channels],
+            "shm": self._shm.name,
+        }
+        msg_ours, msg_theirs = socket.socketpair()
+        ctl_ours, ctl_theirs = socket.socketpair()
+        src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+        code = ("import sys; from virtualaxis.services.mqtt import _publisher_child; "
+                "_publisher_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3])")
+        self._proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(msg_theirs.fileno()), str(ctl_theirs.fileno()), json.dumps(spec)],
+            pass_fds=(msg_theirs.fileno(), ctl_theirs.fileno()), env=env,
+        )
+        msg_theirs.close()
+        ctl_theirs.close()
+        self._conn = Connection(msg_ours.detach())
+        self._ctl = Connection(ctl_ours.detach())
+        for ch in self.channels:
+            cb = self._observer(ch)
+            ch.drive.add_observer(cb)
+            self._observers.append((ch.drive, cb))
+            self._send(ch, "state", state_fields(ch.drive.state, ch.nmt()))
+        self._sampler = threading.Thread(target=self._sample_loop, name="virtualaxis-mqtt-sampler", daemon=True)
+        self._sampler.start()
+        return self
+
+    def _send(self, ch: AxisChannel, kind: str, data: dict) -> None:
+        try:
+            self._conn.send_bytes(json.dumps({"axis": ch.index, "kind": kind, "data": data}).encode())
+        except (OSError, ValueError):  # the publisher process is gone: the drive goes on
+            pass
+
+    def _forward(self, ch: AxisChannel, s, current: bool) -> None:
+        while ch.states:
+            self._send(ch, "snapshot", state_fields(ch.states.popleft(), ch.nmt()))
+        while ch.events:
+            self._send(ch, "event", ch.events.popleft())
+        if current:
+            self._send(ch, "state", state_fields(s, ch.nmt()))
+
+    def _sample_loop(self) -> None:
+        # (keeps the process' priority: a thread that takes the drive's lock must not be preempted holding it)
+        period = 1.0 / self.settings.rate_hz
+        state_every = max(1, round(STATE_FORWARD_PERIOD_S / period))
+        ring = self.ring
+        nxt = time.perf_counter()
+        tick = 0
+        while not self._stop.is_set():
+            now = time.perf_counter()
+            if now < nxt:
+                self._stop.wait(nxt - now)
+                continue
+            late = int((now - nxt) / period)  # whole periods missed (machine stalled): counted, not faked
+            if late:
+                for ch in self.channels:
+                    ch.sampler_late += late
+                    ring.set_sampler_late(ch.index, ch.sampler_late)
+                nxt += late * period
+            for ch in self.channels:
+                s = ch.drive.state
+                ring.write(ch.index, (s.time_s, s.position_actual_m, s.following_error_m, s.velocity_actual_m_s,
+                                      s.current_a, s.torque_nm))
+                if ch.states or ch.events or tick % state_every == 0:
+                    self._forward(ch, s, tick % state_every == 0)
+            tick += 1
+            nxt += period
+        for ch in self.channels:  # the last events and the final state before the publisher flushes
+            self._forward(ch, ch.drive.state, True)
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop sampling; the publisher publishes what is buffered when connected, sends ``offline`` and
+        disconnects; its final counters are kept."""
+        self._stop.set()
+        if self._sampler is not None:
+            self._sampler.join(timeout=timeout_s)
+            self._sampler = None
+        for drive, cb in self._observers:
+            drive.remove_observer(cb)
+        self._observers.clear()
+        if self._conn is not None:  # after the last forwarded messages, on the same socket: in order
+            try:
+                self._conn.send_bytes(json.dumps({"kind": "stop"}).encode())
+            except OSError:
+                pass
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout=timeout_s + 2.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(timeout=5.0)
+            self._proc = None
+        if self.ring is not None:
+            for ch in self.channels:
+                ch._final = self.ring.counters(ch.index)
+            self.ring = None
+        for c in (self._conn, self._ctl):
+            if c is not None:
+                c.close()
+        self._conn = self._ctl = None
+        if self._shm is not None:
+            try:
+                self._shm.close()
+                self._shm.unlink()
+            except (FileNotFoundError, BufferError):
+                pass
+            self._shm = None
+
+    def stats(self) -> dict:
+        out = {}
+        for ch in self.channels:
+            c, err = ch._read()
+            out[ch.name] = {k: c[k] for k in ("samples_taken", "samples_published", "samples_dropped",
+                                              "samples_buffered", "connects", "disconnects", "batches_published",
+                                              "events_published", "events_dropped")}
+            out[ch.name] |= {"sampler_late_samples": ch.sampler_late, "last_error": err}
+        return out
+
+
+# ---------------------------------------------------------------------------------------------- publisher process
+@dataclass
+class PubChannel:
+    """One axis in the publisher process: its buffer, pending events / state messages, connection counters."""
+
+    index: int
+    name: str
+    node_id: int
+    lead_m: float
+    buffer: SampleBuffer
+    event_capacity: int
+    events: deque = field(default_factory=deque)
+    states: deque = field(default_factory=lambda: deque(maxlen=32))  # state fields of drive events
+    current: dict | None = None  # the latest state fields serve forwarded
+    events_dropped: int = 0
+    events_published: int = 0
+    state_dirty: bool = True
+    connects: int = 0
+    connect_attempts: int = 0
+    disconnects: int = 0
+    batches_published: int = 0
+    connected: bool = False
+    last_error: str = ""
+    ring_next: int = 0  # next ring seq to drain
+    sampler_late: int = 0
+
+    def counters(self) -> dict:
+        return self.buffer.counters() | {
+            "batches_published": self.batches_published, "connects": self.connects,
+            "connect_attempts": self.connect_attempts, "disconnects": self.disconnects,
+            "events_published": self.events_published, "events_dropped": self.events_dropped,
+            "events_buffered": len(self.events), "connected": int(self.connected),
+        }
+
+
+class Publisher:
+    """The publisher process' work: drain the ring, keep the buffers, publish (asyncio + aiomqtt)."""
+
+    def __init__(self, settings: MqttSettings, axes: list[dict], ring: TelemetryRing):
+        self.settings = settings
+        self.ring = ring
+        self.channels = [
+            PubChannel(i, a["name"], a["node_id"], a["lead_m"], SampleBuffer(settings.buffer_samples),
+                       settings.event_buffer)
+            for i, a in enumerate(axes)
+        ]
+        self._stop = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._lock = threading.Lock()  # the message reader thread vs the event loop (deques, dicts)
+
+    # -------------------------------------------------------------------------------- inputs
+    def on_message(self, raw: bytes) -> None:
+        m = json.loads(raw)
+        if m["kind"] == "stop":
+            self._stop.set()
+            return
+        ch = self.channels[m["axis"]]
+        with self._lock:
+            if m["kind"] == "state":
+                ch.current = m["data"]
+            elif m["kind"] == "snapshot":
+                ch.states.append(m["data"])
+                ch.state_dirty = True
+            elif m["kind"] == "event":
+                if len(ch.events) >= ch.event_capacity:
+                    ch.events.popleft()
+                    ch.events_dropped += 1
+                ch.events.append(m["data"])
+                ch.state_dirty = True
+
+    def drain(self) -> None:
+        """Move the new samples of every axis from the ring into its buffer; export the counters."""
+        ring = self.ring
+        for ch in self.channels:
+            samples, ch.ring_next, lost = ring.read(ch.index, ch.ring_next)
+            if lost:
+                ch.buffer.lose(lost)
+            lead = ch.lead_m
+            for seq, t, x, fe, v, i, tq in samples:
+                ch.buffer.add({
+                    "seq": seq,
+                    "t_s": round(t, 6),
+                    "position_mm": round(x * 1e3, 6),
+                    "following_error_um": round(fe * 1e6, 4),
+                    "velocity_mm_min": round(v * 6e4, 3),
+                    "speed_rpm": round(v / lead * 60.0, 3),
+                    "current_a": round(i, 4),
+                    "torque_nm": round(tq, 4),
+                })
+            ch.sampler_late = ring.sampler_late(ch.index)
+            self.export(ch)
+
+    def export(self, ch: PubChannel) -> None:
+        self.ring.export(ch.index, ch.counters(), ch.last_error)
+
     # -------------------------------------------------------------------------------- topics / payloads
-    def topic(self, ch: AxisChannel, leaf: str) -> str:
+    def topic(self, ch: PubChannel, leaf: str) -> str:
         return f"{TOPIC_ROOT}/{self.settings.machine}/{ch.name}/{leaf}"
 
-    def _head(self, ch: AxisChannel) -> dict:
+    def _head(self, ch: PubChannel) -> dict:
         return {"schema": SCHEMA_VERSION, "machine": self.settings.machine, "axis": ch.name, "node_id": ch.node_id}
 
-    def status_payload(self, ch: AxisChannel, online: bool) -> bytes:
+    def status_payload(self, ch: PubChannel, online: bool) -> bytes:
         d = self._head(ch) | {"status": "online" if online else "offline", "ts_unix_s": round(time.time(), 3)}
         if online:
             d["telemetry_rate_hz"] = self.settings.rate_hz
@@ -281,27 +699,11 @@ class MqttService:
             d["telemetry_buffer_samples"] = self.settings.buffer_samples
         return json.dumps(d).encode()
 
-    def will_payload(self, ch: AxisChannel) -> bytes:
-        d = self._head(ch) | {"status": "offline"}
-        return json.dumps(d).encode()
+    def will_payload(self, ch: PubChannel) -> bytes:
+        return json.dumps(self._head(ch) | {"status": "offline"}).encode()
 
-    def state_payload(self, ch: AxisChannel, snapshot=None) -> bytes:
-        s = snapshot if snapshot is not None else ch.drive.state
-        active = [f.as_dict() for f in s.faults if not f.acknowledged] if s.fault_active else []
-        d = self._head(ch) | {
-            "ts_unix_s": round(time.time(), 3),
-            "time_s": round(s.time_s, 6),
-            "nmt_state": ch.nmt(),
-            "cia402_state": s.cia402_state,
-            "mode": s.mode,
-            "mode_name": s.mode_name,
-            "statusword": s.statusword,
-            "fault_active": s.fault_active,
-            "error_code": f"0x{s.error_code:04X}",
-            "active_faults": active,
-            "alarm_number": s.alarm_number,
-            "homed": s.homed,
-            "position_mm": round(s.position_actual_m * 1e3, 6),
+    def state_payload(self, ch: PubChannel, fields: dict) -> bytes:
+        d = self._head(ch) | {"ts_unix_s": round(time.time(), 3)} | fields | {
             "telemetry": ch.buffer.counters()
             | {
                 "rate_hz": self.settings.rate_hz,
@@ -317,7 +719,7 @@ class MqttService:
         }
         return json.dumps(d).encode()
 
-    def telemetry_payload(self, ch: AxisChannel, batch: list[dict]) -> bytes:
+    def telemetry_payload(self, ch: PubChannel, batch: list[dict]) -> bytes:
         c = ch.buffer.counters()
         d = self._head(ch) | {
             "rate_hz": self.settings.rate_hz,
@@ -327,84 +729,29 @@ class MqttService:
         }
         return json.dumps(d, separators=(",", ":")).encode()
 
-    # -------------------------------------------------------------------------------- drive side
-    def _observer(self, ch: AxisChannel) -> Callable:
-        def on_event(event: str, state) -> None:  # runs under the drive's lock: cheap and non-blocking only
-            ch.states.append(state)  # each transition gets its own state message (bounded: the newest 32)
-            ch.state_dirty = True
-            if event not in ("fault", "fault_cleared"):
-                return
-            rec = state.faults[0] if state.faults else None
-            ev = {
-                "event": event,
-                "time_s": round(state.time_s, 6),
-                "ts_unix_s": round(time.time(), 3),
-                "cia402_state": state.cia402_state,
-                "error_code": f"0x{state.error_code:04X}",
-                "emcy_code": f"0x{rec.emcy_code:04X}" if rec else "0x0000",
-                "fault_number": f"F{rec.fault_number:05d}" if rec else "",
-                "fault_value": int(rec.value) if rec else 0,
-                "text": rec.text if rec else "",
-                "injected": bool(rec.injected) if rec else False,
-            }
-            if len(ch.events) >= ch.event_capacity:
-                ch.events.popleft()
-                ch.events_dropped += 1
-            ch.events.append(ev)
-
-        return on_event
-
-    def _sample_loop(self) -> None:
-        # (keeps the process' priority: a thread that takes the drive's lock must not be preempted holding it)
-        period = 1.0 / self.settings.rate_hz
-        nxt = time.perf_counter()
-        while not self._stop.is_set():
-            now = time.perf_counter()
-            if now < nxt:
-                self._stop.wait(nxt - now)
-                continue
-            late = int((now - nxt) / period)  # whole periods missed (machine stalled): counted, not faked
-            if late:
-                for ch in self.channels:
-                    ch.sampler_late += late
-                nxt += late * period
-            for ch in self.channels:
-                ch.buffer.add(sample_of(ch, ch.seq))
-                ch.seq += 1
-            nxt += period
-
-    # -------------------------------------------------------------------------------- lifecycle
-    def start(self) -> MqttService:
-        short_gil_slices()
-        for ch in self.channels:
-            cb = self._observer(ch)
-            ch.drive.add_observer(cb)
-            self._observers.append((ch.drive, cb))
-        self._thread = threading.Thread(target=self._run, name="virtualaxis-mqtt", daemon=True)
-        self._thread.start()
-        self._sampler = threading.Thread(target=self._sample_loop, name="virtualaxis-mqtt-sampler", daemon=True)
-        self._sampler.start()
-        return self
-
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop sampling, publish what is buffered when connected, send ``offline`` and disconnect."""
-        self._stop.set()
-        if self._sampler is not None:
-            self._sampler.join(timeout=timeout_s)
-        if self._thread is not None:
-            self._thread.join(timeout=timeout_s)
-        for drive, cb in self._observers:
-            drive.remove_observer(cb)
-        self._observers.clear()
-
-    def _run(self) -> None:
+    # -------------------------------------------------------------------------------- the loop
+    def run(self) -> None:
         loop = asyncio.new_event_loop()
         self._loop = loop
         asyncio.set_event_loop(loop)
         try:
-            loop.run_until_complete(asyncio.gather(*(self._axis_loop(ch) for ch in self.channels)))
+            loop.run_until_complete(self._main())
         finally:
             loop.close()
+
+    async def _main(self) -> None:
+        drainer = asyncio.ensure_future(self._drain_loop())
+        try:
+            await asyncio.gather(*(self._axis_loop(ch) for ch in self.channels))
+        finally:
+            drainer.cancel()
+            self.drain()  # the last samples (serve's sampler has stopped): counted exactly
+
+    async def _drain_loop(self) -> None:
+        period = min(0.01, 1.0 / self.settings.rate_hz)
+        while True:
+            self.drain()
+            await asyncio.sleep(period)
 
     def _tls_context(self) -> ssl.SSLContext | None:
         st = self.settings
@@ -415,7 +762,7 @@ class MqttService:
             ctx.load_cert_chain(st.cert_file, st.key_file)
         return ctx
 
-    async def _axis_loop(self, ch: AxisChannel) -> None:
+    async def _axis_loop(self, ch: PubChannel) -> None:
         import aiomqtt
 
         st = self.settings
@@ -423,6 +770,7 @@ class MqttService:
         tls = self._tls_context()
         while not self._stop.is_set():
             ch.connect_attempts += 1
+            self.export(ch)
             try:
                 client = aiomqtt.Client(
                     st.host,
@@ -439,6 +787,7 @@ class MqttService:
                 async with client:
                     ch.connects += 1
                     ch.connected = True
+                    self.export(ch)
                     backoff = st.backoff_min_s
                     await self._session(client, ch)
                     return  # clean stop
@@ -450,6 +799,7 @@ class MqttService:
                 ch.disconnects += 1
                 ch.connected = False
                 ch.state_dirty = True
+            self.export(ch)
             await self._sleep(backoff)
             backoff = min(backoff * 2.0, st.backoff_max_s)
         # stopped while the broker was away: nothing more can be sent
@@ -459,24 +809,31 @@ class MqttService:
         while not self._stop.is_set() and time.monotonic() < end:
             await asyncio.sleep(min(0.05, max(0.0, end - time.monotonic())))
 
-    async def _session(self, client, ch: AxisChannel) -> None:
+    async def _session(self, client, ch: PubChannel) -> None:
         """Publish while connected; raises aiomqtt.MqttError when the connection is lost."""
         st = self.settings
         watcher = asyncio.ensure_future(self._watch(client))
         try:
             await client.publish(self.topic(ch, "status"), self.status_payload(ch, True), qos=1, retain=True)
+            while ch.current is None and not self._stop.is_set():  # serve forwards the state right at start
+                await asyncio.sleep(0.01)
+            if ch.current is None:
+                return
             next_state = 0.0
             while True:
                 stopping = self._stop.is_set()
+                if stopping:
+                    self.drain()  # serve's sampler stopped before it said stop: these are the last samples
                 if watcher.done():
                     watcher.result()  # raises the disconnect
                 while ch.events:
                     ev = ch.events[0]
                     payload = json.dumps(self._head(ch) | ev).encode()
                     await client.publish(self.topic(ch, "faults"), payload, qos=1)
-                    if ch.events and ch.events[0] is ev:
-                        ch.events.popleft()
-                        ch.events_published += 1
+                    with self._lock:
+                        if ch.events and ch.events[0] is ev:
+                            ch.events.popleft()
+                            ch.events_published += 1
                 while len(ch.buffer) >= st.batch_size or (stopping and len(ch.buffer)):
                     batch = ch.buffer.peek(st.batch_size)
                     await client.publish(self.topic(ch, "telemetry"), self.telemetry_payload(ch, batch), qos=0)
@@ -485,16 +842,20 @@ class MqttService:
                 while ch.states:
                     snap = ch.states[0]
                     await client.publish(self.topic(ch, "state"), self.state_payload(ch, snap), qos=1, retain=True)
-                    if ch.states and ch.states[0] is snap:
-                        ch.states.popleft()
+                    with self._lock:
+                        if ch.states and ch.states[0] is snap:
+                            ch.states.popleft()
                 now = time.monotonic()
                 if ch.state_dirty or now >= next_state or stopping:
                     ch.state_dirty = False  # (the current state last: the retained message is the newest)
-                    await client.publish(self.topic(ch, "state"), self.state_payload(ch), qos=1, retain=True)
+                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, ch.current), qos=1,
+                                         retain=True)
                     next_state = now + st.state_interval_s
                 if stopping:
                     await client.publish(self.topic(ch, "status"), self.status_payload(ch, False), qos=1, retain=True)
+                    self.export(ch)
                     return
+                self.export(ch)
                 await asyncio.sleep(min(0.01, 1.0 / st.rate_hz))
         finally:
             watcher.cancel()
@@ -505,20 +866,46 @@ class MqttService:
         async for _ in client.messages:
             pass
 
-    def stats(self) -> dict:
-        return {
-            ch.name: ch.buffer.counters()
-            | {
-                "connects": ch.connects,
-                "disconnects": ch.disconnects,
-                "batches_published": ch.batches_published,
-                "events_published": ch.events_published,
-                "events_dropped": ch.events_dropped,
-                "sampler_late_samples": ch.sampler_late,
-                "last_error": ch.last_error,
-            }
-            for ch in self.channels
-        }
+
+def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
+    """Entry of the publisher process (``python -c``): the two inherited socket fds (messages from serve, stop
+    watch) and the spec (settings, axes, shared memory name). serve's ``stop`` message ends it cleanly (buffer
+    flushed, ``offline`` sent); serve's death (EOF on the watch socket) ends it at once without a DISCONNECT,
+    so that the broker publishes the last will."""
+    import mmap
+    from multiprocessing.connection import Connection
+
+    leave_realtime()  # the broker's client is not the drive: never compete with it at real-time priority
+    spec = json.loads(spec_json)
+    settings = MqttSettings(**spec["settings"])
+    fd = os.open(f"/dev/shm/{spec['shm'].lstrip('/')}", os.O_RDWR)  # by path: no resource tracker (see modbus)
+    try:
+        mem = mmap.mmap(fd, 0)
+    finally:
+        os.close(fd)
+    ring = TelemetryRing(memoryview(mem), len(spec["axes"]))
+    pub = Publisher(settings, spec["axes"], ring)
+    conn, ctl = Connection(msg_fd), Connection(ctl_fd)
+
+    def read_messages() -> None:
+        try:
+            while True:
+                pub.on_message(conn.recv_bytes())
+        except (EOFError, OSError):
+            return
+
+    def watch_serve() -> None:  # serve never writes here: EOF = serve closed it after our exit, or died
+        try:
+            ctl.recv_bytes()
+        except (EOFError, OSError):
+            pass
+        if not pub._stop.is_set():
+            os._exit(0)  # serve died: drop the connections unannounced, the broker sends the will
+
+    threading.Thread(target=read_messages, daemon=True).start()
+    threading.Thread(target=watch_serve, daemon=True).start()
+    pub.run()
+    # (the memoryview is released with the process)
 
 
 def machine_name_from(config_path: str | Path | None, default: str = "machine") -> str:
