@@ -106,6 +106,7 @@ def run(args) -> int:
         from virtualaxis.runtime.bitrate import BitRateBus
 
         bus = BitRateBus(bus, args.bitrate)
+    bus = side.wrap_bus(bus)  # side channels: their periodic jobs wait for the gap after a SYNC's PDOs
     if args.latency_probe:
         from virtualaxis.services.latency_probe import ProbeBus
 

@@ -136,6 +136,7 @@ class ModbusService:
         port: int = 5020,
         writable: bool = False,
         image_period_s: float = DEFAULT_PERIOD_S,
+        gate=None,
     ):
         ids = [link.unit_id for link in links]
         if len(set(ids)) != len(ids):
@@ -148,6 +149,7 @@ class ModbusService:
         if image_period_s <= 0:
             raise ValueError(f"Modbus register image period must be > 0 s (got {image_period_s})")
         self.image_period_s = image_period_s
+        self.gate = gate  # CycleGate or None: image builds in the gap after a SYNC's PDOs
         self.image = None  # ImagePublisher while running
         self._image_reads: dict[int, int] = {}  # reads answered from the image, as of stop()
         self._image_build_us: float | None = None  # mean image build time, as of stop()
@@ -162,7 +164,7 @@ class ModbusService:
         from virtualaxis.services.register_image import ImagePublisher
 
         short_gil_slices()  # the bridge thread must not hold the drive's runtime thread for a 5 ms slice
-        self.image = ImagePublisher(self.links, self.image_period_s).start()
+        self.image = ImagePublisher(self.links, self.image_period_s, gate=self.gate).start()
         units = ",".join(str(u) for u in self.links)
         # a plain child interpreter (not multiprocessing's spawn, which would re-run the caller's __main__),
         # joined by two socket pairs: access RPC and a stop signal (EOF when serve dies)

@@ -421,9 +421,11 @@ class MqttService:
     """MQTT telemetry of ``axes`` (``(name, node_id, drive, nmt_state_getter)``): a sampler thread here, the
     publisher in a process of its own (module doc)."""
 
-    def __init__(self, settings: MqttSettings, axes: list[tuple[str, int, Drive, Callable[[], str] | None]]):
+    def __init__(self, settings: MqttSettings, axes: list[tuple[str, int, Drive, Callable[[], str] | None]],
+                 gate=None):
         settings.validate()
         self.settings = settings
+        self.gate = gate  # CycleGate or None: samples taken in the gap after a SYNC's PDOs (cycle_gate.py)
         self.channels: list[AxisChannel] = []
         for i, (name, node_id, drive, nmt) in enumerate(axes):
             if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name):
@@ -529,6 +531,8 @@ class MqttService:
                     ch.sampler_late += late
                     ring.set_sampler_late(ch.index, ch.sampler_late)
                 nxt += late * period
+            if self.gate is not None:
+                self.gate.wait_next()
             for ch in self.channels:
                 s = ch.drive.state
                 ring.write(ch.index, (s.time_s, s.position_actual_m, s.following_error_m, s.velocity_actual_m_s,

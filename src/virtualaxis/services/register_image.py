@@ -58,12 +58,13 @@ class ImagePublisher:
     """Writer side (in ``serve``): owns the shared memory; :meth:`publish` one unit, a thread publishing all
     units every ``period_s``."""
 
-    def __init__(self, links: dict[int, AxisLink], period_s: float = DEFAULT_PERIOD_S):
+    def __init__(self, links: dict[int, AxisLink], period_s: float = DEFAULT_PERIOD_S, gate=None):
         if period_s <= 0:
             raise ValueError(f"register image period must be > 0 s (got {period_s})")
         self.links = links
         self.units = list(links)
         self.period_s = period_s
+        self.gate = gate  # CycleGate: a due publication waits for the gap after the next SYNC's PDOs
         self.shm = shared_memory.SharedMemory(create=True, size=SLOT_BYTES * max(1, len(self.units)))
         self.shm.buf[:] = b"\x00" * self.shm.size
         self._lock = threading.Lock()
@@ -129,6 +130,8 @@ class ImagePublisher:
                 next_t = time.monotonic()
             elif self._stop.wait(delay):
                 return
+            if self.gate is not None:
+                self.gate.wait_next()
             try:
                 self.publish_all()
             except Exception:  # noqa: BLE001 - a drive mid-reconfiguration: keep the old image

@@ -49,6 +49,20 @@ class SideChannels:
     modbus: Any = None  # ModbusService
     telemetry: Any = None  # MqttService
     lines: list[str] = field(default_factory=list)
+    gate: Any = None  # CycleGate: the periodic jobs run in the gap after a SYNC's PDOs (cycle_gate.py)
+
+    @property
+    def enabled(self) -> bool:
+        return self.modbus_address is not None or self.mqtt is not None
+
+    def wrap_bus(self, bus):
+        """With a side channel on: ``bus`` wrapped so that PDO sends mark the cycle gate (else ``bus``)."""
+        if not self.enabled:
+            return bus
+        from virtualaxis.services.cycle_gate import CycleGate, GateBus
+
+        self.gate = CycleGate()
+        return GateBus(bus, self.gate)
 
     def start(self, axes) -> None:
         """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave)."""
@@ -58,7 +72,8 @@ class SideChannels:
 
             host, port = self.modbus_address
             links = [AxisLink(a.drive, a.node_id) for a in axes]
-            self.modbus = ModbusService(links, host=host, port=port, writable=self.modbus_writable).start()
+            self.modbus = ModbusService(links, host=host, port=port, writable=self.modbus_writable,
+                                        gate=self.gate).start()
             ids = ", ".join(str(a.node_id) for a in axes)
             rw = "read/write" if self.modbus_writable else "read-only"
             self.lines.append(f"modbus: {host}:{self.modbus.bound_port} ({rw}), unit ids {ids}")
@@ -67,7 +82,7 @@ class SideChannels:
 
             st = self.mqtt
             chans = [(a.name, a.node_id, a.drive, _nmt_getter(a)) for a in axes]
-            self.telemetry = MqttService(st, chans).start()
+            self.telemetry = MqttService(st, chans, gate=self.gate).start()
             scheme = "mqtts" if st.tls else "mqtt"
             self.lines.append(
                 f"mqtt: {scheme}://{st.host}:{st.port}, topics virtualaxis/{st.machine}/<axis>/..., "
@@ -86,6 +101,8 @@ class SideChannels:
             out["modbus"] = self.modbus.stats()
         if self.telemetry is not None:
             out["mqtt"] = self.telemetry.stats()
+        if self.gate is not None:
+            out["cycle_gate"] = self.gate.stats()
         return out
 
 
