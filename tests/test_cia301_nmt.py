@@ -60,8 +60,10 @@ def test_stopped_answers_no_sdo_and_sends_no_pdo(rig):
     node.nmt.state = "STOPPED"
     assert wait_until(lambda: rig.slave.nmt_state == NmtState.STOPPED)
     rig.sniffer.clear()
+    node.sdo.RESPONSE_TIMEOUT = 0.5  # no answer is expected: do not wait the rig's 2 s
     with pytest.raises(canopen.SdoCommunicationError):
         node.sdo.upload(0x1000, 0)
+    node.sdo.RESPONSE_TIMEOUT = 2.0
     assert rig.slave.counters["sdo_ignored_stopped"] >= 1
     rig.network.sync.transmit()
     time.sleep(0.25)                                     # > TPDO1 event timer (100 ms)
