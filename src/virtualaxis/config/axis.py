@@ -137,7 +137,9 @@ class BacklashParams:
 class FrictionParams:
     """[friction] at the table/nut (seed 000 eq. 13) with a stick/slip switch that neither chatters nor creeps.
 
-    Sliding force: (F_c,dir + F_s exp(-(|v|/v_s)^delta)) sgn(v) + F_v v; break-away at F_c,dir + F_s.
+    Sliding force: (F_c,dir + F_s exp(-(|v|/v_s)^delta)) sgn(v) + F_v,dir v; break-away at F_c,dir + F_s.
+    ``dir`` is the direction of motion: the Coulomb and viscous coefficients may differ between +v and -v
+    (seals, a preloaded guide, a cable chain that drags one way).
     """
 
     enabled: bool = _p(False)
@@ -146,7 +148,10 @@ class FrictionParams:
     stribeck_n: float = _p(0.0, check=">=0", doc="Stribeck excess F_s over Coulomb at v = 0 [N]")
     stribeck_velocity_m_s: float = _p(0.001, check=">0", doc="Stribeck velocity v_s [m/s]")
     stribeck_exponent: float = _p(1.0, check=">0", doc="shape delta (1 in seed 000 eq. 13)")
-    viscous_n_s_per_m: float = _p(0.0, check=">=0", doc="viscous coefficient F_v [N s/m]")
+    viscous_n_s_per_m: float = _p(0.0, check=">=0", doc="viscous coefficient F_v for +v [N s/m]")
+    viscous_negative_n_s_per_m: float = _p(
+        -1.0, doc="viscous coefficient F_v for -v [N s/m]; < 0 means 'same as viscous_n_s_per_m' (default)"
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

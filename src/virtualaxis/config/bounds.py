@@ -74,6 +74,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "friction.stribeck_velocity_m_s": (1e-7, 10.0),
     "friction.stribeck_exponent": (0.1, 10.0),
     "friction.viscous_n_s_per_m": (0.0, 1e7),
+    "friction.viscous_negative_n_s_per_m": (-1.0, 1e7),  # < 0 means "same as viscous_n_s_per_m"
     # [actuator]
     "actuator.force_limit_n": (0.0, 1e7),
     "actuator.force_lag_s": (0.0, 1.0),

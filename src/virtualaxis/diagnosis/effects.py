@@ -173,7 +173,12 @@ def _viscous_params(cfg):
 
 
 def _viscous_apply(cfg, v):
-    return _friction_on(cfg, {"viscous_n_s_per_m": v["viscous_n_s_per_m"]})
+    f = cfg.friction
+    changes: dict = {"viscous_n_s_per_m": v["viscous_n_s_per_m"]}
+    if f.enabled and f.viscous_negative_n_s_per_m >= 0 and f.viscous_n_s_per_m > 0:  # keep the asymmetry ratio
+        ratio = f.viscous_negative_n_s_per_m / f.viscous_n_s_per_m
+        changes["viscous_negative_n_s_per_m"] = ratio * v["viscous_n_s_per_m"]
+    return _friction_on(cfg, changes)
 
 
 def _viscous_starts(cfg, hints):
@@ -198,6 +203,37 @@ def _asym_starts(cfg, hints):
     fc, fcn = _fc(cfg), _fc_neg(cfg)
     typ = _asym_params(cfg)[0].typical
     return [{"coulomb_n": fc + typ, "coulomb_negative_n": fcn + typ}]
+
+
+def _fv(cfg: AxisConfig) -> float:
+    return cfg.friction.viscous_n_s_per_m if cfg.friction.enabled else 0.0
+
+
+def _fv_neg(cfg: AxisConfig) -> float:
+    f = cfg.friction
+    if not f.enabled:
+        return 0.0
+    return f.viscous_negative_n_s_per_m if f.viscous_negative_n_s_per_m >= 0 else f.viscous_n_s_per_m
+
+
+def _viscous_asym_params(cfg):
+    p = _viscous_params(cfg)[0]  # same physical range as viscous friction, one coefficient per direction
+    return [dataclasses.replace(p, nominal=_fv(cfg)),
+            dataclasses.replace(p, name="viscous_negative_n_s_per_m", nominal=_fv_neg(cfg))]
+
+
+def _viscous_asym_apply(cfg, v):
+    return _friction_on(cfg, {"viscous_n_s_per_m": v["viscous_n_s_per_m"],
+                              "viscous_negative_n_s_per_m": v["viscous_negative_n_s_per_m"]})
+
+
+def _viscous_asym_starts(cfg, hints):
+    typ = _viscous_asym_params(cfg)[0].typical
+    fv, fvn = _fv(cfg), _fv_neg(cfg)
+    # one direction at a time and both: the response to each coefficient lives in one direction's samples
+    return [{"viscous_n_s_per_m": fv + typ, "viscous_negative_n_s_per_m": fvn + typ},
+            {"viscous_n_s_per_m": fv, "viscous_negative_n_s_per_m": fvn + typ},
+            {"viscous_n_s_per_m": fv + typ, "viscous_negative_n_s_per_m": fvn}]
 
 
 def _offset_params(cfg):
@@ -403,6 +439,12 @@ EFFECTS: dict[str, Effect] = {
                "direction: one direction carries more residual; force offset by direction",
                _asym_params, _asym_apply, _always, _asym_starts,
                (("friction.coulomb_n", "coulomb_n"), ("friction.coulomb_negative_n", "coulomb_negative_n"))),
+        Effect("viscous_asymmetry", "viscous friction that differs between the directions (seals, a cable chain "
+               "that drags one way): F_v for +v and for -v",
+               "force channel grows with speed in one direction more than in the other; high-speed bins by direction",
+               _viscous_asym_params, _viscous_asym_apply, _always, _viscous_asym_starts,
+               (("friction.viscous_n_s_per_m", "viscous_n_s_per_m"),
+                ("friction.viscous_negative_n_s_per_m", "viscous_negative_n_s_per_m"))),
         Effect("force_offset", "constant load force against +x (gravity on an inclined axis, cable drag): "
                "m a = F - F_friction - offset",
                "force/torque channel offset in both directions and at standstill; position only through the loop",
@@ -444,13 +486,19 @@ DISCRETE_PARAMS = {"cogging_periods_per_rev"}
 def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
     """The simpler effect a fitted one reduces to, with its start values, or None: friction asymmetry whose
     two directions agree within their uncertainty (2 sigma, at least 3 % of their mean) is Coulomb
-    friction."""
+    friction; viscous asymmetry whose two directions agree so is viscous friction."""
     if effect == "friction_asymmetry":
         a, b = values["coulomb_n"], values["coulomb_negative_n"]
         sa, sb = stderr.get("coulomb_n", math.nan), stderr.get("coulomb_negative_n", math.nan)
         sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
         if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
             return "coulomb_friction", {"coulomb_n": 0.5 * (a + b)}
+    if effect == "viscous_asymmetry":
+        a, b = values["viscous_n_s_per_m"], values["viscous_negative_n_s_per_m"]
+        sa, sb = stderr.get("viscous_n_s_per_m", math.nan), stderr.get("viscous_negative_n_s_per_m", math.nan)
+        sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
+        if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
+            return "viscous_friction", {"viscous_n_s_per_m": 0.5 * (a + b)}
     return None
 
 

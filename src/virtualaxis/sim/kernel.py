@@ -73,6 +73,7 @@ from virtualaxis.sim.layout import (
     P_FRIC,
     P_FS,
     P_FV,
+    P_FV_NEG,
     P_G,
     P_GI_I,
     P_GI_W,
@@ -504,7 +505,7 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
     direction, temperature rise, friction force, contact force, contact-gap flag, lead_sc).
     """
     (n, tb, sb, has_contact, bl, half, kc, lead_k, lead_a, lead_ph, th_alpha, nut_off, fric, fc_pos, fc_neg, fs,
-     vs, dl, fv, strib_cut, th_gain, th_r) = mp
+     vs, dl, fv, strib_cut, th_gain, th_r, fv_neg) = mp
     s = 2 * n
     # --- contact (backlash) mode
     cg = 0
@@ -566,7 +567,12 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
                 d = -1.0
             else:
                 d = d_dir
-            fc = fc_pos if d > 0.0 else fc_neg
+            if d > 0.0:
+                fc = fc_pos
+                fvd = fv
+            else:
+                fc = fc_neg
+                fvd = fv_neg  # direction-dependent viscous coefficient (== fv unless configured)
             av = abs(v)
             strib = 0.0
             if fs != 0.0:
@@ -579,7 +585,7 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
                         strib = fs * math.exp(-ratio * ratio)
                     else:
                         strib = fs * math.exp(-(ratio**dl))
-            ffric = -d * (fc + strib) - fv * v
+            ffric = -d * (fc + strib) - fvd * v
     u1 = 0.0 if stuck else ffric
     mode = cg + 2 * stuck
     if s == 12:
@@ -671,7 +677,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
           pr[P_LEAD_PPM] * 1e-6 * pr[P_R], pr[P_LEAD_PER_A], pr[P_LEAD_PER_PH], pr[P_TH_ALPHA], pr[P_NUT_OFF],
           pr[P_FRIC] != 0.0, pr[P_FC_POS], pr[P_FC_NEG], pr[P_FS], pr[P_VS], pr[P_DELTA], pr[P_FV],
           stribeck_cut_ratio(pr[P_FS], min(pr[P_FC_POS], pr[P_FC_NEG]), pr[P_DELTA]),
-          pr[P_HM] / pr[P_TH_TAU] if pr[P_TH_ALPHA] != 0.0 else 0.0, pr[P_TH_R])
+          pr[P_HM] / pr[P_TH_TAU] if pr[P_TH_ALPHA] != 0.0 else 0.0, pr[P_TH_R], pr[P_FV_NEG])
     was_stuck = st[S_STUCK] != 0.0
     d_dir = st[S_DIR]
     temp = st[S_TEMP]

@@ -75,7 +75,9 @@ P_STOP_LO = 70  # hard end stop, negative end: table position where the contact 
 P_STOP_HI = 71  # hard end stop, positive end [m]
 P_STOP_K = 72  # end-stop contact stiffness [N/m] (0: no end stops)
 P_STOP_C = 73  # end-stop contact damping [N s/m]
-N_PARAMS = 74
+# drive / axis options (virtualaxis.control.options; every default reproduces the behaviour before they existed)
+P_FV_NEG = 74  # viscous coefficient for -v [N s/m] (= P_FV unless friction.viscous_negative_n_s_per_m >= 0)
+N_PARAMS = 75
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

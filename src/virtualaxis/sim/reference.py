@@ -102,8 +102,10 @@ class ReferenceAxis:
         f = self.cfg.friction
         d = direction if v == 0 else (1.0 if v > 0 else -1.0)
         fc = f.coulomb_n if d > 0 else (f.coulomb_negative_n if f.coulomb_negative_n >= 0 else f.coulomb_n)
+        fv = f.viscous_n_s_per_m if d > 0 else (
+            f.viscous_negative_n_s_per_m if f.viscous_negative_n_s_per_m >= 0 else f.viscous_n_s_per_m)
         return -d * (fc + f.stribeck_n * math.exp(-((abs(v) / f.stribeck_velocity_m_s) ** f.stribeck_exponent))) \
-            - f.viscous_n_s_per_m * v
+            - fv * v
 
     def _breakaway(self, fnet):
         f = self.cfg.friction

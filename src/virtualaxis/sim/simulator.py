@@ -13,6 +13,7 @@ import numpy as np
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.control.loops import integral_gain_per_sample
+from virtualaxis.control.options import fill_option_parameters
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
 from virtualaxis.plant.mechanics import feedforward_inertia
 from virtualaxis.sim import layout as L
@@ -168,6 +169,7 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_STOP_LO], pr[L.P_STOP_HI], pr[L.P_STOP_K], pr[L.P_STOP_C] = lo, hi, k, c
     nz = np.flatnonzero(dm.motor_angle_vector)
     pr[L.P_MOTOR_IDX] = nz[0] if (len(nz) == 1 and dm.motor_angle_vector[nz[0]] == 1.0) else -1
+    fill_option_parameters(pr, cfg)  # drive / axis options (control/options.py)
     return pr
 
 
