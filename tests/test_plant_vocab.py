@@ -98,3 +98,184 @@ def test_viscous_asymmetry_effect_maps_onto_the_config_and_reduces_to_viscous_fr
     asym = cfg.replace(friction={"viscous_negative_n_s_per_m": 300.0})
     scaled = fx.EFFECTS["viscous_friction"].apply(asym, {"viscous_n_s_per_m": 300.0})
     assert scaled.friction.viscous_negative_n_s_per_m == pytest.approx(600.0)
+
+
+# ------------------------------------------------------------------------ 2. speed estimator / 4. sensor dead time
+def _rigid_p_velocity_axis(**control):
+    """Rigid 60 kg force-driven axis, P velocity loop and position loop at 1 kHz on an ideal linear scale, no
+    friction, no force lag (like the reference's rigid_pp structure), with ``control`` options."""
+    cfg = rigid_force_axis()
+    return cfg.replace(
+        mechanics={"table_mass_kg": 60.0},
+        actuator={"force_lag_s": 0.0, "force_limit_n": 0.0},
+        control={"current_cycle_s": 250e-6, "speed_cycle_s": 1e-3, "position_cycle_s": 1e-3,
+                 "velocity_kp_n_s_per_m": 5000.0, "speed_ti_s": 0.0, **control},
+        sensors={"linear_scale_resolution_m": 0.0},
+    )
+
+
+def _numpy_velocity_loop(m_kg, kp, t_s, v_ref, n, samples=1, tau_s=0.0, delay_samples=0):
+    """Plain-numpy reimplementation of a sampled P velocity loop on a rigid mass: at t_k the position sampled
+    ``delay_samples`` periods earlier is differentiated ((q[k] - q[k-1]) / T or (q[k] - q[k-2]) / 2T), low-passed
+    by w_f += (1 - exp(-T/tau)) (w - w_f), and F = kp (v_ref - w_f) is held over [t_k, t_k+1); the mass moves
+    exactly under the held force. Returns the table position at every t_k (before the step)."""
+    x, v = 0.0, 0.0
+    hist = [0.0] * (delay_samples + 3)  # sampled positions, newest last
+    wf = 0.0
+    a = 1.0 - math.exp(-t_s / tau_s) if tau_s > 0 else 1.0
+    out = np.empty(n)
+    for k in range(n):
+        out[k] = x
+        hist.append(x)
+        q = hist[-1 - delay_samples]
+        q1 = hist[-2 - delay_samples]
+        q2 = hist[-3 - delay_samples]
+        w = (q - q1) / t_s if samples == 1 else (q - q2) / (2 * t_s)
+        wf += a * (w - wf)
+        f = kp * (v_ref - wf)
+        x += v * t_s + 0.5 * f / m_kg * t_s * t_s
+        v += f / m_kg * t_s
+    return out
+
+
+def _kernel_velocity_step(cfg, v_ref, n):
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    sim.set_mode(ControlMode.VELOCITY)
+    z = np.zeros(n)
+    rows = sim.run_arrays(z, z, z, z, aux=np.full(n, v_ref))
+    from virtualaxis.sim import layout as L
+
+    return rows[:, L.O_TABLE_TRUE], rows
+
+
+@pytest.mark.parametrize("estimator, tau_s", [("backward_difference", 0.0), ("two_sample_difference", 0.0),
+                                              ("backward_difference", 2e-3), ("two_sample_difference", 1.5e-3)])
+def test_speed_estimator_forms_match_a_plain_numpy_velocity_loop(estimator, tau_s):
+    n, v_ref = 300, 0.1
+    cfg = _rigid_p_velocity_axis(speed_estimator=estimator, speed_filter_time_constant_s=tau_s)
+    x, _ = _kernel_velocity_step(cfg, v_ref, n)
+    samples = 2 if estimator == "two_sample_difference" else 1
+    ref = _numpy_velocity_loop(60.0, 5000.0, 1e-3, v_ref, n, samples, tau_s)
+    assert np.max(np.abs(x - ref)) < 1e-9 * np.max(np.abs(ref))
+    # another form gives a visibly different response (kp T / m = 0.083: the estimator's delay shows)
+    other = _numpy_velocity_loop(60.0, 5000.0, 1e-3, v_ref, n, 3 - samples, tau_s)
+    assert np.max(np.abs(x - other)) > 1e-3 * np.max(np.abs(ref))
+
+
+def test_speed_estimator_defaults_and_bounds():
+    cfg = rigid_force_axis()
+    assert cfg.control.speed_estimator == "backward_difference"
+    assert cfg.control.speed_filter_time_constant_s == 0.0
+    from virtualaxis.config import axis_config_from_dict
+
+    for key, bad in (("speed_estimator", "three_sample"), ("speed_filter_time_constant_s", -1e-3),
+                     ("speed_filter_time_constant_s", 5.0)):
+        d = _dict_of(cfg)
+        d["control"][key] = bad
+        with pytest.raises(ConfigError, match=rf"control\.{key}"):
+            axis_config_from_dict(d, "x.toml")
+
+
+@pytest.mark.parametrize("scope, delayed", [("position_loop", 0), ("feedback_sensor", 3)])
+def test_dead_time_scope_delays_the_speed_loop_only_for_the_feedback_sensor(scope, delayed):
+    """Velocity mode (the position loop is out of the loop): a 3 ms dead time reaches the speed loop, which
+    differentiates the linear scale on this axis, only with dead_time_scope = feedback_sensor."""
+    n, v_ref = 300, 0.1
+    cfg = _rigid_p_velocity_axis().replace(sensors={"dead_time_s": 3e-3, "dead_time_scope": scope})
+    x, _ = _kernel_velocity_step(cfg, v_ref, n)
+    ref = _numpy_velocity_loop(60.0, 5000.0, 1e-3, v_ref, n, delay_samples=delayed)
+    assert np.max(np.abs(x - ref)) < 1e-9 * np.max(np.abs(ref))
+
+
+def _torque_mode_run(cfg, n):
+    """Open loop (torque mode, no feedback in the loop): the motion does not depend on the dead time's scope."""
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    sim.set_mode(ControlMode.TORQUE)
+    t = np.arange(n) * cfg.control.position_cycle_s
+    aux = 3.0 * np.sin(2 * math.pi * 3.0 * t)  # N m at the motor (N on a force axis)
+    z = np.zeros(n)
+    return sim.run_arrays(z, z, z, z, aux=aux)
+
+
+def test_dead_time_scope_feedback_sensor_delays_the_recorded_motor_encoder():
+    from plant_helpers import config_with
+
+    from virtualaxis.sim import layout as L
+
+    n, d_cycles = 400, 2
+    base = config_with({"sensors": {"dead_time_s": d_cycles * 1e-3}})
+    assert base.sensors.dead_time_scope == "position_loop"
+    assert base.control.position_feedback == "motor_encoder"
+    a = _torque_mode_run(base, n)
+    b = _torque_mode_run(base.replace(sensors={"dead_time_scope": "feedback_sensor"}), n)
+    assert np.array_equal(a[:, L.O_TABLE_TRUE], b[:, L.O_TABLE_TRUE])  # same motion
+    assert np.ptp(a[:, L.O_MOTOR_POS]) > 1.0  # it moved (radians)
+    # position_loop: motor_pos is the undelayed encoder; feedback_sensor: the same reading d_cycles later
+    assert np.array_equal(b[d_cycles:, L.O_MOTOR_POS], a[:-d_cycles, L.O_MOTOR_POS])
+    assert not np.array_equal(b[:, L.O_MOTOR_POS], a[:, L.O_MOTOR_POS])
+    # the position feedback was delayed in both, the linear scale in neither (it is not the feedback sensor)
+    assert np.array_equal(a[:, L.O_POS_FB], b[:, L.O_POS_FB])
+    assert np.array_equal(a[:, L.O_POS_MEAS], b[:, L.O_POS_MEAS])
+    # the delayed encoder is the position feedback's sensor: motor_pos x lead/2pi == pos_fb
+    r = base.mechanics.lead_m / (2 * math.pi)
+    assert np.allclose(b[:, L.O_MOTOR_POS] * r, b[:, L.O_POS_FB], rtol=0, atol=1e-12)
+
+
+def test_dead_time_scope_feedback_sensor_delays_the_recorded_linear_scale():
+    from virtualaxis.sim import layout as L
+
+    n, d_cycles = 300, 3
+    cfg = _rigid_p_velocity_axis().replace(sensors={"dead_time_s": d_cycles * 1e-3, "linear_scale_resolution_m": 1e-8})
+    a = _torque_mode_run(cfg, n)
+    b = _torque_mode_run(cfg.replace(sensors={"dead_time_scope": "feedback_sensor"}), n)
+    assert np.array_equal(a[:, L.O_TABLE_TRUE], b[:, L.O_TABLE_TRUE])
+    assert np.ptp(a[:, L.O_POS_MEAS]) > 1e-5  # it moved
+    assert np.array_equal(b[d_cycles:, L.O_POS_MEAS], a[:-d_cycles, L.O_POS_MEAS])
+    assert np.array_equal(b[:, L.O_POS_MEAS], b[:, L.O_POS_FB])
+
+
+def test_dead_time_scope_rejects_unknown_values_naming_the_key():
+    from virtualaxis.config import axis_config_from_dict
+
+    d = _dict_of(rigid_force_axis())
+    d["sensors"]["dead_time_scope"] = "everything"
+    with pytest.raises(ConfigError, match=r"sensors\.dead_time_scope"):
+        axis_config_from_dict(d, "x.toml")
+
+
+def test_speed_estimator_and_time_delay_effects_map_onto_the_config():
+    cfg = _rigid_p_velocity_axis()
+    est = fx.EFFECTS["speed_estimator"]
+    p = {q.name: q for q in est.params(cfg)}
+    assert p["speed_estimator_samples"].nominal == 1.0 and fx.is_discrete("speed_estimator_samples")
+    assert p["speed_filter_time_constant_s"].nominal == 0.0 and p["speed_filter_time_constant_s"].upper == 20e-3
+    assert {s["speed_estimator_samples"] for s in est.starts(cfg, {})} == {1.0, 2.0}
+    truth = cfg.replace(control={"speed_estimator": "two_sample_difference"})
+    fitted = {"speed_estimator_samples": 2.0, "speed_filter_time_constant_s": 0.0}
+    out = est.apply(cfg, fitted)
+    assert out.control == truth.control
+    t = np.arange(800) * 1e-3
+    pos = 0.02 * (1 - np.cos(2 * math.pi * 2.0 * t))
+    a = simulate_command(out, t, pos, seed=0)
+    b = simulate_command(truth, t, pos, seed=0)
+    c = simulate_command(cfg, t, pos, seed=0)
+    assert np.array_equal(a["force_drive"], b["force_drive"])
+    assert not np.array_equal(a["force_drive"], c["force_drive"])
+    # a form change alone is a structural change: it pays its way by itself, the unused filter is not judged
+    assert fx.relative_change("speed_estimator", cfg, fitted) == math.inf
+    assert fx.relative_change("speed_estimator", cfg, {"speed_estimator_samples": 1.0,
+                                                       "speed_filter_time_constant_s": 0.0}) == 0.0
+    assert fx.implausible("speed_estimator", cfg, fitted, {"speed_filter_time_constant_s": 1e-4}, []) == []
+    assert fx.implausible("speed_estimator", cfg, {"speed_estimator_samples": 1.0,
+                                                   "speed_filter_time_constant_s": 1e-5},
+                          {"speed_filter_time_constant_s": 1e-4}, [])  # a filter within noise of 0: no answer
+    # time_delay fits the scope as a discrete parameter (both scopes started)
+    td = fx.EFFECTS["time_delay"]
+    assert {s["dead_time_feedback_sensor"] for s in td.starts(cfg, {})} == {0.0, 1.0}
+    d = td.apply(cfg, {"dead_time_s": 2e-3, "dead_time_feedback_sensor": 1.0})
+    assert d.sensors.dead_time_s == 2e-3 and d.sensors.dead_time_scope == "feedback_sensor"
+    assert td.apply(d, {"dead_time_s": 1e-3}).sensors.dead_time_scope == "feedback_sensor"  # scope kept
+    assert td.apply(cfg, {"dead_time_s": 1e-3, "dead_time_feedback_sensor": 0.0}).sensors.dead_time_scope == (
+        "position_loop")

@@ -227,6 +227,15 @@ class ControlParams:
     current_limit_a: float = _p(0.0, check=">=0", doc="|i_q| limit [A] (pmsm); 0 -> 3 x rated")
     speed_limit_rpm: float = _p(0.0, check=">=0", doc="motor speed set-point limit [1/min]; 0 = none")
     position_feedback: str = _p("motor_encoder", choices=("motor_encoder", "linear_scale"))
+    speed_estimator: str = _p(
+        "backward_difference", choices=("backward_difference", "two_sample_difference"),
+        doc="speed the speed loop closes on, from the quantised position q sampled every speed cycle T: "
+        "backward_difference w[k] = (q[k] - q[k-1]) / T; two_sample_difference w[k] = (q[k] - q[k-2]) / (2 T)",
+    )
+    speed_filter_time_constant_s: float = _p(
+        0.0, check=">=0", doc="first-order low-pass on that speed estimate, w_f[k] = w_f[k-1] + (1 - exp(-T/tau)) "
+        "(w[k] - w_f[k-1]); 0 = none [s]",
+    )
 
     @property
     def kv_1_per_s(self) -> float:
@@ -245,6 +254,13 @@ class SensorParams:
     motor_encoder_counts_per_rev: int = _p(1 << 20, check=">=0", doc="0 = ideal")
     linear_scale_resolution_m: float = _p(0.0, check=">=0", doc="linear scale quantum, 0 = ideal [m]")
     dead_time_s: float = _p(0.0, check=">=0", doc="measurement dead time of position feedback [s]")
+    dead_time_scope: str = _p(
+        "position_loop", choices=("position_loop", "feedback_sensor"),
+        doc="where dead_time_s acts: position_loop = only the position loop's feedback is delayed; "
+        "feedback_sensor = the feedback sensor's reading is delayed wherever it is used (position loop, the speed "
+        "loop when it differentiates that sensor, and its recorded channel: motor_pos for motor_encoder feedback, "
+        "pos_meas for linear_scale feedback)",
+    )
     position_noise_m: float = _p(0.0, check=">=0", doc="white noise on the linear scale (1 sigma) [m]")
     current_noise_a: float = _p(0.0, check=">=0", doc="white noise on measured i_q (1 sigma) [A]")
 

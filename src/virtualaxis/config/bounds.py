@@ -110,6 +110,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "control.torque_ff_factor": (0.0, 2.0),
     "control.current_limit_a": (0.0, 1e5),
     "control.speed_limit_rpm": (0.0, 1e5),
+    "control.speed_filter_time_constant_s": (0.0, 1.0),  # 0 (none) .. 1 s (far beyond any usable speed loop)
     # [sensors]
     "sensors.motor_encoder_counts_per_rev": (0, 1 << 40),
     "sensors.linear_scale_resolution_m": (0.0, 0.01),

@@ -4,9 +4,15 @@ behaviour before the option existed bit for bit; :func:`fill_option_parameters` 
 parameter vector (called by :func:`virtualaxis.sim.simulator.build_parameters`).
 
 * ``friction.viscous_negative_n_s_per_m``: viscous friction for -v [N s/m] (direction-dependent viscous friction).
+* ``control.speed_estimator``, ``control.speed_filter_time_constant_s``: how the speed loop estimates the speed from
+  the quantised position it samples every speed cycle (one- or two-sample difference, optional first-order filter).
+* ``sensors.dead_time_scope``: whether ``sensors.dead_time_s`` delays only the position loop's feedback or the
+  feedback sensor's reading everywhere (speed loop, recorded channel).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -21,6 +27,16 @@ def viscous_negative_n_s_per_m(cfg: AxisConfig) -> float:
     return f.viscous_negative_n_s_per_m if f.viscous_negative_n_s_per_m >= 0 else f.viscous_n_s_per_m
 
 
+def speed_filter_gain(cycle_s: float, tau_s: float) -> float:
+    """Gain a = 1 - exp(-T / tau) of the first-order speed filter sampled every ``cycle_s`` = T [s] (the exact,
+    step-invariant discretisation of 1 / (1 + s tau) for an input held over the sample); 0 for no filter."""
+    return -math.expm1(-cycle_s / tau_s) if tau_s > 0 else 0.0
+
+
 def fill_option_parameters(pr: np.ndarray, cfg: AxisConfig) -> None:
     """Write the options' kernel parameters into ``pr`` (in place)."""
+    c = cfg.control
     pr[L.P_FV_NEG] = viscous_negative_n_s_per_m(cfg)
+    pr[L.P_DEAD_SENSOR] = 1.0 if cfg.sensors.dead_time_scope == "feedback_sensor" else 0.0
+    pr[L.P_EST2] = 1.0 if c.speed_estimator == "two_sample_difference" else 0.0
+    pr[L.P_SPD_FILT] = speed_filter_gain(c.speed_cycle_s, c.speed_filter_time_constant_s)

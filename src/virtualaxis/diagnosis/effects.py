@@ -384,17 +384,55 @@ def _ripple_starts(cfg, hints):
 
 
 # ---------------------------------------------------------------- delay, thermal
+def _delay_scope(cfg) -> float:
+    return 1.0 if cfg.sensors.dead_time_scope == "feedback_sensor" else 0.0
+
+
 def _delay_params(cfg):
-    return [Param("dead_time_s", "s", 0.0, 0.02, 1e-3, nominal=cfg.sensors.dead_time_s)]
+    # dead_time_feedback_sensor (discrete 0/1, sensors.dead_time_scope): 0 = only the position loop's feedback is
+    # delayed; 1 = the feedback sensor's reading everywhere (speed loop, recorded motor_pos / pos_meas)
+    return [Param("dead_time_s", "s", 0.0, 0.02, 1e-3, nominal=cfg.sensors.dead_time_s),
+            Param("dead_time_feedback_sensor", "1", 0.0, 1.0, 1.0, nominal=_delay_scope(cfg))]
 
 
 def _delay_apply(cfg, v):
-    return cfg.replace(sensors={"dead_time_s": v["dead_time_s"]})
+    scope = v.get("dead_time_feedback_sensor", _delay_scope(cfg))
+    return cfg.replace(sensors={"dead_time_s": v["dead_time_s"],
+                                "dead_time_scope": "feedback_sensor" if scope >= 0.5 else "position_loop"})
 
 
 def _delay_starts(cfg, hints):
     dt = cfg.control.position_cycle_s
-    return [{"dead_time_s": cfg.sensors.dead_time_s + max(dt, 1e-3)}]
+    d = cfg.sensors.dead_time_s + max(dt, 1e-3)
+    return [{"dead_time_s": d, "dead_time_feedback_sensor": s} for s in (_delay_scope(cfg), 1.0 - _delay_scope(cfg))]
+
+
+# ---------------------------------------------------------------- speed estimator
+def _estimator_params(cfg):
+    c = cfg.control
+    ts = c.speed_cycle_s
+    # speed_estimator_samples (discrete 1/2, control.speed_estimator): (q[k] - q[k-1]) / T or (q[k] - q[k-2]) / 2T;
+    # the filter: up to 20 speed cycles (beyond that a speed loop no longer closes on its estimate)
+    return [Param("speed_estimator_samples", "1", 1.0, 2.0, 1.0,
+                  nominal=2.0 if c.speed_estimator == "two_sample_difference" else 1.0),
+            Param("speed_filter_time_constant_s", "s", 0.0, 20.0 * ts, ts, nominal=c.speed_filter_time_constant_s)]
+
+
+def _estimator_apply(cfg, v):
+    c = cfg.control
+    samples = v.get("speed_estimator_samples", 2.0 if c.speed_estimator == "two_sample_difference" else 1.0)
+    return cfg.replace(control={
+        "speed_estimator": "two_sample_difference" if samples >= 1.5 else "backward_difference",
+        "speed_filter_time_constant_s": max(float(v["speed_filter_time_constant_s"]), 0.0)})
+
+
+def _estimator_starts(cfg, hints):
+    c = cfg.control
+    ts = c.speed_cycle_s
+    tau0 = c.speed_filter_time_constant_s
+    # each form with the filter moved by one speed cycle (the screening step needs an amplitude to move; the
+    # refinement takes it back to 0 when the form alone explains the gap)
+    return [{"speed_estimator_samples": s, "speed_filter_time_constant_s": tau0 + ts} for s in (2.0, 1.0)]
 
 
 def _thermal_params(cfg):
@@ -472,6 +510,11 @@ EFFECTS: dict[str, Effect] = {
         Effect("time_delay", "measurement / loop dead time",
                "position error proportional to speed, phase lag growing with frequency",
                _delay_params, _delay_apply, _always, _delay_starts, (("sensors.dead_time_s", "dead_time_s"),)),
+        Effect("speed_estimator", "the speed loop's speed estimate: one- or two-sample difference of the position it "
+               "samples, optionally low-passed (control.speed_estimator, speed_filter_time_constant_s)",
+               "force channel during acceleration changes (an extra lag in the speed loop); looks like a mass error",
+               _estimator_params, _estimator_apply, _always, _estimator_starts,
+               (("speed_estimator_samples", "speed_estimator_samples"),)),
         Effect("thermal_drift", "screw thermal expansion (initial temperature and friction heating)",
                "linear-scale position, grows with stroke position and with time",
                _thermal_params, _thermal_apply, _has_lead, _thermal_starts,
@@ -480,7 +523,7 @@ EFFECTS: dict[str, Effect] = {
 }
 
 #: parameters that are chosen by search, not by the least-squares fit
-DISCRETE_PARAMS = {"cogging_periods_per_rev"}
+DISCRETE_PARAMS = {"cogging_periods_per_rev", "dead_time_feedback_sensor", "speed_estimator_samples"}
 
 
 def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
@@ -516,10 +559,16 @@ def relative_change(effect: str, cfg: AxisConfig, values: dict[str, float]) -> f
     """Largest change of a fitted (continuous) parameter relative to its value in ``cfg``; ``inf`` where that
     value is 0 and the fitted one is not (an effect the model did not have). A fit that only nudges values the
     model already has — a Coulomb force of 40.03 N where the config says 40 N — is a calibration of noise or
-    of a small mismatch elsewhere, not a missing effect (:data:`MIN_RELATIVE_CHANGE`)."""
+    of a small mismatch elsewhere, not a missing effect (:data:`MIN_RELATIVE_CHANGE`). A discrete parameter that
+    differs from the model's (another speed-estimator form, dead-time scope, cogging order) is a structural change:
+    ``inf``."""
     worst = 0.0
     for p in effect_of(effect).params(cfg):
-        if is_discrete(p.name) or p.name not in values:
+        if p.name not in values:
+            continue
+        if is_discrete(p.name):
+            if float(values[p.name]) != p.nominal:
+                return math.inf
             continue
         v = float(values[p.name])
         if p.nominal == 0.0:
@@ -556,10 +605,16 @@ def implausible(effect: str, cfg: AxisConfig, values: dict[str, float], stderr: 
         if base == "resonance_damping_ratio" and v >= MAX_RESONANCE_DAMPING:
             why.append(f"a mode damped {v:.2f} (>= {MAX_RESONANCE_DAMPING}) is not a resonance")
     amps = [p for p in params.values() if not p.shape and not is_discrete(p.name)]
-    significant = False
+    # a discrete parameter that differs from the model's (another speed-estimator form) is the answer by itself;
+    # an amplitude left at its physical zero beside it (no speed filter) is then no parameter to determine
+    structural = any(is_discrete(p.name) and p.name in values and float(values[p.name]) != p.nominal
+                     for p in params.values())
+    significant = structural
     for p in amps:
         se = float(stderr.get(p.name, math.nan))
         v = float(values.get(p.name, p.nominal))
+        if structural and p.nominal == 0.0 and fx_is_zero_bound(p, v):
+            continue
         if se == math.inf:
             why.append(f"{p.name} not determined by the fit traces")
         elif math.isfinite(se) and abs(v - p.nominal) >= MIN_SIGNIFICANCE * se:

@@ -61,8 +61,10 @@ from virtualaxis.sim.layout import (
     P_COG_A,
     P_COG_N,
     P_COG_PH,
+    P_DEAD_SENSOR,
     P_DECOUP,
     P_DELTA,
+    P_EST2,
     P_EXP_D,
     P_EXP_Q,
     P_FB,
@@ -114,6 +116,7 @@ from virtualaxis.sim.layout import (
     P_R,
     P_RS,
     P_SCREW,
+    P_SPD_FILT,
     P_STOP_C,
     P_STOP_HI,
     P_STOP_K,
@@ -156,6 +159,7 @@ from virtualaxis.sim.layout import (
     S_TEMP,
     S_TFF,
     S_THETA_PREV,
+    S_THETA_PREV2,
     S_TORQUE,
     S_UD_APP,
     S_UD_NEXT,
@@ -668,6 +672,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     int_d, int_q, int_w = st[S_INT_D], st[S_INT_Q], st[S_INT_W]
     iq_ref, f_act, torque_act = st[S_IQ_REF], st[S_F_ACT], st[S_TORQUE]
     theta_prev, w_meas = st[S_THETA_PREV], st[S_W_MEAS]
+    theta_prev2 = st[S_THETA_PREV2]
     vsat = st[S_VSAT]
     t_now = st[S_T]
     ri = int(st[S_RING])
@@ -688,6 +693,15 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     midx = int(pr[P_MOTOR_IDX])
     qenc, qscale, r_lead = pr[P_QENC], pr[P_QSCALE], pr[P_R]
     fb_motor = pr[P_FB] == 0.0 and r_lead > 0.0
+    # drive / axis options (control/options.py); the defaults take the branches of the kernel before them
+    est2 = pr[P_EST2] != 0.0
+    spd_filt = pr[P_SPD_FILT]
+    ndead = int(pr[P_NDEAD])
+    # sensors.dead_time_scope = "feedback_sensor": the feedback sensor's reading is delayed everywhere, i.e. also in
+    # the speed loop when it differentiates that sensor (force actuator: always; pmsm: motor-encoder feedback) and
+    # in the recorded channel of that sensor
+    dly_sensor = pr[P_DEAD_SENSOR] != 0.0 and ndead > 0
+    dly_speed = dly_sensor and (force_act or fb_motor)
     stop_lo, stop_hi, stop_k, stop_c = pr[P_STOP_LO], pr[P_STOP_HI], pr[P_STOP_K], pr[P_STOP_C]
     for j in range(ncyc):
         blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc)
@@ -723,6 +737,13 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
         out[j, O_POS_FB] = fb
         th_m = zview[midx] if midx >= 0 else _dot_state(mvec, zview, 0, n)
         out[j, O_MOTOR_POS] = quantise(th_m, pr[P_QENC])
+        if dly_sensor:
+            # the recorded channel of the feedback sensor is its delayed reading (what the drive read)
+            jd = (ri - ndead) % RING_SIZE
+            if fb_motor:
+                out[j, O_MOTOR_POS] = quantise(ring[jd, 0], pr[P_QENC])
+            else:
+                out[j, O_POS_MEAS] = quantise(ring[jd, 1] + pr[P_NOISE_POS] * noise[j, 0], pr[P_QSCALE])
         out[j, O_VEL] = zview[n + tb]
         if force_act:
             out[j, O_TORQUE] = f_act
@@ -760,7 +781,15 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
                 wm = _dot_state(mvec, zview, n, n)
             if kspd == 0:
                 # the quantity whose difference the speed loop measures: motor angle [rad] (pmsm) or position [m]
-                if not force_act:
+                if dly_speed:
+                    jd = (ri - ndead) % RING_SIZE
+                    if not force_act:
+                        coord = quantise(ring[jd, 0], qenc)
+                    elif fb_motor:
+                        coord = quantise(ring[jd, 0], qenc) * r_lead
+                    else:
+                        coord = quantise(ring[jd, 1], qscale)
+                elif not force_act:
                     coord = quantise(th_m, qenc)
                 elif fb_motor:
                     coord = quantise(th_m, qenc) * r_lead
@@ -768,9 +797,20 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
                     coord = quantise(zview[tb], qscale)
                 if st[S_SPD_INIT] == 0.0:
                     theta_prev = coord
+                    theta_prev2 = coord
                     st[S_SPD_INIT] = 1.0
-                w_meas = (coord - theta_prev) / tspd
+                if est2:
+                    # two-sample difference (q[k] - q[k-2]) / 2T
+                    w_raw = (coord - theta_prev2) / (2.0 * tspd)
+                    theta_prev2 = theta_prev
+                else:
+                    w_raw = (coord - theta_prev) / tspd
                 theta_prev = coord
+                if spd_filt > 0.0:
+                    # first-order low-pass, step-invariant: w_f += (1 - exp(-T/tau)) (w - w_f)
+                    w_meas += spd_filt * (w_raw - w_meas)
+                else:
+                    w_meas = w_raw
                 if enabled and mode != MODE_TORQUE:
                     ew = wref - w_meas
                     tref, int_w, _sat = pi_step(ew, int_w, kpw, giw, 0.0)
@@ -896,6 +936,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     st[S_INT_D], st[S_INT_Q], st[S_INT_W] = int_d, int_q, int_w
     st[S_IQ_REF], st[S_F_ACT], st[S_TORQUE] = iq_ref, f_act, torque_act
     st[S_THETA_PREV], st[S_W_MEAS] = theta_prev, w_meas
+    st[S_THETA_PREV2] = theta_prev2
     st[S_VSAT] = vsat
     st[S_T] = t_now
     st[S_RING] = ri

@@ -77,7 +77,10 @@ P_STOP_K = 72  # end-stop contact stiffness [N/m] (0: no end stops)
 P_STOP_C = 73  # end-stop contact damping [N s/m]
 # drive / axis options (virtualaxis.control.options; every default reproduces the behaviour before they existed)
 P_FV_NEG = 74  # viscous coefficient for -v [N s/m] (= P_FV unless friction.viscous_negative_n_s_per_m >= 0)
-N_PARAMS = 75
+P_DEAD_SENSOR = 75  # 1: the dead time delays the feedback sensor everywhere (speed loop, recorded channel)
+P_EST2 = 76  # 1: speed estimate (q[k] - q[k-2]) / 2T instead of (q[k] - q[k-1]) / T
+P_SPD_FILT = 77  # speed-estimate low-pass gain 1 - exp(-T_speed / tau) per speed sample; 0 = no filter
+N_PARAMS = 78
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0
@@ -115,6 +118,7 @@ S_CMD_POS = 31
 S_F_EXT = 32
 S_CONTACT_MODE = 33
 S_RIPPLE = 34  # accumulated within-period i_q variance x time (svpwm)
+S_THETA_PREV2 = 35  # speed-loop coordinate two speed samples back (two-sample speed estimate)
 Z0 = 40  # mechanical state z = [q, q'] starts here
 
 RING_SIZE = 4096
