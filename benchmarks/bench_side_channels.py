@@ -171,7 +171,7 @@ def dummy_modbus_server(port: int) -> None:
     from pymodbus.server import ModbusTcpServer
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    block = ModbusSequentialDataBlock(0, list(range(1000)))
+    block = ModbusSequentialDataBlock(1, list(range(1000)))
     context = ModbusServerContext(devices=ModbusDeviceContext(hr=block, ir=block), single=True)
 
     async def serve() -> None:
