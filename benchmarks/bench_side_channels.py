@@ -320,6 +320,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         load_flags += ["--load-cpus", ",".join(map(str, sorted(opts.load_cpus)))]
     try:
         x0 = setup_csp(bus, reply, node)
+        out["overruns_before_load_start"] = sdo(bus, reply, node, 0x2110, 2)  # serve's start-up and the set-up
         if mqtt_on:
             tel_out = str(tmp / f"telemetry-{port}.json")
             counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
@@ -340,6 +341,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
                 time.sleep(0.05)
             time.sleep(0.5)
         overruns0 = sdo(bus, reply, node, 0x2110, 2)  # drive cycle overruns (OD 0x2110:2) before the window
+        out["overruns_during_load_start"] = overruns0 - out["overruns_before_load_start"]  # clients starting
         clock.clear()
         n_sync = int(seconds / PERIOD_S)
         st0, mst0, t0 = thread_schedstat(proc.pid), thread_schedstat(os.getpid()), time.perf_counter()

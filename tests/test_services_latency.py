@@ -111,7 +111,7 @@ def test_serve_latency_probe_with_a_real_master(tmp_path):
         net = canopen.Network()
         net.connect(**srv.bus_kwargs())
         try:
-            node = canopen.RemoteNode(3, str(ROOT / "eds" / "virtualaxis.eds"))
+            node = canopen.RemoteNode(3, str(Path(ROOT) / "eds" / "virtualaxis.eds"))
             net.add_node(node)
             node.sdo[0x1801][2].raw = 1  # TPDO2 on every SYNC
             node.nmt.state = "OPERATIONAL"

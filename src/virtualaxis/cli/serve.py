@@ -125,14 +125,13 @@ def run(args) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     _log_to_stderr()
-    runtime.start()
-    try:
+    try:  # before the drive runs: forking the side channels' processes holds the interpreter lock for ms
         side.start(axes)
     except OSError as exc:
         side.stop()
-        runtime.stop()
         bus.shutdown()
         raise CliError(str(exc)) from None
+    runtime.start()
     from virtualaxis.services.latency_probe import name_threads
 
     name_threads()  # OS thread names = Python thread names (top -H, /proc/PID/task/*/comm)
