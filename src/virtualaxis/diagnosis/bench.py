@@ -174,6 +174,7 @@ def _command(cfg: AxisConfig, cond: Condition) -> tuple[np.ndarray, np.ndarray]:
 
 def generate_case(case: Case, out_dir: Path, seed: int, quick: bool) -> dict:
     """Write the case: nominal.toml, truth.json, fit/*.csv, holdout/*.csv."""
+    from virtualaxis.diagnosis.data import settled
     from virtualaxis.sim import simulate_command
 
     nominal = nominal_config(case.axis)
@@ -187,7 +188,9 @@ def generate_case(case: Case, out_dir: Path, seed: int, quick: bool) -> dict:
     files: dict[str, list[str]] = {"fit": [], "holdout": []}
     for k, cond in enumerate(conditions(quick)):
         t, pos = _command(nominal, cond)
-        res = simulate_command(truth, t, pos, seed=seed * 1000 + k)
+        # enabled and settled before the recording starts, as the diagnosis' model is (data.settled)
+        res = settled(lambda c, tt, pp, ff, sd: simulate_command(c, tt, pp, force_ext_n=ff, seed=sd), truth, t, pos,
+                      None, seed * 1000 + k)
         cols = {"t": t, "pos_cmd": pos, **{c: res[c] for c in keep if c in res}}
         path = out_dir / cond.role / f"{cond.name}.csv"
         write_trace(path, cols)

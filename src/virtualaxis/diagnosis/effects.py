@@ -111,6 +111,20 @@ def _force_scale(cfg: AxisConfig) -> float:
     return 20.0 * cfg.mechanics.table_mass_kg * 9.81  # 20 g worth of force
 
 
+def _peak_force(cfg: AxisConfig) -> float:
+    """The largest force the drive can apply at the table [N]: the current limit (0: 3 x rated) through k_t and
+    the lead, or the force actuator's limit; else :func:`_force_scale`."""
+    mo = cfg.motor
+    if cfg.actuator.kind == "pmsm" and cfg.mechanics.lead_m > 0:
+        i_max = cfg.control.current_limit_a or 3.0 * mo.rated_current_a
+        if i_max > 0 and mo.torque_constant_nm_per_a > 0:
+            return i_max * mo.torque_constant_nm_per_a * 2 * math.pi / cfg.mechanics.lead_m
+        return 3.0 * _force_scale(cfg)
+    if cfg.actuator.force_limit_n > 0:
+        return cfg.actuator.force_limit_n
+    return _force_scale(cfg)
+
+
 # ---------------------------------------------------------------- backlash
 def _backlash_params(cfg):
     g0 = cfg.backlash.gap_m if cfg.backlash.enabled else 0.0
@@ -168,7 +182,9 @@ def _viscous_params(cfg):
     vmax = cfg.limits.max_velocity_m_s
     typ = max(0.02 * fs / vmax, 50.0)
     f = cfg.friction
-    return [Param("viscous_n_s_per_m", "N s/m", 0.0, 0.5 * fs / vmax, typ,
+    # upper bound: the viscous force at the axis' top speed cannot exceed the drive's peak force (else the axis
+    # could not reach it); cold grease on a ball screw can take a good share of the rated force there
+    return [Param("viscous_n_s_per_m", "N s/m", 0.0, max(_peak_force(cfg), 0.5 * fs) / vmax, typ,
                   nominal=f.viscous_n_s_per_m if f.enabled else 0.0)]
 
 

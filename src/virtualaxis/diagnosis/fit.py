@@ -528,12 +528,14 @@ def fit_candidate(job: FitJob) -> CandidateResult:
             if not math.isfinite(cov_u[j, j]) and math.isfinite(cov_w[j, j]):
                 cov_u[j, j] = cov_w[j, j]
     stderr = {}
+    su_int = []
     for j, p in enumerate(model.free):
         su = math.sqrt(max(cov_u[j, j], 0.0)) if math.isfinite(cov_u[j, j]) else math.inf
+        su_int.append(su)
         dv = p.typical if p.scale == "lin" else values[p.name]
         stderr[p.name] = float(su * dv)
-    at_bound = [p.name for p, x, a, b in zip(model.free, u_hat, lo, hi, strict=True)
-                if abs(x - a) < 1e-6 * max(1, abs(a)) or abs(x - b) < 1e-6 * max(1, abs(b))]
+    at_bound = [p.name for p, x, a, b, su in zip(model.free, u_hat, lo, hi, su_int, strict=True)
+                if _at_bound(p, x, a, b, su)]
     fit_pred = model.predict(cfg_hat, job.fit_idx)
     hold_pred = model.predict(cfg_hat, job.holdout_idx)
     fit_res = [residuals(job.traces[i], p) for i, p in zip(job.fit_idx, fit_pred, strict=True)]
@@ -555,6 +557,19 @@ def fit_candidate(job: FitJob) -> CandidateResult:
         signature_overlap=overlap, n_sims=model.n_sims, seconds=time.perf_counter() - t0, at_bound=at_bound,
         stage="refine",
     )
+
+
+def _at_bound(p: fx.Param, x: float, lo: float, hi: float, su: float) -> bool:
+    """A fitted parameter (internal units ``x``, standard error ``su``) at a bound of its physical range: on it,
+    or a bound other than a physical zero within one standard error (the data do not tell the value from the
+    bound: a Stribeck velocity of 48 +- 3 mm/s under a 50 mm/s bound is the fit asking for more than the
+    range allows, a Coulomb-like friction dressed as Stribeck)."""
+    for b, bv in ((lo, p.lower), (hi, p.upper)):
+        if abs(x - b) < 1e-6 * max(1, abs(b)):
+            return True
+        if bv != 0.0 and math.isfinite(su) and abs(x - b) < su:
+            return True
+    return False
 
 
 def _safe_fit(job: FitJob) -> CandidateResult:
