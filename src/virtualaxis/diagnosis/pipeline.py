@@ -475,6 +475,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "description": fx.EFFECTS[name].description,
                 "signature": fx.EFFECTS[name].signature,
                 "params": _param_table(name, model_cfg, r.values, r.stderr) if r.values else {},
+                "result_values": dict(r.values),
                 "params_at_bound": r.at_bound,
                 "accepted": accepted_here,
                 "round": rnd + 1,
@@ -496,12 +497,15 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "error": r.error,
             }
     joint = sel.joint
-    if joint and joint["accepted"]:  # the accepted effects' parameters are the jointly refitted ones
-        for n in accepted_names:
-            e = entries[n]
+    # the accepted effects' parameters are the final model's (after joint refits: not the round's own fit)
+    for step in sel.accepted:
+        e = entries[step.effect]
+        if step.values != e["result_values"]:
             e["params_sequential"] = e["params"]
-            e["params"] = _param_table(n, cfg, joint["joint_values"][n], joint["joint_stderr"].get(n, {}))
+            e["params"] = _param_table(step.effect, cfg, step.values, step.stderr)
             e["refit"] = "joint"
+    for e in entries.values():
+        e.pop("result_values", None)
     ranked = [entries[n] for n in accepted_names] + sorted(
         (e for n, e in entries.items() if n not in accepted_names), key=lambda e: e["ic_delta"])
     for k, e in enumerate(ranked):

@@ -212,11 +212,20 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
     return out
 
 
+def summarise_by_structure(results: list[dict]) -> dict[str, dict]:
+    """:func:`summarise_reference` per structure of the reference (the case name's part before the "/")."""
+    groups: dict[str, list[dict]] = {}
+    for r in results:
+        groups.setdefault(str(r["case"]).split("/", 1)[0], []).append(r)
+    return {k: summarise_reference(v) for k, v in groups.items()}
+
+
 def _write_summary(out_dir: Path, seed: int, quick: bool, results: list[dict], t0: float, complete: bool) -> dict:
     """``reference.json`` after every case (a long run that is stopped keeps what it scored)."""
     from virtualaxis.diagnosis.report import report_json
 
     summary = summarise_reference(results)
+    summary["by_structure"] = summarise_by_structure(results)
     summary["seconds"] = time.perf_counter() - t0
     out = {"generator": "virtualaxis.refaxis", "seed": seed, "quick": quick, "complete": complete,
            "summary": summary, "cases": results}
@@ -232,6 +241,26 @@ def _truth_metrics(cf: Any, report: dict) -> dict | None:
     if isinstance(ceil, dict):
         return {ch: {"rmse": float(v)} for ch, v in ceil.items()}
     return None
+
+
+def rescore_reference(out_dir: Path, seed: int = 0, quick: bool = False) -> dict:
+    """Summarise every case scored under ``out_dir`` (``<case>/score.json``, in the reference's case order): a
+    bench run in chunks (``--cases``) into one directory gives the figures of the whole. Rewrites
+    ``reference.json``."""
+    from virtualaxis.refaxis import case_names as ref_case_names
+
+    results = []
+    for name in ref_case_names():
+        f = Path(out_dir) / name.replace("/", "__") / "score.json"
+        if f.exists():
+            results.append(load_json(f))
+    if not results:
+        from virtualaxis.config.errors import InputError
+
+        raise InputError(str(out_dir), "no scored reference case (<case>/score.json) in this directory")
+    out = _write_summary(out_dir, seed, quick, results, time.perf_counter(), complete=True)
+    out["summary"]["seconds"] = float(sum(r.get("seconds", 0.0) for r in results))
+    return out
 
 
 def load_json(path: Path) -> dict:
