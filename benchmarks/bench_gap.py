@@ -59,7 +59,8 @@ def main() -> None:
         return
 
     def progress(ev: dict) -> None:
-        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se({'stderr': v['stderr'], 'determined': v['stderr'] is not None})}"
+                        f" (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         pos = ev["heldout_rmse_shrink"].get("pos_meas", float("nan"))
         print(f"{ev['case']:20s} truth={'+'.join(ev['truth']) or '-':30s} found={'+'.join(ev['accepted']) or '-':30s}"
@@ -97,7 +98,7 @@ def reference(a, names, t0: float) -> None:
     from virtualaxis.gapbench.reference import run_reference_bench
 
     def progress(ev: dict) -> None:
-        rec = "; ".join(f"{k} {v['fitted']:.4g} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         ceil = ev["truth_model_ceiling"]
         print(f"{ev['case']:42s} truth={'+'.join(ev['truth']) or '-':36s} found={'+'.join(ev['answer']) or '-':36s}"
@@ -129,6 +130,10 @@ def reference(a, names, t0: float) -> None:
     print(f"main parameter within 15 %: {pct(s['param_within_15pct'])} (>= 90 %; median error "
           f"{pct(s['param_rel_error_median'])})   held-out RMSE shrink >= 60 % on the effect's channel: "
           f"{pct(s['shrink_ge_60pct'])}")
+    if s.get("param_n_with_stderr"):
+        print(f"reported uncertainty: true value within 2 standard errors for {pct(s['param_within_2_stderr'])} of "
+              f"{s['param_n_with_stderr']} found main parameters; {s['param_n_undetermined']} reported as not "
+              "determined by the fit traces")
     for st, v in s.get("by_structure", {}).items():
         print(f"  {st:12s} ({v['n_effect_cases']} + {v['n_clean_cases']} clean): first {pct(v['right_effect_first'])}, "
               f"clean {pct(v['clean_nothing_accepted'])}, none outside {pct(v['none_outside_truth'])}, "

@@ -165,6 +165,14 @@ def summarise_reference(results: list[dict]) -> dict:
         "none_outside_truth": mean([r["none_outside"] for r in results]),
         "param_within_15pct": mean([x <= PARAM_TOLERANCE for x in recs]),
         "param_rel_error_median": float(np.median(recs)) if recs else math.nan,
+        # reported uncertainty: of the found main parameters with a standard error, the share whose true value
+        # lies within two of them (and how many were reported as not determined by the fit traces)
+        "param_within_2_stderr": mean([abs(v["fitted"] - v["true"]) <= 2 * v["stderr"] for r in eff
+                                       for v in r["param_recovery"].values()
+                                       if v.get("stderr") is not None and math.isfinite(v["stderr"])]),
+        "param_n_with_stderr": sum(1 for r in eff for v in r["param_recovery"].values()
+                                   if v.get("stderr") is not None and math.isfinite(v["stderr"])),
+        "param_n_undetermined": sum(1 for r in eff for v in r["param_recovery"].values() if v.get("stderr") is None),
         "shrink_ge_60pct": mean([r["shrink_on_effect_channel"] >= SHRINK_TARGET for r in shr]),
         "shrink_ge_60pct_or_ceiling": mean([
             r["shrink_on_effect_channel"] >= min(SHRINK_TARGET, 0.9 * r["truth_model_ceiling"])
