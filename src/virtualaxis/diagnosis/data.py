@@ -71,36 +71,17 @@ SETTLE_S = 0.2
 def settled(simulate: SimulateFn, cfg: AxisConfig, t: np.ndarray, pos_cmd: np.ndarray,
             force_ext: np.ndarray | None, seed: int, settle_s: float = SETTLE_S) -> dict[str, np.ndarray]:
     """``simulate`` on ``t`` after ``settle_s`` of standstill at ``pos_cmd[0]`` (no external force); the
-    outputs of the settling part are cut off, so every channel is on ``t`` again. The recorded channel of a
-    delayed feedback sensor is delayed too (:func:`recorded_delay`)."""
+    outputs of the settling part are cut off, so every channel is on ``t`` again."""
     t = np.asarray(t, dtype=float)
     if t.size < 2 or settle_s <= 0:
-        return recorded_delay(cfg, t, simulate(cfg, t, pos_cmd, force_ext, seed))
+        return simulate(cfg, t, pos_cmd, force_ext, seed)
     dt = float(t[1] - t[0])
     n = int(round(settle_s / dt))
     tt = np.concatenate([t[0] - dt * np.arange(n, 0, -1), t])
     pp = np.concatenate([np.full(n, float(pos_cmd[0])), pos_cmd])
     ff = None if force_ext is None else np.concatenate([np.zeros(n), force_ext])
-    out = recorded_delay(cfg, tt, simulate(cfg, tt, pp, ff, seed))
+    out = simulate(cfg, tt, pp, ff, seed)
     return {k: (np.asarray(v)[n:] if np.ndim(v) == 1 and np.size(v) == tt.size else v) for k, v in out.items()}
-
-
-def recorded_delay(cfg: AxisConfig, t: np.ndarray, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The recorded channels of the delayed position sensor, delayed like the feedback the loop reads.
-
-    ``sensors.dead_time_s`` delays the position loop's feedback (``pos_fb``) in the simulator; the other
-    channel recording the same sensor (``motor_pos`` for a motor-encoder feedback, ``pos_meas`` for a
-    linear-scale feedback) comes out undelayed. A drive's trace records the sensor as the drive read it, so both
-    carry the delay (an encoder read over a serial protocol, a scale over a fieldbus); the model's channel is
-    delayed here by linear interpolation (``t`` uniform, values before the first sample held)."""
-    d = float(cfg.sensors.dead_time_s)
-    if d <= 0 or t.size < 2:
-        return out
-    ch = "pos_meas" if cfg.control.position_feedback == "linear_scale" else "motor_pos"
-    x = out.get(ch)
-    if x is None or np.ndim(x) != 1 or np.size(x) != t.size:
-        return out
-    return {**out, ch: np.interp(t - d, t, np.asarray(x, dtype=float))}
 
 
 def simulate_trace(cfg: AxisConfig, td: TraceData, simulate: SimulateFn) -> dict[str, np.ndarray]:
