@@ -280,6 +280,20 @@ class PdoEngine:
                 tpdo.sync_count = 0
                 self._transmit(tpdo, now_s)
 
+    def skip_sync(self, counter: int, counter_enabled: bool) -> None:
+        """A SYNC not answered (see ``CanopenSlave.skip_sync``): the cyclic TPDOs count it, nothing is sent."""
+        for tpdo in self.sync_tpdos:
+            if tpdo.trans_type == 0:
+                continue
+            if tpdo.sync_start and counter_enabled and not tpdo.started:
+                if counter != tpdo.sync_start:
+                    continue
+                tpdo.started = True
+                tpdo.sync_count = 0
+            tpdo.sync_count += 1
+            if tpdo.sync_count >= tpdo.trans_type:
+                tpdo.sync_count = 0
+
     def poll(self, now_s: float) -> None:
         """Event-driven TPDOs (change + inhibit time, event timer) and RPDO deadlines; OPERATIONAL only."""
         for tpdo in self.event_tpdos:

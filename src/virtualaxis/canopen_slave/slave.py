@@ -210,6 +210,27 @@ class CanopenSlave:
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
 
+    def skip_sync(self, counter: int) -> None:
+        """A SYNC the application could not answer in time (the runtime answers only the latest of a backlog):
+        the synchronous RPDOs received before it are applied (no set-point or controlword edge is lost), no
+        TPDO goes out for it (a transmission that fell on it is lost); the cyclic TPDOs count it (their
+        every-n-th SYNC stays in phase with the master's). Counted in ``counters["syncs_skipped"]``."""
+        if self._applied_ahead:
+            self._applied_ahead -= 1
+            due = None
+        else:
+            due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+        self.counters["syncs_skipped"] += 1
+        if self.nmt_state != NmtState.OPERATIONAL:
+            return
+        try:
+            if due:
+                for rpdo, data in due:
+                    self.pdo.apply(rpdo, data)
+            self.pdo.skip_sync(counter, self.sync.counter_enabled)
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
+
     def read(self, index: int, sub: int = 0):
         """Internal read, no access checks (KeyError for an object not in the EDS)."""
         if index == DIAGNOSTICS or index == ABORT_COUNTERS:

@@ -128,6 +128,26 @@ MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
 
 
+#: option codes and other objects with a narrower range than their data type: key -> (min, max)
+_VALUE_RANGES = {
+    (0x605A, 0): (0, 8),
+    (0x605B, 0): (0, 1),
+    (0x605C, 0): (0, 1),
+    (0x605D, 0): (1, 3),
+    (0x605E, 0): (0, 2),
+    (0x6007, 0): (0, 3),
+    (0x2002, 0): (0, 2),
+    (0x2012, 0): (0, 1),
+    (0x2013, 0): (0, 1),
+    (0x60C2, 2): (-6, 0),
+    (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
+}
+#: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
+_REACTION_ORDER = {0x6060: 0, 0x6040: 2}
+#: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
+_TRANSITIONS = {(state.value, bits): transition_for(state, decode(bits)) for state in S for bits in range(16)}
+
+
 class ObjectAccessError(Exception):
     """A refused object access; ``code`` is the SDO abort code a CANopen master sees."""
 
@@ -369,21 +389,8 @@ class Drive:
             raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi}")
         if value < lo:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo}")
-        ranges = {
-            (0x605A, 0): (0, 8),
-            (0x605B, 0): (0, 1),
-            (0x605C, 0): (0, 1),
-            (0x605D, 0): (1, 3),
-            (0x605E, 0): (0, 2),
-            (0x6007, 0): (0, 3),
-            (0x2002, 0): (0, 2),
-            (0x2012, 0): (0, 1),
-            (0x2013, 0): (0, 1),
-            (0x60C2, 2): (-6, 0),
-            (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
-        }
-        if key in ranges:
-            lo2, hi2 = ranges[key]
+        if key in _VALUE_RANGES:
+            lo2, hi2 = _VALUE_RANGES[key]
             if value > hi2:
                 raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}")
             if value < lo2:
@@ -446,7 +453,8 @@ class Drive:
                 if key[0] in _MONITOR_PARAMETER_INDICES:
                     self._params_dirty = True
                 keyed.append((key, value))
-            keyed.sort(key=lambda kv: 0 if kv[0][0] == 0x6060 else 2 if kv[0][0] == 0x6040 else 1)
+            if len(keyed) > 1:
+                keyed.sort(key=_reaction_rank)
             for key, value in keyed:
                 self._react(key, value)
 
@@ -466,10 +474,11 @@ class Drive:
 
     def take_changes(self) -> list[tuple[int, int, int | float]]:
         """Objects changed since the last call (the CANopen application mirrors them into the OD)."""
+        if not self._changed:  # (read without the lock: a change being made now is taken by the next call)
+            return []
         with self._lock:
-            if not self._changed:
-                return []
-            out = [(k[0], k[1], self.objects[k]) for k in self._changed]
+            o = self.objects
+            out = [(k[0], k[1], o[k]) for k in self._changed]
             self._changed = set()
             return out
 
@@ -562,8 +571,7 @@ class Drive:
         if self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
             self._mode_controlword(old_cw, cw)
             return
-        command = decode(cw)
-        tr = transition_for(self._state, command)
+        tr = _TRANSITIONS[(self._state._value_, cw & 0xF)]
         if tr == Transition.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
             tr = Transition.ILLEGAL
         if tr == Transition.ILLEGAL and cw != old_cw:
@@ -1033,10 +1041,11 @@ class Drive:
                 self._set_position(self._demand_m, 0.0)
         self.sim.advance(1)
         self._prev_actual_m = self._axis.position_m
-        ax = self._axis = self.sim.state
+        ax = self._axis = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
         self.counters["cycles"] += 1
-        if not (math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s) and math.isfinite(ax.table_position_m)
-                and math.isfinite(ax.current_q_a)):
+        if not math.isfinite(ax.position_m + ax.velocity_m_s + ax.table_position_m + ax.current_q_a) and not (
+                math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
+                and math.isfinite(ax.table_position_m) and math.isfinite(ax.current_q_a)):
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
         if not self._power:
             self._demand_m = ax.position_m - self._zero_m
@@ -1321,6 +1330,10 @@ class _Params:
     rated_a: float
     max_speed_m_s: float  # 0x6080 as table speed
     max_velocity_m_s: float  # velocity targets' limit: 0x607F and 0x6080
+
+
+def _reaction_rank(item: tuple[tuple[int, int], int | float]) -> int:
+    return _REACTION_ORDER.get(item[0][0], 1)
 
 
 def _i32(x: float) -> int:

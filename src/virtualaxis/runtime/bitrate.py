@@ -133,19 +133,40 @@ class BitRateBus(can.BusABC):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         msg = self.inner.recv(timeout)
         if msg is not None:
-            bits = frame_bits(msg, self.stuffing)
-            now = time.perf_counter()
-            with self._lock:
-                self.frames_rx += 1
-                self.bits_rx += bits
-                # the frame ended about now and took the bus for bits / bitrate before
-                start = max(self._idle_s, now - bits / self.bitrate)
-                self._idle_s = max(self._idle_s, start + bits / self.bitrate)
-                self._account(self._idle_s, bits)
+            self._took_bus(msg)
         return msg, False
+
+    def _took_bus(self, msg: can.Message) -> None:
+        """A frame received from another node: it took the bus for its bits (timeline, load)."""
+        bits = frame_bits(msg, self.stuffing)
+        now = time.perf_counter()
+        with self._lock:
+            self.frames_rx += 1
+            self.bits_rx += bits
+            # the frame ended about now and took the bus for bits / bitrate before
+            start = max(self._idle_s, now - bits / self.bitrate)
+            self._idle_s = max(self._idle_s, start + bits / self.bitrate)
+            self._account(self._idle_s, bits)
 
     def fileno(self) -> int:
         return self.inner.fileno()
+
+    def drain(self, limit: int, on_error=None) -> list[can.Message]:
+        """The wrapped bus's waiting frames at once (its ``drain``, else ``recv(0)`` in turn), each taking
+        its bus time as in :meth:`_recv_internal`."""
+        inner_drain = getattr(self.inner, "drain", None)
+        if inner_drain is not None:
+            frames = inner_drain(limit, on_error)
+        else:
+            frames = []
+            for _ in range(limit):
+                msg = self.inner.recv(0.0)
+                if msg is None:
+                    break
+                frames.append(msg)
+        for msg in frames:
+            self._took_bus(msg)
+        return frames
 
     def shutdown(self) -> None:
         with self._lock:

@@ -16,10 +16,18 @@ from __future__ import annotations
 
 import itertools
 import os
+import socket
+import struct
+from collections.abc import Callable
 from typing import Any
 
 import can
 from can.interfaces.udp_multicast import UdpMulticastBus
+
+try:
+    import msgpack
+except ImportError:  # (python-can's udp_multicast refuses to open without it)
+    msgpack = None
 
 DEFAULT_BUS = "socketcan:vcan0"
 DEFAULT_UDP_GROUP = "239.74.163.2"
@@ -50,6 +58,54 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         super().__init__(channel=channel, port=port, hop_limit=hop_limit, **kwargs)
         self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"
         self.own_frames_dropped = 0
+        self.malformed_dropped = 0
+        self._drain_setup()
+
+    def _drain_setup(self) -> None:
+        """What :meth:`drain` needs of python-can's multicast socket (its kernel receive timestamps); without
+        it :meth:`drain` is not offered (``drain`` = None) and a reader uses ``recv``."""
+        mc = getattr(self, "_multicast", None)
+        sock = getattr(mc, "_socket", None)
+        if msgpack is None or sock is None or not getattr(mc, "timestamp_nanosecond", False):
+            self.drain = None  # type: ignore[assignment]
+            return
+        self._sock = sock
+        self._max_buffer = mc.max_buffer
+        self._anc_size = mc.received_ancillary_buffer_size
+        self._ts_struct = struct.Struct(mc.received_timestamp_struct)
+
+    def drain(self, limit: int, on_error: Callable[[Exception], None] | None = None) -> list[can.Message]:
+        """Every frame waiting in the socket (at most ``limit``), without blocking: one non-blocking
+        ``recvmsg`` per datagram and no ``select`` (python-can's ``recv`` does one of each per frame), own
+        frames dropped before a Message is built. Decoded as python-can's udp_multicast does (msgpack, the
+        kernel's receive timestamp); a datagram that does not decode is counted in :attr:`malformed_dropped`
+        and reported to ``on_error`` (as a receive thread's listener would be told), the rest still read."""
+        out: list[can.Message] = []
+        sock, tag, unpackb = self._sock, self.own_tag, msgpack.unpackb
+        flags = socket.MSG_DONTWAIT
+        for _ in range(limit):
+            try:
+                data, anc, _flags, _addr = sock.recvmsg(self._max_buffer, self._anc_size, flags)
+            except (BlockingIOError, InterruptedError):
+                break
+            try:
+                fields = unpackb(data, raw=False)
+                if fields.get("channel") == tag:
+                    self.own_frames_dropped += 1
+                    continue
+                if anc:
+                    sec, nsec = self._ts_struct.unpack(anc[0][2])
+                    fields["timestamp"] = sec + nsec * 1e-9
+                msg = can.Message(check=True, **fields)
+            except Exception as exc:  # noqa: BLE001 - a foreign datagram: counted, not fatal
+                self.malformed_dropped += 1
+                if on_error is not None:
+                    on_error(can.CanOperationError(f"could not unpack received message: {exc}"))
+                continue
+            if msg.is_fd:  # CAN FD is off on this bus (as python-can's recv drops it)
+                continue
+            out.append(msg)
+        return out
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         msg.channel = self.own_tag

@@ -1,8 +1,9 @@
 """Pacing of the drives on one bus: real time (wall clock) or SYNC lockstep.
 
 - **real time**: every drive advances one position-loop cycle per period of the wall clock
-  (``time.perf_counter``; a short ``Event.wait`` that a received frame interrupts, then a spin for the
-  last ``spin_s`` that yields the GIL with ``sleep(0)`` so that the receive threads are never held up).
+  (``time.perf_counter``; a wait that a received frame interrupts, with the thread's timer slack set to
+  1 us, then a spin for the last ``spin_s`` that yields the GIL with ``sleep(0)``: on a loaded machine a
+  thread that stays runnable starts its cycle sooner than one woken from a sleep).
   A cycle that starts more than one period late is an *overrun*: counted
   (:attr:`RuntimeStats.overruns`, OD 0x2110:2), the late cycles are still run back to back (at most
   ``max_catch_up`` before the bus is polled again) so that the plant time stays equal to the wall time;
@@ -15,7 +16,20 @@
   runs exactly one communication cycle (0x1006 / position cycle, at least one drive cycle) on the new
   set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
   real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
-  machine's speed. SDO, NMT, heartbeat and timers keep running between SYNCs.
+  machine's speed, as long as the host keeps up. SDO, NMT, heartbeat and timers keep running between SYNCs.
+  When it does not (several SYNCs arrived since the last pass: a saturated CPU), the runtime does what a
+  drive does with cycles it could not run in time: it answers only the LATEST SYNC, at once, and counts the
+  others (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
+  :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2); their synchronous RPDOs are still applied in
+  order (no set-point or controlword edge is lost) and the cyclic TPDOs count them, but no TPDO goes out
+  for them and the plant does not run their cycles. Working the backlog off instead (``catch_up_syncs=True``,
+  the exact SYNC-count plant time of a deterministic run) makes every later answer later still on a machine
+  that cannot keep up.
+
+Frames: a ``can.Notifier`` thread reads the bus and wakes the loop. With ``read_in_loop=True`` on a bus
+with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around them) the runtime
+thread reads the bus itself instead (it waits on the descriptor, then takes every waiting frame in one pass
+and routes it to its axes): no receive thread, no hand-over of each frame between threads (experimental).
 
 Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
 (``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
@@ -28,7 +42,10 @@ escapes the loop itself stops the thread; it is logged and recorded in :attr:`Ru
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import logging
+import select
 import threading
 import time
 import traceback
@@ -43,13 +60,39 @@ log = logging.getLogger("virtualaxis.runtime")
 INTERNAL_SOFTWARE_FAULT = 0x6100
 #: tracebacks logged per axis before only every 1000th is
 LOGGED_TRACEBACKS = 5
+#: frames taken from the bus in one pass of the loop at most (a flood cannot starve the drive cycles)
+DRAIN_LIMIT = 256
+#: timer slack of the runtime thread [ns] (Linux default 50 us; prctl PR_SET_TIMERSLACK)
+TIMER_SLACK_NS = 1000
+_PR_SET_TIMERSLACK = 29
+
+
+def freeze_startup_heap() -> None:
+    """Collect once, then move every object alive now (EDS dictionaries, numba and canopen internals, the
+    axes) out of the cyclic garbage collector's reach (``gc.freeze``). A full collection of a process serving
+    seven axes walks ~170 000 objects: 80-150 ms during which nothing is served, every few seconds. Call it
+    once the axes are built, in a process that serves (not in a test process that builds many runtimes:
+    frozen cycles are never collected)."""
+    gc.collect()
+    gc.freeze()
+
+
+def _fine_timer_slack() -> None:
+    """This thread's timer slack to :data:`TIMER_SLACK_NS` (waits end on time without a spin); Linux only,
+    silently nothing elsewhere."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_TIMERSLACK, TIMER_SLACK_NS, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
 
 
 @dataclass
 class RuntimeStats:
     cycles: int = 0  # drive cycles run (per axis)
     overruns: int = 0  # cycles that started more than one period late
-    skipped: int = 0  # cycles given up after falling more than max_lag_s behind (also counted as overruns)
+    skipped: int = 0  # cycles given up (real time: > max_lag_s behind; lockstep: skipped SYNCs), also overruns
+    syncs_skipped: int = 0  # lockstep: SYNCs of a backlog not answered (only the latest is; per axis, first axis)
     max_late_s: float = 0.0  # largest lateness of a cycle start
     syncs: int = 0  # SYNC frames handled (per axis, first axis)
     loops: int = 0  # poll loop iterations
@@ -70,6 +113,7 @@ class RuntimeStats:
             "skipped": self.skipped,
             "max_late_ms": self.max_late_s * 1e3,
             "syncs": self.syncs,
+            "syncs_skipped": self.syncs_skipped,
             "loops": self.loops,
             "elapsed_s": elapsed,
             "busy_share": self.busy_s / elapsed if elapsed > 0 else 0.0,
@@ -77,6 +121,15 @@ class RuntimeStats:
             "last_exception": self.last_exception,
             "thread_error": self.thread_error,
         }
+
+
+def _receive_fd(bus: can.BusABC) -> int:
+    """The descriptor the loop can wait on and read the bus through itself, -1 if it has none."""
+    try:
+        fd = bus.fileno()
+    except Exception:  # noqa: BLE001 - NotImplementedError (virtual bus) or a closed bus
+        return -1
+    return fd if isinstance(fd, int) and fd >= 0 else -1
 
 
 class _Router(can.Listener):
@@ -128,6 +181,8 @@ class Runtime:
         idle_poll_s: float = 1e-3,
         max_catch_up: int = 5,
         max_lag_s: float = 0.5,
+        catch_up_syncs: bool = False,
+        read_in_loop: bool = False,
     ):
         if not axes:
             raise ValueError("no axes to run")
@@ -145,11 +200,16 @@ class Runtime:
         self.idle_poll_s = idle_poll_s
         self.max_catch_up = max_catch_up  # late cycles run back to back before the bus is polled again
         self.max_lag_s = max_lag_s
+        self.catch_up_syncs = catch_up_syncs  # lockstep: work a SYNC backlog off instead of skipping it
+        self.read_in_loop = read_in_loop  # read the bus in the loop's thread (if it has a descriptor)
         self.stats = RuntimeStats()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._notifier: can.Notifier | None = None
+        self._opened = False
+        self._fd = -1  # the bus's receive descriptor when the loop reads the bus itself (-1: a Notifier does)
+        self._bus_drain = None  # the bus's own drain(limit, on_error) -> frames, when it has one
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
         self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
@@ -160,10 +220,15 @@ class Runtime:
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
         """Start receiving and boot every slave (boot-up frame, PRE-OPERATIONAL)."""
-        if self._notifier is not None:
+        if self._opened:
             return
+        self._opened = True
         self.router = _Router([ax.slave for ax in self.axes], self._wake)
-        self._notifier = can.Notifier(self.bus, [self.router], timeout=0.05)
+        self._fd = _receive_fd(self.bus) if self.read_in_loop else -1
+        if self._fd >= 0:
+            self._bus_drain = getattr(self.bus, "drain", None)
+        else:
+            self._notifier = can.Notifier(self.bus, [self.router], timeout=0.05)
         now = self.now()
         for ax in self.axes:
             ax.slave.boot(now)
@@ -185,6 +250,7 @@ class Runtime:
         if self._notifier is not None:
             self._notifier.stop()
             self._notifier = None
+        self._opened = False
 
     def __enter__(self) -> Runtime:
         return self.start()
@@ -255,6 +321,8 @@ class Runtime:
             if ax is axes[0]:
                 stats.syncs += len(counters)
             if self.lockstep:
+                if len(counters) > 1 and not self.catch_up_syncs:
+                    counters = self._skip_backlog(ax, counters)
                 # answer the SYNC first (its RPDOs applied, the TPDOs due sent with the values at the SYNC
                 # instant = the end of the previous cycle); the cycles run once every axis has answered
                 ax.slave.on_sync(counters[0], now)
@@ -276,8 +344,63 @@ class Runtime:
                     stats.cycles += n * len(counters)
             stepping.clear()
 
+    def _skip_backlog(self, ax: AxisNode, counters: list[int]) -> list[int]:
+        """Lockstep, several SYNCs since the last pass: all but the latest are skipped (see the module doc:
+        RPDOs applied, no TPDO, no cycles, counted); returns the latest alone."""
+        skipped = counters[:-1]
+        for counter in skipped:
+            ax.slave.skip_sync(counter)
+        self._flush(ax)
+        lost = len(skipped) * ax.sync_cycles()
+        ax.drive.record_overrun(lost)
+        if ax is self.axes[0]:
+            self.stats.syncs_skipped += len(skipped)
+            self.stats.skipped += lost
+            self.stats.overruns += lost
+        return counters[-1:]
+
+    # ------------------------------------------------------------------ frames
+    def _drain(self) -> None:
+        """Direct reading: every frame waiting on the bus (at most :data:`DRAIN_LIMIT`) to its slaves."""
+        router = self.router
+        route = router.on_message_received
+        try:
+            if self._bus_drain is not None:
+                for msg in self._bus_drain(DRAIN_LIMIT, router.on_error):
+                    route(msg)
+                return
+            recv = self.bus.recv
+            for _ in range(DRAIN_LIMIT):
+                msg = recv(0.0)
+                if msg is None:
+                    return
+                route(msg)
+        except (can.CanError, OSError, ValueError) as exc:  # a receive error: counted, the loop goes on
+            router.on_error(exc)
+
+    def _frames_waiting(self) -> bool:
+        """A frame has arrived that the loop has not taken yet."""
+        if self._fd < 0:
+            return self._wake.is_set()
+        try:
+            return bool(select.select((self._fd,), (), (), 0)[0])
+        except (OSError, ValueError):
+            return False
+
+    def _wait(self, timeout_s: float) -> None:
+        """Until a frame arrives or ``timeout_s`` has passed (or :meth:`stop`)."""
+        if self._fd < 0:
+            self._wake.wait(timeout_s)
+            return
+        try:
+            select.select((self._fd,), (), (), timeout_s)
+        except (OSError, ValueError):  # the bus was closed under the loop: stop() follows
+            self._stop.wait(timeout_s)
+
     def _run(self, duration_s: float | None = None) -> RuntimeStats:
         self.open()
+        _fine_timer_slack()
+        direct = self._fd >= 0
         end = None if duration_s is None else time.perf_counter() + duration_s
         period = self.period_s
         axes = self.axes
@@ -293,8 +416,10 @@ class Runtime:
             if end is not None and t_busy >= end:
                 break
             wake.clear()
+            if direct:
+                self._drain()
             with self.lock:
-                self._service(t_busy - self._t0)
+                self._service(perf() - self._t0)
                 if not self.lockstep:
                     t = perf()
                     if t - next_cycle > self.max_lag_s:
@@ -317,10 +442,12 @@ class Runtime:
                                 ax.drive.record_overrun()
                         for ax in axes:
                             self._step(ax, 1)
-                            if wake.is_set() and len(axes) > 1:
+                            if len(axes) > 1 and self._frames_waiting():
                                 # a frame arrived meanwhile (a SYNC?): answer it before the next axis's
                                 # cycle, so no SYNC waits for the cycles of every axis
                                 wake.clear()
+                                if direct:
+                                    self._drain()
                                 self._service(perf() - self._t0)
                         stats.cycles += 1
                         next_cycle += period
@@ -333,8 +460,10 @@ class Runtime:
             # wait for the next cycle (real time) or for a frame / the timer tick (both modes)
             deadline = t + self.idle_poll_s if self.lockstep else min(next_cycle, t + self.idle_poll_s)
             remaining = deadline - t
-            if remaining > self.spin_s:
-                wake.wait(remaining - self.spin_s)
-            while not wake.is_set() and perf() < deadline:
-                sleep(0)  # yields the GIL: the bus receive threads must not wait for the spin
+            spin = 0.0 if self.lockstep else self.spin_s  # (lockstep: no deadline to meet, nothing to spin for)
+            if remaining > spin:
+                self._wait(remaining - spin)
+            if spin:
+                while not self._frames_waiting() and perf() < deadline:
+                    sleep(0)  # yields the GIL (other threads: side channels, the bit-rate transmitter)
         return stats

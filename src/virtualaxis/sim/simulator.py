@@ -50,6 +50,22 @@ class AxisState:
     screw_temperature_rise_k: float
 
 
+class AxisReading:
+    """The fields of :class:`AxisState`, mutable, refreshed in place by :meth:`AxisSimulator.observe` (the
+    drive's per-cycle view of the plant: one object per simulator, no allocation per cycle)."""
+
+    __slots__ = tuple(AxisState.__dataclass_fields__)
+
+    def __init__(self) -> None:
+        for name in self.__slots__:
+            setattr(self, name, 0.0)
+        self.current_limited = self.voltage_saturated = self.stuck = False
+
+
+#: cycles of sensor noise drawn at once by the step API [cycles]
+NOISE_BLOCK = 256
+
+
 def _ratio(outer: float, inner: float) -> int:
     return int(round(outer / inner))
 
@@ -203,20 +219,31 @@ class AxisSimulator:
         self._adt = np.ascontiguousarray(np.swapaxes(self.dm.ad, 2, 3))
         self._bdt = np.ascontiguousarray(np.swapaxes(self.dm.bd, 2, 3))
         self._rng = np.random.default_rng(cfg.simulation.seed if seed is None else seed)
-        # one-cycle buffers of the step API
+        # one-cycle buffers of the step API (preallocated: a step allocates nothing but the kernel call)
         self._one = {k: np.zeros(1) for k in ("pos", "vel", "acc", "aux", "fext")}
+        self._pos1, self._vel1, self._acc1 = self._one["pos"], self._one["vel"], self._one["acc"]
+        self._aux1, self._fext1 = self._one["aux"], self._one["fext"]
         self._force_offset = -float(cfg.effects.force_offset_n)  # a load against +x: external force -offset
         self._one["fext"][0] = self._force_offset
         self._noise1 = np.zeros((1, 2))
+        # sensor noise of the step API drawn NOISE_BLOCK cycles at a time (the same stream as one draw of 2
+        # per cycle: numpy's Generator fills an array element by element); row views made once
+        self._noisy = bool(self.pr[L.P_NOISE_POS] or self.pr[L.P_NOISE_I])
+        self._noise_block = np.zeros((NOISE_BLOCK, 2))
+        self._noise_rows = [self._noise_block[i:i + 1] for i in range(NOISE_BLOCK)]
+        self._noise_next = NOISE_BLOCK  # next unused row of the block (NOISE_BLOCK: none drawn)
         self._out1 = np.zeros((1, L.N_OUT))
-        self._last = np.zeros(L.N_OUT)
+        self._last = self._out1[0]  # the outputs at the start of the last simulated cycle (a view, no copy)
+        self._reading = AxisReading()
         self._velocity_setpoint = 0.0
         self._torque_setpoint = 0.0
         self._force_actuator = bool(self.pr[L.P_FORCE_ACT] != 0)
         self._motor_index = int(self.pr[L.P_MOTOR_IDX])
         self._motor_vector = [float(x) for x in self.dm.motor_angle_vector]
         self._dc_link_v = float(cfg.inverter.dc_link_v)
+        self._step_kernel = run_cycles
         self.reset(initial_position_m)
+        self._step_kernel = self._compiled_step_kernel()
 
     # ----------------------------------------------------------------------------------------- state
     def reset(self, position_m: float = 0.0, *, keep_time: bool = False) -> None:
@@ -286,16 +313,42 @@ class AxisSimulator:
         self._one["fext"][0] = force_n + self._force_offset  # effects.force_offset_n: constant external force
 
     def advance(self, n_cycles: int = 1) -> None:
-        """Run ``n_cycles`` position-loop cycles with the present set-points."""
-        o = self._one
-        o["aux"][0] = self._torque_setpoint if self.mode == ControlMode.TORQUE else self._velocity_setpoint
-        if self.mode != ControlMode.POSITION:
-            o["pos"][0] = self._last[L.O_POS_FB] if self._last is not None else 0.0
+        """Run ``n_cycles`` position-loop cycles with the present set-points (hot path: no allocation, no enum;
+        one compiled kernel call per cycle)."""
+        mode = self.st[L.S_MODE]
+        self._aux1[0] = self._torque_setpoint if mode == L.MODE_TORQUE else self._velocity_setpoint
+        if mode != L.MODE_POSITION:
+            self._pos1[0] = self._last[L.O_POS_FB]
+        d = self.dm
+        kernel = self._step_kernel
         for _ in range(n_cycles):
-            if self.pr[L.P_NOISE_POS] or self.pr[L.P_NOISE_I]:
-                self._noise1[0] = self._rng.standard_normal(2)
-            self._run(o["pos"], o["vel"], o["acc"], o["aux"], o["fext"], self._noise1, self._out1)
-            self._last[:] = self._out1[0]
+            if self._noisy:
+                i = self._noise_next
+                if i == NOISE_BLOCK:
+                    self._rng.standard_normal(out=self._noise_block)
+                    i = 0
+                self._noise_next = i + 1
+                noise = self._noise_rows[i]
+            else:
+                noise = self._noise1
+            kernel(self.st, self.pr, self._adt, self._bdt, d.table_k_row, d.table_c_row, d.table_g_row,
+                   d.contact_vector, d.motor_angle_vector, self.ring, self.wat, self.wbt, self.wk, self.wc, self.ztmp,
+                   self._pos1, self._vel1, self._acc1, self._aux1, self._fext1, noise, self._out1)
+
+    def _compiled_step_kernel(self):
+        """The kernel's compiled entry point for the step API's own arrays (skips numba's per-call type
+        dispatch, ~1 us); the dispatcher itself if numba does not offer it."""
+        d = self.dm
+        args = (self.st, self.pr, self._adt, self._bdt, d.table_k_row, d.table_c_row, d.table_g_row,
+                d.contact_vector, d.motor_angle_vector, self.ring, self.wat, self.wbt, self.wk, self.wc, self.ztmp,
+                self._pos1, self._vel1, self._acc1, self._aux1, self._fext1, self._noise_rows[0], self._out1)
+        try:
+            sig = tuple(run_cycles.typeof_pyval(a) for a in args)
+            if sig not in run_cycles.overloads:
+                run_cycles.compile(sig)
+            return run_cycles.overloads[sig].entry_point
+        except Exception:  # noqa: BLE001 - a numba without these internals: the (slower) dispatcher
+            return run_cycles
 
     def _run(self, pos, vel, acc, aux, fext, noise, out) -> None:
         d = self.dm
@@ -307,9 +360,46 @@ class AxisSimulator:
     def time_s(self) -> float:
         return float(self.st[L.S_T])
 
+    def observe(self) -> AxisReading:
+        """The axis now, written into ONE reading object owned by the simulator (the same object every call,
+        refreshed in place: no allocation per cycle; read its fields before the next ``observe``). For a
+        snapshot that stays as it is use :attr:`state`."""
+        st = self.st.tolist()  # one conversion; plain floats from here on (the drive reads this every cycle)
+        r = self._reading
+        n, tb = self.dm.n, self.dm.table_body
+        z0 = L.Z0
+        if self._motor_index >= 0:
+            r.motor_angle_rad = st[z0 + self._motor_index]
+            r.motor_speed_rad_s = st[z0 + n + self._motor_index]
+        else:
+            mv = self._motor_vector
+            r.motor_angle_rad = sum(mv[i] * st[z0 + i] for i in range(n))
+            r.motor_speed_rad_s = sum(mv[i] * st[z0 + n + i] for i in range(n))
+        t = st[L.S_T]
+        r.time_s = t
+        r.position_m = st[L.S_POS_FB] if t > 0 else float(self._last[L.O_POS_FB])
+        r.table_position_m = st[z0 + tb]
+        r.velocity_m_s = st[z0 + n + tb]
+        r.torque_nm = st[L.S_TORQUE]
+        if self._force_actuator:
+            r.current_q_a = r.current_d_a = 0.0
+        else:
+            r.current_q_a = st[L.S_IQ]
+            r.current_d_a = st[L.S_ID]
+        r.voltage_q_v = st[L.S_UQ_APP]
+        r.voltage_d_v = st[L.S_UD_APP]
+        r.following_error_m = st[L.S_FE]
+        r.dc_link_v = self._dc_link_v
+        r.current_limited = st[L.S_ILIM] != 0.0
+        r.voltage_saturated = st[L.S_VSAT] != 0.0
+        r.friction_force_n = st[L.S_F_FRIC]
+        r.stuck = st[L.S_STUCK] != 0.0
+        r.screw_temperature_rise_k = st[L.S_TEMP]
+        return r
+
     @property
     def state(self) -> AxisState:
-        st = self.st.tolist()  # one conversion; plain floats from here on (the drive reads this every cycle)
+        st = self.st.tolist()  # one conversion; plain floats from here on
         n, tb = self.dm.n, self.dm.table_body
         force = self._force_actuator
         z0 = L.Z0
@@ -399,7 +489,13 @@ class AxisSimulator:
             aux = np.zeros(n)
         noise = np.zeros((n, 2))
         if self.pr[L.P_NOISE_POS] or self.pr[L.P_NOISE_I]:
-            noise[:] = self._rng.standard_normal((n, 2))
+            # the step API's drawn-ahead noise first, so the stream is the same however the calls are mixed
+            k = min(n, NOISE_BLOCK - self._noise_next)
+            if k > 0:
+                noise[:k] = self._noise_block[self._noise_next:self._noise_next + k]
+                self._noise_next += k
+            if n > k:
+                noise[k:] = self._rng.standard_normal((n - k, 2))
         for a in range(0, n, chunk):
             b = min(n, a + chunk)
             self._run(pos[a:b], vel[a:b], acc[a:b], aux[a:b], fext[a:b], noise[a:b], out[a:b])
