@@ -48,7 +48,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--cases", default=None)
-    ap.add_argument("--rescore", action="store_true", help="score the bench in --out again, without diagnosing")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score the bench in --out again, without diagnosing (reference: every case scored there)")
     ap.add_argument("--suite", choices=("reference", "own"), default="reference")
     a = ap.parse_args()
     names = a.cases.split(",") if a.cases else None
@@ -58,7 +59,8 @@ def main() -> None:
         return
 
     def progress(ev: dict) -> None:
-        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se({'stderr': v['stderr'], 'determined': v['stderr'] is not None})}"
+                        f" (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         pos = ev["heldout_rmse_shrink"].get("pos_meas", float("nan"))
         print(f"{ev['case']:20s} truth={'+'.join(ev['truth']) or '-':30s} found={'+'.join(ev['accepted']) or '-':30s}"
@@ -96,7 +98,7 @@ def reference(a, names, t0: float) -> None:
     from virtualaxis.gapbench.reference import run_reference_bench
 
     def progress(ev: dict) -> None:
-        rec = "; ".join(f"{k} {v['fitted']:.4g} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
+        rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         ceil = ev["truth_model_ceiling"]
         print(f"{ev['case']:42s} truth={'+'.join(ev['truth']) or '-':36s} found={'+'.join(ev['answer']) or '-':36s}"
@@ -106,8 +108,15 @@ def reference(a, names, t0: float) -> None:
               + (f" | {ev['model_form_mismatch']}" if ev["model_form_mismatch"] else "")
               + f" | {ev['seconds']:.0f} s", flush=True)
 
-    out = run_reference_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs,
-                              progress=progress)
+    if a.rescore:  # every case scored in --out so far (chunks of one run)
+        from virtualaxis.gapbench.reference import rescore_reference
+
+        out = rescore_reference(Path(a.out), a.seed, a.quick)
+        for ev in out["cases"]:
+            progress(ev)
+    else:
+        out = run_reference_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs,
+                                  progress=progress)
     s = out["summary"]
 
     def pct(x) -> str:
@@ -121,6 +130,14 @@ def reference(a, names, t0: float) -> None:
     print(f"main parameter within 15 %: {pct(s['param_within_15pct'])} (>= 90 %; median error "
           f"{pct(s['param_rel_error_median'])})   held-out RMSE shrink >= 60 % on the effect's channel: "
           f"{pct(s['shrink_ge_60pct'])}")
+    if s.get("param_n_with_stderr"):
+        print(f"reported uncertainty: true value within 2 standard errors for {pct(s['param_within_2_stderr'])} of "
+              f"{s['param_n_with_stderr']} found main parameters; {s['param_n_undetermined']} reported as not "
+              "determined by the fit traces")
+    for st, v in s.get("by_structure", {}).items():
+        print(f"  {st:12s} ({v['n_effect_cases']} + {v['n_clean_cases']} clean): first {pct(v['right_effect_first'])}, "
+              f"clean {pct(v['clean_nothing_accepted'])}, none outside {pct(v['none_outside_truth'])}, "
+              f"param within 15 % {pct(v['param_within_15pct'])}, shrink >= 60 % {pct(v['shrink_ge_60pct'])}")
     print(f"wrote {Path(a.out) / 'reference.json'}")
 
 

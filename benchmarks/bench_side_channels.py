@@ -14,14 +14,17 @@ Phases (``--phases``, alternated ``--rounds`` times so that drifting machine loa
   here on a free loopback port, counted by a paho subscriber in a process of its own) and **ten Modbus TCP
   clients** (ten processes), each polling 50 registers (40110-40121 and 40340-40377: two FC03 requests) at
   100 Hz; a client a whole period behind skips the missed polls (counted), so ``polls/s`` is the load delivered;
-- ``modbus`` / ``mqtt``: only that half of the load (to separate the causes).
+- ``modbus`` / ``mqtt``: only that half of the load (to separate the causes);
+- ``ext``: ``serve`` without side channels while the ten Modbus clients poll a plain pymodbus server of their
+  own (static registers): the machine carries the client load, ``serve`` none of it.
 
 Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
 priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
 server process, mosquitto, the MQTT subscriber) runs at normal priority (``--load-priority 0``, the default;
 clients of a real drive sit on other machines) or at SCHED_FIFO ``--load-priority`` below the drive.
-``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``) pins serve's runtime and CAN receive threads and the master to
-DRIVE_CPUS and everything else of the run to LOAD_CPUS (an isolated-core deployment, see docs/side-channels.md).
+``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``) pins serve's runtime and CAN receive threads to DRIVE_CPUS and
+everything else of the run (serve's other threads, the side-channel processes, the clients, the broker and the
+master, which in a rig is another machine) to LOAD_CPUS: an isolated-core deployment (docs/side-channels.md).
 
 Latency = kernel receive timestamp of the TPDO in the master's socket minus that of the master's own SYNC as
 looped back (the instant the SYNC was on the "wire", also the instant serve's socket got it); nothing of the
@@ -158,6 +161,30 @@ def telemetry_count(port: int, out: str) -> None:
     Path(out).write_text(json.dumps(count))
 
 
+def dummy_modbus_server(port: int) -> None:
+    """Phase ``ext``: a plain pymodbus TCP server (static holding registers, no drive) on ``port`` until
+    SIGTERM -- the same client load as phase ``modbus`` with nothing of it in ``serve``."""
+    import asyncio
+    import logging
+
+    from pymodbus.datastore import ModbusDeviceContext, ModbusSequentialDataBlock, ModbusServerContext
+    from pymodbus.server import ModbusTcpServer
+
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    block = ModbusSequentialDataBlock(1, list(range(1000)))
+    context = ModbusServerContext(devices=ModbusDeviceContext(hr=block, ir=block), single=True)
+
+    async def serve() -> None:
+        server = ModbusTcpServer(context, address=("127.0.0.1", port))
+        stop = asyncio.Event()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+        await server.serve_forever(background=True)
+        await stop.wait()
+        await server.shutdown()
+
+    asyncio.run(serve())
+
+
 def modbus_summary(outs: list[str], seconds: float) -> dict:
     """Response times and delivered load of all client processes."""
     rt = np.concatenate([np.load(o + ".npy") for o in outs])
@@ -238,6 +265,7 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
 # ------------------------------------------------------------------------------------ one phase
 def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
     modbus_on = phase in ("load", "modbus")
+    external = phase == "ext"  # the Modbus clients poll a server that is not serve's (machine load only)
     mqtt_on = phase in ("load", "mqtt")
     spec = f"udp_multicast:239.74.163.3,port={port}"
     node = 1
@@ -254,6 +282,12 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
     if opts.rt_priority:
         args += ["--rt-priority", str(opts.rt_priority)]
     args += opts.serve_args
+    dummy = None
+    if external:
+        dummy = subprocess.Popen([sys.executable, __file__, "--modbus-dummy", str(mb_port), "--load-priority",
+                                  str(opts.load_priority)])
+        wait_port(mb_port, 30.0)
+        set_affinity(dummy.pid, opts.load_cpus)
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
@@ -262,7 +296,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
     for _ in range(int(modbus_on) + int(mqtt_on)):
         proc.stdout.readline()  # "modbus: ..." / "mqtt: ..." (the server process runs by then)
-    load_pids = children(proc.pid)  # serve's Modbus server process: the clients' side
+    load_pids = children(proc.pid)  # serve's Modbus server and MQTT publisher processes: the clients' side
     for child in load_pids:
         set_priority(child, opts.load_priority)
         set_affinity(child, opts.load_cpus)
@@ -286,11 +320,12 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         load_flags += ["--load-cpus", ",".join(map(str, sorted(opts.load_cpus)))]
     try:
         x0 = setup_csp(bus, reply, node)
+        out["overruns_before_load_start"] = sdo(bus, reply, node, 0x2110, 2)  # serve's start-up and the set-up
         if mqtt_on:
             tel_out = str(tmp / f"telemetry-{port}.json")
             counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
                                         *load_flags])
-        if modbus_on:
+        if modbus_on or external:
             # ten clients = ten processes (each its own interpreter, as separate client machines would be)
             outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
             t_start = time.time() + 3.0  # all clients start polling together, once their imports are done
@@ -306,6 +341,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
                 time.sleep(0.05)
             time.sleep(0.5)
         overruns0 = sdo(bus, reply, node, 0x2110, 2)  # drive cycle overruns (OD 0x2110:2) before the window
+        out["overruns_during_load_start"] = overruns0 - out["overruns_before_load_start"]  # clients starting
         clock.clear()
         n_sync = int(seconds / PERIOD_S)
         st0, mst0, t0 = thread_schedstat(proc.pid), thread_schedstat(os.getpid()), time.perf_counter()
@@ -342,6 +378,9 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         for lp in [*loader, *([counter] if counter else [])]:
             if lp.poll() is None:
                 lp.kill()
+        if dummy is not None:
+            dummy.terminate()
+            dummy.wait(timeout=10)
         notifier.stop()
         bus.shutdown()
         proc.send_signal(signal.SIGTERM)  # (SIGINT is ignored by a process started in the background)
@@ -372,14 +411,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="passes over --phases")
-    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt")
+    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt, ext")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and of the master")
     ap.add_argument("--load-priority", type=int, default=0,
                     help="SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus server process, "
                     "mosquitto, the MQTT subscriber); 0 (default): normal priority")
     ap.add_argument("--pin", default=None, metavar="DRIVE_CPUS:LOAD_CPUS",
-                    help="e.g. 1:0 -- serve's runtime + CAN receive threads and the master on DRIVE_CPUS, the rest "
-                    "of the run (serve's side-channel threads, clients, broker) on LOAD_CPUS")
+                    help="e.g. 1:0 -- serve's runtime + CAN receive threads on DRIVE_CPUS, the rest of the run "
+                    "(serve's side-channel threads and processes, clients, broker, the master) on LOAD_CPUS")
     ap.add_argument("--master-spin-us", type=float, default=None,
                     help="the master spins this long before each SYNC instead of sleeping (default: 0 under "
                     "--rt-priority, where the kernel wakes a FIFO thread in time; 300 otherwise)")
@@ -392,7 +431,12 @@ def main() -> int:
     ap.add_argument("--load-cpus", default="", help=argparse.SUPPRESS)
     ap.add_argument("--modbus-load", nargs=3, metavar=("PORT", "SECONDS", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--telemetry-count", nargs=2, metavar=("PORT", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--modbus-dummy", type=int, metavar="PORT", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.modbus_dummy:
+        _become_load(args.load_priority, None)
+        dummy_modbus_server(args.modbus_dummy)
+        return 0
     if args.modbus_load or args.telemetry_count:
         _become_load(args.load_priority, _cpus(args.load_cpus) or None)
         if args.modbus_load:
@@ -402,14 +446,14 @@ def main() -> int:
             telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1])
         return 0
     phases = [p.strip() for p in args.phases.split(",") if p.strip()]
-    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt")]
+    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext")]
     if bad:
-        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt)")
+        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext)")
     args.drive_cpus = args.load_cpus = None
     if args.pin:
         d, _, lo = args.pin.partition(":")
         args.drive_cpus, args.load_cpus = _cpus(d), _cpus(lo)
-        os.sched_setaffinity(0, args.drive_cpus)
+        os.sched_setaffinity(0, args.load_cpus)  # the master is another machine of the rig: not on the drive's
     if args.rt_priority:  # the master at the drive's priority: it measures the drive, not its own starvation
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
     results = []

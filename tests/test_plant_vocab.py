@@ -279,3 +279,79 @@ def test_speed_estimator_and_time_delay_effects_map_onto_the_config():
     assert td.apply(d, {"dead_time_s": 1e-3}).sensors.dead_time_scope == "feedback_sensor"  # scope kept
     assert td.apply(cfg, {"dead_time_s": 1e-3, "dead_time_feedback_sensor": 0.0}).sensors.dead_time_scope == (
         "position_loop")
+
+
+# ------------------------------------------------------------------------ 3. feed-forward form of a CSP drive
+def _has_ff_form() -> bool:
+    from dataclasses import fields
+
+    from virtualaxis.config.axis import ControlParams
+
+    return "velocity_ff_form" in {f.name for f in fields(ControlParams)}
+
+
+needs_ff_form = pytest.mark.skipif(not _has_ff_form(), reason="control.velocity_ff_form not in the schema yet")
+
+
+@needs_ff_form
+def test_setpoint_difference_feed_forward_equals_the_closed_form_difference_of_a_sine():
+    """CSP: v_ff[k] = (x[k] - x[k-1]) / T, a_ff[k] = (v_ff[k] - v_ff[k-1]) / T. For x = A sin(w t) the difference
+    is (2 A / T) sin(w T / 2) cos(w (t_k - T / 2)) exactly (a trigonometric identity, not a difference of samples):
+    the kernel told to use set-point differences, fed a wrong cmd_vel, must equal the kernel fed that closed form
+    with the derivative form."""
+    from plant_helpers import config_with
+
+    cfg = config_with({"control": {"velocity_ff_factor": 1.0, "torque_ff_factor": 1.0}})
+    n, tp = 1500, cfg.control.position_cycle_s
+    amp, w = 0.05, 2 * math.pi * 1.3
+    t = np.arange(n) * tp
+    x = amp * np.sin(w * t)
+    v = 2 * amp / tp * math.sin(w * tp / 2) * np.cos(w * (t - tp / 2))
+    v[0] = 0.0  # the first set-point has no predecessor: the caller's value (0 here) is used
+    a = np.r_[0.0, np.diff(v)] / tp
+    ref_cfg = cfg.replace(control={"velocity_ff_form": "derivative"})
+    csp_cfg = cfg.replace(control={"velocity_ff_form": "setpoint_difference"})
+
+    def run(c, vel, acc):
+        sim = AxisSimulator(c, initial_position_m=0.0)
+        sim.enable(True)
+        return sim.run_arrays(x, vel, acc, np.zeros(n))
+
+    from virtualaxis.sim import layout as L
+
+    ref = run(ref_cfg, v, a)
+    rng = np.random.default_rng(0)
+    junk = rng.normal(size=n)
+    junk[0] = 0.0
+    csp = run(csp_cfg, junk, junk)
+    scale = np.max(np.abs(ref[:, L.O_FOLLOWING]))
+    assert np.max(np.abs(csp[:, L.O_FOLLOWING] - ref[:, L.O_FOLLOWING])) < 1e-6 * scale
+    # the analytic feed-forward (derivative form, true cos) leads by half a cycle: a visibly different error
+    exact = run(ref_cfg, amp * w * np.cos(w * t), -amp * w * w * np.sin(w * t))
+    assert np.max(np.abs(exact[:, L.O_FOLLOWING] - ref[:, L.O_FOLLOWING])) > 1e-3 * scale
+
+
+@needs_ff_form
+def test_setpoint_difference_feed_forward_takes_the_callers_value_after_entering_position_control():
+    """The first set-point in position control has no predecessor (the last command was the feedback, in velocity
+    control): its feed-forward is the caller's, the next ones are set-point differences."""
+    from plant_helpers import config_with
+
+    from virtualaxis.sim import layout as L
+
+    cfg = config_with({"control": {"velocity_ff_factor": 1.0, "velocity_ff_form": "setpoint_difference"}})
+    g = 2 * math.pi / cfg.mechanics.lead_m  # rad per m
+    kv, tp = cfg.control.kv_1_per_s, cfg.control.position_cycle_s
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    sim.set_mode(ControlMode.VELOCITY)
+    sim.set_velocity_setpoint(0.05)
+    sim.advance(300)
+    sim.set_mode(ControlMode.POSITION)
+    x0 = sim.state.position_m + 1e-3  # a set-point 1 mm ahead: a difference to the last command would be 1 m/s
+    xs = [x0 + k * 0.04e-3 for k in range(5)]
+    for k, x in enumerate(xs):
+        sim.set_position_setpoint(x, 0.05, 0.0)
+        sim.advance(1)
+        vff = 0.05 if k == 0 else (x - xs[k - 1]) / tp
+        assert sim.st[L.S_W_REF] == pytest.approx(g * (kv * sim.st[L.S_FE] + vff), rel=1e-12), k

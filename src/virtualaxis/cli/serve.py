@@ -125,17 +125,16 @@ def run(args) -> int:
 
     signal.signal(signal.SIGTERM, _stop)
     _log_to_stderr()
+    try:  # before the drive runs: forking the side channels' processes holds the interpreter lock for ms
+        side.start(axes)
+    except OSError as exc:
+        side.stop()
+        bus.shutdown()
+        raise CliError(str(exc)) from None
     from virtualaxis.runtime.pacing import freeze_startup_heap
 
     freeze_startup_heap()  # no 100 ms collections of the start-up heap while serving
     runtime.start()
-    try:
-        side.start(axes)
-    except OSError as exc:
-        side.stop()
-        runtime.stop()
-        bus.shutdown()
-        raise CliError(str(exc)) from None
     from virtualaxis.services.latency_probe import name_threads
 
     name_threads()  # OS thread names = Python thread names (top -H, /proc/PID/task/*/comm)

@@ -224,6 +224,10 @@ class ControlParams:
     kv_per_s: float = _p(0.0, check=">=0", doc="position gain Kv [1/s]")
     velocity_ff_factor: float = _p(0.0, check=">=0", doc="speed feed-forward weight (MD32610), 0..1")
     torque_ff_factor: float = _p(0.0, check=">=0", doc="torque feed-forward weight, 0..1")
+    velocity_ff_form: str = _p("derivative", choices=("derivative", "setpoint_difference"),
+                               doc="how the speed feed-forward is derived from the position set-points: "
+                               "derivative (the command's derivative at t_k) or setpoint_difference (a CSP "
+                               "drive: (x_k - x_k-1) / position cycle, held for the cycle)")
     current_limit_a: float = _p(0.0, check=">=0", doc="|i_q| limit [A] (pmsm); 0 -> 3 x rated")
     speed_limit_rpm: float = _p(0.0, check=">=0", doc="motor speed set-point limit [1/min]; 0 = none")
     position_feedback: str = _p("motor_encoder", choices=("motor_encoder", "linear_scale"))

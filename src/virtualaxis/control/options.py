@@ -6,6 +6,10 @@ parameter vector (called by :func:`virtualaxis.sim.simulator.build_parameters`).
 * ``friction.viscous_negative_n_s_per_m``: viscous friction for -v [N s/m] (direction-dependent viscous friction).
 * ``control.speed_estimator``, ``control.speed_filter_time_constant_s``: how the speed loop estimates the speed from
   the quantised position it samples every speed cycle (one- or two-sample difference, optional first-order filter).
+* ``control.velocity_ff_form``: the speed (and torque) feed-forward the position loop adds, from the caller's
+  command derivative (``derivative``) or, as a CiA 402 CSP drive receiving one set-point per position cycle does,
+  from the set-point differences (``setpoint_difference``: v_ff[k] = (x[k] - x[k-1]) / T_pos, a_ff[k] =
+  (v_ff[k] - v_ff[k-1]) / T_pos, held for the cycle).
 * ``sensors.dead_time_scope``: whether ``sensors.dead_time_s`` delays only the position loop's feedback or the
   feedback sensor's reading everywhere (speed loop, recorded channel).
 """
@@ -40,3 +44,5 @@ def fill_option_parameters(pr: np.ndarray, cfg: AxisConfig) -> None:
     pr[L.P_DEAD_SENSOR] = 1.0 if cfg.sensors.dead_time_scope == "feedback_sensor" else 0.0
     pr[L.P_EST2] = 1.0 if c.speed_estimator == "two_sample_difference" else 0.0
     pr[L.P_SPD_FILT] = speed_filter_gain(c.speed_cycle_s, c.speed_filter_time_constant_s)
+    pr[L.P_FF_SETPOINT] = 1.0 if getattr(c, "velocity_ff_form", "derivative") == "setpoint_difference" else 0.0
+    pr[L.P_TPOS] = c.position_cycle_s

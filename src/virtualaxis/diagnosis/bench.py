@@ -66,8 +66,10 @@ def all_cases() -> list[Case]:
               {"mass_error": {"table_mass_kg": 230.0}}),
         _case("axial_compliance", "ballscrew", ["axial_compliance"], {"_stiffness_scale": 0.25},
               {"axial_compliance": {"axial_stiffness_scale": 0.25}}),
+        # 20 kg of the weighed 150 kg moving mass on a 45 Hz spring (the config's table mass is the total)
         _case("resonance", "ballscrew", ["resonance"],
-              {"effects": {"resonance_frequency_hz": 45.0, "resonance_mass_kg": 20.0, "resonance_damping_ratio": 0.03}},
+              {"mechanics": {"table_mass_kg": 130.0},
+               "effects": {"resonance_frequency_hz": 45.0, "resonance_mass_kg": 20.0, "resonance_damping_ratio": 0.03}},
               {"resonance": {"resonance_frequency_hz": 45.0}}),
         _case("lead_error", "ballscrew", ["lead_error"],
               {"effects": {"lead_error_ppm": 60.0, "lead_error_periodic_m": 3e-6,
@@ -174,6 +176,7 @@ def _command(cfg: AxisConfig, cond: Condition) -> tuple[np.ndarray, np.ndarray]:
 
 def generate_case(case: Case, out_dir: Path, seed: int, quick: bool) -> dict:
     """Write the case: nominal.toml, truth.json, fit/*.csv, holdout/*.csv."""
+    from virtualaxis.diagnosis.data import settled
     from virtualaxis.sim import simulate_command
 
     nominal = nominal_config(case.axis)
@@ -187,7 +190,9 @@ def generate_case(case: Case, out_dir: Path, seed: int, quick: bool) -> dict:
     files: dict[str, list[str]] = {"fit": [], "holdout": []}
     for k, cond in enumerate(conditions(quick)):
         t, pos = _command(nominal, cond)
-        res = simulate_command(truth, t, pos, seed=seed * 1000 + k)
+        # enabled and settled before the recording starts, as the diagnosis' model is (data.settled)
+        res = settled(lambda c, tt, pp, ff, sd: simulate_command(c, tt, pp, force_ext_n=ff, seed=sd), truth, t, pos,
+                      None, seed * 1000 + k)
         cols = {"t": t, "pos_cmd": pos, **{c: res[c] for c in keep if c in res}}
         path = out_dir / cond.role / f"{cond.name}.csv"
         write_trace(path, cols)

@@ -111,6 +111,20 @@ def _force_scale(cfg: AxisConfig) -> float:
     return 20.0 * cfg.mechanics.table_mass_kg * 9.81  # 20 g worth of force
 
 
+def _peak_force(cfg: AxisConfig) -> float:
+    """The largest force the drive can apply at the table [N]: the current limit (0: 3 x rated) through k_t and
+    the lead, or the force actuator's limit; else :func:`_force_scale`."""
+    mo = cfg.motor
+    if cfg.actuator.kind == "pmsm" and cfg.mechanics.lead_m > 0:
+        i_max = cfg.control.current_limit_a or 3.0 * mo.rated_current_a
+        if i_max > 0 and mo.torque_constant_nm_per_a > 0:
+            return i_max * mo.torque_constant_nm_per_a * 2 * math.pi / cfg.mechanics.lead_m
+        return 3.0 * _force_scale(cfg)
+    if cfg.actuator.force_limit_n > 0:
+        return cfg.actuator.force_limit_n
+    return _force_scale(cfg)
+
+
 # ---------------------------------------------------------------- backlash
 def _backlash_params(cfg):
     g0 = cfg.backlash.gap_m if cfg.backlash.enabled else 0.0
@@ -168,7 +182,9 @@ def _viscous_params(cfg):
     vmax = cfg.limits.max_velocity_m_s
     typ = max(0.02 * fs / vmax, 50.0)
     f = cfg.friction
-    return [Param("viscous_n_s_per_m", "N s/m", 0.0, 0.5 * fs / vmax, typ,
+    # upper bound: the viscous force at the axis' top speed cannot exceed the drive's peak force (else the axis
+    # could not reach it); cold grease on a ball screw can take a good share of the rated force there
+    return [Param("viscous_n_s_per_m", "N s/m", 0.0, max(_peak_force(cfg), 0.5 * fs) / vmax, typ,
                   nominal=f.viscous_n_s_per_m if f.enabled else 0.0)]
 
 
@@ -291,20 +307,26 @@ def _compliance_starts(cfg, hints):
 
 # ---------------------------------------------------------------- extra mode
 def _resonance_params(cfg):
-    m0 = cfg.mechanics.table_mass_kg
     e = cfg.effects
+    m0 = cfg.mechanics.table_mass_kg + e.resonance_mass_kg  # the weighed moving mass the mode is a part of
     return [
         Param("resonance_frequency_hz", "Hz", 3.0, 400.0, 50.0, scale="log", nominal=e.resonance_frequency_hz,
               shape=True),
-        Param("resonance_mass_kg", "kg", 0.01 * m0, 2.0 * m0, 0.1 * m0, scale="log", nominal=e.resonance_mass_kg),
+        Param("resonance_mass_kg", "kg", 0.01 * m0, 0.9 * m0, 0.1 * m0, scale="log", nominal=e.resonance_mass_kg),
         Param("resonance_damping_ratio", "1", 0.003, 0.5, 0.05, scale="log", nominal=e.resonance_damping_ratio,
               shape=True),
     ]
 
 
 def _resonance_apply(cfg, v):
-    return cfg.replace(effects={k: v[k] for k in ("resonance_frequency_hz", "resonance_mass_kg",
-                                                    "resonance_damping_ratio")})
+    """The mode is a part of the moving mass on a spring (a fixture, a column): the config's table mass is the
+    weighed moving mass, so the modal mass is taken out of the table (the total stays; a mass error is its own
+    effect). Without this a 30 kg mode of a 250 kg table fitted as 250 + 30 kg."""
+    m_r0 = cfg.effects.resonance_mass_kg
+    table = cfg.mechanics.table_mass_kg + m_r0 - v["resonance_mass_kg"]
+    return cfg.replace(mechanics={"table_mass_kg": max(table, 1e-3)},
+                       effects={k: v[k] for k in ("resonance_frequency_hz", "resonance_mass_kg",
+                                                  "resonance_damping_ratio")})
 
 
 # coarse frequency scan for the mode: log-spaced, neighbours 1.3x apart (the screening step then

@@ -175,6 +175,68 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
     return out
 
 
+#: the speed feed-forward forms a drive may derive from its position set-points (``control.velocity_ff_form``)
+FEEDFORWARD_FORMS = ("derivative", "setpoint_difference")
+
+
+def check_feedforward_form(cfg: AxisConfig, tds: list[TraceData], simulate: SimulateFn, fit_idx: list[int],
+                           hold_idx: list[int]) -> dict | None:
+    """Which form of the speed feed-forward the axis' drive uses: the command's derivative at the set-point's
+    instant (our simulator's default) or the difference of consecutive set-points held for the next position
+    cycle (a CiA 402 CSP drive deriving its velocity offset from the set-points: about half a cycle later).
+
+    A controller-discretisation convention, not a plant effect, and one without any fitted freedom: the nominal
+    model is simulated closed-loop with each form, and another form than the config's is used for every trace
+    when it leaves at most :data:`CLOSED_LOOP_RATIO` of the config form's RMSE (geometric mean over channels)
+    and at most :data:`CLOSED_LOOP_BEST_CHANNEL` in some channel, on the fit traces AND on the held-out traces
+    (the same "clear controller difference" rule as for an identified control law). The lag of the
+    feed-forward sets an acceleration-proportional following error, so the position channel shows it clearly
+    even when a withheld plant effect is present; no channel-loss veto, because a plant effect (an encoder dead
+    time) may have been cancelled in part by the wrong form. Returns ``report.json["feedforward_form"]``
+    (None when the axis runs without speed feed-forward or the config has no such key)."""
+    ctrl = cfg.control
+    if getattr(ctrl, "velocity_ff_form", None) is None or ctrl.velocity_ff_factor <= 0:
+        return None
+    own = ctrl.velocity_ff_form
+    out: dict = {"config_form": own, "used": own, "trials": {}}
+    for form in FEEDFORWARD_FORMS:
+        if form == own:
+            continue
+        trial = [dataclasses.replace(td, overrides=_merge_control(td.overrides, {"velocity_ff_form": form}))
+                 for td in tds]
+        try:
+            r_fit, v_fit = _closed_loop_ratio(cfg, [tds[k] for k in fit_idx], [trial[k] for k in fit_idx], simulate)
+            r_hold, v_hold = (_closed_loop_ratio(cfg, [tds[k] for k in hold_idx], [trial[k] for k in hold_idx],
+                                                 simulate) if hold_idx else (r_fit, v_fit))
+        except (ConfigError, ValueError, ArithmeticError) as exc:
+            out["trials"][form] = {"error": str(exc)}
+            continue
+
+        def clear(r: float, v: dict) -> bool:
+            best = min((c["ratio"] for c in v.get("channels", {}).values()), default=math.inf)
+            return r <= CLOSED_LOOP_RATIO and best <= CLOSED_LOOP_BEST_CHANNEL
+
+        use = clear(r_fit, v_fit) and clear(r_hold, v_hold)
+        out["trials"][form] = {"ratio_fit": r_fit, "ratio_heldout": r_hold, "used": use,
+                               "verdict_fit": v_fit, "verdict_heldout": v_hold}
+        if use:
+            for td, tt in zip(tds, trial, strict=True):
+                td.overrides = tt.overrides
+            out["used"] = form
+            break
+    out["note"] = (f"speed feed-forward form: {out['used']} (config: {own})" if out["used"] == own else
+                   f"speed feed-forward form {out['used']} used instead of the config's {own}: closed loop the "
+                   f"nominal model leaves {out['trials'][out['used']]['ratio_fit']:.2f} x the residual on the fit "
+                   f"traces and {out['trials'][out['used']]['ratio_heldout']:.2f} x held out (a controller "
+                   "convention, not a plant effect; calibrated.toml gets it)")
+    return out
+
+
+def _merge_control(overrides: dict, control: dict) -> dict:
+    """``overrides`` with ``control`` keys added to (not replacing) its ``control`` section."""
+    return {**overrides, "control": {**overrides.get("control", {}), **control}}
+
+
 def _median_overrides(ovs: list[dict]) -> dict:
     """One controller from several traces' identified ``control.*`` overrides: the most common key set, each
     key's median."""
@@ -275,6 +337,9 @@ def run_diagnosis(
     timing["read_s"] = time.perf_counter() - t_start
     t0 = time.perf_counter()
     controller_checks = check_controllers(cfg, traces, tds, simulate, fit_idx, hold_idx)
+    ff_form = check_feedforward_form(cfg, tds, simulate, fit_idx, hold_idx)
+    if ff_form and ff_form["used"] != ff_form["config_form"]:
+        notes.append(ff_form["note"])
     timing["controller_check_s"] = time.perf_counter() - t0
     # baseline
     t0 = time.perf_counter()
@@ -339,9 +404,15 @@ def run_diagnosis(
     timing["total_s"] = time.perf_counter() - t_start
     report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
     report["controller_check"] = controller_checks
+    report["feedforward_form"] = ff_form
     report["alignment"] = alignment
     report["contour"] = contour_report(tds, {"nominal": base_pred, "calibrated": final_pred})
-    report["_calibrated_cfg"] = with_identified_controller(sel.final_cfg, controller_checks, report)
+    calibrated = with_identified_controller(sel.final_cfg, controller_checks, report)
+    if ff_form and ff_form["used"] != ff_form["config_form"]:
+        calibrated = calibrated.replace(control={"velocity_ff_form": ff_form["used"]})
+        report["calibrated_controller"] = {**report.get("calibrated_controller", {}),
+                                           "velocity_ff_form": ff_form["used"]}
+    report["_calibrated_cfg"] = calibrated
     report["_base_cfg"] = cfg
     report["_plots"] = {"tds": tds, "base_res": base_res, "final_res": final_res, "loc": loc,
                         "fit_idx": fit_idx, "hold_idx": hold_idx}
@@ -404,6 +475,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "description": fx.EFFECTS[name].description,
                 "signature": fx.EFFECTS[name].signature,
                 "params": _param_table(name, model_cfg, r.values, r.stderr) if r.values else {},
+                "result_values": dict(r.values),
                 "params_at_bound": r.at_bound,
                 "accepted": accepted_here,
                 "round": rnd + 1,
@@ -425,12 +497,15 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "error": r.error,
             }
     joint = sel.joint
-    if joint and joint["accepted"]:  # the accepted effects' parameters are the jointly refitted ones
-        for n in accepted_names:
-            e = entries[n]
+    # the accepted effects' parameters are the final model's (after joint refits: not the round's own fit)
+    for step in sel.accepted:
+        e = entries[step.effect]
+        if step.values != e["result_values"]:
             e["params_sequential"] = e["params"]
-            e["params"] = _param_table(n, cfg, joint["joint_values"][n], joint["joint_stderr"].get(n, {}))
+            e["params"] = _param_table(step.effect, cfg, step.values, step.stderr)
             e["refit"] = "joint"
+    for e in entries.values():
+        e.pop("result_values", None)
     ranked = [entries[n] for n in accepted_names] + sorted(
         (e for n, e in entries.items() if n not in accepted_names), key=lambda e: e["ic_delta"])
     for k, e in enumerate(ranked):

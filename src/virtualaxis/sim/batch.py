@@ -70,6 +70,13 @@ def derivative(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.gradient(x, t)
 
 
+def backward_difference(x: np.ndarray, cycle_s: float) -> np.ndarray:
+    """``(x_k - x_k-1) / cycle_s`` (0 at the first sample): the set-point difference a CSP drive uses."""
+    out = np.zeros_like(x)
+    out[1:] = np.diff(x) / cycle_s
+    return out
+
+
 def simulate_command(
     cfg: AxisConfig,
     t_s: np.ndarray,
@@ -95,12 +102,14 @@ def simulate_command(
     tc = t0 + np.arange(n) * cyc
     on_grid = len(t_s) == n and np.allclose(t_s, tc, rtol=0, atol=cyc * 1e-6)
     pos = pos_cmd_m.copy() if on_grid else np.interp(tc, t_s, pos_cmd_m)
+    setpoint_difference = cfg.control.velocity_ff_form == "setpoint_difference"
     if vel_cmd_m_s is None:
-        vel = derivative(tc, pos)
+        # a CSP drive derives its speed feed-forward from consecutive set-points (backward difference, held)
+        vel = backward_difference(pos, cyc) if setpoint_difference else derivative(tc, pos)
     else:
         vel = np.asarray(vel_cmd_m_s, float) if on_grid else np.interp(tc, t_s, vel_cmd_m_s)
     if acc_cmd_m_s2 is None:
-        acc = derivative(tc, vel)
+        acc = backward_difference(vel, cyc) if setpoint_difference else derivative(tc, vel)
     else:
         acc = np.asarray(acc_cmd_m_s2, float) if on_grid else np.interp(tc, t_s, acc_cmd_m_s2)
     if force_ext_n is None:

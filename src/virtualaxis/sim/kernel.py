@@ -70,6 +70,7 @@ from virtualaxis.sim.layout import (
     P_FB,
     P_FC_NEG,
     P_FC_POS,
+    P_FF_SETPOINT,
     P_FORCE_ACT,
     P_FORCE_LAG,
     P_FRIC,
@@ -127,6 +128,7 @@ from virtualaxis.sim.layout import (
     P_TH_ALPHA,
     P_TH_R,
     P_TH_TAU,
+    P_TPOS,
     P_VDC,
     P_VMAX,
     P_VMAX2,
@@ -142,6 +144,7 @@ from virtualaxis.sim.layout import (
     S_F_EXT,
     S_F_FRIC,
     S_FE,
+    S_FF_VALID,
     S_ID,
     S_ILIM,
     S_INT_D,
@@ -165,6 +168,7 @@ from virtualaxis.sim.layout import (
     S_UD_NEXT,
     S_UQ_APP,
     S_UQ_NEXT,
+    S_VFF_PREV,
     S_VSAT,
     S_W_MEAS,
     S_W_REF,
@@ -702,6 +706,8 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     # in the recorded channel of that sensor
     dly_sensor = pr[P_DEAD_SENSOR] != 0.0 and ndead > 0
     dly_speed = dly_sensor and (force_act or fb_motor)
+    ff_setpoint = pr[P_FF_SETPOINT] != 0.0
+    tpos = pr[P_TPOS]
     stop_lo, stop_hi, stop_k, stop_c = pr[P_STOP_LO], pr[P_STOP_HI], pr[P_STOP_K], pr[P_STOP_C]
     for j in range(ncyc):
         blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc)
@@ -711,6 +717,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
         mode = int(st[S_MODE])
         enabled = st[S_ENABLED] != 0.0
         st[S_F_EXT] = f_ext[j]
+        cmd_prev = st[S_CMD_POS]
         st[S_CMD_POS] = cmd_pos[j]
         # ---- position loop sample
         st[S_RING] = ri
@@ -720,12 +727,28 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
         st[S_FE] = fe
         tff = 0.0
         if enabled and mode == MODE_POSITION:
-            wref = g * (pr[P_KV] * fe + pr[P_KFF] * cmd_vel[j])
-            tff = pr[P_KTFF] * pr[P_JREF] * g * cmd_acc[j]
+            if ff_setpoint:
+                # CSP drive: feed-forward from the set-point differences, held for the cycle; the first set-point
+                # in position control has no predecessor and takes the caller's values
+                if st[S_FF_VALID] != 0.0:
+                    vff = (cmd_pos[j] - cmd_prev) / tpos
+                    aff = (vff - st[S_VFF_PREV]) / tpos
+                else:
+                    vff = cmd_vel[j]
+                    aff = cmd_acc[j]
+                st[S_VFF_PREV] = vff
+                st[S_FF_VALID] = 1.0
+            else:
+                vff = cmd_vel[j]
+                aff = cmd_acc[j]
+            wref = g * (pr[P_KV] * fe + pr[P_KFF] * vff)
+            tff = pr[P_KTFF] * pr[P_JREF] * g * aff
         elif enabled and mode == MODE_VELOCITY:
             wref = g * cmd_aux[j]
+            st[S_FF_VALID] = 0.0
         else:
             wref = 0.0
+            st[S_FF_VALID] = 0.0
         wref = clamp(wref, pr[P_WLIM])
         st[S_W_REF] = wref
         st[S_TFF] = tff

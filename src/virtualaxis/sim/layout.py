@@ -80,7 +80,9 @@ P_FV_NEG = 74  # viscous coefficient for -v [N s/m] (= P_FV unless friction.visc
 P_DEAD_SENSOR = 75  # 1: the dead time delays the feedback sensor everywhere (speed loop, recorded channel)
 P_EST2 = 76  # 1: speed estimate (q[k] - q[k-2]) / 2T instead of (q[k] - q[k-1]) / T
 P_SPD_FILT = 77  # speed-estimate low-pass gain 1 - exp(-T_speed / tau) per speed sample; 0 = no filter
-N_PARAMS = 78
+P_FF_SETPOINT = 78  # 1: speed / torque feed-forward from the set-point differences (CSP drive), not cmd_vel/cmd_acc
+P_TPOS = 79  # position-loop (set-point) cycle [s]
+N_PARAMS = 80
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0
@@ -119,6 +121,8 @@ S_F_EXT = 32
 S_CONTACT_MODE = 33
 S_RIPPLE = 34  # accumulated within-period i_q variance x time (svpwm)
 S_THETA_PREV2 = 35  # speed-loop coordinate two speed samples back (two-sample speed estimate)
+S_VFF_PREV = 36  # speed feed-forward of the previous position-loop sample [m/s] (set-point difference form)
+S_FF_VALID = 37  # 1: the previous position-loop sample was a set-point in position control (a difference exists)
 Z0 = 40  # mechanical state z = [q, q'] starts here
 
 RING_SIZE = 4096
