@@ -231,9 +231,9 @@ class PdoEngine:
         """Store every entry of the PDO, then let the application react (its optional ``begin_pdo`` /
         ``end_pdo`` hooks bracket the stores: CiA 402 needs controlword + target of one RPDO together)."""
         values = rpdo.packer.unpack(data)
-        store = self.slave.store_from_pdo
-        app = self.slave.app
-        begin, end = getattr(app, "begin_pdo", None), getattr(app, "end_pdo", None)
+        slave = self.slave
+        store = slave.store_from_pdo
+        begin, end = slave.hook_begin_pdo, slave.hook_end_pdo
         if begin is not None:
             begin()
         try:

@@ -107,6 +107,8 @@ class CanopenSlave:
         self._hook_nmt = getattr(app, "on_nmt_state", None)
         self._hook_comm_error = getattr(app, "on_communication_error", None)
         self._hook_reset = getattr(app, "on_reset", None)
+        self.hook_begin_pdo = getattr(app, "begin_pdo", None)   # (looked up once: RPDOs are a hot path)
+        self.hook_end_pdo = getattr(app, "end_pdo", None)
         self.store = ParameterStore(store_path, self.od)
         self._power_on_values(0x0000, 0xFFFF)
         self.sdo = SdoServer(self)

@@ -35,6 +35,7 @@ class Cia402Application:
         self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
         self._syncs_seen = 0
         self._cycles_at_sync = 0
+        self._cycles_watched = -1
         self._sync_loss_reported = False
 
     def attach(self, slave: CanopenSlave) -> None:
@@ -64,8 +65,14 @@ class Cia402Application:
         slave = self.slave
         if slave is None:
             return
-        self._watch_sync(slave)
-        changes = self.drive.take_changes()
+        drive = self.drive
+        cycles = drive.counters["cycles"]
+        if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
+            self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
+            self._watch_sync(slave)
+        if not everything and not drive._changed:  # the common case of the several flushes per cycle
+            return
+        changes = drive.take_changes()
         if everything:
             changes = [(k[0], k[1], v) for k, v in self.drive.objects.items()]
             for alias, target in ALIASES.items():
