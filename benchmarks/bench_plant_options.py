@@ -25,7 +25,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_plant import every_effect_config, sine  # noqa: E402
 
-from virtualaxis.config.axis import ControlParams  # noqa: E402
 from virtualaxis.sim.simulator import AxisSimulator  # noqa: E402
 
 
@@ -36,8 +35,7 @@ def options(cfg) -> dict:
         "speed filter 0.5 ms": {"control": {"speed_filter_time_constant_s": 5e-4}},
         "dead time on the feedback sensor": {"sensors": {"dead_time_scope": "feedback_sensor"}},
     }
-    if "velocity_ff_form" in ControlParams.__dataclass_fields__:
-        opts["set-point difference feed-forward"] = {"control": {"velocity_ff_form": "setpoint_difference"}}
+    opts["set-point difference feed-forward"] = {"control": {"velocity_ff_form": "setpoint_difference"}}
     every: dict = {}
     for ch in opts.values():
         for sec, kv in ch.items():

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from virtualaxis.config import load_axis_config
-from virtualaxis.config.axis import ControlParams
 from virtualaxis.refaxis.cases import make_case
 from virtualaxis.sim.batch import simulate_command
 
@@ -43,18 +42,16 @@ CASES: dict[str, list[tuple[str, dict]]] = {
                                                                   "dead_time_scope": "feedback_sensor"}}),
     ],
 }
-#: the reference's drives derive the speed feed-forward from the set-point difference (a CSP drive): with that form
-#: in the schema the two-mass cases are also run with it, alone and with the case's option
-HAS_FF_FORM = "velocity_ff_form" in ControlParams.__dataclass_fields__
+#: the reference's drives derive the speed feed-forward from the set-point difference (a CSP drive): the two-mass
+#: cases are also run with that form, alone and with the case's option
 CSP_FF = {"control": {"velocity_ff_form": "setpoint_difference"}}
-if HAS_FF_FORM:
-    CASES["two_mass/clean"] = [("set-point difference feed-forward", CSP_FF)]
-    CASES["two_mass/time_delay"] += [
-        ("set-point ff", CSP_FF),
-        ("set-point ff + dead time, position loop only", {**CSP_FF, "sensors": {"dead_time_s": 6e-4}}),
-        ("set-point ff + dead time on the feedback sensor",
-         {**CSP_FF, "sensors": {"dead_time_s": 6e-4, "dead_time_scope": "feedback_sensor"}}),
-    ]
+CASES["two_mass/clean"] = [("set-point difference feed-forward", CSP_FF)]
+CASES["two_mass/time_delay"] += [
+    ("set-point ff", CSP_FF),
+    ("set-point ff + dead time, position loop only", {**CSP_FF, "sensors": {"dead_time_s": 6e-4}}),
+    ("set-point ff + dead time on the feedback sensor",
+     {**CSP_FF, "sensors": {"dead_time_s": 6e-4, "dead_time_scope": "feedback_sensor"}}),
+]
 
 
 def residual_rms(cfg, trace_path: Path) -> dict[str, float]:

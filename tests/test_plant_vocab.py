@@ -236,6 +236,22 @@ def test_dead_time_scope_feedback_sensor_delays_the_recorded_linear_scale():
     assert np.array_equal(b[:, L.O_POS_MEAS], b[:, L.O_POS_FB])
 
 
+def test_feedback_sensor_dead_time_between_cycles_reads_the_interpolated_position():
+    """With every loop at 1 ms, a 1.5 ms feedback-sensor dead time: the reading at t_k is the true position at
+    t_k - 1.5 ms, linear between t_k-1 and t_k-2 (the position-loop-only scope rounds D to whole cycles)."""
+    from virtualaxis.sim import layout as L
+
+    cfg = _rigid_p_velocity_axis(current_cycle_s=1e-3).replace(
+        sensors={"dead_time_s": 1.5e-3, "dead_time_scope": "feedback_sensor"})
+    b = _torque_mode_run(cfg, 200)
+    x = b[:, L.O_TABLE_TRUE]
+    assert np.ptp(x) > 1e-5
+    np.testing.assert_allclose(b[2:, L.O_POS_MEAS], 0.5 * (x[1:-1] + x[:-2]), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(b[2:, L.O_POS_FB], 0.5 * (x[1:-1] + x[:-2]), rtol=0, atol=1e-15)
+    a = _torque_mode_run(cfg.replace(sensors={"dead_time_scope": "position_loop"}), 200)
+    assert np.array_equal(a[2:, L.O_POS_FB], x[:-2])  # round(1.5) = 2 cycles, as before the option
+
+
 def test_dead_time_scope_rejects_unknown_values_naming_the_key():
     from virtualaxis.config import axis_config_from_dict
 
@@ -282,18 +298,6 @@ def test_speed_estimator_and_time_delay_effects_map_onto_the_config():
 
 
 # ------------------------------------------------------------------------ 3. feed-forward form of a CSP drive
-def _has_ff_form() -> bool:
-    from dataclasses import fields
-
-    from virtualaxis.config.axis import ControlParams
-
-    return "velocity_ff_form" in {f.name for f in fields(ControlParams)}
-
-
-needs_ff_form = pytest.mark.skipif(not _has_ff_form(), reason="control.velocity_ff_form not in the schema yet")
-
-
-@needs_ff_form
 def test_setpoint_difference_feed_forward_equals_the_closed_form_difference_of_a_sine():
     """CSP: v_ff[k] = (x[k] - x[k-1]) / T, a_ff[k] = (v_ff[k] - v_ff[k-1]) / T. For x = A sin(w t) the difference
     is (2 A / T) sin(w T / 2) cos(w (t_k - T / 2)) exactly (a trigonometric identity, not a difference of samples):
@@ -331,7 +335,6 @@ def test_setpoint_difference_feed_forward_equals_the_closed_form_difference_of_a
     assert np.max(np.abs(exact[:, L.O_FOLLOWING] - ref[:, L.O_FOLLOWING])) > 1e-3 * scale
 
 
-@needs_ff_form
 def test_setpoint_difference_feed_forward_takes_the_callers_value_after_entering_position_control():
     """The first set-point in position control has no predecessor (the last command was the feedback, in velocity
     control): its feed-forward is the caller's, the next ones are set-point differences."""
@@ -355,3 +358,33 @@ def test_setpoint_difference_feed_forward_takes_the_callers_value_after_entering
         sim.advance(1)
         vff = 0.05 if k == 0 else (x - xs[k - 1]) / tp
         assert sim.st[L.S_W_REF] == pytest.approx(g * (kv * sim.st[L.S_FE] + vff), rel=1e-12), k
+
+
+# ------------------------------------------------------------------------ every option on: kernel vs solve_ivp
+def test_kernel_with_every_option_on_matches_the_solve_ivp_reference():
+    """The solve_ivp reference (sim/reference.py: adaptive DOP853 between current-loop samples, event-located
+    stick/slip, its own loop code) implements the options from their definitions too; with all of them on, the
+    kernel's tracking error agrees with it point by point."""
+    from test_plant_reference import every_effect_config
+
+    from virtualaxis.sim.reference import ReferenceAxis
+
+    changes = {"friction": {"viscous_negative_n_s_per_m": 900.0},
+               "control": {"speed_estimator": "two_sample_difference", "speed_filter_time_constant_s": 4e-4},
+               "sensors": {"dead_time_s": 270e-6, "dead_time_scope": "feedback_sensor"}}  # 8.64 current cycles
+    changes["control"].update(velocity_ff_form="setpoint_difference", velocity_ff_factor=1.0)
+    cfg = every_effect_config().replace(**changes)
+    amp, vmax, dur = 0.05, 0.1, 0.25
+    w = vmax / amp
+    t = np.arange(int(round(dur / 1e-3)) + 1) * 1e-3
+    p, v, a = amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
+    kern = simulate_command(cfg, t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
+    ref = ReferenceAxis(cfg, rtol=1e-8, atol=1e-12).run(t, p, v, a)
+    r = cfg.mechanics.lead_m / (2 * math.pi)
+    tol = {"pos_meas": 0.2e-6, "pos_fb": 0.2e-6, "motor_pos": 0.2e-6 / r}
+    for ch in tol:
+        assert np.max(np.abs(kern[ch] - ref[ch])) < tol[ch], (ch, np.max(np.abs(kern[ch] - ref[ch])))
+    # the options change the response by far more than that (the comparison can fail)
+    plain = simulate_command(every_effect_config(), t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
+    for ch in tol:
+        assert np.max(np.abs(kern[ch] - plain[ch])) > 10 * tol[ch], ch

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from virtualaxis.config import AxisConfig
+from virtualaxis.config import AxisConfig, ConfigError
 from virtualaxis.sim import layout as L
 
 
@@ -37,12 +37,28 @@ def speed_filter_gain(cycle_s: float, tau_s: float) -> float:
     return -math.expm1(-cycle_s / tau_s) if tau_s > 0 else 0.0
 
 
+def dead_time_cycles(cfg: AxisConfig) -> tuple[int, float]:
+    """The feedback-sensor dead time D = ``sensors.dead_time_s`` in current cycles T: (floor(D / T), the fraction
+    beyond it). With ``dead_time_scope = "feedback_sensor"`` the sensor's reading at t is its true value at t - D,
+    interpolated linearly between the states at the current-cycle instants around it (the position-loop-only scope
+    keeps its rounding to whole cycles). A ratio within 1e-9 of an integer counts as that integer."""
+    x = cfg.sensors.dead_time_s / cfg.control.current_cycle_s
+    if abs(x - round(x)) < 1e-9:
+        x = float(round(x))
+    n0 = int(math.floor(x))
+    if cfg.sensors.dead_time_scope == "feedback_sensor" and n0 + 1 >= L.RING_SIZE:
+        raise ConfigError(cfg.path, "sensors.dead_time_s",
+                          f"must be below {(L.RING_SIZE - 1) * cfg.control.current_cycle_s:.4f} s")
+    return n0, x - n0
+
+
 def fill_option_parameters(pr: np.ndarray, cfg: AxisConfig) -> None:
     """Write the options' kernel parameters into ``pr`` (in place)."""
     c = cfg.control
     pr[L.P_FV_NEG] = viscous_negative_n_s_per_m(cfg)
     pr[L.P_DEAD_SENSOR] = 1.0 if cfg.sensors.dead_time_scope == "feedback_sensor" else 0.0
+    pr[L.P_NDEAD0], pr[L.P_DEAD_FRAC] = dead_time_cycles(cfg)
     pr[L.P_EST2] = 1.0 if c.speed_estimator == "two_sample_difference" else 0.0
     pr[L.P_SPD_FILT] = speed_filter_gain(c.speed_cycle_s, c.speed_filter_time_constant_s)
-    pr[L.P_FF_SETPOINT] = 1.0 if getattr(c, "velocity_ff_form", "derivative") == "setpoint_difference" else 0.0
+    pr[L.P_FF_SETPOINT] = 1.0 if c.velocity_ff_form == "setpoint_difference" else 0.0
     pr[L.P_TPOS] = c.position_cycle_s

@@ -61,6 +61,7 @@ from virtualaxis.sim.layout import (
     P_COG_A,
     P_COG_N,
     P_COG_PH,
+    P_DEAD_FRAC,
     P_DEAD_SENSOR,
     P_DECOUP,
     P_DELTA,
@@ -102,6 +103,7 @@ from virtualaxis.sim.layout import (
     P_LQ,
     P_MOTOR_IDX,
     P_NDEAD,
+    P_NDEAD0,
     P_NDOF,
     P_NGRID,
     P_NOISE_I,
@@ -271,6 +273,16 @@ def _feedback_position(pr, st, ring):
             return quantise(ring[j, 0], pr[P_QENC]) * r
         return quantise(ring[j, 1], pr[P_QSCALE])
     return quantise(ring[j, 1], pr[P_QSCALE])
+
+
+@njit(cache=True, fastmath=True, inline="always")
+def _delayed_reading(ring, ri, n0, frac, col):
+    """The ring's column ``col`` (0 motor angle, 1 table position) ``n0 + frac`` current cycles before the newest
+    entry ``ri``, interpolated linearly between the two entries around it (``frac`` = 0: the entry itself)."""
+    a = ring[(ri - n0) % RING_SIZE, col]
+    if frac == 0.0:
+        return a
+    return a + frac * (ring[(ri - n0 - 1) % RING_SIZE, col] - a)
 
 
 @njit(cache=True, fastmath=True, inline="always")
@@ -700,11 +712,12 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     # drive / axis options (control/options.py); the defaults take the branches of the kernel before them
     est2 = pr[P_EST2] != 0.0
     spd_filt = pr[P_SPD_FILT]
-    ndead = int(pr[P_NDEAD])
+    ndead0 = int(pr[P_NDEAD0])
+    dead_frac = pr[P_DEAD_FRAC]
     # sensors.dead_time_scope = "feedback_sensor": the feedback sensor's reading is delayed everywhere, i.e. also in
     # the speed loop when it differentiates that sensor (force actuator: always; pmsm: motor-encoder feedback) and
     # in the recorded channel of that sensor
-    dly_sensor = pr[P_DEAD_SENSOR] != 0.0 and ndead > 0
+    dly_sensor = pr[P_DEAD_SENSOR] != 0.0 and (ndead0 > 0 or dead_frac > 0.0)
     dly_speed = dly_sensor and (force_act or fb_motor)
     ff_setpoint = pr[P_FF_SETPOINT] != 0.0
     tpos = pr[P_TPOS]
@@ -721,7 +734,14 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
         st[S_CMD_POS] = cmd_pos[j]
         # ---- position loop sample
         st[S_RING] = ri
-        fb = _feedback_position(pr, st, ring)
+        if dly_sensor:
+            # the feedback sensor's reading D = (ndead0 + dead_frac) current cycles old, interpolated
+            if fb_motor:
+                fb = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 0), qenc) * r_lead
+            else:
+                fb = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 1), qscale)
+        else:
+            fb = _feedback_position(pr, st, ring)
         st[S_POS_FB] = fb
         fe = cmd_pos[j] - fb
         st[S_FE] = fe
@@ -762,11 +782,11 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
         out[j, O_MOTOR_POS] = quantise(th_m, pr[P_QENC])
         if dly_sensor:
             # the recorded channel of the feedback sensor is its delayed reading (what the drive read)
-            jd = (ri - ndead) % RING_SIZE
             if fb_motor:
-                out[j, O_MOTOR_POS] = quantise(ring[jd, 0], pr[P_QENC])
+                out[j, O_MOTOR_POS] = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 0), qenc)
             else:
-                out[j, O_POS_MEAS] = quantise(ring[jd, 1] + pr[P_NOISE_POS] * noise[j, 0], pr[P_QSCALE])
+                out[j, O_POS_MEAS] = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 1)
+                                              + pr[P_NOISE_POS] * noise[j, 0], qscale)
         out[j, O_VEL] = zview[n + tb]
         if force_act:
             out[j, O_TORQUE] = f_act
@@ -805,13 +825,12 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
             if kspd == 0:
                 # the quantity whose difference the speed loop measures: motor angle [rad] (pmsm) or position [m]
                 if dly_speed:
-                    jd = (ri - ndead) % RING_SIZE
                     if not force_act:
-                        coord = quantise(ring[jd, 0], qenc)
+                        coord = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 0), qenc)
                     elif fb_motor:
-                        coord = quantise(ring[jd, 0], qenc) * r_lead
+                        coord = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 0), qenc) * r_lead
                     else:
-                        coord = quantise(ring[jd, 1], qscale)
+                        coord = quantise(_delayed_reading(ring, ri, ndead0, dead_frac, 1), qscale)
                 elif not force_act:
                     coord = quantise(th_m, qenc)
                 elif fb_motor:

@@ -82,7 +82,9 @@ P_EST2 = 76  # 1: speed estimate (q[k] - q[k-2]) / 2T instead of (q[k] - q[k-1])
 P_SPD_FILT = 77  # speed-estimate low-pass gain 1 - exp(-T_speed / tau) per speed sample; 0 = no filter
 P_FF_SETPOINT = 78  # 1: speed / torque feed-forward from the set-point differences (CSP drive), not cmd_vel/cmd_acc
 P_TPOS = 79  # position-loop (set-point) cycle [s]
-N_PARAMS = 80
+P_NDEAD0 = 80  # feedback-sensor dead time: whole current cycles floor(D / T_current)
+P_DEAD_FRAC = 81  # ... and the fraction of a cycle beyond them (the reading is interpolated linearly)
+N_PARAMS = 82
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

@@ -5,7 +5,10 @@ Between current-loop samples the continuous plant (dq currents with the held inv
 with the nut-position-dependent stiffness interpolated on the same grid, backlash dead zone, friction) is
 integrated by ``solve_ivp``; stick/slip and backlash contact changes are located with events. The digital
 controllers (position P + feed-forward, speed PI, current PI with decoupling and voltage limit, quantised and
-delayed feedback) are evaluated at their sample instants exactly as a drive does. pmsm actuators only.
+delayed feedback) are evaluated at their sample instants exactly as a drive does, with the drive / axis options of
+``control/options.py`` written out from their definitions (speed-estimator form and filter, set-point feed-forward,
+dead time on the feedback sensor interpolated between current-cycle states, direction-dependent viscous friction).
+pmsm actuators only.
 """
 
 from __future__ import annotations
@@ -169,13 +172,31 @@ class ReferenceAxis:
             elif b.name in ("motor", "screw_end", "screw"):
                 y[i] = x0 / self.r
         y[2 * n + 2] = cfg.effects.initial_temperature_rise_k
-        hist = [(self.mvec @ y[:n], y[self.tb])] * (ndead + 1)
+        # sensors.dead_time_scope = "feedback_sensor": the sensor read at t shows its value at t - D, linear between
+        # the current-cycle instants around t - D (D = (n0 + frac) cycles); "position_loop": D rounded to cycles
+        d_cycles = cfg.sensors.dead_time_s / hc
+        n0 = int(math.floor(d_cycles + 1e-9))
+        frac = max(d_cycles - n0, 0.0) if abs(d_cycles - round(d_cycles)) >= 1e-9 else 0.0
+        hist = [(self.mvec @ y[:n], y[self.tb])] * (max(ndead, n0 + 1) + 1)
+
+        def delayed(col: int) -> float:
+            if not sensor_delayed:
+                return hist[-1 - ndead][col]
+            a, b = hist[-1 - n0][col], hist[-2 - n0][col]
+            return a + frac * (b - a)
         stuck = cfg.friction.enabled
         direction = 1.0
         ud_app = uq_app = ud_next = uq_next = 0.0
         int_d = int_q = int_w = 0.0
         iq_ref = 0.0
-        theta_prev = None
+        theta_prev = theta_prev2 = None
+        w_filtered = 0.0
+        two_sample = c.speed_estimator == "two_sample_difference"
+        tau_w = c.speed_filter_time_constant_s
+        sensor_delayed = cfg.sensors.dead_time_scope == "feedback_sensor"
+        encoder_fb = c.position_feedback == "motor_encoder"
+        setpoint_ff = c.velocity_ff_form == "setpoint_difference"
+        v_prev = None
         jref = reflected_inertia_kg_m2(cfg)
         ilim = c.current_limit_a if c.current_limit_a > 0 else 3 * m.rated_current_a
         vmax = cfg.inverter.dc_link_v / math.sqrt(3)
@@ -183,25 +204,41 @@ class ReferenceAxis:
         out_pos = np.zeros(len(t_cmd))
         out_fb = np.zeros(len(t_cmd))
         out_iq = np.zeros(len(t_cmd))
+        out_motor = np.zeros(len(t_cmd))
         t = 0.0
         for j in range(len(t_cmd)):
-            d_th, d_x = hist[0]
-            fb = _q(d_th, qenc) * self.r if c.position_feedback == "motor_encoder" else _q(d_x, qsc)
+            d_th, d_x = delayed(0), delayed(1)
+            fb = _q(d_th, qenc) * self.r if encoder_fb else _q(d_x, qsc)
             fe = pos[j] - fb
-            wref = (c.kv_1_per_s * fe + c.velocity_ff_factor * vel[j]) / self.r
+            v_ff, a_ff = vel[j], acc[j]
+            if setpoint_ff and j > 0:  # a CSP drive: backward differences of the set-points
+                v_ff = (pos[j] - pos[j - 1]) / c.position_cycle_s
+                a_ff = (v_ff - v_prev) / c.position_cycle_s
+            v_prev = v_ff
+            wref = (c.kv_1_per_s * fe + c.velocity_ff_factor * v_ff) / self.r
             if wlim > 0:
                 wref = max(-wlim, min(wlim, wref))
-            tff = c.torque_ff_factor * jref * acc[j] / self.r
-            out_pos[j] = _q(y[self.tb], qsc)
+            tff = c.torque_ff_factor * jref * a_ff / self.r
+            out_pos[j] = _q(d_x if sensor_delayed and not encoder_fb else y[self.tb], qsc)
+            out_motor[j] = _q(d_th if sensor_delayed and encoder_fb else self.mvec @ y[:n], qenc)
             out_fb[j] = fb
             out_iq[j] = y[2 * n + 1]
             for k in range(npos):
                 if k % nspd == 0:
-                    th = _q(self.mvec @ y[:n], qenc)
+                    # the speed loop's encoder: delayed when it is the delayed feedback sensor
+                    th = _q(delayed(0) if sensor_delayed and encoder_fb else self.mvec @ y[:n], qenc)
                     if theta_prev is None:
-                        theta_prev = th
-                    wmeas = (th - theta_prev) / (hc * nspd)
-                    theta_prev = th
+                        theta_prev = theta_prev2 = th
+                    if two_sample:
+                        wraw = (th - theta_prev2) / (2 * hc * nspd)
+                    else:
+                        wraw = (th - theta_prev) / (hc * nspd)
+                    theta_prev2, theta_prev = theta_prev, th
+                    if tau_w > 0:
+                        w_filtered += (1 - math.exp(-hc * nspd / tau_w)) * (wraw - w_filtered)
+                        wmeas = w_filtered
+                    else:
+                        wmeas = wraw
                     ew = wref - wmeas
                     new_int = int_w + ew * hc * nspd / c.speed_ti_s if c.speed_ti_s > 0 else int_w
                     tref = c.speed_kp_nm_s_per_rad * (ew + new_int) + tff
@@ -235,7 +272,7 @@ class ReferenceAxis:
                 hist.append((self.mvec @ y[:n], y[self.tb]))
                 hist.pop(0)
         return {"t": np.asarray(t_cmd, float), "pos_meas": out_pos, "pos_fb": out_fb, "current_q": out_iq,
-                "pos_cmd": np.asarray(pos, float)}
+                "motor_pos": out_motor, "pos_cmd": np.asarray(pos, float)}
 
     def _integrate(self, y, t0, t1, ud, uq, fext, stuck, direction):
         n, tb = self.n, self.tb
