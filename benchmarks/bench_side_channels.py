@@ -16,7 +16,8 @@ Phases (``--phases``, alternated ``--rounds`` times so that drifting machine loa
   100 Hz; a client a whole period behind skips the missed polls (counted), so ``polls/s`` is the load delivered;
 - ``modbus`` / ``mqtt``: only that half of the load (to separate the causes);
 - ``ext``: ``serve`` without side channels while the ten Modbus clients poll a plain pymodbus server of their
-  own (static registers): the machine carries the client load, ``serve`` none of it.
+  own (static registers): the machine carries the client load, ``serve`` none of it;
+- ``idle``: ``serve --modbus --mqtt`` with nobody polling or subscribing (the side channels' own cost in serve).
 
 Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
 priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
@@ -256,6 +257,11 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
         t0, t1 = wire_sync[tail], wire_sync[tail] + total[tail]
         i0, i1 = np.searchsorted(gc_t, t0 - 0.05), np.searchsorted(gc_t, t1)
         out["tail_1pct_with_gc_share"] = float(np.mean(i1 > i0))
+        # do the slowest SYNCs fall on one phase of a 10 ms period (a periodic job in serve)? largest share of
+        # them in one 1 ms bin of (time mod 10 ms); 0.1 = spread evenly
+        phase_ms = ((wire_sync[tail] - wire_sync[0]) * 1e3) % 10.0
+        out["tail_1pct_10ms_phase_max_share"] = float(np.histogram(phase_ms, bins=10, range=(0, 10))[0].max()
+                                                      / max(1, tail.sum()))
     if raw is not None:
         np.savez(raw, wire_sync=wire_sync, user_sync=user_sync, tpdo=tpdo, s_kernel=s_kernel, s_user=s_user, tx=tx,
                  gc_start_s=p["gc_start_s"], gc_gen=p["gc_gen"], gc_s=p["gc_s"])
@@ -264,9 +270,10 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
 
 # ------------------------------------------------------------------------------------ one phase
 def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
-    modbus_on = phase in ("load", "modbus")
+    modbus_on = phase in ("load", "modbus", "idle")
     external = phase == "ext"  # the Modbus clients poll a server that is not serve's (machine load only)
-    mqtt_on = phase in ("load", "mqtt")
+    mqtt_on = phase in ("load", "mqtt", "idle")
+    clients = phase != "idle"  # idle: serve's side channels on, nobody polls or subscribes
     spec = f"udp_multicast:239.74.163.3,port={port}"
     node = 1
     summary = tmp / f"serve-{port}.json"
@@ -321,11 +328,11 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
     try:
         x0 = setup_csp(bus, reply, node)
         out["overruns_before_load_start"] = sdo(bus, reply, node, 0x2110, 2)  # serve's start-up and the set-up
-        if mqtt_on:
+        if mqtt_on and clients:
             tel_out = str(tmp / f"telemetry-{port}.json")
             counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
                                         *load_flags])
-        if modbus_on or external:
+        if (modbus_on and clients) or external:
             # ten clients = ten processes (each its own interpreter, as separate client machines would be)
             outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
             t_start = time.time() + 3.0  # all clients start polling together, once their imports are done
@@ -411,7 +418,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="passes over --phases")
-    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt, ext")
+    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt, ext, idle")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and of the master")
     ap.add_argument("--load-priority", type=int, default=0,
                     help="SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus server process, "
@@ -446,9 +453,9 @@ def main() -> int:
             telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1])
         return 0
     phases = [p.strip() for p in args.phases.split(",") if p.strip()]
-    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext")]
+    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext", "idle")]
     if bad:
-        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext)")
+        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext, idle)")
     args.drive_cpus = args.load_cpus = None
     if args.pin:
         d, _, lo = args.pin.partition(":")
@@ -498,7 +505,8 @@ def main() -> int:
                        for n, v in sorted(th.items()) if v["cpu_share"] > 0.005 or v["runqueue_wait_share"] > 0.001)
         print(f"{r['phase']:>6} " + "; ".join(cols))
         print(f"{'':>6} tail: " + ", ".join(f"{k} {v:.0f}" for k, v in tail.items())
-              + f" (with a GC: {h.get('tail_1pct_with_gc_share', float('nan')) * 100:.0f} %) | threads: {thr}")
+              + f" (with a GC: {h.get('tail_1pct_with_gc_share', float('nan')) * 100:.0f} %, in one 1 ms bin of "
+              f"10 ms: {h.get('tail_1pct_10ms_phase_max_share', float('nan')) * 100:.0f} %) | threads: {thr}")
         g = h.get("gc", {})
         print(f"{'':>6} serve GC: " + ", ".join(f"{k} {v['count']}x max {v['max_us']:.0f} us" for k, v in g.items()))
     summary = {}
