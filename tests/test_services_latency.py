@@ -26,7 +26,15 @@ import pytest
 from served_drive import ROOT, served
 
 from virtualaxis.services.cycle_gate import CycleGate, GateBus
-from virtualaxis.services.mqtt import _SLOT, _SLOTS_AT, BLOCK_BYTES, RING_SLOTS, SampleBuffer, TelemetryRing
+from virtualaxis.services.mqtt import (
+    _SLOT,
+    _SLOTS_AT,
+    BLOCK_BYTES,
+    RING_SLOTS,
+    SampleBuffer,
+    TelemetryRing,
+    project_pending,
+)
 
 
 def test_telemetry_ring_order_overwrite_and_counters():
@@ -63,6 +71,15 @@ def test_telemetry_ring_order_overwrite_and_counters():
     assert counters["samples_dropped"] == 0 and err == "x" * 254
     ring.set_sampler_late(0, 4)
     assert ring.sampler_late(0) == 4 and ring.sampler_late(1) == 0
+    # serve's view before the publisher drained (still starting): the written samples counted as the next
+    # drain will count them -- the oldest beyond the buffer dropped, taken = published + dropped + buffered
+    c = dict.fromkeys(["samples_taken", "samples_published", "samples_dropped", "samples_buffered", "ring_next"], 0)
+    assert project_pending(c, 100, 60) == c | {"samples_taken": 100, "samples_dropped": 40, "samples_buffered": 60}
+    c |= {"samples_taken": 50, "samples_published": 30, "samples_buffered": 20, "ring_next": 50}
+    assert project_pending(c, 50, 60) == c  # nothing pending
+    p = project_pending(c, 50 + RING_SLOTS + 5, 10_000)  # the ring was lapped by 5
+    assert p["samples_dropped"] == 5 and p["samples_buffered"] == 20 + RING_SLOTS
+    assert p["samples_taken"] == p["samples_published"] + p["samples_dropped"] + p["samples_buffered"]
 
 
 def test_cycle_gate_waits_for_a_pdo_on_a_real_bus():

@@ -230,7 +230,7 @@ RING_SLOTS = 4096  # per axis: 41 s at 100 Hz of publisher-process stall before 
 _W_BEGIN, _W_END, _SAMPLER_LATE, _CSEQ = 0, 1, 2, 3  # written by serve (0-2) / the publisher (3 on)
 _COUNTER_NAMES = ("samples_taken", "samples_published", "samples_dropped", "samples_buffered", "batches_published",
                   "connects", "connect_attempts", "disconnects", "events_published", "events_dropped",
-                  "events_buffered", "connected")
+                  "events_buffered", "connected", "ring_next")
 _COUNTERS = struct.Struct(f"={len(_COUNTER_NAMES)}Q")
 _COUNTERS_AT = 4 * 8
 _ERROR_AT = _COUNTERS_AT + _COUNTERS.size
@@ -269,6 +269,10 @@ class TelemetryRing:
         self._set(axis, _W_BEGIN, w + 1)
         _SLOT.pack_into(self.buf, axis * BLOCK_BYTES + _SLOTS_AT + (w % RING_SLOTS) * _SLOT.size, w, *values)
         self._set(axis, _W_END, w + 1)
+
+    def written(self, axis: int) -> int:
+        """Samples serve wrote into the ring of ``axis`` (the next seq)."""
+        return self._word(axis, _W_END)
 
     def set_sampler_late(self, axis: int, n: int) -> None:
         self._set(axis, _SAMPLER_LATE, n)
@@ -339,6 +343,22 @@ def state_fields(s, nmt_state: str) -> dict:
     }
 
 
+def project_pending(c: dict, written: int, capacity: int) -> dict:
+    """The publisher's counters ``c`` with the samples serve wrote but the publisher has not drained yet
+    (``written - ring_next``; e.g. while the publisher process is still starting) counted as the next drain
+    will count them: taken; lost if the ring was lapped; added to the buffer, whose oldest beyond ``capacity``
+    are dropped. So ``taken = published + dropped + buffered`` holds from serve's view at any time."""
+    pending = max(0, written - c["ring_next"])
+    if not pending:
+        return c
+    lost = max(0, pending - RING_SLOTS)
+    buffered = c["samples_buffered"] + pending - lost
+    over = max(0, buffered - capacity)
+    return c | {"samples_taken": c["samples_taken"] + pending,
+                "samples_dropped": c["samples_dropped"] + lost + over,
+                "samples_buffered": buffered - over}
+
+
 class BufferView:
     """serve's view of an axis' sample buffer in the publisher process (counters as in :class:`SampleBuffer`)."""
 
@@ -399,7 +419,8 @@ class AxisChannel:
         ring = self.service.ring
         if ring is None:
             return dict.fromkeys(_COUNTER_NAMES, 0), ""
-        return ring.counters(self.index)
+        c, err = ring.counters(self.index)
+        return project_pending(c, ring.written(self.index), self.service.settings.buffer_samples), err
 
     def counters(self) -> dict:
         return self._read()[0]
@@ -505,6 +526,12 @@ class MqttService:
         except (OSError, ValueError):  # the publisher process is gone: the drive goes on
             pass
 
+    def _send_tick(self) -> None:
+        try:
+            self._conn.send_bytes(b'{"kind": "tick"}')
+        except (OSError, ValueError):
+            pass
+
     def _forward(self, ch: AxisChannel, s, current: bool) -> None:
         while ch.states:
             self._send(ch, "snapshot", state_fields(ch.states.popleft(), ch.nmt()))
@@ -539,6 +566,7 @@ class MqttService:
                                       s.current_a, s.torque_nm))
                 if ch.states or ch.events or tick % state_every == 0:
                     self._forward(ch, s, tick % state_every == 0)
+            self._send_tick()
             tick += 1
             nxt += period
         for ch in self.channels:  # the last events and the final state before the publisher flushes
@@ -568,7 +596,8 @@ class MqttService:
             self._proc = None
         if self.ring is not None:
             for ch in self.channels:
-                ch._final = self.ring.counters(ch.index)
+                c, err = self.ring.counters(ch.index)
+                ch._final = project_pending(c, self.ring.written(ch.index), self.settings.buffer_samples), err
             self.ring = None
         for c in (self._conn, self._ctl):
             if c is not None:
@@ -621,6 +650,7 @@ class PubChannel:
 
     def counters(self) -> dict:
         return self.buffer.counters() | {
+            "ring_next": self.ring_next,
             "batches_published": self.batches_published, "connects": self.connects,
             "connect_attempts": self.connect_attempts, "disconnects": self.disconnects,
             "events_published": self.events_published, "events_dropped": self.events_dropped,
@@ -642,12 +672,22 @@ class Publisher:
         self._stop = threading.Event()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lock = threading.Lock()  # the message reader thread vs the event loop (deques, dicts)
+        self._tick: asyncio.Event | None = None  # set by serve's tick: new samples in the ring
+        self._work: list[asyncio.Event] = []  # per axis: drained, publish now
 
     # -------------------------------------------------------------------------------- inputs
     def on_message(self, raw: bytes) -> None:
         m = json.loads(raw)
         if m["kind"] == "stop":
             self._stop.set()
+            return
+        if m["kind"] == "tick":  # serve's sampler wrote samples (in the gap after a SYNC): work now
+            loop, tick = self._loop, self._tick
+            if loop is not None and tick is not None:
+                try:
+                    loop.call_soon_threadsafe(tick.set)
+                except RuntimeError:  # the loop closed meanwhile
+                    pass
             return
         ch = self.channels[m["axis"]]
         with self._lock:
@@ -744,18 +784,41 @@ class Publisher:
             loop.close()
 
     async def _main(self) -> None:
+        self._work = [asyncio.Event() for _ in self.channels]
+        self._tick = asyncio.Event()
         drainer = asyncio.ensure_future(self._drain_loop())
         try:
             await asyncio.gather(*(self._axis_loop(ch) for ch in self.channels))
         finally:
             drainer.cancel()
+            try:
+                await drainer
+            except asyncio.CancelledError:
+                pass
             self.drain()  # the last samples (serve's sampler has stopped): counted exactly
 
     async def _drain_loop(self) -> None:
-        period = min(0.01, 1.0 / self.settings.rate_hz)
+        """Drain when serve's sampler says it wrote samples (its tick comes in the gap after a SYNC's PDOs, so
+        this process' work -- JSON, the TCP send to the broker and the broker's forwarding -- happens there too,
+        not when the next SYNC arrives); at least every 50 ms without ticks."""
+        tick = self._tick
         while True:
+            try:
+                await asyncio.wait_for(tick.wait(), 0.05)
+            except asyncio.TimeoutError:
+                pass
+            tick.clear()
             self.drain()
-            await asyncio.sleep(period)
+            for ev in self._work:
+                ev.set()
+
+    async def _wait_work(self, ch: PubChannel) -> None:
+        ev = self._work[ch.index]
+        try:
+            await asyncio.wait_for(ev.wait(), 0.05)
+        except asyncio.TimeoutError:
+            pass
+        ev.clear()
 
     def _tls_context(self) -> ssl.SSLContext | None:
         st = self.settings
@@ -860,7 +923,7 @@ class Publisher:
                     self.export(ch)
                     return
                 self.export(ch)
-                await asyncio.sleep(min(0.01, 1.0 / st.rate_hz))
+                await self._wait_work(ch)
         finally:
             watcher.cancel()
 
