@@ -266,10 +266,10 @@ def test_speed_estimator_and_time_delay_effects_map_onto_the_config():
     est = fx.EFFECTS["speed_estimator"]
     p = {q.name: q for q in est.params(cfg)}
     assert p["speed_estimator_samples"].nominal == 1.0 and fx.is_discrete("speed_estimator_samples")
-    assert p["speed_filter_time_constant_s"].nominal == 0.0 and p["speed_filter_time_constant_s"].upper == 20e-3
+    assert p["speed_filter_cycles"].nominal == 0.0 and p["speed_filter_cycles"].upper == 20.0
     assert {s["speed_estimator_samples"] for s in est.starts(cfg, {})} == {1.0, 2.0}
     truth = cfg.replace(control={"speed_estimator": "two_sample_difference"})
-    fitted = {"speed_estimator_samples": 2.0, "speed_filter_time_constant_s": 0.0}
+    fitted = {"speed_estimator_samples": 2.0, "speed_filter_cycles": 0.0}
     out = est.apply(cfg, fitted)
     assert out.control == truth.control
     t = np.arange(800) * 1e-3
@@ -282,11 +282,22 @@ def test_speed_estimator_and_time_delay_effects_map_onto_the_config():
     # a form change alone is a structural change: it pays its way by itself, the unused filter is not judged
     assert fx.relative_change("speed_estimator", cfg, fitted) == math.inf
     assert fx.relative_change("speed_estimator", cfg, {"speed_estimator_samples": 1.0,
-                                                       "speed_filter_time_constant_s": 0.0}) == 0.0
-    assert fx.implausible("speed_estimator", cfg, fitted, {"speed_filter_time_constant_s": 1e-4}, []) == []
-    assert fx.implausible("speed_estimator", cfg, {"speed_estimator_samples": 1.0,
-                                                   "speed_filter_time_constant_s": 1e-5},
-                          {"speed_filter_time_constant_s": 1e-4}, [])  # a filter within noise of 0: no answer
+                                                       "speed_filter_cycles": 0.0}) == 0.0
+    assert fx.implausible("speed_estimator", cfg, fitted, {"speed_filter_cycles": 0.1}, []) == []
+    assert fx.implausible("speed_estimator", cfg, {"speed_estimator_samples": 1.0, "speed_filter_cycles": 0.01},
+                          {"speed_filter_cycles": 0.1}, [])  # a filter within noise of 0: no answer
+    # 2 ms of filter on the 1 ms speed loop maps onto the config in seconds
+    assert est.apply(cfg, {"speed_estimator_samples": 1.0, "speed_filter_cycles": 2.0}).control == cfg.replace(
+        control={"speed_filter_time_constant_s": 2e-3}).control
+    # a one-sample estimate low-passed by half a sample (tau = T / ln 3) is the two-sample estimate: the simpler one
+    # (no free parameter) is preferred; a filter of another delay is kept
+    assert fx.filter_delay_cycles(1.0 / math.log(3.0)) == pytest.approx(0.5)
+    assert fx.reduce_nested("speed_estimator", {"speed_estimator_samples": 1.0, "speed_filter_cycles": 0.91}, {}) == (
+        "speed_estimator", {"speed_estimator_samples": 2.0, "speed_filter_cycles": 0.0})
+    for c in (0.3, 2.0):
+        one_sample = {"speed_estimator_samples": 1.0, "speed_filter_cycles": c}
+        assert fx.reduce_nested("speed_estimator", one_sample, {}) is None
+    assert fx.reduce_nested("speed_estimator", fitted, {}) is None
     # time_delay fits the scope as a discrete parameter (both scopes started)
     td = fx.EFFECTS["time_delay"]
     assert {s["dead_time_feedback_sensor"] for s in td.starts(cfg, {})} == {0.0, 1.0}

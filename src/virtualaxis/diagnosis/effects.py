@@ -434,10 +434,11 @@ def _estimator_params(cfg):
     c = cfg.control
     ts = c.speed_cycle_s
     # speed_estimator_samples (discrete 1/2, control.speed_estimator): (q[k] - q[k-1]) / T or (q[k] - q[k-2]) / 2T;
-    # the filter: up to 20 speed cycles (beyond that a speed loop no longer closes on its estimate)
+    # speed_filter_cycles: the low-pass time constant in speed cycles T (speed_filter_time_constant_s / T), up to
+    # 20 (beyond that a speed loop no longer closes on its estimate)
     return [Param("speed_estimator_samples", "1", 1.0, 2.0, 1.0,
                   nominal=2.0 if c.speed_estimator == "two_sample_difference" else 1.0),
-            Param("speed_filter_time_constant_s", "s", 0.0, 20.0 * ts, ts, nominal=c.speed_filter_time_constant_s)]
+            Param("speed_filter_cycles", "speed cycles", 0.0, 20.0, 1.0, nominal=c.speed_filter_time_constant_s / ts)]
 
 
 def _estimator_apply(cfg, v):
@@ -445,16 +446,29 @@ def _estimator_apply(cfg, v):
     samples = v.get("speed_estimator_samples", 2.0 if c.speed_estimator == "two_sample_difference" else 1.0)
     return cfg.replace(control={
         "speed_estimator": "two_sample_difference" if samples >= 1.5 else "backward_difference",
-        "speed_filter_time_constant_s": max(float(v["speed_filter_time_constant_s"]), 0.0)})
+        "speed_filter_time_constant_s": max(float(v["speed_filter_cycles"]), 0.0) * c.speed_cycle_s})
 
 
 def _estimator_starts(cfg, hints):
-    c = cfg.control
-    ts = c.speed_cycle_s
-    tau0 = c.speed_filter_time_constant_s
-    # each form with the filter moved by one speed cycle (the screening step needs an amplitude to move; the
-    # refinement takes it back to 0 when the form alone explains the gap)
-    return [{"speed_estimator_samples": s, "speed_filter_time_constant_s": tau0 + ts} for s in (2.0, 1.0)]
+    c0 = cfg.control.speed_filter_time_constant_s / cfg.control.speed_cycle_s
+    # the screening step needs an amplitude that moves, and predicts linearly in it: the other form with the filter
+    # nudged by 5 % of a speed cycle (the column is then the form change itself), each form with one speed cycle of
+    # filter; the refinement takes the filter back to 0 when the form alone explains the gap
+    return [{"speed_estimator_samples": s, "speed_filter_cycles": c0 + f} for s, f in ((2.0, 0.05), (2.0, 1.0),
+                                                                                       (1.0, 1.0))]
+
+
+def filter_delay_cycles(tau_cycles: float) -> float:
+    """Low-frequency (group) delay of the step-invariant first-order filter w_f += (1 - exp(-T/tau)) (w - w_f), in
+    samples T: (1 - a) / a = 1 / (exp(T / tau) - 1) (0 without a filter). The two-sample difference delays by 1/2
+    against the one-sample difference, as does this filter with tau = T / ln 3 = 0.91 T."""
+    if tau_cycles <= 0:
+        return 0.0
+    return 1.0 / math.expm1(1.0 / tau_cycles)
+
+
+#: a one-sample estimate with a filter whose delay is within this of half a sample is the two-sample estimate
+TWO_SAMPLE_DELAY_TOLERANCE = 0.125
 
 
 def _thermal_params(cfg):
@@ -551,7 +565,9 @@ DISCRETE_PARAMS = {"cogging_periods_per_rev", "dead_time_feedback_sensor", "spee
 def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
     """The simpler effect a fitted one reduces to, with its start values, or None: friction asymmetry whose
     two directions agree within their uncertainty (2 sigma, at least 3 % of their mean) is Coulomb
-    friction; viscous asymmetry whose two directions agree so is viscous friction."""
+    friction; viscous asymmetry whose two directions agree so is viscous friction; a one-sample speed estimate
+    low-passed by half a sample (:func:`filter_delay_cycles` within :data:`TWO_SAMPLE_DELAY_TOLERANCE` of 1/2) is
+    the two-sample estimate without a filter."""
     if effect == "friction_asymmetry":
         a, b = values["coulomb_n"], values["coulomb_negative_n"]
         sa, sb = stderr.get("coulomb_n", math.nan), stderr.get("coulomb_negative_n", math.nan)
@@ -564,6 +580,11 @@ def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float
         sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
         if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
             return "viscous_friction", {"viscous_n_s_per_m": 0.5 * (a + b)}
+    if effect == "speed_estimator" and values.get("speed_estimator_samples", 1.0) < 1.5:
+        # a one-sample difference low-passed with half a sample of delay is, at the frequencies a trace resolves,
+        # the two-sample difference (same delay and gain at low frequency) without a free parameter: prefer that
+        if abs(filter_delay_cycles(values.get("speed_filter_cycles", 0.0)) - 0.5) <= TWO_SAMPLE_DELAY_TOLERANCE:
+            return "speed_estimator", {"speed_estimator_samples": 2.0, "speed_filter_cycles": 0.0}
     return None
 
 
