@@ -44,6 +44,9 @@ class BusOpenError(Exception):
 
 
 _bus_ids = itertools.count(1)
+#: receive buffer asked for on the multicast socket [bytes] (the kernel caps it at net.core.rmem_max; the
+#: default ~208 KiB holds only ~200 small datagrams: ~15 ms of a 7-axis 1 ms bus with its looped-back frames)
+RECEIVE_BUFFER_BYTES = 4 << 20
 
 
 class OwnFrameFilteringUdpBus(UdpMulticastBus):
@@ -59,6 +62,12 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"
         self.own_frames_dropped = 0
         self.malformed_dropped = 0
+        sock = getattr(getattr(self, "_multicast", None), "_socket", None)
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            except OSError:  # (kept at the system's default)
+                pass
         self._drain_setup()
 
     def _drain_setup(self) -> None:

@@ -2,8 +2,10 @@
 
 - **real time**: every drive advances one position-loop cycle per period of the wall clock
   (``time.perf_counter``; a wait that a received frame interrupts, with the thread's timer slack set to
-  1 us, then a spin for the last ``spin_s`` that yields the GIL with ``sleep(0)``: on a loaded machine a
-  thread that stays runnable starts its cycle sooner than one woken from a sleep).
+  1 us so that it wakes on time without a spin; ``spin_s`` > 0 adds a spin before the deadline that yields
+  the GIL with ``sleep(0)``. No spin by default: under SCHED_FIFO a spinning thread only eats the real-time
+  budget (the kernel throttles real-time threads for tens of ms once they take 95 % of a CPU), and the
+  SYNC -> TPDO latency does not depend on when a cycle starts).
   A cycle that starts more than one period late is an *overrun*: counted
   (:attr:`RuntimeStats.overruns`, OD 0x2110:2), the late cycles are still run back to back (at most
   ``max_catch_up`` before the bus is polled again) so that the plant time stays equal to the wall time;
@@ -26,10 +28,12 @@
   the exact SYNC-count plant time of a deterministic run) makes every later answer later still on a machine
   that cannot keep up.
 
-Frames: a ``can.Notifier`` thread reads the bus and wakes the loop. With ``read_in_loop=True`` on a bus
-with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around them) the runtime
-thread reads the bus itself instead (it waits on the descriptor, then takes every waiting frame in one pass
-and routes it to its axes): no receive thread, no hand-over of each frame between threads (experimental).
+Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
+them) the runtime thread reads the bus itself (``read_in_loop``, default): it waits on the descriptor, then
+takes every waiting frame in one pass and routes it to its axes: no receive thread, no hand-over of each
+frame between threads (7 axes at 1 ms: SYNC -> TPDO p50 ~0.85 -> ~0.43 ms, CPU of serve 115 -> 80 % of a
+core, BENCHMARKS.md). Other buses (python-can ``virtual``), or ``read_in_loop=False``: a ``can.Notifier``
+thread reads the bus and wakes the loop.
 
 Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
 (``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
@@ -177,12 +181,12 @@ class Runtime:
         *,
         lockstep: bool = False,
         period_s: float | None = None,
-        spin_s: float = 150e-6,
+        spin_s: float = 0.0,
         idle_poll_s: float = 1e-3,
         max_catch_up: int = 5,
         max_lag_s: float = 0.5,
         catch_up_syncs: bool = False,
-        read_in_loop: bool = False,
+        read_in_loop: bool = True,
     ):
         if not axes:
             raise ValueError("no axes to run")
