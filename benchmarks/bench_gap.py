@@ -51,6 +51,7 @@ def main() -> None:
     ap.add_argument("--rescore", action="store_true",
                     help="score the bench in --out again, without diagnosing (reference: every case scored there)")
     ap.add_argument("--suite", choices=("reference", "own"), default="reference")
+    ap.add_argument("--table", action="store_true", help="reference: also print the per-case markdown table")
     a = ap.parse_args()
     names = a.cases.split(",") if a.cases else None
     t0 = time.perf_counter()
@@ -138,7 +139,29 @@ def reference(a, names, t0: float) -> None:
         print(f"  {st:12s} ({v['n_effect_cases']} + {v['n_clean_cases']} clean): first {pct(v['right_effect_first'])}, "
               f"clean {pct(v['clean_nothing_accepted'])}, none outside {pct(v['none_outside_truth'])}, "
               f"param within 15 % {pct(v['param_within_15pct'])}, shrink >= 60 % {pct(v['shrink_ge_60pct'])}")
+    if a.table:
+        print(markdown_table(out["cases"]))
     print(f"wrote {Path(a.out) / 'reference.json'}")
+
+
+def markdown_table(cases: list[dict]) -> str:
+    """Per-case table of a reference bench run (docs/diagnosis.md)."""
+    rows = ["| case | withheld | found (first first) | right first | main parameter (fitted ± SE, true, error) | "
+            "held-out shrink (channel) |", "|---|---|---|---|---|---|"]
+    for ev in cases:
+        rec = "; ".join(
+            f"{k.split('.', 1)[1]} {v['fitted']:.4g}"
+            + (f" ± {v['stderr']:.2g}" if v.get("stderr") is not None else " (not determined)")
+            + f" (true {v['true']:.4g}, {100 * v['rel_error']:.0f} %)" for k, v in ev["param_recovery"].items())
+        miss = ", ".join(ev.get("params_not_found", []))
+        sh = ev["shrink_on_effect_channel"]
+        shrink = "-" if sh is None or sh != sh else f"{100 * sh:.0f} % ({ev['effect_channel']})"
+        found = " + ".join(ev["answer"]) or "no significant effect"
+        if ev.get("model_form_mismatch"):
+            found += " + model-form mismatch"
+        rows.append(f"| {ev['case']} | {'+'.join(ev['truth']) or '-'} | {found} | {'yes' if ev['top1'] else 'no'} | "
+                    f"{rec or ('not found: ' + miss if miss else '-')} | {shrink} |")
+    return "\n".join(rows)
 
 
 if __name__ == "__main__":

@@ -862,6 +862,19 @@ def select_effects(
             # a candidate that would explain the gap but whose parameters are not physical or not determined is
             # not an answer: the gap is a model-form mismatch none of the library's effects describes
             expl = [d for d in scored if d.get("explains") and d["score"].get("implausible")]
+            # ... and one that would explain it but makes some channel clearly worse where the model cannot follow
+            # (the reference's 60 N load: force residual 60 -> 14 N, the motor encoder 2 -> 7 counts at breakaway)
+            for d in scored:
+                sc = d["score"]
+                if (not d.get("explains") and not sc.get("implausible") and not d["result"].error
+                        and d.get("signature_ok", True) and sc.get("ic_delta", math.inf) < 0
+                        and sc.get("gain", 0.0) >= settings.min_gain
+                        and sc.get("gain_of_nominal", 0.0) >= settings.min_gain_total
+                        and sc.get("worst_channel_gain", 0.0) < settings.max_channel_loss):
+                    worse = [f"{ch} {100 * -g:.0f} % more residual energy held out"
+                             for ch, g in sc.get("gain_per_channel", {}).items() if g < settings.max_channel_loss]
+                    sc["implausible"] = [f"makes {', '.join(worse)}"]
+                    expl.append(d)
             if expl:
                 d = min(expl, key=lambda d: d["score"]["ic_delta"])
                 mismatch = {"round": rnd + 1, "closest_effect": d["result"].effect,

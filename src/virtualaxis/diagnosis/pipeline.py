@@ -524,8 +524,8 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
             f"unexplained model-form mismatch in {mismatch['target_channel']}"
             + (f", concentrated in {where_txt}" if where_txt else "")
             + f": the closest library effect, {mismatch['closest_effect']}, would explain "
-            f"{100 * mismatch['heldout_gain']:.0f} % of the held-out residual only with parameters that are not an "
-            f"answer ({'; '.join(mismatch['why_not'])})")
+            f"{100 * mismatch['heldout_gain']:.0f} % of the held-out residual, but it is no answer "
+            f"({'; '.join(mismatch['why_not'])})")
         notes = notes + [mismatch["description"]]
         conclusion = (conclusion + " + " if accepted_names else "") + "unexplained model-form mismatch"
     for r in sel.removed:

@@ -261,7 +261,10 @@ def rescore_reference(out_dir: Path, seed: int = 0, quick: bool = False) -> dict
     for name in ref_case_names():
         f = Path(out_dir) / name.replace("/", "__") / "score.json"
         if f.exists():
-            results.append(load_json(f))
+            ev = load_json(f)
+            for k in ("shrink_on_effect_channel", "truth_model_ceiling"):  # NaN was written as null
+                ev[k] = math.nan if ev.get(k) is None else float(ev[k])
+            results.append(ev)
     if not results:
         from virtualaxis.config.errors import InputError
 
