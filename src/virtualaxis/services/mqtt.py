@@ -401,6 +401,7 @@ class AxisChannel:
         self.events: deque = deque(maxlen=1024)  # fault events, not yet forwarded
         self.buffer = BufferView(self)
         self.sampler_late = 0
+        self.last_nmt = ""  # NMT state last forwarded (a change is an event: a state message of its own)
         lead = drive.cfg.mechanics.lead_m
         self.lead_m = lead if lead > 0 else 0.01
         self._final: tuple[dict, str] | None = None
@@ -515,7 +516,8 @@ class MqttService:
             cb = self._observer(ch)
             ch.drive.add_observer(cb)
             self._observers.append((ch.drive, cb))
-            self._send(ch, "state", state_fields(ch.drive.state, ch.nmt()))
+            ch.last_nmt = ch.nmt()
+            self._send(ch, "state", state_fields(ch.drive.state, ch.last_nmt))
         self._sampler = threading.Thread(target=self._sample_loop, name="virtualaxis-mqtt-sampler", daemon=True)
         self._sampler.start()
         return self
@@ -564,6 +566,10 @@ class MqttService:
                 s = ch.drive.state
                 ring.write(ch.index, (s.time_s, s.position_actual_m, s.following_error_m, s.velocity_actual_m_s,
                                       s.current_a, s.torque_nm))
+                nmt = ch.nmt()
+                if nmt != ch.last_nmt:  # NMT transitions (boot, start, stop) are events too
+                    ch.last_nmt = nmt
+                    self._send(ch, "snapshot", state_fields(s, nmt))
                 if ch.states or ch.events or tick % state_every == 0:
                     self._forward(ch, s, tick % state_every == 0)
             self._send_tick()
@@ -695,6 +701,7 @@ class Publisher:
                 ch.current = m["data"]
             elif m["kind"] == "snapshot":
                 ch.states.append(m["data"])
+                ch.current = m["data"]  # (serve forwards in time order: the newest state known)
                 ch.state_dirty = True
             elif m["kind"] == "event":
                 if len(ch.events) >= ch.event_capacity:
@@ -886,7 +893,10 @@ class Publisher:
                 await asyncio.sleep(0.01)
             if ch.current is None:
                 return
-            next_state = 0.0
+            # the state right after the birth message, before any backlog of telemetry ("on connect")
+            ch.state_dirty = False
+            await client.publish(self.topic(ch, "state"), self.state_payload(ch, ch.current), qos=1, retain=True)
+            next_state = time.monotonic() + st.state_interval_s
             while True:
                 stopping = self._stop.is_set()
                 if stopping:
