@@ -93,6 +93,24 @@ class Motion:
             time.sleep(0.005)
         raise Fail("no TPDO1 (statusword + position) on SYNC")
 
+    def at_rest_velocity(self, n: int = 20, timeout: float = 1.0) -> tuple[Sample, float]:
+        """The last TPDO1 sample and the mean velocity (units/s) over the last ``n`` SYNC periods, from the
+        positions of ``n`` + 1 consecutive TPDO1 samples (one per SYNC). "At rest" is judged on this mean, not on
+        one 0x606C sample: a velocity from encoder differences reads +-1 increment per cycle at standstill
+        (1 mm/s at 1 um and 1 ms), and under load the plant time between two wall-clock samples is not the SYNC
+        period (lockstep: time advances per SYNC)."""
+        mark = self.ctx.frames.mark()
+        end = time.monotonic() + timeout
+        while True:
+            s = self.samples(mark)
+            if len(s) >= n + 1:
+                break
+            if time.monotonic() > end:
+                raise Fail(f"{len(s)} TPDO1 in {timeout:g} s, {n + 1} needed to judge standstill")
+            time.sleep(0.005)
+        window = s[-(n + 1):]
+        return s[-1], (window[-1].pos - window[0].pos) / (n * self.ctx.sync_period_s)
+
     def rpdo(self, cw: int, target: int) -> None:
         data = cw.to_bytes(2, "little") + int(target).to_bytes(4, "little", signed=True)
         self.ctx.net.send_message(self.rpdo1, data)
@@ -610,13 +628,13 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
         ctx.write(INJ_DUTY, 0, 0)
         ctx.write(INJ_INJECT, 0, LIMIT_SWITCH_KIND)
         time.sleep(0.15)
-        s1 = mo.last()
+        s1, v_rest = mo.at_rest_velocity()
         inputs = ctx.read(0x60FD)
         travel = s1.pos - s0.pos
         bound = _stop_bound(v0, a, 0.05, ctx.mm(1)) + abs(v0) * 0.05
-        if travel > bound or abs(s1.vel or 0) > ctx.mm(1):
+        if travel > bound or abs(v_rest) > ctx.mm(1):
             raise Fail(f"{name}: {travel / ctx.units_per_mm:.1f} mm past the forced + limit switch, velocity "
-                       f"{(s1.vel or 0) / ctx.units_per_mm:.1f} mm/s "
+                       f"{v_rest / ctx.units_per_mm:.1f} mm/s (mean of 20 SYNC periods) "
                        f"(bound {bound / ctx.units_per_mm:.1f} mm, at rest)")
         if not inputs & 0x2:
             raise Fail(f"{name}: 0x60FD = 0x{inputs:08X}, positive limit switch bit 1 not shown")
@@ -834,7 +852,7 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
             raise Fail(f"{name}: 0x60FD bit 1 not set although the axis reached {ctx.read(0x6064)} "
                        f"(switch found at {x_sw})")
         time.sleep(0.15)
-        s1 = mo.last()
+        s1, v_rest = mo.at_rest_velocity()
         inputs = ctx.read(0x60FD)
         moving = [s for s in hit if s.vel is not None]
         v0 = max(abs(moving[-1].vel), v) if moving else v
@@ -842,9 +860,10 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         found = x_sw if x_sw is not None else x_at
         travel = s1.pos - x_at
         bound = _stop_bound(v0, a, 0.05, ctx.mm(1)) + abs(v0) * 0.02  # + the 20 ms SDO poll of 0x60FD
-        if travel > bound or abs(s1.vel or 0) > ctx.mm(1):
+        if travel > bound or abs(v_rest) > ctx.mm(1):
             raise Fail(f"{name}: {travel / ctx.units_per_mm:.1f} mm past the + limit switch from "
-                       f"{v0 / ctx.units_per_mm:.0f} mm/s, velocity {(s1.vel or 0) / ctx.units_per_mm:.1f} mm/s "
+                       f"{v0 / ctx.units_per_mm:.0f} mm/s, velocity {v_rest / ctx.units_per_mm:.1f} mm/s "
+                       "(mean of 20 SYNC periods) "
                        f"(bound {bound / ctx.units_per_mm:.1f} mm, at rest)")
         if not inputs & 0x2:
             raise Fail(f"{name}: 0x60FD = 0x{inputs:08X} at the switch: bit 1 not set")
