@@ -53,7 +53,7 @@ def _csp_node_on_virtual_bus(catch_up: bool):
     bus = open_bus(f"virtual:{channel}")
     master = can.Bus(interface="virtual", channel=channel)
     ax = AxisNode(bus, 1, seed_config(), discrete=seed_discrete())
-    rt = Runtime(bus, [ax], lockstep=True, catch_up_syncs=catch_up)
+    rt = Runtime(bus, [ax], lockstep=True, catch_up_syncs=catch_up)  # (3 SYNCs > max_sync_backlog 2)
     rt.open()
     master.send(can.Message(arbitration_id=0x000, data=b"\x01\x01", is_extended_id=False))  # NMT start
     _sdo_download(master, rt, 1, 0x1006, 0, 1000, 4)  # 1 ms communication cycle = one drive cycle per SYNC
@@ -106,9 +106,13 @@ def test_lockstep_sync_backlog_answered_once_or_worked_off(catch_up):
             assert rt.stats.skipped == 2 and drive.read_object(0x2110, 2) - overruns0 == 2
         # the CSP interpolator heads for the latest target: the demand moves toward it
         assert drive._csp.interp.end == pytest.approx(targets[-1] * drive._u)
-        # after the backlog the runtime answers every SYNC again
+        # after the backlog the runtime answers every SYNC again; two at once (a short hiccup) are worked off
         tpdo2 = _backlog(master, ax, rt, [targets[-1]])
         assert len(tpdo2) == 1 and rt.stats.syncs_skipped == (0 if catch_up else 2)
+        cycles1 = drive.counters["cycles"]
+        tpdo2 = _backlog(master, ax, rt, [targets[-1], targets[-1]])
+        assert len(tpdo2) == 2 and drive.counters["cycles"] - cycles1 == 2
+        assert rt.stats.syncs_skipped == (0 if catch_up else 2)
     finally:
         rt.stop()
         master.shutdown()
@@ -203,3 +207,30 @@ def test_plant_step_api_observe_and_noise_stream():
     assert a.observe() is reading  # one object, refreshed in place
     for name in state.__dataclass_fields__:
         assert getattr(reading, name) == getattr(state, name), name
+
+
+def test_poll_once_reads_the_bus_when_the_runtime_reads_it_itself():
+    """``poll_once`` (no runtime thread) on a udp_multicast bus read in the loop: the SDO request is taken
+    from the socket by the pass itself (there is no receive thread that would have queued it)."""
+    spec, port = _udp_spec()
+    bus = open_bus(spec)
+    ax = AxisNode(bus, 1, seed_config(), discrete=seed_discrete())
+    rt = Runtime(bus, [ax], lockstep=True)
+    master = can.Bus(interface="udp_multicast", channel="239.74.163.77", port=port, hop_limit=0)
+    try:
+        rt.open()
+        assert rt._notifier is None
+        master.send(can.Message(arbitration_id=0x601, data=bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]),
+                                is_extended_id=False))
+        end = time.monotonic() + 3.0
+        reply = None
+        while reply is None and time.monotonic() < end:
+            rt.poll_once()
+            msg = master.recv(0.005)
+            if msg is not None and msg.arbitration_id == 0x581:
+                reply = msg
+        assert reply is not None and reply.data[0] == 0x4B  # statusword, 2 bytes
+    finally:
+        rt.stop()
+        master.shutdown()
+        bus.shutdown()

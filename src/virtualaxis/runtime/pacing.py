@@ -19,14 +19,15 @@
   set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
   real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
   machine's speed, as long as the host keeps up. SDO, NMT, heartbeat and timers keep running between SYNCs.
-  When it does not (several SYNCs arrived since the last pass: a saturated CPU), the runtime does what a
-  drive does with cycles it could not run in time: it answers only the LATEST SYNC, at once, and counts the
+  A pass that finds up to ``max_sync_backlog`` (default 2) SYNCs works them off in order (a host that was busy for
+  a moment). When it does not keep up (more SYNCs arrived since the last pass: a saturated CPU), the runtime does
+  what a drive does with cycles it could not run in time: it answers only the LATEST SYNC, at once, and counts the
   others (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
-  :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2); their synchronous RPDOs are still applied in
-  order (no set-point or controlword edge is lost) and the cyclic TPDOs count them, but no TPDO goes out
-  for them and the plant does not run their cycles. Working the backlog off instead (``catch_up_syncs=True``,
-  the exact SYNC-count plant time of a deterministic run) makes every later answer later still on a machine
-  that cannot keep up.
+  :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2); their synchronous RPDOs are still applied in order
+  (no set-point or controlword edge is lost) and the cyclic TPDOs count them, but no TPDO goes out for them and
+  the plant does not run their cycles. Working the backlog off instead (``catch_up_syncs=True``, the exact
+  SYNC-count plant time of a deterministic run) makes every later answer later still on a machine that cannot keep
+  up.
 
 Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
 them) the runtime thread reads the bus itself (``read_in_loop``, default): it waits on the descriptor, then
@@ -186,6 +187,7 @@ class Runtime:
         max_catch_up: int = 5,
         max_lag_s: float = 0.5,
         catch_up_syncs: bool = False,
+        max_sync_backlog: int = 2,
         read_in_loop: bool = True,
     ):
         if not axes:
@@ -205,6 +207,8 @@ class Runtime:
         self.max_catch_up = max_catch_up  # late cycles run back to back before the bus is polled again
         self.max_lag_s = max_lag_s
         self.catch_up_syncs = catch_up_syncs  # lockstep: work a SYNC backlog off instead of skipping it
+        # lockstep: SYNCs found in one pass that are still worked off in order; more: only the latest answered
+        self.max_sync_backlog = max(1, int(max_sync_backlog))
         self.read_in_loop = read_in_loop  # read the bus in the loop's thread (if it has a descriptor)
         self.stats = RuntimeStats()
         self._wake = threading.Event()
@@ -309,7 +313,11 @@ class Runtime:
 
     def poll_once(self) -> None:
         """One pass of the loop's frame service in the caller's thread (no pacing): frames and timers of
-        every slave, SYNCs answered and, in lockstep, the communication cycles run (benchmarks, tests)."""
+        every slave, SYNCs answered and, in lockstep, the communication cycles run (benchmarks, tests). When
+        the runtime reads the bus itself (``read_in_loop``, after :meth:`open`), the waiting frames are read
+        first."""
+        if self._fd >= 0:
+            self._drain()
         with self.lock:
             self._service(self.now())
 
@@ -325,7 +333,7 @@ class Runtime:
             if ax is axes[0]:
                 stats.syncs += len(counters)
             if self.lockstep:
-                if len(counters) > 1 and not self.catch_up_syncs:
+                if len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
                     counters = self._skip_backlog(ax, counters)
                 # answer the SYNC first (its RPDOs applied, the TPDOs due sent with the values at the SYNC
                 # instant = the end of the previous cycle); the cycles run once every axis has answered
