@@ -889,12 +889,22 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
                 raise Fail(f"{name}: cannot enable PV to move away from the + switch: {exc2}") from None
         x1 = ctx.read(0x6064)
         ctx.write(0x60FF, 0, -ctx.mm(50))
-        time.sleep(0.15)
-        x2 = ctx.read(0x6064)
+        # away until the switch has released and the axis is 5 mm back (judged on the axis, not on a wall-clock
+        # time: a loaded master or a lockstep drive advances less plant time per second), at most 2 s
+        end = time.monotonic() + 2.0
+        x2 = x1
+        while time.monotonic() < end:
+            time.sleep(0.02)
+            x2 = ctx.read(0x6064)
+            if x1 - x2 >= ctx.mm(5) and not ctx.read(0x60FD) & 0x2:
+                break
         ctx.note(f"away: SW 0x{ctx.sw():04X}, 0x606C = {ctx.read(0x606C)}, 0x60FD = 0x{ctx.read(0x60FD):X}")
         ctx.write(0x60FF, 0, 0)
         if x1 - x2 < ctx.mm(2):
             raise Fail(f"{name}: could not move away from the + limit switch in PV (0x6064 {x1} -> {x2})")
+        if ctx.read(0x60FD) & 0x2:
+            raise Fail(f"{name}: + limit switch still active {(x1 - x2) / ctx.units_per_mm:.1f} mm away from where "
+                       "the axis stopped on it")
         return (f"{name}: {travel / ctx.units_per_mm:.2f} mm past the switch at {x_at}, SW 0x{s1.sw:04X}, "
                 f"away {(x2 - x1) / ctx.units_per_mm:.1f} mm", found)
     finally:
