@@ -70,3 +70,20 @@ def test_a_parameter_within_one_standard_error_of_a_non_zero_bound_is_at_it():
     z = fx.Param("gap_m", "m", 0.0, 300e-6, 20e-6)
     assert not _at_bound(z, z.to_internal(0.5e-6), *z.internal_bounds(), 0.1)  # near a physical zero: a value
     assert _at_bound(z, z.to_internal(0.0), *z.internal_bounds(), 0.1)  # on it: reported (implausible skips zero)
+
+
+def test_an_undetermined_amplitude_beside_a_determined_one_is_no_veto():
+    """Thermal growth: the initial temperature determined and significant, the heating per friction watt not
+    determined by a few seconds of traces -> an answer (the loose one is reported as not determined); both loose ->
+    no answer."""
+    cfg = nominal_config("ballscrew")
+    vals = {"initial_temperature_rise_k": 4.98, "thermal_resistance_k_per_w": 0.008}
+    ok = fx.implausible("thermal_drift", cfg, vals, {"initial_temperature_rise_k": 0.05,
+                                                     "thermal_resistance_k_per_w": math.inf}, [])
+    assert ok == []
+    bad = fx.implausible("thermal_drift", cfg, vals, {"initial_temperature_rise_k": math.inf,
+                                                      "thermal_resistance_k_per_w": math.inf}, [])
+    assert any("not determined" in w for w in bad)
+    weak = fx.implausible("thermal_drift", cfg, vals, {"initial_temperature_rise_k": 3.0,
+                                                       "thermal_resistance_k_per_w": math.inf}, [])
+    assert any("not determined" in w for w in weak)  # the determined one is not significant either

@@ -653,18 +653,24 @@ def implausible(effect: str, cfg: AxisConfig, values: dict[str, float], stderr: 
     structural = any(is_discrete(p.name) and p.name in values and float(values[p.name]) != p.nominal
                      for p in params.values())
     significant = structural
+    loose: list[str] = []
     for p in amps:
         se = float(stderr.get(p.name, math.nan))
         v = float(values.get(p.name, p.nominal))
         if structural and p.nominal == 0.0 and fx_is_zero_bound(p, v):
             continue
         if se == math.inf:
-            why.append(f"{p.name} not determined by the fit traces")
+            loose.append(f"{p.name} not determined by the fit traces")
         elif math.isfinite(se) and abs(v - p.nominal) >= MIN_SIGNIFICANCE * se:
             significant = True
         elif not math.isfinite(se):
             significant = True  # no uncertainty computed (e.g. differential evolution): not judged
-    if amps and not significant and not any("not determined" in w for w in why):
+    # an amplitude the traces do not determine is no answer unless another amplitude of the effect is determined
+    # and significant: a warm screw's initial temperature (4.98 +- small K) establishes thermal growth, its heating
+    # per friction watt over a few seconds is then a nuisance reported as not determined, not a veto
+    if loose and not significant:
+        why.extend(loose)
+    if amps and not significant and not loose:
         why.append("no fitted value differs from the model's by " f"{MIN_SIGNIFICANCE:g} standard errors")
     return why
 
