@@ -264,35 +264,34 @@ class PdoEngine:
         tpdo.last_tx_s = now_s
         tpdo.dirty = False
 
+    @staticmethod
+    def _cyclic_due(tpdo, counter: int, counter_enabled: bool) -> bool:
+        """Count this SYNC for a cyclic TPDO (transmission type 1..240, started at its SYNC start value when
+        the counter is enabled); True when its transmission falls on this SYNC."""
+        if tpdo.sync_start and counter_enabled and not tpdo.started:
+            if counter != tpdo.sync_start:
+                return False
+            tpdo.started = True
+            tpdo.sync_count = 0
+        tpdo.sync_count += 1
+        if tpdo.sync_count >= tpdo.trans_type:
+            tpdo.sync_count = 0
+            return True
+        return False
+
     def on_sync(self, counter: int, counter_enabled: bool, now_s: float) -> None:
         for tpdo in self.sync_tpdos:
             if tpdo.trans_type == 0:
                 if tpdo.dirty:
                     self._transmit(tpdo, now_s)
-                continue
-            if tpdo.sync_start and counter_enabled and not tpdo.started:
-                if counter != tpdo.sync_start:
-                    continue
-                tpdo.started = True
-                tpdo.sync_count = 0
-            tpdo.sync_count += 1
-            if tpdo.sync_count >= tpdo.trans_type:
-                tpdo.sync_count = 0
+            elif self._cyclic_due(tpdo, counter, counter_enabled):
                 self._transmit(tpdo, now_s)
 
     def skip_sync(self, counter: int, counter_enabled: bool) -> None:
         """A SYNC not answered (see ``CanopenSlave.skip_sync``): the cyclic TPDOs count it, nothing is sent."""
         for tpdo in self.sync_tpdos:
-            if tpdo.trans_type == 0:
-                continue
-            if tpdo.sync_start and counter_enabled and not tpdo.started:
-                if counter != tpdo.sync_start:
-                    continue
-                tpdo.started = True
-                tpdo.sync_count = 0
-            tpdo.sync_count += 1
-            if tpdo.sync_count >= tpdo.trans_type:
-                tpdo.sync_count = 0
+            if tpdo.trans_type != 0:
+                self._cyclic_due(tpdo, counter, counter_enabled)
 
     def poll(self, now_s: float) -> None:
         """Event-driven TPDOs (change + inhibit time, event timer) and RPDO deadlines; OPERATIONAL only."""

@@ -193,20 +193,26 @@ class CanopenSlave:
             except Exception:  # noqa: BLE001
                 self.counters["internal_errors"] += 1
 
+    def _take_due_sync_rpdos(self):
+        """The synchronous RPDOs received before the SYNC now handled (None when they were applied ahead)."""
+        if self._applied_ahead:
+            self._applied_ahead -= 1
+            return None
+        return self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+
+    def _apply_rpdos(self, due) -> None:
+        if due:
+            for rpdo, data in due:
+                self.pdo.apply(rpdo, data)
+
     def on_sync(self, counter: int, now_s: float) -> None:
         """Apply the synchronous RPDOs received before this SYNC, then send the TPDOs due at it."""
         self._now = now_s
-        if self._applied_ahead:
-            self._applied_ahead -= 1
-            due = None
-        else:
-            due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+        due = self._take_due_sync_rpdos()
         if self.nmt_state != NmtState.OPERATIONAL:
             return
         try:
-            if due:
-                for rpdo, data in due:
-                    self.pdo.apply(rpdo, data)
+            self._apply_rpdos(due)
             if self.sync.window_open(now_s):
                 self.pdo.on_sync(counter, self.sync.counter_enabled, now_s)
         except Exception:  # noqa: BLE001
@@ -217,18 +223,12 @@ class CanopenSlave:
         the synchronous RPDOs received before it are applied (no set-point or controlword edge is lost), no
         TPDO goes out for it (a transmission that fell on it is lost); the cyclic TPDOs count it (their
         every-n-th SYNC stays in phase with the master's). Counted in ``counters["syncs_skipped"]``."""
-        if self._applied_ahead:
-            self._applied_ahead -= 1
-            due = None
-        else:
-            due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
+        due = self._take_due_sync_rpdos()
         self.counters["syncs_skipped"] += 1
         if self.nmt_state != NmtState.OPERATIONAL:
             return
         try:
-            if due:
-                for rpdo, data in due:
-                    self.pdo.apply(rpdo, data)
+            self._apply_rpdos(due)
             self.pdo.skip_sync(counter, self.sync.counter_enabled)
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
