@@ -568,18 +568,15 @@ def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float
     friction; viscous asymmetry whose two directions agree so is viscous friction; a one-sample speed estimate
     low-passed by half a sample (:func:`filter_delay_cycles` within :data:`TWO_SAMPLE_DELAY_TOLERANCE` of 1/2) is
     the two-sample estimate without a filter."""
-    if effect == "friction_asymmetry":
-        a, b = values["coulomb_n"], values["coulomb_negative_n"]
-        sa, sb = stderr.get("coulomb_n", math.nan), stderr.get("coulomb_negative_n", math.nan)
+    symmetric = {"friction_asymmetry": ("coulomb_friction", "coulomb_n", "coulomb_negative_n"),
+                 "viscous_asymmetry": ("viscous_friction", "viscous_n_s_per_m", "viscous_negative_n_s_per_m")}
+    if effect in symmetric:
+        simpler, key_pos, key_neg = symmetric[effect]
+        a, b = values[key_pos], values[key_neg]
+        sa, sb = stderr.get(key_pos, math.nan), stderr.get(key_neg, math.nan)
         sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
         if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
-            return "coulomb_friction", {"coulomb_n": 0.5 * (a + b)}
-    if effect == "viscous_asymmetry":
-        a, b = values["viscous_n_s_per_m"], values["viscous_negative_n_s_per_m"]
-        sa, sb = stderr.get("viscous_n_s_per_m", math.nan), stderr.get("viscous_negative_n_s_per_m", math.nan)
-        sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
-        if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
-            return "viscous_friction", {"viscous_n_s_per_m": 0.5 * (a + b)}
+            return simpler, {key_pos: 0.5 * (a + b)}
     if effect == "speed_estimator" and values.get("speed_estimator_samples", 1.0) < 1.5:
         # a one-sample difference low-passed with half a sample of delay is, at the frequencies a trace resolves,
         # the two-sample difference (same delay and gain at low frequency) without a free parameter: prefer that
