@@ -48,7 +48,17 @@ import virtualaxis  # noqa: E402
 from virtualaxis.config import load_axis_config  # noqa: E402
 
 sys.path.insert(0, str(REPO / "benchmarks"))
-from _master import CLI, SdoReply, TpdoClock, _cpu_model, cpu_seconds, latency_stats, sdo, sync_loop  # noqa: E402
+from _master import (  # noqa: E402
+    CLI,
+    SdoReply,
+    TpdoClock,
+    _cpu_model,
+    cpu_seconds,
+    latency_stats,
+    sdo,
+    setup_csp,
+    sync_loop,
+)
 
 #: the src folder the package was imported from: `serve` runs from the same one
 SRC = str(Path(virtualaxis.__file__).resolve().parents[1])
@@ -110,28 +120,15 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             t0 = time.perf_counter()
             sdo(bus, reply, 1, 0x6041)
             rtts.append(time.perf_counter() - t0)
+        x0: dict[int, int] = {}
         for nid in node_ids:
             if lockstep:
                 sdo(bus, reply, nid, 0x1006, value=int(round(period_s * 1e6)))  # one drive cycle per SYNC
             is_spindle = spindle and nid == 7
-            sdo(bus, reply, nid, 0x6060, value=3 if is_spindle else 8, size=1)  # spindle: profile velocity
-            sdo(bus, reply, nid, 0x6065, value=50_000)  # 50 mm: never trip during the benchmark
-            sdo(bus, reply, nid, 0x1401, 2, value=1, size=1)  # RPDO2 (CW + target) synchronous
-            sdo(bus, reply, nid, 0x1801, 2, value=1, size=1)  # TPDO2 (SW + position) on every SYNC
-            for tpdo, base in ((0x1800, 0x180), (0x1802, 0x380), (0x1803, 0x480)):  # only TPDO2 stays valid
-                sdo(bus, reply, nid, tpdo, 1, value=0x80000000 | (base + nid))
-            bus.send(can.Message(arbitration_id=0x000, data=bytes([0x01, nid]), is_extended_id=False))
-            for cw in (0x06, 0x07, 0x0F):
-                sdo(bus, reply, nid, 0x6040, value=cw, size=2)
-            state = sdo(bus, reply, nid, 0x6041) & 0x6F
-            if state != 0x27:
-                raise RuntimeError(f"node {nid} not enabled (statusword & 0x6F = 0x{state:02X})")
+            # RPDO2 (CW + target) synchronous, TPDO2 (SW + position) on every SYNC, enabled; spindle: profile velocity
+            x0[nid] = setup_csp(bus, reply, nid, mode=3 if is_spindle else 8)
             if is_spindle:  # 0x60FF in position units per second: 1/3600 rev per unit
                 sdo(bus, reply, nid, 0x60FF, value=int(SPINDLE_RPM / 60 * 3600))
-        x0 = {
-            nid: int.from_bytes(sdo(bus, reply, nid, 0x6064).to_bytes(4, "little"), "little", signed=True)
-            for nid in node_ids
-        }
         for lst in clock.times.values():
             lst.clear()
         n_sync = int(seconds / period_s)
