@@ -287,12 +287,6 @@ class PdoEngine:
             elif self._cyclic_due(tpdo, counter, counter_enabled):
                 self._transmit(tpdo, now_s)
 
-    def skip_sync(self, counter: int, counter_enabled: bool) -> None:
-        """A SYNC not answered (see ``CanopenSlave.skip_sync``): the cyclic TPDOs count it, nothing is sent."""
-        for tpdo in self.sync_tpdos:
-            if tpdo.trans_type != 0:
-                self._cyclic_due(tpdo, counter, counter_enabled)
-
     def poll(self, now_s: float) -> None:
         """Event-driven TPDOs (change + inhibit time, event timer) and RPDO deadlines; OPERATIONAL only."""
         for tpdo in self.event_tpdos:

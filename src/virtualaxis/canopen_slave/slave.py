@@ -206,32 +206,46 @@ class CanopenSlave:
                 self.pdo.apply(rpdo, data)
 
     def on_sync(self, counter: int, now_s: float) -> None:
-        """Apply the synchronous RPDOs received before this SYNC, then send the TPDOs due at it."""
+        """Answer a SYNC: the TPDOs due at it go out with the values sampled at the SYNC (:meth:`transmit_sync`),
+        then the synchronous RPDOs received before it are applied (:meth:`apply_sync`).
+
+        CiA 301 samples synchronous TPDO data at the SYNC and actuates synchronous RPDO data at the SYNC; a
+        drive samples its actual values first and then takes the new set-points into its next cycle, so an
+        object that the same SYNC's RPDO writes shows in a TPDO at the following SYNC. A runtime serving
+        several nodes calls the two halves apart: every node's TPDOs first, then every node's RPDOs."""
+        self.transmit_sync(counter, now_s)
+        self.apply_sync()
+
+    def transmit_sync(self, counter: int, now_s: float) -> None:
+        """First half of :meth:`on_sync`: send the synchronous TPDOs due at this SYNC (OPERATIONAL only, within
+        the synchronous window 0x1007)."""
         self._now = now_s
-        due = self._take_due_sync_rpdos()
         if self.nmt_state != NmtState.OPERATIONAL:
             return
         try:
-            self._apply_rpdos(due)
             if self.sync.window_open(now_s):
                 self.pdo.on_sync(counter, self.sync.counter_enabled, now_s)
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
 
-    def skip_sync(self, counter: int) -> None:
-        """A SYNC the application could not answer in time (the runtime answers only the latest of a backlog):
-        the synchronous RPDOs received before it are applied (no set-point or controlword edge is lost), no
-        TPDO goes out for it (a transmission that fell on it is lost); the cyclic TPDOs count it (their
-        every-n-th SYNC stays in phase with the master's). Counted in ``counters["syncs_skipped"]``."""
+    def apply_sync(self) -> None:
+        """Second half of :meth:`on_sync`: apply the synchronous RPDOs received before the SYNC just answered
+        (dropped outside OPERATIONAL)."""
         due = self._take_due_sync_rpdos()
-        self.counters["syncs_skipped"] += 1
         if self.nmt_state != NmtState.OPERATIONAL:
             return
         try:
             self._apply_rpdos(due)
-            self.pdo.skip_sync(counter, self.sync.counter_enabled)
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
+
+    def skip_sync(self, counter: int, now_s: float) -> None:
+        """A SYNC whose application cycle the runtime gives up (lockstep, a backlog the host could not keep up
+        with): answered like any SYNC -- the TPDOs due go out with the values of the last cycle run, then the
+        synchronous RPDOs received before it are applied (no set-point or controlword edge is lost) -- and
+        counted in ``counters["syncs_skipped"]``; the plant does not run its cycle."""
+        self.counters["syncs_skipped"] += 1
+        self.on_sync(counter, now_s)
 
     def read(self, index: int, sub: int = 0):
         """Internal read, no access checks (KeyError for an object not in the EDS)."""

@@ -11,23 +11,29 @@
   ``max_catch_up`` before the bus is polled again) so that the plant time stays equal to the wall time;
   only when the loop falls more than ``max_lag_s`` behind are the missed cycles given up, and they are
   counted (:attr:`RuntimeStats.skipped`, and as overruns). Nothing is absorbed silently. SYNC frames are
-  answered as they arrive (synchronous RPDOs applied, TPDOs sent with the values of the latest drive cycle).
+  answered as they arrive (TPDOs sent with the values of the latest drive cycle, then the synchronous RPDOs
+  applied).
 - **lockstep**: the plant advances only on SYNC. At a SYNC every slave first answers it as a drive does: the
-  synchronous RPDOs received before it are applied and the TPDOs due go out with the values at the SYNC
-  instant (the end of the previous communication cycle: what real-time pacing sends too); then every drive
+  TPDOs due go out with the values at the SYNC instant (the end of the previous communication cycle: what
+  real-time pacing sends too) and the synchronous RPDOs received before it are applied; then every drive
   runs exactly one communication cycle (0x1006 / position cycle, at least one drive cycle) on the new
   set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
   real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
   machine's speed, as long as the host keeps up. SDO, NMT, heartbeat and timers keep running between SYNCs.
   A pass that finds up to ``max_sync_backlog`` (default 2) SYNCs works them off in order (a host that was busy for
   a moment). When it does not keep up (more SYNCs arrived since the last pass: a saturated CPU), the runtime does
-  what a drive does with cycles it could not run in time: it answers only the LATEST SYNC, at once, and counts the
-  others (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
-  :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2); their synchronous RPDOs are still applied in order
-  (no set-point or controlword edge is lost) and the cyclic TPDOs count them, but no TPDO goes out for them and
-  the plant does not run their cycles. Working the backlog off instead (``catch_up_syncs=True``, the exact
-  SYNC-count plant time of a deterministic run) makes every later answer later still on a machine that cannot keep
-  up.
+  what a drive does with cycles it could not run in time: it gives them up and counts them. Every SYNC of the
+  backlog is still answered at once, in order, as real-time pacing answers a late SYNC (its TPDOs with the values
+  of the last cycle run, its synchronous RPDOs applied: no set-point or controlword edge is lost, the master's
+  PDO monitoring sees an answer to every SYNC), but only the LATEST SYNC's cycles run
+  (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
+  :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2). Working the backlog's cycles off instead
+  (``catch_up_syncs=True``, the exact SYNC-count plant time of a deterministic run) makes every later answer
+  later still on a machine that cannot keep up.
+
+Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
+(``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
+n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
 
 Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
 them) the runtime thread reads the bus itself (``read_in_loop``, default): it waits on the descriptor, then
@@ -97,7 +103,7 @@ class RuntimeStats:
     cycles: int = 0  # drive cycles run (per axis)
     overruns: int = 0  # cycles that started more than one period late
     skipped: int = 0  # cycles given up (real time: > max_lag_s behind; lockstep: skipped SYNCs), also overruns
-    syncs_skipped: int = 0  # lockstep: SYNCs of a backlog not answered (only the latest is; per axis, first axis)
+    syncs_skipped: int = 0  # lockstep: SYNCs of a backlog answered without their cycles (per axis, first axis)
     max_late_s: float = 0.0  # largest lateness of a cycle start
     syncs: int = 0  # SYNC frames handled (per axis, first axis)
     loops: int = 0  # poll loop iterations
@@ -207,7 +213,7 @@ class Runtime:
         self.max_catch_up = max_catch_up  # late cycles run back to back before the bus is polled again
         self.max_lag_s = max_lag_s
         self.catch_up_syncs = catch_up_syncs  # lockstep: work a SYNC backlog off instead of skipping it
-        # lockstep: SYNCs found in one pass that are still worked off in order; more: only the latest answered
+        # lockstep: SYNCs found in one pass whose cycles are still run in order; more: only the latest one's run
         self.max_sync_backlog = max(1, int(max_sync_backlog))
         self.read_in_loop = read_in_loop  # read the bus in the loop's thread (if it has a descriptor)
         self.stats = RuntimeStats()
@@ -221,6 +227,7 @@ class Runtime:
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
         self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
+        self._answered: list = []  # (axis, SYNC counters) whose TPDOs went out in this pass, RPDOs still to apply
 
     def now(self) -> float:
         return time.perf_counter() - self._t0
@@ -322,28 +329,42 @@ class Runtime:
             self._service(self.now())
 
     def _service(self, now: float) -> None:
+        """Frames and timers of every axis; the SYNCs received are answered in two passes over the axes: first
+        every axis' synchronous TPDOs (the values at the SYNC instant), then every axis' synchronous RPDOs
+        applied. The last axis' TPDO therefore waits only for the other axes' frame handling and TPDO
+        transmission, not for their set-point processing (see ``CanopenSlave.on_sync`` for why a drive may
+        answer in that order)."""
         axes = self.axes
         stats = self.stats
         stepping = self._stepping
+        answered = self._answered
+        lockstep = self.lockstep
         for ax in axes:
             counters = ax.slave.poll(now)
-            self._flush(ax)
             if not counters:
+                self._flush(ax)
                 continue
             if ax is axes[0]:
                 stats.syncs += len(counters)
-            if self.lockstep:
-                if len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
-                    counters = self._skip_backlog(ax, counters)
-                # answer the SYNC first (its RPDOs applied, the TPDOs due sent with the values at the SYNC
-                # instant = the end of the previous cycle); the cycles run once every axis has answered
-                ax.slave.on_sync(counters[0], now)
-                self._flush(ax)
+            if lockstep and len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
+                counters = self._skip_backlog(ax, counters, now)
+            # the TPDOs of the oldest SYNC out now (real time with a backlog: one after the other, below)
+            ax.slave.transmit_sync(counters[0], now)
+            answered.append((ax, counters))
+        if not answered:
+            return
+        for ax, counters in answered:
+            self._flush(ax)
+            ax.slave.apply_sync()
+            self._flush(ax)
+            if lockstep:
+                # the cycles run once every axis has answered
                 stepping.append((ax, counters))
                 continue
-            for counter in counters:
+            for counter in counters[1:]:  # real time, several SYNCs in one pass: answered in order
                 ax.slave.on_sync(counter, now)
                 self._flush(ax)
+        answered.clear()
         if stepping:
             for ax, counters in stepping:
                 n = ax.sync_cycles()
@@ -356,12 +377,12 @@ class Runtime:
                     stats.cycles += n * len(counters)
             stepping.clear()
 
-    def _skip_backlog(self, ax: AxisNode, counters: list[int]) -> list[int]:
-        """Lockstep, several SYNCs since the last pass: all but the latest are skipped (see the module doc:
-        RPDOs applied, no TPDO, no cycles, counted); returns the latest alone."""
+    def _skip_backlog(self, ax: AxisNode, counters: list[int], now: float) -> list[int]:
+        """Lockstep, more SYNCs since the last pass than ``max_sync_backlog``: the cycles of all but the latest
+        are given up (see the module doc: answered, RPDOs applied, no cycles, counted); returns the latest."""
         skipped = counters[:-1]
         for counter in skipped:
-            ax.slave.skip_sync(counter)
+            ax.slave.skip_sync(counter, now)
         self._flush(ax)
         lost = len(skipped) * ax.sync_cycles()
         ax.drive.record_overrun(lost)
