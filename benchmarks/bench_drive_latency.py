@@ -10,6 +10,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py --rt-priority 20     # serve under SCHED_FIFO
     python benchmarks/bench_drive_latency.py --cases 1ms:7 --lockstep   # six feed axes + the spindle, lockstep
     python benchmarks/bench_drive_latency.py --scale --seconds 10  # 1/2/4/7 axes x real time/lockstep x FIFO/not
+    python benchmarks/bench_drive_latency.py --scale --seconds 8 --rounds 3   # the same, 3 interleaved rounds
     python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
 
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
@@ -240,6 +241,7 @@ def main() -> int:
     ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
     ap.add_argument("--scale", action="store_true",
                     help="1ms with 1/2/4/7 axes, real time and lockstep, with and without SCHED_FIFO")
+    ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
     args = ap.parse_args()
     if args.cycle_cost:
@@ -299,7 +301,9 @@ def _machine() -> dict:
 
 def scale(args) -> int:
     """1 ms SYNC, 1/2/4/7 axes (7 = six feed axes + the spindle), real-time pacing and lockstep, with and
-    without SCHED_FIFO (tried; reported when not permitted). One line per case: the worst axis."""
+    without SCHED_FIFO (tried; reported when not permitted). ``--rounds`` repeats the whole case list, the
+    cases interleaved within each round, so that a drifting machine load hits real time and lockstep alike.
+    One line per case and round (the worst axis), then the median over the rounds."""
     fifo_ok = True
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(20))
@@ -308,29 +312,52 @@ def scale(args) -> int:
         fifo_ok = False
         print(f"SCHED_FIFO not permitted here ({exc}): only the cases without it run")
     results = []
-    cases = [(n, lock, prio) for prio in ((0, 20) if fifo_ok else (0,)) for lock in (False, True) for n in (1, 2, 4, 7)]
+    cases = [(n, lock, prio) for prio in ((0, 20) if fifo_ok else (0,)) for n in (1, 2, 4, 7) for lock in (False, True)]
+    runs = [(r, case) for r in range(args.rounds) for case in cases]
     with tempfile.TemporaryDirectory() as tmp:
         config = all_effects_config(Path(tmp) / "all-effects.toml")
-        for i, (n, lock, prio) in enumerate(tqdm(cases, desc="scale cases", unit="case")):
+        for i, (rnd, (n, lock, prio)) in enumerate(tqdm(runs, desc="scale cases", unit="case")):
             if prio:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
             else:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-            results.append(run_case(1e-3, n, args.seconds, config, 45000 + os.getpid() % 500 + i, prio, lock,
-                                    args.bitrate))
+            res = run_case(1e-3, n, args.seconds, config, 45000 + os.getpid() % 500 + i % 400, prio, lock,
+                           args.bitrate)
+            res["round"] = rnd
+            res["load_average_at_end"] = os.getloadavg()
+            results.append(res)
     os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     machine = _machine()
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
-    print(f"{'FIFO':>4} {'pacing':>9} {'axes':>4} {'p50 us':>7} {'p99 us':>7} {'max us':>8} {'missed':>6} "
-          f"{'late':>6} {'CPU':>5}  (worst axis)")
-    for r in results:
+    head = (f"{'FIFO':>4} {'pacing':>9} {'axes':>4} {'round':>5} {'p50 us':>7} {'p99 us':>7} {'max us':>8} "
+            f"{'missed':>6} {'late':>6} {'CPU':>5}  (worst axis)")
+    print(head)
+
+    def line(r, rnd) -> str:
         a = r["all_axes"]
-        print(f"{'yes' if r['rt_priority'] else 'no':>4} {'lockstep' if r['lockstep'] else 'real time':>9} "
-              f"{r['axes']:>4} {a['latency_us_p50_max']:>7.0f} {a['latency_us_p99_max']:>7.0f} "
-              f"{a['latency_us_max']:>8.0f} {a['missed_cycles']:>6} {a['late_tpdos']:>6} "
-              f"{r['serve_cpu_share_of_one_core'] * 100:>4.0f}%")
+        return (f"{'yes' if r['rt_priority'] else 'no':>4} {'lockstep' if r['lockstep'] else 'real time':>9} "
+                f"{r['axes']:>4} {rnd:>5} {a['latency_us_p50_max']:>7.0f} {a['latency_us_p99_max']:>7.0f} "
+                f"{a['latency_us_max']:>8.0f} {a['missed_cycles']:>6} {a['late_tpdos']:>6} "
+                f"{r['serve_cpu_share_of_one_core'] * 100:>4.0f}%")
+
+    for r in results:
+        print(line(r, str(r["round"])))
+    summary = []
+    if args.rounds > 1:
+        print("\nmedian over the rounds (missed, late: summed)")
+        print(head)
+        for n, lock, prio in cases:
+            rs = [r for r in results if (r["axes"], r["lockstep"], r["rt_priority"]) == (n, lock, prio)]
+            agg = {k: float(np.median([r["all_axes"][k] for r in rs]))
+                   for k in ("latency_us_p50_max", "latency_us_p99_max", "latency_us_max")}
+            agg["missed_cycles"] = sum(r["all_axes"]["missed_cycles"] for r in rs)
+            agg["late_tpdos"] = sum(r["all_axes"]["late_tpdos"] for r in rs)
+            med = {"axes": n, "lockstep": lock, "rt_priority": prio, "all_axes": agg,
+                   "serve_cpu_share_of_one_core": float(np.median([r["serve_cpu_share_of_one_core"] for r in rs]))}
+            summary.append(med)
+            print(line(med, "med"))
     Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "fifo_permitted": fifo_ok,
-                                           "results": results}, indent=2))
+                                           "results": results, "median_over_rounds": summary}, indent=2))
     print(f"wrote {args.json}")
     return 0
 
