@@ -8,6 +8,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py                      # 60 s per case: 1 ms / 500 us, 1 / 2 axes
     python benchmarks/bench_drive_latency.py --seconds 10 --cases 1ms:1
     python benchmarks/bench_drive_latency.py --rt-priority 20     # serve under SCHED_FIFO
+    python benchmarks/bench_drive_latency.py --cases 1ms:7 --rt-priority 20 --cpu-latency-us 0   # + PM QoS
     python benchmarks/bench_drive_latency.py --cases 1ms:7 --lockstep   # six feed axes + the spindle, lockstep
     python benchmarks/bench_drive_latency.py --scale --seconds 10  # 1/2/4/7 axes x real time/lockstep x FIFO/not
     python benchmarks/bench_drive_latency.py --scale --seconds 8 --rounds 3   # the same, 3 interleaved rounds
@@ -88,7 +89,7 @@ SPINDLE_RPM = 3000.0
 
 
 def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int,
-             lockstep: bool = False, bitrate: int = 0) -> dict:
+             lockstep: bool = False, bitrate: int = 0, cpu_latency_us: int | None = None) -> dict:
     spec = f"udp_multicast:239.74.163.2,port={port}"
     args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60),
             "--bitrate", str(bitrate)]
@@ -100,6 +101,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         args += ["--rt-priority", str(rt_priority)]
     if lockstep:
         args += ["--lockstep"]
+    if cpu_latency_us is not None:
+        args += ["--cpu-latency-us", str(cpu_latency_us)]
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": SRC},
@@ -137,7 +140,9 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         with tqdm(
             total=n_sync, desc=f"SYNC {period_s * 1e6:.0f} us, {n_axes} axis", unit="sync", mininterval=1, leave=False
         ) as bar:  # target for the next cycle: 20 mm sine at 0.5 Hz, then SYNC
-            sync_times = sync_loop(bus, x0, period_s, n_sync, bar=bar)
+            # under SCHED_FIFO the master sleeps to each SYNC (woken within some ten us); a spin there would eat the
+            # kernel's real-time budget that it shares with serve (RT throttling: stalls of ~100 ms)
+            sync_times = sync_loop(bus, x0, period_s, n_sync, spin_s=0.0 if rt_priority else 3e-4, bar=bar)
         time.sleep(0.2)
         cpu1, wall1 = cpu_seconds(proc.pid), time.perf_counter()
         result = {
@@ -146,6 +151,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             "lockstep": lockstep,
             "rt_priority": rt_priority,
             "bitrate": bitrate,
+            "cpu_latency_us": cpu_latency_us,
             "seconds": seconds,
             "syncs": n_sync,
             "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
@@ -241,6 +247,8 @@ def main() -> int:
     ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
     ap.add_argument("--scale", action="store_true",
                     help="1ms with 1/2/4/7 axes, real time and lockstep, with and without SCHED_FIFO")
+    ap.add_argument("--cpu-latency-us", type=int, default=None,
+                    help="serve --cpu-latency-us (PM QoS CPU wake-up bound; default: not requested)")
     ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
     args = ap.parse_args()
@@ -269,7 +277,7 @@ def main() -> int:
         for i, (period_s, n_axes) in enumerate(cases):
             results.append(
                 run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i, args.rt_priority,
-                         args.lockstep, args.bitrate)
+                         args.lockstep, args.bitrate, args.cpu_latency_us)
             )
     machine = _machine()
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
@@ -322,7 +330,7 @@ def scale(args) -> int:
             else:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
             res = run_case(1e-3, n, args.seconds, config, 45000 + os.getpid() % 500 + i % 400, prio, lock,
-                           args.bitrate)
+                           args.bitrate, args.cpu_latency_us)
             res["round"] = rnd
             res["load_average_at_end"] = os.getloadavg()
             results.append(res)

@@ -57,6 +57,14 @@ def register(sub) -> None:
         metavar="N",
         help="run the process with SCHED_FIFO priority N (1..99; needs the right to do so; 0: off)",
     )
+    p.add_argument(
+        "--cpu-latency-us",
+        type=int,
+        default=None,
+        metavar="US",
+        help="hold a CPU wake-up latency bound through /dev/cpu_dma_latency while serving (0: idle CPUs poll "
+        "instead of sleeping; what cyclictest and real-time hosts do; needs the right to open the file)",
+    )
     p.add_argument("--latency-probe", default=None, metavar="FILE",
                    help="benchmarks: record SYNC receive / PDO send timestamps into FILE (.npz) at stop")
     from virtualaxis.services.serve_options import add_arguments as add_side_channel_arguments
@@ -96,6 +104,13 @@ def run(args) -> int:
         raise CliError(str(exc)) from None
     if args.rt_priority:
         _set_rt_priority(args.rt_priority)
+    if args.cpu_latency_us is not None:
+        from virtualaxis.runtime.host import HostSettingError, hold_cpu_latency
+
+        try:  # the descriptor stays open for the life of the process (the request ends with it)
+            args._cpu_latency_fd = hold_cpu_latency(args.cpu_latency_us)
+        except HostSettingError as exc:
+            raise CliError(f"--cpu-latency-us: {exc}") from None
     if args.bitrate and not 10_000 <= args.bitrate <= 1_000_000:
         raise CliError(f"--bitrate must be 10000..1000000 bit/s, or 0 for no emulation (got {args.bitrate})")
     try:
