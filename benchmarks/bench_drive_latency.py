@@ -21,7 +21,9 @@ latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus).
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
 lead error, thermal growth, an extra resonance; sensor noise). Latency = TPDO receive timestamp minus SYNC
 send timestamp (both ``time.time`` in this process, so the master's own receive path is included).
-A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after the next SYNC is counted as
+The master's own stalls are reported apart (``master_stalls``: SYNCs sent more than two periods after the previous
+one, and the longest gap): after one, a burst of SYNCs follows that the drive must work off, and the late answers
+that follow are the master's doing. A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after the next SYNC is counted as
 late. Writes a JSON beside the
 printed table (``--json``).
 """
@@ -160,6 +162,11 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
                                     if k != "latency_us_p999"}
         result["sdo_rtt_us_p50"] = float(np.percentile(rtts, 50) * 1e6)
+        # the master's own stalls: SYNCs sent more than 2 periods after the previous one (then a burst follows
+        # that the drive must work off: its late answers are the master's doing, not the drive's)
+        gaps = np.diff(sync_times)
+        result["master_stalls"] = int(np.sum(gaps > 2 * period_s))
+        result["master_max_sync_gap_ms"] = float(gaps.max() * 1e3) if len(gaps) else 0.0
         result["sdo_rtt_us_p99"] = float(np.percentile(rtts, 99) * 1e6)
     finally:
         notifier.stop()
@@ -174,6 +181,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         "latency_us_max": max(x["latency_us_max"] or 0 for x in lat),
         "missed_cycles": sum(x["missed_cycles"] for x in lat),
         "late_tpdos": sum(x["late_tpdos"] for x in lat),
+        "master_stalls": result["master_stalls"],
+        "master_max_sync_gap_ms": result["master_max_sync_gap_ms"],
     }
     return result
 
@@ -283,7 +292,7 @@ def main() -> int:
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
     print(
         f"{'SYNC':>7} {'axes':>4} {'node':>4} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} "
-        f"{'SDO p50 us':>10} {'CPU':>6}"
+        f"{'SDO p50 us':>10} {'CPU':>6} {'master gap ms':>13}"
     )
     for r in results:
         for nid in range(1, r["axes"] + 1):
@@ -291,7 +300,8 @@ def main() -> int:
             print(
                 f"{r['sync_period_us']:>5.0f}us {r['axes']:>4} {nid:>4} {n['latency_us_p50']:>8.0f} "
                 f"{n['latency_us_p99']:>8.0f} {n['latency_us_max']:>9.0f} {n['missed_cycles']:>7} {n['late_tpdos']:>6} "
-                f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}%"
+                f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}% "
+                f"{r['master_max_sync_gap_ms']:>13.2f}"
             )
     Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results}, indent=2))
     print(f"wrote {args.json}")
@@ -338,7 +348,7 @@ def scale(args) -> int:
     machine = _machine()
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
     head = (f"{'FIFO':>4} {'pacing':>9} {'axes':>4} {'round':>5} {'p50 us':>7} {'p99 us':>7} {'max us':>8} "
-            f"{'missed':>6} {'late':>6} {'CPU':>5}  (worst axis)")
+            f"{'missed':>6} {'late':>6} {'CPU':>5} {'mstall':>6}  (worst axis; mstall: master SYNC gaps > 2 periods)")
     print(head)
 
     def line(r, rnd) -> str:
@@ -346,7 +356,7 @@ def scale(args) -> int:
         return (f"{'yes' if r['rt_priority'] else 'no':>4} {'lockstep' if r['lockstep'] else 'real time':>9} "
                 f"{r['axes']:>4} {rnd:>5} {a['latency_us_p50_max']:>7.0f} {a['latency_us_p99_max']:>7.0f} "
                 f"{a['latency_us_max']:>8.0f} {a['missed_cycles']:>6} {a['late_tpdos']:>6} "
-                f"{r['serve_cpu_share_of_one_core'] * 100:>4.0f}%")
+                f"{r['serve_cpu_share_of_one_core'] * 100:>4.0f}% {a.get('master_stalls', 0):>6}")
 
     for r in results:
         print(line(r, str(r["round"])))
@@ -360,6 +370,7 @@ def scale(args) -> int:
                    for k in ("latency_us_p50_max", "latency_us_p99_max", "latency_us_max")}
             agg["missed_cycles"] = sum(r["all_axes"]["missed_cycles"] for r in rs)
             agg["late_tpdos"] = sum(r["all_axes"]["late_tpdos"] for r in rs)
+            agg["master_stalls"] = sum(r["all_axes"]["master_stalls"] for r in rs)
             med = {"axes": n, "lockstep": lock, "rt_priority": prio, "all_axes": agg,
                    "serve_cpu_share_of_one_core": float(np.median([r["serve_cpu_share_of_one_core"] for r in rs]))}
             summary.append(med)
