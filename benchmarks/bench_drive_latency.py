@@ -19,13 +19,12 @@ are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`
 latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus).
 
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
-lead error, thermal growth, an extra resonance; sensor noise). Latency = TPDO receive timestamp minus SYNC
-send timestamp (both ``time.time`` in this process, so the master's own receive path is included).
+lead error, thermal growth, an extra resonance; sensor noise). Latency = the TPDO's kernel receive
+timestamp in the master's socket (SO_TIMESTAMPNS) minus the master's ``time.time`` right before it sent the SYNC.
 The master's own stalls are reported apart (``master_stalls``: SYNCs sent more than two periods after the previous
 one, and the longest gap): after one, a burst of SYNCs follows that the drive must work off, and the late answers
-that follow are the master's doing. A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after the next SYNC is counted as
-late. Writes a JSON beside the
-printed table (``--json``).
+that follow are the master's doing. A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after
+the next SYNC is counted as late. Writes a JSON beside the printed table (``--json``).
 """
 
 from __future__ import annotations
@@ -91,7 +90,8 @@ SPINDLE_RPM = 3000.0
 
 
 def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int,
-             lockstep: bool = False, bitrate: int = 0, cpu_latency_us: int | None = None) -> dict:
+             lockstep: bool = False, bitrate: int = 0, cpu_latency_us: int | None = None,
+             serve_args: list[str] | None = None) -> dict:
     spec = f"udp_multicast:239.74.163.2,port={port}"
     args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60),
             "--bitrate", str(bitrate)]
@@ -105,6 +105,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         args += ["--lockstep"]
     if cpu_latency_us is not None:
         args += ["--cpu-latency-us", str(cpu_latency_us)]
+    args += serve_args or []
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": SRC},
@@ -154,6 +155,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             "rt_priority": rt_priority,
             "bitrate": bitrate,
             "cpu_latency_us": cpu_latency_us,
+            "serve_args": serve_args or [],
             "seconds": seconds,
             "syncs": n_sync,
             "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
@@ -258,6 +260,8 @@ def main() -> int:
                     help="1ms with 1/2/4/7 axes, real time and lockstep, with and without SCHED_FIFO")
     ap.add_argument("--cpu-latency-us", type=int, default=None,
                     help="serve --cpu-latency-us (PM QoS CPU wake-up bound; default: not requested)")
+    ap.add_argument("--serve-arg", dest="serve_args", action="append", default=[],
+                    help="one more argument for serve (repeat), e.g. --serve-arg=--sync-spin-us --serve-arg=150")
     ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
     args = ap.parse_args()
@@ -286,7 +290,7 @@ def main() -> int:
         for i, (period_s, n_axes) in enumerate(cases):
             results.append(
                 run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i, args.rt_priority,
-                         args.lockstep, args.bitrate, args.cpu_latency_us)
+                         args.lockstep, args.bitrate, args.cpu_latency_us, args.serve_args)
             )
     machine = _machine()
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
@@ -340,7 +344,7 @@ def scale(args) -> int:
             else:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
             res = run_case(1e-3, n, args.seconds, config, 45000 + os.getpid() % 500 + i % 400, prio, lock,
-                           args.bitrate, args.cpu_latency_us)
+                           args.bitrate, args.cpu_latency_us, args.serve_args)
             res["round"] = rnd
             res["load_average_at_end"] = os.getloadavg()
             results.append(res)
