@@ -2,12 +2,15 @@
 
 :func:`hold_cpu_latency` requests a CPU wake-up latency bound through the kernel's PM QoS interface
 ``/dev/cpu_dma_latency`` (as ``cyclictest`` and the ``realtime`` tuned profiles do): while the returned file
-descriptor stays open, the CPU idle governor uses no idle state whose exit latency exceeds the bound. On this
-project's 2-vCPU virtual machines (cpuidle driver ``haltpoll``) a bound of 0 us keeps idle CPUs polling instead of
-halting, which removes the VM-exit wake-up from every frame's path: with 7 axes at 1 ms SYNC, SCHED_FIFO, the
-7th axis' SYNC -> TPDO p99 went from 350-700 us (lockstep 470-820) to ~260-290 us in both pacing modes
-(BENCHMARKS.md, issue #15). The price: idle CPUs spin while the request is held (power, and a shared host's
-other guests).
+descriptor stays open, the CPU idle governor uses no idle state whose exit latency exceeds the bound. With a
+bound of 0 idle CPUs poll instead of halting, which takes the wake-up from a halted CPU out of every frame's path.
+
+Measured on this project's 2-vCPU virtual machines (cpuidle driver ``haltpoll``, guest halt-polling off; 7 axes at
+1 ms SYNC, SCHED_FIFO; BENCHMARKS.md, issue #15): the SDO round trip halves (~95 -> ~45 us) and the runs without a
+stall had the 7th axis' SYNC -> TPDO p99 at 200-285 us in both pacing modes; but the polling vCPUs use up the
+virtual machine's CPU share on its host: 10 of 47 runs with the bound had a stall of ~100 ms (of serve or of the
+master: the whole guest), none of ~70 runs without it (whose worst stalls were 5-40 ms). Use it on dedicated
+hardware, not on a shared virtual machine.
 """
 
 from __future__ import annotations
