@@ -157,3 +157,59 @@ def test_serve_reports_the_bus_load_of_a_master_in_another_process(tmp_path):
     assert bus["bitrate_bit_s"] == 125_000
     assert 60.0 <= bus["peak_load_percent"] <= 115.0, bus
     assert 0.95 * master["frames_sent"] <= bus["frames_received"] <= master["frames_sent"] + 5
+
+
+def _reference_frame_bits(msg: can.Message, stuffing: str) -> int:
+    """The frame length bit by bit, straight from the CAN 2.0 frame layout (a list of bits, CRC-15 shifted
+    bit by bit, every run of 5 equal bits followed by an opposite stuff bit): the reference the integer /
+    table-driven ``frame_bits`` must equal."""
+    def bits_of(v: int, n: int) -> list[int]:
+        return [(v >> (n - 1 - i)) & 1 for i in range(n)]
+
+    dlc = min(msg.dlc, 8)
+    rtr = 1 if msg.is_remote_frame else 0
+    if msg.is_extended_id:
+        ident = msg.arbitration_id
+        seq = [0] + bits_of(ident >> 18, 11) + [1, 1] + bits_of(ident & 0x3FFFF, 18) + [rtr, 0, 0]
+    else:
+        seq = [0] + bits_of(msg.arbitration_id, 11) + [rtr, 0, 0]
+    seq += bits_of(dlc, 4)
+    for byte in (b"" if rtr else bytes(msg.data[:dlc])):
+        seq += bits_of(byte, 8)
+    crc = 0
+    for b in seq:
+        feedback = b ^ (crc >> 14)
+        crc = (crc << 1) & 0x7FFF
+        if feedback:
+            crc ^= 0x4599
+    seq += bits_of(crc, 15)
+    if stuffing == "worst":
+        stuff = (len(seq) - 1) // 4
+    else:
+        stuff, run, last = 0, 0, -1
+        for b in seq:
+            run = run + 1 if b == last else 1
+            last = b
+            if run == 5:
+                stuff += 1
+                last, run = 1 - b, 1
+    return len(seq) + stuff + 13
+
+
+def test_frame_bits_equals_the_bit_by_bit_reference_on_random_and_pathological_frames():
+    import random
+
+    rng = random.Random(7)
+    patterns = [None, 0x00, 0xFF, 0x55, 0xF0, 0x0F, 0xE0, 0x1F, 0x07, 0x83]
+    for _ in range(4000):
+        ext = rng.random() < 0.3
+        n = rng.randint(0, 8)
+        rtr = rng.random() < 0.1
+        pat = rng.choice(patterns)
+        data = bytes(rng.getrandbits(8) if pat is None else pat for _ in range(n))
+        ident = rng.choice([0, 0x1FFFFFFF if ext else 0x7FF, rng.getrandbits(29 if ext else 11)])
+        msg = can.Message(arbitration_id=ident, is_extended_id=ext, is_remote_frame=rtr, dlc=n,
+                          data=None if rtr else data)
+        for stuffing in ("computed", "worst"):
+            assert frame_bits(msg, stuffing) == _reference_frame_bits(msg, stuffing), (msg, stuffing)
+            assert frame_bits(msg, stuffing) == _reference_frame_bits(msg, stuffing)  # (the cached answer too)

@@ -25,6 +25,7 @@ so that a master that would overload a real bus sees the delays and the overload
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections import deque
@@ -38,48 +39,95 @@ LOAD_WINDOW_S = 1.0
 _CRC15_POLY = 0x4599
 
 
-def _crc15(bits: list[int]) -> int:
+def _crc15_table() -> tuple[int, ...]:
+    """CRC-15/CAN (polynomial 0x4599, MSB first, initial 0) of every byte pushed through the register."""
+    table = []
+    for byte in range(256):
+        crc = byte << 7
+        for _ in range(8):
+            crc = ((crc << 1) ^ _CRC15_POLY) if crc & 0x4000 else (crc << 1)
+            crc &= 0x7FFF
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC15_TABLE = _crc15_table()
+#: frame_bits results kept for frames seen before (SYNC, heartbeat, SDO, a drive at rest) [entries]
+_CACHE_LIMIT = 4096
+_cache: dict[tuple, int] = {}
+_LONG_RUN = re.compile(r"0{4,}|1{4,}")  # only runs of 4 or more equal bits can take a stuff bit
+
+
+def _crc15(value: int, n: int) -> int:
+    """CRC-15/CAN of the ``n`` bits of ``value`` (the first bit sent is its most significant)."""
     crc = 0
-    for b in bits:
-        nxt = b ^ ((crc >> 14) & 1)
-        crc = (crc << 1) & 0x7FFF
-        if nxt:
-            crc ^= _CRC15_POLY
+    head = n % 8
+    for i in range(head - 1, -1, -1):  # the bits before the first whole byte, one at a time
+        if ((value >> (n - head + i)) & 1) ^ (crc >> 14):
+            crc = ((crc << 1) ^ _CRC15_POLY) & 0x7FFF
+        else:
+            crc = (crc << 1) & 0x7FFF
+    table = _CRC15_TABLE
+    for shift in range(n - head - 8, -1, -8):
+        crc = ((crc << 8) & 0x7FFF) ^ table[((crc >> 7) ^ (value >> shift)) & 0xFF]
     return crc
 
 
-def _bits_of(value: int, n: int) -> list[int]:
-    return [(value >> (n - 1 - i)) & 1 for i in range(n)]
+def _stuff_bits(bits: str) -> int:
+    """Stuff bits CAN inserts into ``bits`` (SOF .. CRC): one of the opposite level after every 5 equal bits,
+    and that stuff bit starts the next run. Counted per run of equal bits: a run of ``length`` takes a stuff bit
+    after its first ``5 - carry`` bits and then after every 5 more (``carry`` = 1: the run right before it ended
+    with a stuff bit, which has this run's level). Runs shorter than 4 never take one (nor pass a carry on),
+    so only the runs of 4 or more are looked at."""
+    stuff = carry = 0
+    previous_end = -1
+    for m in _LONG_RUN.finditer(bits):
+        start, end = m.span()
+        if start != previous_end:
+            carry = 0
+        length = end - start
+        first = 5 - carry
+        if length >= first:
+            k = (length - first) // 5
+            stuff += 1 + k
+            carry = 1 if length == first + 5 * k else 0
+        else:
+            carry = 0
+        previous_end = end
+    return stuff
 
 
 def frame_bits(msg: can.Message, stuffing: str = "computed") -> int:
     """Bits a classical CAN frame occupies on the bus, intermission (3 bits) included."""
     dlc = min(msg.dlc, 8)
     n_data = 0 if msg.is_remote_frame else dlc
+    data = bytes(msg.data[:n_data])
+    key = (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, dlc, data, stuffing)
+    cached = _cache.get(key)
+    if cached is not None:
+        return cached
     rtr = 1 if msg.is_remote_frame else 0
     if msg.is_extended_id:
         ident = msg.arbitration_id & 0x1FFFFFFF
-        head = [0] + _bits_of(ident >> 18, 11) + [1, 1] + _bits_of(ident & 0x3FFFF, 18) + [rtr, 0, 0]
+        # SOF, base id (11), SRR, IDE, extension (18), RTR, r1, r0
+        value = (((ident >> 18) << 2 | 0b11) << 18 | (ident & 0x3FFFF)) << 3 | rtr << 2
+        n = 1 + 11 + 2 + 18 + 3
     else:
-        head = [0] + _bits_of(msg.arbitration_id & 0x7FF, 11) + [rtr, 0, 0]
-    stuffed_part = head + _bits_of(dlc, 4)
-    for byte in bytes(msg.data[:n_data]):
-        stuffed_part += _bits_of(byte, 8)
-    stuffed_part += _bits_of(_crc15(stuffed_part), 15)
-    n = len(stuffed_part)
-    if stuffing == "worst":
-        stuff = (n - 1) // 4
-    else:
-        stuff, run, last = 0, 0, -1
-        for b in stuffed_part:
-            if b == last:
-                run += 1
-            else:
-                last, run = b, 1
-            if run == 5:  # a stuff bit of the opposite level follows and starts a new run
-                stuff += 1
-                last, run = 1 - b, 1
-    return n + stuff + 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
+        value = ((msg.arbitration_id & 0x7FF) << 1 | rtr) << 2  # SOF, id (11), RTR, IDE, r0
+        n = 1 + 11 + 3
+    value = value << 4 | dlc
+    n += 4
+    if data:
+        value = value << (8 * n_data) | int.from_bytes(data, "big")
+        n += 8 * n_data
+    value = value << 15 | _crc15(value, n)
+    n += 15
+    stuff = (n - 1) // 4 if stuffing == "worst" else _stuff_bits(format(value, f"0{n}b"))
+    bits = n + stuff + 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
+    if len(_cache) >= _CACHE_LIMIT:
+        _cache.clear()
+    _cache[key] = bits
+    return bits
 
 
 class BitRateBus(can.BusABC):
