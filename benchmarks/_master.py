@@ -212,7 +212,9 @@ def sync_loop(bus, targets: dict[int, int | None], period_s: float, n_sync: int,
     ``time.time()`` taken right before each SYNC's ``send`` [s].
 
     Pacing: ``time.sleep`` until ``spin_s`` before the deadline, then a spin (``spin_s`` = 0: sleep to the
-    deadline; under SCHED_FIFO the kernel wakes the thread within some ten us, no spin needed)."""
+    deadline; under SCHED_FIFO the kernel wakes the thread within some ten us, no spin needed). After a stall of
+    this process longer than a period, the missed ticks are dropped, as a SYNC producer's timer does: no burst of
+    catch-up SYNCs (which the drive would then have to work off, its late answers being this process' doing)."""
     sync_times = np.zeros(n_sync)
     sync_msg = can.Message(arbitration_id=SYNC_COB, data=b"", is_extended_id=False)
     perf = time.perf_counter
@@ -235,6 +237,9 @@ def sync_loop(bus, targets: dict[int, int | None], period_s: float, n_sync: int,
         sync_times[k] = time.time()
         bus.send(sync_msg)
         t_next += period_s
+        behind = perf() - t_next
+        if behind > period_s:  # this process stalled: a SYNC producer keeps its tick, it does not send a burst
+            t_next += (behind // period_s) * period_s
         if bar is not None and k % 1000 == 0:
             bar.update(1000 if k else 1)
     return sync_times
