@@ -309,8 +309,13 @@ class Homing(OperatingMode):
         slow = float(d._obj(0x6099, 2)) * d._u
         speed = fast if phase.fast else slow
         far = phase.direction * 10.0 * max(d.cfg.axis.stroke_m, 0.1)
-        pr.set_target(pr.position_m + far, speed, acc, acc)
         neg, pos, home = d._switches(x_plant, run.method)
+        if (neg and pr.velocity_m_s < 0) or (pos and pr.velocity_m_s > 0):
+            # on a hardware limit switch and still moving into it (methods 1, 2, 17, 18 search for it): brake at
+            # least with the quick-stop deceleration 0x6085, the drive's limit-switch reaction in every mode; a
+            # homing acceleration made for the slow return would run the table into the end stop
+            acc = max(acc, float(d._obj(0x6085)) * d._u)
+        pr.set_target(pr.position_m + far, speed, acc, acc)
         hit = False
         latched = x_plant
         if phase.signal == "index":
