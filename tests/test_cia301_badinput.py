@@ -284,10 +284,12 @@ def test_flood_of_random_frames_then_sdo_and_nmt_still_answer(drive):
         bus.send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
         if k % 200 == 0:
             time.sleep(0.005)  # (a flood, but not one that drops our own receive buffer)
-    # the flood's own SDO requests may still be in flight across processes: wait until the server has answered
-    # the last of them (no SDO response for 0.3 s), else our read could pair with an abort meant for the flood
+    # the flood's own SDO requests may still be in flight across processes: wait until the server has worked
+    # through the flood (no SDO response and no EMCY - every bad-length RPDO gets one - for 0.3 s), else our
+    # read could pair with an abort meant for the flood (seen on a slower machine: the server was still sending
+    # the flood's EMCYs after 0.3 s without an SDO answer, and our upload got the abort of a flood request)
     quiet_deadline = time.monotonic() + 10.0
-    while time.monotonic() < quiet_deadline and frames.wait(frames.mark(), lambda c, d: c == 0x580 + NODE, 0.3):
+    while time.monotonic() < quiet_deadline and frames.wait(frames.mark(), lambda c, d: c in (SDO_TX, EMCY), 0.3):
         pass
     t0 = time.monotonic()
     _still_alive(node, frames)

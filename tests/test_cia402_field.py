@@ -12,6 +12,8 @@ import canopen
 import pytest
 from test_drive_rig import Rig
 
+from virtualaxis.sim.simulator import end_stops
+
 UNIT_M = 1e-6  # one position unit (default feed constant)
 
 
@@ -168,8 +170,9 @@ def test_huge_external_force_stops_at_the_end_stop_and_reset_node_restores_the_p
         node.sdo[0x2011].raw = -1e6
         r.sync(1000)
         half = r.drive.cfg.axis.stroke_m / 2
+        lo, _, _, _, travel, _ = end_stops(r.drive.cfg)
         x = r.drive.state.table_position_m
-        assert -half - 0.012 < x < -half, x  # at the end stop (10 mm beyond the stroke end), not beyond
+        assert lo - travel - 0.002 < x < -half, x  # in the end stop's buffer, not beyond
         assert node.sdo[0x60FD].raw & 0x1
         r.enable()
         r.sync(200)
@@ -313,7 +316,8 @@ def test_force_far_beyond_the_motor_faults_overspeed_instead_of_diverging():
         s = r.drive.state
         assert s.cia402_state == "FAULT" and 0x8401 in [f.emcy_code for f in s.faults]
         half = r.drive.cfg.axis.stroke_m / 2
-        assert half < s.table_position_m < half + 0.012
+        _, hi, _, _, travel, _ = end_stops(r.drive.cfg)
+        assert half < s.table_position_m < hi + travel + 0.002
         assert math.isfinite(node.sdo[0x6077].raw) and r.drive.counters["cycle_exceptions"] == 0
         for value, code in ((1e30, 0x06090031), (-2e7, 0x06090032)):
             with pytest.raises(canopen.SdoAbortedError) as exc:
@@ -385,5 +389,27 @@ def test_quick_stop_on_the_current_limit_and_coast(option, max_mm):
             assert 0.0 < travel_mm < max_mm, travel_mm
         else:
             assert travel_mm > 1.0 and not r.drive.simulator.enabled  # coasted further than any ramp here
+    finally:
+        r.close()
+
+
+def test_torque_actual_is_computed_from_the_currents_and_stays_within_0x6072():
+    """Found by an outside audit: in PT with the target beyond 0x6072, 0x6077 read 3008 per mille with 0x6072 =
+    3000 (the air-gap torque including cogging, and the current loop's overshoot of its limit). A drive shows
+    the torque it computes from its measured currents, within its torque limit."""
+    r = Rig()
+    try:
+        node = r.node
+        _start(r, 4, **{"0x6072": 1000, "0x6087": 0})
+        node.sdo[0x6071].raw = 2000
+        seen = []
+        for _ in range(30):
+            r.sync(5)
+            seen.append(node.sdo[0x6077].raw)
+        assert max(seen) <= 1000 and seen[-1] >= 990, seen
+        s = r.drive.state
+        mot = r.drive.cfg.motor
+        t_currents = mot.kt_nm_per_a * s.current_a  # ld = lq on the seed motor: no reluctance torque
+        assert s.torque_nm == pytest.approx(min(t_currents, node.sdo[0x6076].raw / 1000.0), rel=1e-6)
     finally:
         r.close()

@@ -85,6 +85,7 @@ _MONITOR_PARAMETER_INDICES = frozenset(
     {
         0x6065,
         0x6066,
+        0x6072,
         0x2006,
         0x2007,
         0x6067,
@@ -1093,6 +1094,9 @@ class Drive:
             rated_a=float(o[(0x6075, 0)]) / 1000.0,
             max_speed_m_s=max_speed,
             max_velocity_m_s=min(float(o[(0x607F, 0)]) * u, max_speed),
+            kt_nm_per_a=self.cfg.motor.kt_nm_per_a,
+            reluctance_nm_per_a2=1.5 * self.cfg.motor.pole_pairs * (self.cfg.motor.ld_h - self.cfg.motor.lq_h),
+            max_torque_nm=float(o[(0x6072, 0)]) / 1000.0 * float(o[(0x6076, 0)]) / 1000.0,
         )
         self._params_dirty = False
 
@@ -1166,6 +1170,18 @@ class Drive:
     def _speed_zero_flag(self) -> bool:
         return bool(getattr(self, "_speed_zero", False))
 
+    def _torque_actual_nm(self, ax) -> float:
+        """Torque actual value [N m] as a drive computes it: from the measured dq currents (k_t i_q plus the
+        reluctance torque 1.5 p (L_d - L_q) i_d i_q; cogging is not in the currents), shown within the torque
+        limit 0x6072 (the current loop overshoots its limit by a few per mille for a cycle). A force actuator
+        reports its force."""
+        pc = self._pc
+        if not pc.pmsm:
+            return ax.torque_nm
+        t = pc.kt_nm_per_a * ax.current_q_a + pc.reluctance_nm_per_a2 * ax.current_d_a * ax.current_q_a
+        lim = pc.max_torque_nm
+        return -lim if t < -lim else lim if t > lim else t
+
     def _publish_outputs(self) -> None:
         """Statusword and actual values into the objects (changed ones marked for the OD mirror). Hot path:
         the output objects are no aliases, so they are compared and stored directly (not via _store)."""
@@ -1173,7 +1189,7 @@ class Drive:
         self._update_statusword()
         inv_u = pc.inv_u
         x = ax.position_m - self._zero_m
-        torque_pm = _i16(ax.torque_nm / pc.rated_nm * 1000.0) if pc.rated_nm else 0
+        torque_pm = _i16(self._torque_actual_nm(ax) / pc.rated_nm * 1000.0) if pc.rated_nm else 0
         fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0
         self._fe_m = fe
         neg, pos, home = self._switches(ax.position_m, int(o[(0x6098, 0)]))
@@ -1231,7 +1247,7 @@ class Drive:
                 table_position_m=ax.table_position_m,
                 velocity_demand_m_s=self._demand_v,
                 velocity_actual_m_s=ax.velocity_m_s,
-                torque_nm=ax.torque_nm,
+                torque_nm=self._torque_actual_nm(ax),
                 current_a=ax.current_q_a,
                 following_error_m=self._fe_m,
                 dc_link_v=ax.dc_link_v,
@@ -1330,6 +1346,9 @@ class _Params:
     rated_a: float
     max_speed_m_s: float  # 0x6080 as table speed
     max_velocity_m_s: float  # velocity targets' limit: 0x607F and 0x6080
+    kt_nm_per_a: float  # torque constant (0x6077 from the currents)
+    reluctance_nm_per_a2: float  # 1.5 p (L_d - L_q)
+    max_torque_nm: float  # 0x6072 as torque
 
 
 def _reaction_rank(item: tuple[tuple[int, int], int | float]) -> int:

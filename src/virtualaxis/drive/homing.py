@@ -77,6 +77,7 @@ class HomingRun:
     phase_index: int = 0
     status: HomingStatus = HomingStatus.IN_PROGRESS
     home_m: float = math.nan
+    edge_m: float = math.nan  # where the last phase's signal was seen (the switch edge the next phase goes back to)
     error: str = ""
 
     @property

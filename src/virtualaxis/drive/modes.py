@@ -34,6 +34,9 @@ if TYPE_CHECKING:
 
 PP, PV, PT, HM, CSP, CSV, CST = 1, 3, 4, 6, 8, 9, 10
 _ACTIVE_HOMING = (hm.HomingStatus.IN_PROGRESS, hm.HomingStatus.RETURNING)
+#: homing: the last stretch before a switch edge is crossed at the zero search speed 0x6099:2 [m] (chosen: 2 mm,
+#: the edge is latched at that speed as on a drive that creeps over the cam)
+HOMING_CRAWL_M = 0.002
 
 
 class ProfileGenerator:
@@ -308,6 +311,13 @@ class Homing(OperatingMode):
         fast = float(d._obj(0x6099, 1)) * d._u
         slow = float(d._obj(0x6099, 2)) * d._u
         speed = fast if phase.fast else slow
+        if not phase.fast and phase.signal != "index" and math.isfinite(run.edge_m):
+            # back to a switch edge found at the search speed, which may have braked far past it: run at up to
+            # the search speed and slow down in time to cross the edge at the zero search speed (a 500 mm/s
+            # search stops 12.5 mm past the switch; at the default 10 mm/s the way back took 1.3 s)
+            remaining = (run.edge_m - x_plant) * phase.direction - HOMING_CRAWL_M
+            if remaining > 0:
+                speed = max(slow, min(max(fast, slow), math.sqrt(slow * slow + 2 * acc * remaining)))
         far = phase.direction * 10.0 * max(d.cfg.axis.stroke_m, 0.1)
         neg, pos, home = d._switches(x_plant, run.method)
         if (neg and pr.velocity_m_s < 0) or (pos and pr.velocity_m_s > 0):
@@ -336,6 +346,7 @@ class Homing(OperatingMode):
             self.gen.brake(acc, acc)
             return
         if hit:
+            run.edge_m = latched
             run.phase_index += 1
             if run.phase is None:
                 run.home_m = latched

@@ -33,7 +33,7 @@ class DriveState:
     table_position_m: float  # linear-scale table position in the plant's coordinate
     velocity_demand_m_s: float
     velocity_actual_m_s: float
-    torque_nm: float  # air-gap torque (N for a force actuator)
+    torque_nm: float  # torque actual as 0x6077: from the dq currents, within 0x6072 (N for a force actuator)
     current_a: float  # q current
     following_error_m: float  # 0x60F4 (demand - actual)
     dc_link_v: float

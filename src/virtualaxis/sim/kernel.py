@@ -123,7 +123,9 @@ from virtualaxis.sim.layout import (
     P_STOP_C,
     P_STOP_HI,
     P_STOP_K,
+    P_STOP_KH,
     P_STOP_LO,
+    P_STOP_TRAVEL,
     P_SVPWM,
     P_SVSUB,
     P_TABLE,
@@ -636,14 +638,21 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
 
 
 @njit(cache=True, fastmath=True, inline="always")
-def end_stop_force(x, v, lo, hi, k, c):
-    """Force of the hard end stops on the table [N]: a stiff, damped contact (spring ``k`` [N/m], damper ``c``
-    [N s/m]) beyond ``lo`` / ``hi`` [m]; it only pushes (never pulls the table back into the stop)."""
+def end_stop_force(x, v, lo, hi, k, c, travel, kh):
+    """Force of the hard end stops on the table [N]. Beyond ``lo`` / ``hi`` [m] the table first compresses a
+    damped buffer (spring ``k`` [N/m], damper ``c`` [N s/m]) over ``travel`` [m]; the rigid stop behind it adds
+    the stiffness ``kh`` [N/m]. The contact only pushes (it never pulls the table back into the stop)."""
     if x > hi:
-        f = -k * (x - hi) - c * v
+        d = x - hi
+        f = -k * d - c * v
+        if d > travel:
+            f -= kh * (d - travel)
         return f if f < 0.0 else 0.0
     if x < lo:
-        f = k * (lo - x) - c * v
+        d = lo - x
+        f = k * d - c * v
+        if d > travel:
+            f += kh * (d - travel)
         return f if f > 0.0 else 0.0
     return 0.0
 
@@ -722,6 +731,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     ff_setpoint = pr[P_FF_SETPOINT] != 0.0
     tpos = pr[P_TPOS]
     stop_lo, stop_hi, stop_k, stop_c = pr[P_STOP_LO], pr[P_STOP_HI], pr[P_STOP_K], pr[P_STOP_C]
+    stop_travel, stop_kh = pr[P_STOP_TRAVEL], pr[P_STOP_KH]
     for j in range(ncyc):
         blend_tables(pr, st, adt, bdt, krow, crow, wat, wbt, wk, wc)
         # the sin recurrences restart from exact values at every position-loop sample
@@ -956,7 +966,8 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
             for _ in range(nsub):
                 fxs = fx
                 if stop_k != 0.0:
-                    fxs += end_stop_force(zview[tb], zview[n + tb], stop_lo, stop_hi, stop_k, stop_c)
+                    fxs += end_stop_force(zview[tb], zview[n + tb], stop_lo, stop_hi, stop_k, stop_c,
+                                          stop_travel, stop_kh)
                 was_stuck, d_dir, temp, ffric, cforce, cgap, lead_sc = _mech_step(
                     mp, zview, wat, wbt, wk, wc, gtab, avec, ztmp, actuator, fxs, was_stuck, d_dir, temp, lead_sc)
             t_now += hc

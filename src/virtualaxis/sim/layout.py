@@ -73,8 +73,8 @@ P_INV_RS = 68
 P_VMAX2 = 69  # V_max^2
 P_STOP_LO = 70  # hard end stop, negative end: table position where the contact begins [m]
 P_STOP_HI = 71  # hard end stop, positive end [m]
-P_STOP_K = 72  # end-stop contact stiffness [N/m] (0: no end stops)
-P_STOP_C = 73  # end-stop contact damping [N s/m]
+P_STOP_K = 72  # end-stop buffer stiffness [N/m] (0: no end stops)
+P_STOP_C = 73  # end-stop buffer damping [N s/m]
 # drive / axis options (virtualaxis.control.options; every default reproduces the behaviour before they existed)
 P_FV_NEG = 74  # viscous coefficient for -v [N s/m] (= P_FV unless friction.viscous_negative_n_s_per_m >= 0)
 P_DEAD_SENSOR = 75  # 1: the dead time delays the feedback sensor everywhere (speed loop, recorded channel)
@@ -84,7 +84,9 @@ P_FF_SETPOINT = 78  # 1: speed / torque feed-forward from the set-point differen
 P_TPOS = 79  # position-loop (set-point) cycle [s]
 P_NDEAD0 = 80  # feedback-sensor dead time: whole current cycles floor(D / T_current)
 P_DEAD_FRAC = 81  # ... and the fraction of a cycle beyond them (the reading is interpolated linearly)
-N_PARAMS = 82
+P_STOP_TRAVEL = 82  # end-stop buffer travel [m]: the buffer (P_STOP_K, P_STOP_C) is compressed this far ...
+P_STOP_KH = 83  # ... then the rigid stop behind it takes over with this stiffness [N/m]
+N_PARAMS = 84
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

@@ -15,7 +15,7 @@ from virtualaxis.config import AxisConfig
 from virtualaxis.control.loops import integral_gain_per_sample
 from virtualaxis.control.options import fill_option_parameters
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
-from virtualaxis.plant.mechanics import feedforward_inertia
+from virtualaxis.plant.mechanics import feedforward_inertia, reflected_inertia_kg_m2
 from virtualaxis.sim import layout as L
 from virtualaxis.sim.kernel import run_cycles
 
@@ -70,27 +70,69 @@ def _ratio(outer: float, inner: float) -> int:
     return int(round(outer / inner))
 
 
-#: hard end stops: where they sit beyond the usable stroke (+-stroke/2) [m] (chosen: 10 mm of over-travel,
+#: hard end stops: least over-travel between the usable stroke (+-stroke/2) and the stop [m] (chosen: 10 mm,
 #: the usual clearance between the STOP cams / limit switches and the mechanical end of a ball-screw axis)
-END_STOP_OVERTRAVEL_M = 0.010
-#: end-stop contact stiffness [N/m] (chosen: steel stop behind a stiff buffer, 1e9 N/m = 1 mm at 1 MN) ...
+END_STOP_MIN_OVERTRAVEL_M = 0.010
+#: deceleration the over-travel is sized for [m/s^2] (chosen: half the 10 m/s^2 quick-stop default 0x6085, what
+#: a heavy axis can still follow at its torque limit) ...
+END_STOP_SIZING_DECEL_M_S2 = 5.0
+#: ... with this margin on the braking distance (chosen: 1.5) ...
+END_STOP_SIZING_MARGIN = 1.5
+#: ... plus this reaction time at full speed [s] (chosen: 10 ms, limit-switch debounce + a few position cycles)
+#: and the 2 mm between the limit switch and the stroke end
+END_STOP_REACTION_S = 0.010
+#: the buffer in front of the rigid stop: travel [m] (chosen: 10 mm, a polyurethane buffer of a machine axis) ...
+END_STOP_BUFFER_TRAVEL_M = 0.010
+#: ... natural frequency with the whole axis' mass as felt at the table [Hz] (chosen: 6 Hz, far below the axial
+#: mode, so that rotor and table decelerate together and the screw spring does not throw the axis back) ...
+END_STOP_BUFFER_HZ = 6.0
+#: ... and damping ratio (chosen: 2, overdamped: a buffer absorbs the impact, it does not bounce)
+END_STOP_BUFFER_DAMPING_RATIO = 2.0
+#: rigid stop behind the buffer [N/m] (chosen: steel, 1e9 N/m = 1 mm at 1 MN) ...
 END_STOP_STIFFNESS_N_PER_M = 1e9
 #: ... limited so that the explicit contact force stays stable: omega h <= this at the table mass
 END_STOP_MAX_OMEGA_H = 0.2
-#: end-stop damping ratio at the table mass (chosen: well damped, a buffer does not ring)
-END_STOP_DAMPING_RATIO = 0.7
+#: explicit damper stability: c h / m_table <= this
+END_STOP_MAX_DAMPER_H = 0.5
 
 
-def end_stops(cfg: AxisConfig) -> tuple[float, float, float, float]:
-    """(lo [m], hi [m], stiffness [N/m], damping [N s/m]) of the table's hard end stops: at +-(stroke/2 +
-    :data:`END_STOP_OVERTRAVEL_M`), stiffness :data:`END_STOP_STIFFNESS_N_PER_M` limited for stability of
-    the explicit contact at the mechanical step h (omega h <= :data:`END_STOP_MAX_OMEGA_H`)."""
-    half = cfg.axis.stroke_m / 2 + END_STOP_OVERTRAVEL_M
+def end_stop_mass_kg(cfg: AxisConfig) -> float:
+    """Mass that runs into the end stop [kg]: table and nut plus every rotating inertia reflected through the
+    lead (rotor, coupling, screw). For a heavy axis the rotor dominates (seed 004: 1329 kg)."""
+    m = cfg.mechanics
+    linear = m.table_mass_kg + m.nut_mass_kg + cfg.effects.resonance_mass_kg
+    if cfg.actuator.kind == "force" or not m.lead_m > 0:
+        return linear
+    r = m.lead_m / (2 * math.pi)
+    return reflected_inertia_kg_m2(cfg) / (r * r)
+
+
+def end_stop_overtravel_m(cfg: AxisConfig) -> float:
+    """Distance from the stroke end (+-stroke/2) to the end stop [m]: room to brake from the fastest speed the
+    limits allow (``limits.max_velocity_m_s``) after the limit switch, at least
+    :data:`END_STOP_MIN_OVERTRAVEL_M`. 0.5 m/s: 44.5 mm."""
+    v = cfg.limits.max_velocity_m_s
+    need = 0.002 + END_STOP_SIZING_MARGIN * v * v / (2 * END_STOP_SIZING_DECEL_M_S2) + END_STOP_REACTION_S * v
+    return max(END_STOP_MIN_OVERTRAVEL_M, need)
+
+
+def end_stops(cfg: AxisConfig) -> tuple[float, float, float, float, float, float]:
+    """The table's hard end stops: (lo [m], hi [m], buffer stiffness [N/m], buffer damping [N s/m], buffer
+    travel [m], rigid-stop stiffness [N/m]). They sit at +-(stroke/2 + :func:`end_stop_overtravel_m`); a damped
+    buffer (:data:`END_STOP_BUFFER_HZ` on :func:`end_stop_mass_kg`, damping ratio
+    :data:`END_STOP_BUFFER_DAMPING_RATIO`) takes the first :data:`END_STOP_BUFFER_TRAVEL_M`, the rigid stop
+    (:data:`END_STOP_STIFFNESS_N_PER_M`) the rest. Stiffness and damping are limited for stability of the
+    explicit contact at the mechanical step h."""
+    half = cfg.axis.stroke_m / 2 + end_stop_overtravel_m(cfg)
     h = cfg.control.current_cycle_s / cfg.simulation.mechanical_substeps
-    m = cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
-    k = min(END_STOP_STIFFNESS_N_PER_M, (END_STOP_MAX_OMEGA_H / h) ** 2 * m)
-    c = 2.0 * END_STOP_DAMPING_RATIO * math.sqrt(k * m)
-    return -half, half, k, c
+    m_table = cfg.mechanics.table_mass_kg + cfg.mechanics.nut_mass_kg
+    m_all = max(end_stop_mass_kg(cfg), m_table)
+    k_lim = (END_STOP_MAX_OMEGA_H / h) ** 2 * m_table
+    w = 2 * math.pi * END_STOP_BUFFER_HZ
+    k_buf = min(k_lim, w * w * m_all)
+    c_buf = min(2.0 * END_STOP_BUFFER_DAMPING_RATIO * math.sqrt(k_buf * m_all), END_STOP_MAX_DAMPER_H * m_table / h)
+    k_hard = max(min(END_STOP_STIFFNESS_N_PER_M, k_lim) - k_buf, 0.0)
+    return -half, half, k_buf, c_buf, END_STOP_BUFFER_TRAVEL_M, k_hard
 
 
 def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
@@ -181,8 +223,9 @@ def build_parameters(cfg: AxisConfig, dm: DiscreteMechanics) -> np.ndarray:
     pr[L.P_NDOF] = dm.n
     pr[L.P_KC] = dm.contact_stiffness
     pr[L.P_HAS_CONTACT] = 1.0 if np.any(dm.contact_vector != 0) else 0.0
-    lo, hi, k, c = end_stops(cfg)
+    lo, hi, k, c, travel, k_hard = end_stops(cfg)
     pr[L.P_STOP_LO], pr[L.P_STOP_HI], pr[L.P_STOP_K], pr[L.P_STOP_C] = lo, hi, k, c
+    pr[L.P_STOP_TRAVEL], pr[L.P_STOP_KH] = travel, k_hard
     nz = np.flatnonzero(dm.motor_angle_vector)
     pr[L.P_MOTOR_IDX] = nz[0] if (len(nz) == 1 and dm.motor_angle_vector[nz[0]] == 1.0) else -1
     fill_option_parameters(pr, cfg)  # drive / axis options (control/options.py)
@@ -264,14 +307,47 @@ class AxisSimulator:
         self.st[L.S_CMD_POS] = position_m
         self.st[L.S_STUCK] = 1.0 if self.cfg.friction.enabled else 0.0
         self.st[L.S_TEMP] = self.cfg.effects.initial_temperature_rise_k
+        # at rest means the nut contact is relaxed: with a lead error or a warm screw the table sits where the
+        # screw's kinematics put it for this screw angle, not at the nominal position_m (else the contact
+        # spring starts preloaded and the axis jumps at t = 0: 150 nm at 60 ppm, 5 mm from the nut offset)
+        table_m = position_m + self._kinematic_shift_m()
+        if table_m != position_m:
+            for i, name in enumerate(names):
+                if name in ("table", "nut", "resonator"):
+                    self.st[L.Z0 + i] = table_m
+            if self.pr[L.P_FB] != 0.0:  # linear-scale feedback reads the table
+                self.st[L.S_POS_FB] = table_m
         self.ring[:, 0] = position_m / r if r > 0 else 0.0
-        self.ring[:, 1] = position_m
+        self.ring[:, 1] = table_m
         self._last[:] = 0.0
-        self._last[L.O_POS_FB] = position_m
-        self._last[L.O_TABLE_TRUE] = position_m
-        self._last[L.O_POS_MEAS] = position_m
+        self._last[L.O_POS_FB] = self.st[L.S_POS_FB]
+        self._last[L.O_TABLE_TRUE] = table_m
+        self._last[L.O_POS_MEAS] = table_m
         self._last[L.O_POS_CMD] = position_m
         self._one["pos"][0] = position_m
+
+    def _kinematic_shift_m(self) -> float:
+        """How far the table (with nut and resonator) must move from the nominal position so that the nut
+        contact is relaxed at the present screw angle [m]: the kernel's contact deflection
+        ``kin + contact_vector . z`` set to zero, where ``kin`` is the lead error (cumulative, periodic) and the
+        thermal growth of the screw (which itself depends on the table position: solved exactly, it is linear)."""
+        pr, dm = self.pr, self.dm
+        sb = int(pr[L.P_SCREW])
+        if pr[L.P_HAS_CONTACT] == 0.0 or sb < 0:
+            return 0.0
+        n, tb = dm.n, dm.table_body
+        z = self.st[L.Z0:L.Z0 + n]
+        theta = float(z[sb])
+        growth = float(pr[L.P_TH_ALPHA] * self.st[L.S_TEMP])  # thermal strain of the screw [-]
+        kin = (pr[L.P_LEAD_PPM] * 1e-6 * pr[L.P_R] * theta
+               + pr[L.P_LEAD_PER_A] * math.sin(theta + pr[L.P_LEAD_PER_PH])
+               + growth * (pr[L.P_NUT_OFF] + z[tb]))
+        moving = np.array([1.0 if name in ("table", "nut", "resonator") else 0.0 for name in dm.body_names])
+        delta = float(kin + dm.contact_vector @ z)
+        slope = float(dm.contact_vector @ moving) + growth
+        if delta == 0.0 or slope == 0.0:
+            return 0.0
+        return -delta / slope
 
     def enable(self, on: bool = True) -> None:
         self.st[L.S_ENABLED] = 1.0 if on else 0.0
