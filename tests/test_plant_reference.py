@@ -21,7 +21,7 @@ def every_effect_config():
 def test_kernel_matches_solve_ivp_within_one_percent_of_tracking_rms():
     cfg = every_effect_config()
     assert cfg.backlash.enabled and cfg.friction.enabled and cfg.motor.cogging_amplitude_nm > 0
-    amp, vmax, dur = 0.05, 0.1, 2.0  # 100 mm stroke at F6000, 2 s
+    amp, vmax, dur = 0.025, 0.1, 1.0  # 50 mm stroke at F6000, 1 s: one reversal (at 0.79 s)
     w = vmax / amp
     t = np.arange(int(round(dur / 1e-3)) + 1) * 1e-3
     p, v, a = amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
