@@ -1068,7 +1068,7 @@ class Drive:
 
     def _refresh_params(self) -> None:
         """Monitoring parameters and limits in SI, recomputed only after an object write (not every cycle)."""
-        o, u = self.objects, self._u
+        o, u, mot = self.objects, self._u, self.cfg.motor
         vdc_nom = self.cfg.inverter.dc_link_v
         window = int(o[(0x6065, 0)])
         max_speed = self._max_speed_m_s()
@@ -1094,8 +1094,8 @@ class Drive:
             rated_a=float(o[(0x6075, 0)]) / 1000.0,
             max_speed_m_s=max_speed,
             max_velocity_m_s=min(float(o[(0x607F, 0)]) * u, max_speed),
-            kt_nm_per_a=self.cfg.motor.kt_nm_per_a,
-            reluctance_nm_per_a2=1.5 * self.cfg.motor.pole_pairs * (self.cfg.motor.ld_h - self.cfg.motor.lq_h),
+            kt_nm_per_a=mot.kt_nm_per_a,
+            reluctance_nm_per_a2=1.5 * mot.pole_pairs * (mot.ld_h - mot.lq_h),
             max_torque_nm=float(o[(0x6072, 0)]) / 1000.0 * float(o[(0x6076, 0)]) / 1000.0,
         )
         self._params_dirty = False

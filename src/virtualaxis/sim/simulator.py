@@ -62,6 +62,8 @@ class AxisReading:
         self.current_limited = self.voltage_saturated = self.stuck = False
 
 
+#: bodies that move with the table (positions in m); the rest are rotations
+LINEAR_BODIES = ("table", "nut", "resonator")
 #: cycles of sensor noise drawn at once by the step API [cycles]
 NOISE_BLOCK = 256
 
@@ -98,7 +100,7 @@ END_STOP_MAX_DAMPER_H = 0.5
 
 def end_stop_mass_kg(cfg: AxisConfig) -> float:
     """Mass that runs into the end stop [kg]: table and nut plus every rotating inertia reflected through the
-    lead (rotor, coupling, screw). For a heavy axis the rotor dominates (seed 004: 1329 kg)."""
+    lead (rotor, coupling, screw). For a heavy axis the rotor dominates (seed 000: 1329 kg, table + nut 152.5 kg)."""
     m = cfg.mechanics
     linear = m.table_mass_kg + m.nut_mass_kg + cfg.effects.resonance_mass_kg
     if cfg.actuator.kind == "force" or not m.lead_m > 0:
@@ -298,7 +300,7 @@ class AxisSimulator:
         r = self.pr[L.P_R]
         names = self.dm.body_names
         for i, name in enumerate(names):
-            if name in ("table", "nut", "resonator"):
+            if name in LINEAR_BODIES:
                 self.st[L.Z0 + i] = position_m
             elif name in ("motor", "screw_end", "screw") and r > 0:
                 self.st[L.Z0 + i] = position_m / r
@@ -309,11 +311,11 @@ class AxisSimulator:
         self.st[L.S_TEMP] = self.cfg.effects.initial_temperature_rise_k
         # at rest means the nut contact is relaxed: with a lead error or a warm screw the table sits where the
         # screw's kinematics put it for this screw angle, not at the nominal position_m (else the contact
-        # spring starts preloaded and the axis jumps at t = 0: 150 nm at 60 ppm, 5 mm from the nut offset)
+        # spring starts preloaded and the axis jumps at t = 0: 0.48 um at 60 ppm 5 mm from the nut offset)
         table_m = position_m + self._kinematic_shift_m()
         if table_m != position_m:
             for i, name in enumerate(names):
-                if name in ("table", "nut", "resonator"):
+                if name in LINEAR_BODIES:
                     self.st[L.Z0 + i] = table_m
             if self.pr[L.P_FB] != 0.0:  # linear-scale feedback reads the table
                 self.st[L.S_POS_FB] = table_m
@@ -342,7 +344,7 @@ class AxisSimulator:
         kin = (pr[L.P_LEAD_PPM] * 1e-6 * pr[L.P_R] * theta
                + pr[L.P_LEAD_PER_A] * math.sin(theta + pr[L.P_LEAD_PER_PH])
                + growth * (pr[L.P_NUT_OFF] + z[tb]))
-        moving = np.array([1.0 if name in ("table", "nut", "resonator") else 0.0 for name in dm.body_names])
+        moving = np.array([1.0 if name in LINEAR_BODIES else 0.0 for name in dm.body_names])
         delta = float(kin + dm.contact_vector @ z)
         slope = float(dm.contact_vector @ moving) + growth
         if delta == 0.0 or slope == 0.0:
