@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.optimize import brentq
 
 from virtualaxis.config import AxisConfig
 from virtualaxis.plant.discrete import discretise
@@ -86,6 +87,26 @@ class ReferenceAxis:
         off += e.lead_error_periodic_m * math.sin(th + e.lead_error_periodic_phase_rad)
         off += e.thermal_expansion_per_k * temp * (self.cfg.axis.nut_offset_m + q[self.tb])
         return off
+
+    def _relax_contact(self, y: np.ndarray) -> None:
+        """At rest the nut contact carries no force: move the table's bodies until the contact deflection
+        (incidence . q + lead error + thermal growth) is zero, found by bracketed root finding on this model's
+        own contact law (the kernel's simulator solves the same condition in closed form)."""
+        if self.mech.contact is None or self.sb is None:
+            return
+        n = self.n
+        moving = np.array([1.0 if b.name in ("table", "nut", "resonator") else 0.0 for b in self.mech.bodies])
+        q0, temp = y[:n].copy(), y[2 * n + 2]
+
+        def deflection(shift: float) -> float:
+            q = q0 + shift * moving
+            return float(self.a @ q) + self._kin(q, temp)
+
+        if deflection(0.0) == 0.0:
+            return
+        span = 1e-3  # [m]: lead errors and thermal growth are micrometres
+        shift = brentq(deflection, -span, span, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+        y[:n] = q0 + shift * moving
 
     def _contact_force(self, q, qd, temp):
         if self.mech.contact is None:
@@ -172,6 +193,7 @@ class ReferenceAxis:
             elif b.name in ("motor", "screw_end", "screw"):
                 y[i] = x0 / self.r
         y[2 * n + 2] = cfg.effects.initial_temperature_rise_k
+        self._relax_contact(y)
         # sensors.dead_time_scope = "feedback_sensor": the sensor read at t shows its value at t - D, linear between
         # the current-cycle instants around t - D (D = (n0 + frac) cycles); "position_loop": D rounded to cycles
         d_cycles = cfg.sensors.dead_time_s / hc
