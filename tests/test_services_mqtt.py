@@ -30,10 +30,14 @@ from virtualaxis.services.mqtt import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
+# topic under virtualaxis/<machine>/<axis>/ -> its schema file in docs/schemas/
+SCHEMA_FILES = {"status": "status", "state": "state", "telemetry": "telemetry", "faults": "faults",
+                "fault/result": "fault-result", "fault/set": "fault-set"}
 SCHEMAS = {
-    leaf: jsonschema.Draft202012Validator(json.loads((ROOT / "docs" / "schemas" / f"{leaf}.schema.json").read_text()))
-    for leaf in ("status", "state", "telemetry", "faults")
+    leaf: jsonschema.Draft202012Validator(json.loads((ROOT / "docs" / "schemas" / f"{f}.schema.json").read_text()))
+    for leaf, f in SCHEMA_FILES.items()
 }
+COMMAND_TOPICS = ("fault/set",)  # published by clients (tests send malformed ones on purpose): not validated here
 
 
 class Subscriber:
@@ -64,13 +68,16 @@ class Subscriber:
         return sum(len(m["samples"]) for m in self.of("telemetry"))
 
     def _on_message(self, client, userdata, m):
-        leaf = m.topic.rsplit("/", 1)[-1]
-        try:
-            payload = json.loads(m.payload)
-            SCHEMAS[leaf].validate(payload)
-        except (ValueError, KeyError, jsonschema.ValidationError) as exc:
-            self.invalid.append(f"{m.topic}: {exc}")
-            payload = {}
+        leaf = m.topic.split("/", 3)[-1]  # virtualaxis/<machine>/<axis>/<leaf>
+        if leaf in COMMAND_TOPICS:
+            payload = {"raw": bytes(m.payload)}
+        else:
+            try:
+                payload = json.loads(m.payload)
+                SCHEMAS[leaf].validate(payload)
+            except (ValueError, KeyError, jsonschema.ValidationError) as exc:
+                self.invalid.append(f"{m.topic}: {exc}")
+                payload = {}
         with self.lock:
             self.msgs.append((time.monotonic(), m.topic, bool(m.retain), payload))
 

@@ -37,7 +37,8 @@ def register(sub) -> None:
     )
     p.add_argument("--lockstep", action="store_true", help="advance the plants only on SYNC (deterministic)")
     p.add_argument("--allow-fault-injection", action="store_true",
-                   help="accept fault injection (objects 0x5FF0.., `virtualaxis fault`); refused otherwise")
+                   help="accept fault injection (objects 0x5FF0.., `virtualaxis fault`, Modbus 40600.., MQTT "
+                        "fault/set); refused otherwise")
     p.add_argument("--eds", default=None, help="EDS file (default eds/virtualaxis.eds)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--status-interval", type=float, default=5.0, help="seconds between status lines (0: none)")

@@ -37,7 +37,8 @@ period (drive time), e.g. a loose encoder connector.
 
 Channels: this Python API (:class:`FaultInjector`), CANopen objects 0x5FF0..0x5FF6 (:class:`InjectionApp`,
 refused with abort 0x08000022 unless the drive was served with ``--allow-fault-injection``), the CLI
-``virtualaxis fault``; Modbus / MQTT services plug in through :func:`FaultInjector.command` (a kind name or
+``virtualaxis fault``; the Modbus registers 40600..40609 and the MQTT topic ``<axis>/fault/set`` of
+``virtualaxis serve`` (:mod:`virtualaxis.services`) go through :func:`FaultInjector.command` (a kind name or
 number plus options, the same refusal rules).
 """
 

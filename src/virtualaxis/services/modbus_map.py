@@ -28,6 +28,7 @@ from virtualaxis import __version__
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.injection import FaultInjector
 
 # ---------------------------------------------------------------------------------------------- errors
 # reason codes of the last-error register 40499 (and the exception each one answers with)
@@ -129,9 +130,17 @@ class AxisLink:
     """What the Modbus map needs of one served axis: the drive, its unit id (= CANopen node id) and the
     service-side settings (reference speed p2000) and last-error record."""
 
-    def __init__(self, drive: Drive, unit_id: int, *, reference_speed_rpm: float | None = None):
+    def __init__(self, drive: Drive, unit_id: int, *, reference_speed_rpm: float | None = None,
+                 injector: FaultInjector | None = None):
         self.drive = drive
         self.unit_id = unit_id
+        self.injector = injector  # the axis' FaultInjector (None: the fault-injection registers refuse)
+        # options of the next injection (40600..40604), kept by the Modbus server like 0x5FF2..0x5FF4 on CAN
+        self.fault_duty_permille = 0
+        self.fault_period_ms = 1000
+        self.fault_magnitude = 0
+        self.fault_last_injected = 0  # kind number last injected / cleared through Modbus (40605 / 40606)
+        self.fault_last_cleared = 0
         cfg = drive.cfg
         self.lead_m = cfg.mechanics.lead_m if cfg.mechanics.lead_m > 0 else 0.01  # drive's virtual revolution
         self.force_actuator = cfg.actuator.kind == "force"
@@ -148,6 +157,21 @@ class AxisLink:
         self.last_error_address = exc.address
         self.last_error_abort_code = exc.abort_code
         self.exceptions += 1
+
+    @property
+    def injection_allowed(self) -> bool:
+        return self.injector is not None and bool(self.injector.allowed)
+
+    def active_fault_bits(self) -> int:
+        """Bit (kind number - 1) set for each injected kind (as 0x5FF5)."""
+        if self.injector is None:
+            return 0
+        from virtualaxis.drive.injection import KINDS
+
+        bits = 0
+        for kind in self.injector.active:
+            bits |= 1 << (KINDS[kind] - 1)
+        return bits
 
     def rpm_per_m_s(self) -> float:
         """Motor (or virtual) revolutions per minute per m/s of table speed."""
@@ -308,10 +332,97 @@ def _check_reference_speed(link: AxisLink, value: int) -> None:
         raise RegisterError(REASON_REGISTER_RANGE, f"reference speed must be >= 1 rpm (got {value})")
 
 
+# ---- fault injection (40600 ...): the CANopen channel 0x5FF0..0x5FF6 of drive/injection.py on Modbus
+ABORT_DEVICE_STATE = 0x08000022
+ABORT_VALUE_INVALID = 0x06090030
+FAULT_KIND_COUNT = 10  # kind numbers 1..10 (drive.injection.KINDS)
+
+
+def _injection_refused(link: AxisLink, message: str, code: int) -> RegisterError:
+    reason = REASON_DRIVE_STATE if code == ABORT_DEVICE_STATE else REASON_DRIVE_VALUE
+    return RegisterError(reason, message, abort_code=code)
+
+
+def _check_injection_allowed(link: AxisLink) -> None:
+    if link.injector is None:
+        raise _injection_refused(link, "fault injection is not available on this axis", ABORT_DEVICE_STATE)
+    if not link.injector.allowed:
+        raise _injection_refused(link, "fault injection is off (serve with --allow-fault-injection)",
+                                 ABORT_DEVICE_STATE)
+
+
+def _check_fault_duty(link: AxisLink, value: int) -> None:
+    _check_injection_allowed(link)
+    if not 0 <= value <= 1000:
+        raise _injection_refused(link, f"duty is 0..1000 per mille (got {value})", ABORT_VALUE_INVALID)
+
+
+def _write_fault_duty(link: AxisLink, value: int) -> None:
+    link.fault_duty_permille = value
+
+
+def _check_fault_period(link: AxisLink, value: int) -> None:
+    _check_injection_allowed(link)
+    if not 2 <= value <= 3_600_000:
+        raise _injection_refused(link, f"period is 2..3600000 ms (got {value})", ABORT_VALUE_INVALID)
+
+
+def _write_fault_period(link: AxisLink, value: int) -> None:
+    link.fault_period_ms = value
+
+
+def _check_fault_magnitude(link: AxisLink, value: int) -> None:
+    _check_injection_allowed(link)
+
+
+def _write_fault_magnitude(link: AxisLink, value: int) -> None:
+    link.fault_magnitude = value
+
+
+def _check_fault_inject(link: AxisLink, value: int) -> None:
+    _check_injection_allowed(link)
+    if not 1 <= value <= FAULT_KIND_COUNT:
+        raise _injection_refused(link, f"unknown fault kind number {value} (1..{FAULT_KIND_COUNT})",
+                                 ABORT_VALUE_INVALID)
+
+
+def _run_injection(link: AxisLink, action: str, kind: int | None, **options) -> None:
+    from virtualaxis.drive.injection import InjectionRefused
+
+    try:
+        link.injector.command(action, kind, **options)
+    except InjectionRefused as exc:
+        raise _injection_refused(link, str(exc), exc.code) from None
+
+
+def _write_fault_inject(link: AxisLink, value: int) -> None:
+    duty = link.fault_duty_permille
+    _run_injection(link, "inject", value, duty=1.0 if duty in (0, 1000) else duty / 1000.0,
+                   period_s=link.fault_period_ms / 1000.0, magnitude=float(link.fault_magnitude) or None)
+    link.fault_last_injected = value
+
+
+def _check_fault_clear(link: AxisLink, value: int) -> None:
+    _check_injection_allowed(link)
+    if not (1 <= value <= FAULT_KIND_COUNT or value in (0, 0xFF)):
+        raise _injection_refused(link, f"unknown fault kind number {value} (1..{FAULT_KIND_COUNT}, 0 / 255: all)",
+                                 ABORT_VALUE_INVALID)
+
+
+def _write_fault_clear(link: AxisLink, value: int) -> None:
+    _run_injection(link, "clear", None if value in (0, 0xFF) else value)
+    link.fault_last_cleared = value
+
+
 # custom writes that are not a plain object write: (check, apply)
 CUSTOM_CHECKS: dict[Callable, Callable[[AxisLink, int], None]] = {
     _write_stw1: _check_stw1,
     _write_reference_speed: _check_reference_speed,
+    _write_fault_duty: _check_fault_duty,
+    _write_fault_period: _check_fault_period,
+    _write_fault_magnitude: _check_fault_magnitude,
+    _write_fault_inject: _check_fault_inject,
+    _write_fault_clear: _check_fault_clear,
 }
 
 P = _pos_factor
@@ -454,6 +565,24 @@ REGISTERS: tuple[Register, ...] = (
        "(0: the refusal came from the Modbus layer)", lambda v: v.link.last_error_abort_code, None, ""),
     _r(40499, "LAST_ERROR", "u16", "reason code", "reason of the last refused access (table below)",
        lambda v: v.link.last_error_reason, None, "40499 (S120)"),
+    # ---- fault injection (40600 ... 40609; writes refused unless serve --allow-fault-injection)
+    _r(40600, "FI_DUTY", "u16", "1 per mille", "duty cycle of the next injection (0 or 1000: permanent; else "
+       "intermittent, active for duty x period of every period)", lambda v: v.link.fault_duty_permille,
+       _write_fault_duty, "0x5FF2"),
+    _r(40601, "FI_PERIOD", "u32", "1 ms", "period of the intermittent variant (2..3600000)",
+       lambda v: v.link.fault_period_ms, _write_fault_period, "0x5FF3"),
+    _r(40603, "FI_MAGNITUDE", "i32", "kind-specific", "magnitude of the next injection (brake force [N], limit "
+       "switch side, heating [K/s], bus-off time [ms]; 0: the kind's default)", lambda v: v.link.fault_magnitude,
+       _write_fault_magnitude, "0x5FF4"),
+    _r(40605, "FI_INJECT", "u16", "kind number", "write a kind number 1..10 to inject it with 40600-40604 "
+       "(docs/fault-injection.md); reads the kind last injected through Modbus", lambda v: v.link.fault_last_injected,
+       _write_fault_inject, "0x5FF0"),
+    _r(40606, "FI_CLEAR", "u16", "kind number", "write a kind number to clear it (0 or 255: all); reads the "
+       "value last written", lambda v: v.link.fault_last_cleared, _write_fault_clear, "0x5FF1"),
+    _r(40607, "FI_ACTIVE", "u32", "bit (kind number - 1)", "injected kinds (bit 0 encoder_loss ... bit 9 bus_off)",
+       lambda v: v.link.active_fault_bits(), None, "0x5FF5"),
+    _r(40609, "FI_ALLOWED", "u16", "0/1", "1 when the axis accepts fault injection (serve "
+       "--allow-fault-injection)", lambda v: 1 if v.link.injection_allowed else 0, None, "0x5FF6"),
 )
 
 BY_ADDRESS: dict[int, tuple[Register, int]] = {}  # PDU address -> (register, word index within it)
@@ -525,6 +654,8 @@ def check_write(link: AxisLink, reg: Register, value: int) -> None:
             CUSTOM_CHECKS[reg.write](link, value)
     except ObjectAccessError as exc:
         raise _drive_refusal(reg, exc) from None
+    except RegisterError as exc:
+        raise _at(reg, exc) from None
 
 
 def apply_write(link: AxisLink, reg: Register, value: int) -> None:
@@ -538,6 +669,15 @@ def apply_write(link: AxisLink, reg: Register, value: int) -> None:
             reg.write(link, value)
     except ObjectAccessError as exc:
         raise _drive_refusal(reg, exc) from None
+    except RegisterError as exc:
+        raise _at(reg, exc) from None
+
+
+def _at(reg: Register, exc: RegisterError) -> RegisterError:
+    """A custom check's refusal at ``reg`` (its address and name in the message)."""
+    if not exc.address:
+        exc.address = reg.address
+    return exc
 
 
 def _drive_refusal(reg: Register, exc) -> RegisterError:
@@ -625,6 +765,13 @@ def render_markdown() -> str:
         "stays, as on the drive). `0x047E` = ready (shutdown), `0x047F` = run (switch on + enable operation).",
         "- The speed normalisation of 40101 / 40111 uses the reference speed 40324 (default: the motor's rated "
         "speed); for a linear motor one revolution is 10 mm of travel.",
+        "- Fault injection 40600-40609 is the CANopen channel 0x5FF0..0x5FF6 (docs/fault-injection.md) on Modbus: "
+        "set the options 40600-40604 (kept by the Modbus server per unit, like 40324), then write the kind number "
+        "(1 encoder_loss ... 10 bus_off) to 40605; one FC16 request covering 40600-40605 does both (a request is "
+        "applied in address order). 40606 clears a kind (0 or 255: all); 40607-40608 has bit n-1 set while kind n "
+        "is injected. Every write of the block needs `--modbus-writable` **and** `serve --allow-fault-injection` "
+        "(else exception 04, 40499 = 3, 40497-40498 = 0x08000022); an unknown kind number or an option out of "
+        "range answers exception 03 (40499 = 4, 0x06090030).",
         "",
         "## Exceptions",
         "",
@@ -634,9 +781,9 @@ def render_markdown() -> str:
         "| 02 illegal data address | a register that is not in the map, or a range that crosses a hole | 7 |",
         "| 03 illegal data value | count out of range (FC03/04 1..125, FC16 1..123, FC23 read 1..125 / write "
         "1..121), a value outside the register's range, a write covering half of a 32-bit value, a value the "
-        "drive refuses (SDO abort 0x06090030/31/32) | 8, 5, 6, 4 |",
+        "drive refuses (SDO abort 0x06090030/31/32; an unknown fault kind number) | 8, 5, 6, 4 |",
         "| 04 server device failure | a write while writes are disabled, a write to a read-only register, a "
-        "write the drive refuses in its present state (SDO abort 0x08000022) | 1, 2, 3 |",
+        "write the drive refuses in its present state (SDO abort 0x08000022; fault injection not allowed) | 1, 2, 3 |",
         "",
         "An unknown unit id is answered with exception 0B (gateway target device failed to respond).",
         "",

@@ -8,7 +8,12 @@ Topics per axis under ``virtualaxis/<machine>/<axis>/`` (payloads JSON, units in
 - ``state``: NMT and CiA 402 state, mode, active faults, telemetry counters (retained, QoS 1; on connect, on
   every drive event and every ``state_interval_s``);
 - ``telemetry``: batches of samples (QoS 0, not retained; default 100 Hz in batches of 10);
-- ``faults``: fault raised / cleared events (QoS 1, not retained).
+- ``faults``: fault raised / cleared events (QoS 1, not retained);
+- ``fault/set`` (subscribed, QoS 1): fault-injection commands, JSON ``{"action": "inject"|"clear", "kind": name or
+  number, "duty", "period_s", "magnitude", "id"}``; each gets one ``fault/result`` (QoS 1, not retained). The
+  publisher process checks a command's form (:func:`parse_fault_command`) and forwards the valid ones to
+  ``serve``, whose command thread applies them with ``FaultInjector.command`` (refused unless ``serve
+  --allow-fault-injection``; :func:`apply_fault_command`).
 
 Where the work runs (the drive's process keeps only what must touch the drive):
 
@@ -158,6 +163,119 @@ def load_credentials(settings: MqttSettings, path: str | None, env: dict | None 
         if not isinstance(value, str):
             raise MqttSettingsError(f"{p}: {key}: must be a string")
         setattr(settings, key, value)
+
+
+# ---------------------------------------------------------------------------------------------- fault commands
+FAULT_COMMAND_KEYS = ("action", "kind", "duty", "period_s", "magnitude", "id")
+FAULT_COMMAND_MAX_BYTES = 4096
+FAULT_COMMAND_ID_MAX_CHARS = 128
+FAULT_COMMANDS_IN_FLIGHT = 16  # per axis: commands forwarded to serve and not answered yet (more: "busy")
+ABORT_DEVICE_STATE = 0x08000022  # (drive.injection's codes; this module must not import the drive)
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def parse_fault_command(payload: bytes | bytearray | str | None) -> tuple[dict | None, dict | None]:
+    """A ``fault/set`` payload checked for form (not for the drive's rules: kind names, ranges and the
+    permission are checked by ``FaultInjector.command`` in serve). Returns ``(command, None)`` with ``command``
+    = ``{"action", "kind", "options", ["id"]}``, or ``(None, result)`` with the ``ok: false`` result that names
+    what is wrong (the command's ``id`` echoed when it could be read)."""
+    ident: dict = {}
+
+    def refuse(message: str) -> tuple[None, dict]:
+        return None, ident | {"ok": False, "error": message}
+
+    if payload is None:
+        payload = b""
+    if isinstance(payload, str):
+        payload = payload.encode("utf-8", "surrogatepass")
+    if len(payload) > FAULT_COMMAND_MAX_BYTES:
+        return refuse(f"payload is {len(payload)} bytes (at most {FAULT_COMMAND_MAX_BYTES})")
+    try:
+        text = bytes(payload).decode("utf-8")
+    except UnicodeDecodeError:
+        return refuse("payload is not UTF-8 text")
+    try:
+        data = json.loads(text, parse_constant=_reject_constant)
+    except RecursionError:
+        return refuse("payload is not JSON (nested too deeply)")
+    except ValueError as exc:
+        return refuse(f"payload is not JSON ({exc})")
+    if not isinstance(data, dict):
+        return refuse(f"payload must be a JSON object (got {type(data).__name__})")
+    if "id" in data:
+        i = data["id"]
+        if isinstance(i, str) and len(i) <= FAULT_COMMAND_ID_MAX_CHARS or (
+                isinstance(i, int) and not isinstance(i, bool) and abs(i) < 2**53):
+            ident = {"id": i}
+        else:
+            return refuse(f"id: must be a string of at most {FAULT_COMMAND_ID_MAX_CHARS} characters or an integer "
+                          f"(|id| < 2^53)")
+    unknown = sorted(k for k in data if k not in FAULT_COMMAND_KEYS)
+    if unknown:
+        return refuse(f"unknown key{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))[:200]} "
+                      f"(allowed: {', '.join(FAULT_COMMAND_KEYS)})")
+    action = data.get("action")
+    if action not in ("inject", "clear"):
+        if "action" not in data:
+            return refuse('action: missing ("inject" or "clear")')
+        return refuse(f'action: must be "inject" or "clear" (got {json.dumps(action)[:60]})')
+    kind = data.get("kind")
+    if kind is not None and not isinstance(kind, str) and not (isinstance(kind, int) and not isinstance(kind, bool)):
+        return refuse(f"kind: must be a fault kind name or number (got {type(kind).__name__})")
+    if isinstance(kind, str) and len(kind) > 64:
+        return refuse("kind: unknown fault kind (name longer than 64 characters)")
+    if isinstance(kind, int) and abs(kind) > 0xFFFF:
+        return refuse(f"kind: unknown fault kind number {kind}")
+    if action == "inject" and kind is None:
+        return refuse("kind: missing (inject needs a fault kind name or number)")
+    options: dict = {}
+    for key in ("duty", "period_s", "magnitude"):
+        if key not in data:
+            continue
+        value = data[key]
+        if action == "clear":
+            return refuse(f"{key}: only with action inject")
+        if value is None and key == "magnitude":
+            continue
+        if not _is_number(value):
+            return refuse(f"{key}: must be a number (got {type(value).__name__})")
+        try:
+            value = float(value)
+        except OverflowError:
+            return refuse(f"{key}: number out of range")
+        if value != value or value in (float("inf"), float("-inf")):
+            return refuse(f"{key}: must be finite")
+        options[key] = value
+    return ident | {"action": action, "kind": kind, "options": options}, None
+
+
+def apply_fault_command(injector, command: dict) -> dict:
+    """Apply a command of :func:`parse_fault_command` with ``injector`` (a ``FaultInjector`` or None: refused
+    as not allowed); returns the result fields (``ok``, ``error``, ``abort_code``, ``active``, the ``id``)."""
+    out = {k: command[k] for k in ("id",) if k in command} | {"action": command.get("action")}
+    if command.get("kind") is not None:
+        out["kind"] = command["kind"]
+    if injector is None:
+        return out | {"ok": False, "error": "fault injection is not available on this axis",
+                      "abort_code": f"0x{ABORT_DEVICE_STATE:08X}", "active": []}
+    from virtualaxis.drive.injection import KINDS, InjectionRefused
+
+    try:
+        injector.command(command["action"], command.get("kind"), **command.get("options", {}))
+        out["ok"] = True
+    except InjectionRefused as exc:
+        out |= {"ok": False, "error": str(exc), "abort_code": f"0x{exc.code:08X}"}
+    except Exception as exc:  # noqa: BLE001 - a command never takes serve down
+        out |= {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+    out["active"] = sorted(injector.active, key=lambda k: KINDS.get(k, 99))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- buffers
@@ -390,8 +508,10 @@ class AxisChannel:
     publisher process' counters (read from shared memory; kept after stop)."""
 
     def __init__(self, service: MqttService, index: int, name: str, node_id: int, drive: Drive,
-                 nmt_state: Callable[[], str] | None):
+                 nmt_state: Callable[[], str] | None, injector=None):
         self.service = service
+        self.injector = injector  # FaultInjector of the axis (fault/set commands), None: refused
+        self.commands = 0  # fault/set commands applied (ok or refused by the injector)
         self.index = index
         self.name = name
         self.node_id = node_id
@@ -440,19 +560,18 @@ class AxisChannel:
 
 
 class MqttService:
-    """MQTT telemetry of ``axes`` (``(name, node_id, drive, nmt_state_getter)``): a sampler thread here, the
-    publisher in a process of its own (module doc)."""
+    """MQTT telemetry of ``axes`` (``(name, node_id, drive, nmt_state_getter[, fault_injector])``): a sampler
+    thread and a command thread here, the publisher in a process of its own (module doc)."""
 
-    def __init__(self, settings: MqttSettings, axes: list[tuple[str, int, Drive, Callable[[], str] | None]],
-                 gate=None):
+    def __init__(self, settings: MqttSettings, axes: list[tuple], gate=None):
         settings.validate()
         self.settings = settings
         self.gate = gate  # CycleGate or None: samples taken in the gap after a SYNC's PDOs (cycle_gate.py)
         self.channels: list[AxisChannel] = []
-        for i, (name, node_id, drive, nmt) in enumerate(axes):
+        for i, (name, node_id, drive, nmt, *injector) in enumerate(axes):
             if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name):
                 raise MqttSettingsError(f"axis name {name!r} is not usable in an MQTT topic")
-            self.channels.append(AxisChannel(self, i, name, node_id, drive, nmt))
+            self.channels.append(AxisChannel(self, i, name, node_id, drive, nmt, *injector[:1]))
         self.ring: TelemetryRing | None = None
         self._shm = None
         self._proc: subprocess.Popen | None = None
@@ -460,6 +579,8 @@ class MqttService:
         self._ctl = None
         self._stop = threading.Event()
         self._sampler: threading.Thread | None = None
+        self._commands: threading.Thread | None = None
+        self._send_lock = threading.Lock()  # the sampler and the command thread both send to the publisher
         self._observers: list[tuple[Drive, Callable]] = []
 
     def _observer(self, ch: AxisChannel) -> Callable:
@@ -520,19 +641,49 @@ class MqttService:
             self._send(ch, "state", state_fields(ch.drive.state, ch.last_nmt))
         self._sampler = threading.Thread(target=self._sample_loop, name="virtualaxis-mqtt-sampler", daemon=True)
         self._sampler.start()
+        self._commands = threading.Thread(target=self._command_loop, name="virtualaxis-mqtt-commands", daemon=True)
+        self._commands.start()
         return self
 
     def _send(self, ch: AxisChannel, kind: str, data: dict) -> None:
+        msg = json.dumps({"axis": ch.index, "kind": kind, "data": data}).encode()
         try:
-            self._conn.send_bytes(json.dumps({"axis": ch.index, "kind": kind, "data": data}).encode())
-        except (OSError, ValueError):  # the publisher process is gone: the drive goes on
+            with self._send_lock:
+                self._conn.send_bytes(msg)
+        except (OSError, ValueError, AttributeError):  # the publisher process is gone: the drive goes on
             pass
 
     def _send_tick(self) -> None:
         try:
-            self._conn.send_bytes(b'{"kind": "tick"}')
-        except (OSError, ValueError):
+            with self._send_lock:
+                self._conn.send_bytes(b'{"kind": "tick"}')
+        except (OSError, ValueError, AttributeError):
             pass
+
+    def _command_loop(self) -> None:
+        """fault/set commands the publisher process checked and forwarded: applied here, in serve's process but
+        outside the drive's cycle (the injector takes the drive's lock like any API user), answered at once."""
+        conn = self._conn
+        while True:
+            try:
+                raw = conn.recv_bytes()
+            except (EOFError, OSError):  # the publisher process ended
+                return
+            try:
+                m = json.loads(raw)
+                if m.get("kind") != "command":
+                    continue
+                ch = self.channels[int(m["axis"])]
+                cmd = m["data"]
+            except Exception:  # noqa: BLE001 - never from our own publisher; ignored, never fatal
+                continue
+            try:
+                result = apply_fault_command(ch.injector, cmd)
+            except Exception as exc:  # noqa: BLE001 - a command never takes serve down
+                result = {k: cmd[k] for k in ("id",) if isinstance(cmd, dict) and k in cmd} | {
+                    "ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+            ch.commands += 1
+            self._send(ch, "result", result)
 
     def _forward(self, ch: AxisChannel, s, current: bool) -> None:
         while ch.states:
@@ -600,6 +751,9 @@ class MqttService:
                 self._proc.kill()
                 self._proc.wait(timeout=5.0)
             self._proc = None
+        if self._commands is not None:  # the publisher's exit closed its end: the command thread saw EOF
+            self._commands.join(timeout=timeout_s)
+            self._commands = None
         if self.ring is not None:
             for ch in self.channels:
                 c, err = self.ring.counters(ch.index)
@@ -624,7 +778,8 @@ class MqttService:
             out[ch.name] = {k: c[k] for k in ("samples_taken", "samples_published", "samples_dropped",
                                               "samples_buffered", "connects", "disconnects", "batches_published",
                                               "events_published", "events_dropped")}
-            out[ch.name] |= {"sampler_late_samples": ch.sampler_late, "last_error": err}
+            out[ch.name] |= {"sampler_late_samples": ch.sampler_late, "last_error": err,
+                             "fault_commands": ch.commands}
         return out
 
 
@@ -641,6 +796,8 @@ class PubChannel:
     event_capacity: int
     events: deque = field(default_factory=deque)
     states: deque = field(default_factory=lambda: deque(maxlen=32))  # state fields of drive events
+    results: deque = field(default_factory=lambda: deque(maxlen=64))  # fault/result payloads to publish
+    commands_in_flight: int = 0  # fault/set commands forwarded to serve, not answered yet
     current: dict | None = None  # the latest state fields serve forwarded
     events_dropped: int = 0
     events_published: int = 0
@@ -680,6 +837,7 @@ class Publisher:
         self._lock = threading.Lock()  # the message reader thread vs the event loop (deques, dicts)
         self._tick: asyncio.Event | None = None  # set by serve's tick: new samples in the ring
         self._work: list[asyncio.Event] = []  # per axis: drained, publish now
+        self.to_serve: Callable[[bytes], None] | None = None  # sends a message to serve (the command thread)
 
     # -------------------------------------------------------------------------------- inputs
     def on_message(self, raw: bytes) -> None:
@@ -709,6 +867,54 @@ class Publisher:
                     ch.events_dropped += 1
                 ch.events.append(m["data"])
                 ch.state_dirty = True
+            elif m["kind"] == "result":  # serve applied a fault/set command
+                ch.commands_in_flight = max(0, ch.commands_in_flight - 1)
+                ch.results.append(m["data"])
+        if m["kind"] == "result":
+            self._wake(ch)
+
+    def _wake(self, ch: PubChannel) -> None:
+        """Publish now (from any thread)."""
+        loop = self._loop
+        if loop is None or not self._work:
+            return
+        try:
+            loop.call_soon_threadsafe(self._work[ch.index].set)
+        except RuntimeError:  # the loop closed meanwhile
+            pass
+
+    def on_command(self, ch: PubChannel, payload, retained: bool = False) -> None:
+        """A ``fault/set`` message (in the event loop): checked here, forwarded to serve when well-formed, else
+        answered at once with ``ok: false``. Never raises."""
+        try:
+            cmd, refusal = parse_fault_command(payload)
+            if retained:  # replayed by the broker at each subscription: stale, never applied
+                ident = {k: v for k, v in (cmd or refusal).items() if k == "id"}
+                cmd, refusal = None, ident | {"ok": False, "error": "retained fault/set message ignored (a command "
+                                                                     "is applied once: publish it with retain=false)"}
+            if cmd is not None:
+                with self._lock:
+                    busy = ch.commands_in_flight >= FAULT_COMMANDS_IN_FLIGHT
+                    if not busy:
+                        ch.commands_in_flight += 1
+                if busy:
+                    refusal = {k: cmd[k] for k in ("id",) if k in cmd} | {
+                        "ok": False, "error": f"busy: {FAULT_COMMANDS_IN_FLIGHT} commands of this axis in progress"}
+                else:
+                    try:
+                        self.to_serve(json.dumps({"kind": "command", "axis": ch.index, "data": cmd}).encode())
+                    except Exception:  # noqa: BLE001 - serve is gone
+                        with self._lock:
+                            ch.commands_in_flight = max(0, ch.commands_in_flight - 1)
+                        refusal = {k: cmd[k] for k in ("id",) if k in cmd} | {"ok": False,
+                                                                              "error": "serve is not reachable"}
+        except Exception as exc:  # noqa: BLE001 - a bad message never takes the publisher down
+            refusal = {"ok": False, "error": f"internal error: {type(exc).__name__}"}
+        if refusal is not None:
+            with self._lock:
+                ch.results.append(refusal)
+            if self._work:
+                self._work[ch.index].set()
 
     def drain(self) -> None:
         """Move the new samples of every axis from the ring into its buffer; export the counters."""
@@ -749,6 +955,9 @@ class Publisher:
             d["telemetry_batch_size"] = self.settings.batch_size
             d["telemetry_buffer_samples"] = self.settings.buffer_samples
         return json.dumps(d).encode()
+
+    def result_payload(self, ch: PubChannel, result: dict) -> bytes:
+        return json.dumps(self._head(ch) | {"ts_unix_s": round(time.time(), 3)} | result).encode()
 
     def will_payload(self, ch: PubChannel) -> bytes:
         return json.dumps(self._head(ch) | {"status": "offline"}).encode()
@@ -859,6 +1068,7 @@ class Publisher:
                     clean_session=True,
                 )
                 async with client:
+                    _no_delay(client)
                     ch.connects += 1
                     ch.connected = True
                     self.export(ch)
@@ -886,8 +1096,10 @@ class Publisher:
     async def _session(self, client, ch: PubChannel) -> None:
         """Publish while connected; raises aiomqtt.MqttError when the connection is lost."""
         st = self.settings
-        watcher = asyncio.ensure_future(self._watch(client))
+        watcher = asyncio.ensure_future(self._watch(client, ch))
         try:
+            # subscribed (SUBACK) before the birth message: a client that saw ``online`` can send commands
+            await client.subscribe(self.topic(ch, "fault/set"), qos=1)
             await client.publish(self.topic(ch, "status"), self.status_payload(ch, True), qos=1, retain=True)
             while ch.current is None and not self._stop.is_set():  # serve forwards the state right at start
                 await asyncio.sleep(0.01)
@@ -903,6 +1115,12 @@ class Publisher:
                     self.drain()  # serve's sampler stopped before it said stop: these are the last samples
                 if watcher.done():
                     watcher.result()  # raises the disconnect
+                while ch.results:
+                    res = ch.results[0]
+                    await client.publish(self.topic(ch, "fault/result"), self.result_payload(ch, res), qos=1)
+                    with self._lock:
+                        if ch.results and ch.results[0] is res:
+                            ch.results.popleft()
                 while ch.events:
                     ev = ch.events[0]
                     payload = json.dumps(self._head(ch) | ev).encode()
@@ -937,11 +1155,25 @@ class Publisher:
         finally:
             watcher.cancel()
 
-    @staticmethod
-    async def _watch(client) -> None:
-        """Ends with aiomqtt.MqttError when the connection drops (we subscribe to nothing)."""
-        async for _ in client.messages:
-            pass
+    async def _watch(self, client, ch: PubChannel) -> None:
+        """Takes the ``fault/set`` commands; ends with aiomqtt.MqttError when the connection drops."""
+        topic = self.topic(ch, "fault/set")
+        async for message in client.messages:
+            if str(message.topic) == topic:
+                self.on_command(ch, message.payload, bool(message.retain))
+
+
+def _no_delay(client) -> None:
+    """TCP_NODELAY on the client's socket: a small QoS 1 message (a fault event, a fault/result) leaves at once
+    instead of waiting, behind the unacknowledged telemetry, for the broker's delayed ACK (Nagle: ~40 ms)."""
+    import socket
+
+    try:
+        sock = client._client.socket()  # (paho's socket; aiomqtt has no option for it)
+        if sock is not None:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    except (AttributeError, OSError):
+        pass
 
 
 def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
@@ -963,6 +1195,7 @@ def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
     ring = TelemetryRing(memoryview(mem), len(spec["axes"]))
     pub = Publisher(settings, spec["axes"], ring)
     conn, ctl = Connection(msg_fd), Connection(ctl_fd)
+    pub.to_serve = conn.send_bytes  # (only the event loop's thread sends: fault/set commands)
 
     def read_messages() -> None:
         try:

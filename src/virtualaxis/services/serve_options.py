@@ -65,13 +65,13 @@ class SideChannels:
         return GateBus(bus, self.gate)
 
     def start(self, axes) -> None:
-        """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave)."""
+        """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave, injection)."""
         if self.modbus_address is not None:
             from virtualaxis.services.modbus import ModbusService
             from virtualaxis.services.modbus_map import AxisLink
 
             host, port = self.modbus_address
-            links = [AxisLink(a.drive, a.node_id) for a in axes]
+            links = [AxisLink(a.drive, a.node_id, injector=getattr(a, "injection", None)) for a in axes]
             self.modbus = ModbusService(links, host=host, port=port, writable=self.modbus_writable,
                                         gate=self.gate).start()
             ids = ", ".join(str(a.node_id) for a in axes)
@@ -81,7 +81,7 @@ class SideChannels:
             from virtualaxis.services.mqtt import MqttService
 
             st = self.mqtt
-            chans = [(a.name, a.node_id, a.drive, _nmt_getter(a)) for a in axes]
+            chans = [(a.name, a.node_id, a.drive, _nmt_getter(a), getattr(a, "injection", None)) for a in axes]
             self.telemetry = MqttService(st, chans, gate=self.gate).start()
             scheme = "mqtts" if st.tls else "mqtt"
             self.lines.append(
