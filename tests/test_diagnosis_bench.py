@@ -8,18 +8,19 @@ import math
 import sys
 from pathlib import Path
 
+import background
 import pytest
 
 from virtualaxis.cli.main import main
 from virtualaxis.diagnosis import NO_EFFECT
-from virtualaxis.diagnosis.bench import QUICK_CASES, all_cases, generate_case, run_bench
+from virtualaxis.diagnosis.bench import QUICK_CASES, all_cases, generate_case
 from virtualaxis.diagnosis.report import REQUIRED_KEYS
 
 
 @pytest.fixture(scope="module")
-def quick_bench(tmp_path_factory):
-    out = tmp_path_factory.mktemp("gap_bench")
-    return run_bench(out, seed=3, quick=True, jobs=2)
+def quick_bench(request):
+    """``run_bench(out, seed=3, quick=True, jobs=2)``, computed in the background (tests/background.py)."""
+    return background.result(request.config, "quick_bench")
 
 
 def _case(bench: dict, name: str) -> dict:
@@ -27,6 +28,7 @@ def _case(bench: dict, name: str) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.background("quick_bench")
 @pytest.mark.parametrize("name", [n for n in QUICK_CASES if n != "clean"])
 def test_withheld_effect_is_identified(quick_bench, name):
     ev = _case(quick_bench, name)
@@ -39,21 +41,20 @@ def test_withheld_effect_is_identified(quick_bench, name):
 
 
 @pytest.mark.slow
+@pytest.mark.background("quick_bench")
 def test_clean_case_says_no_significant_effect(quick_bench, tmp_path):
     ev = _case(quick_bench, "clean")
     assert ev["accepted"] == [] and not ev["false_positive"]
     assert quick_bench["summary"]["false_positive_rate"] == 0.0
 
 
-def test_cli_diagnose_on_a_rigid_force_axis(tmp_path, capsys):
-    """A rigid single-mass axis with a force-output controller, only scale position + force recorded."""
-    case = next(c for c in all_cases() if c.name == "rigid-coulomb")
-    meta = generate_case(case, tmp_path / "case", seed=5, quick=True)
-    out = tmp_path / "diag"
-    rc = main(["diagnose", "--config", str(tmp_path / "case" / "nominal.toml"), *meta["files"]["fit"],
-               "--holdout", *meta["files"]["holdout"], "--out", str(out), "--jobs", "1"])
-    assert rc == 0
-    text = capsys.readouterr().out
+@pytest.mark.background("rigid_force_diagnosis")
+def test_cli_diagnose_on_a_rigid_force_axis(request):
+    """A rigid single-mass axis with a force-output controller, only scale position + force recorded.
+    (``virtualaxis diagnose --jobs 1`` on the rigid-coulomb case, run in the background.)"""
+    job = background.result(request.config, "rigid_force_diagnosis")
+    rc, text, out = job["rc"], job["stdout"], job["out"]
+    assert rc == 0, job["stderr"]
     assert "conclusion: coulomb_friction" in text
     rep = json.loads((out / "report.json").read_text())
     for key in REQUIRED_KEYS:
@@ -117,13 +118,16 @@ def test_no_effect_constant():
 
 
 @pytest.mark.slow
-def test_a_withheld_pair_is_found_and_refitted_jointly(tmp_path):
+@pytest.mark.background("withheld_pair")
+def test_a_withheld_pair_is_found_and_refitted_jointly(request):
     """Backlash + Coulomb friction withheld together (quick traces): both are found; the joint refit
-    is reported with its costs and, where kept, its values are the ones the report gives."""
-    bench = run_bench(tmp_path, seed=3, case_names=["backlash+coulomb"], quick=True, jobs=2)
+    is reported with its costs and, where kept, its values are the ones the report gives. (Bench run in
+    the background: ``run_bench(out, seed=3, case_names=["backlash+coulomb"], quick=True, jobs=2)``.)"""
+    job = background.result(request.config, "withheld_pair")
+    bench, out = job["bench"], job["out"]
     ev = bench["cases"][0]
     assert set(ev["accepted"]) == {"backlash", "coulomb_friction"}, ev
-    rep = json.loads((tmp_path / "backlash+coulomb" / "diagnosis" / "report.json").read_text())
+    rep = json.loads((out / "backlash+coulomb" / "diagnosis" / "report.json").read_text())
     jr = rep["joint_refit"]
     assert jr["effects"] == rep["accepted"]
     assert jr["accepted"] == (jr["fit_cost_joint"] < jr["fit_cost_sequential"]

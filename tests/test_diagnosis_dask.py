@@ -9,32 +9,13 @@ from __future__ import annotations
 
 import json
 
+import background
 import pytest
 
 from virtualaxis.cli.main import main
 from virtualaxis.diagnosis.bench import all_cases, generate_case
 
 distributed = pytest.importorskip("distributed", reason="dask[distributed] is part of the dev extras")
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    from distributed import LocalCluster
-    from distributed.diagnostics.plugin import SchedulerPlugin
-
-    class CountFits(SchedulerPlugin):
-        def __init__(self, owner):
-            self.owner = owner
-
-        def transition(self, key, start, finish, *args, **kwargs):
-            if finish == "memory" and str(key).startswith("_safe_fit"):
-                self.owner.done_fits += 1
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=40) as c:
-        c.done_fits = 0
-        c.scheduler.add_plugin(CountFits(c), name="count-fits")
-        yield c
 
 
 @pytest.fixture(scope="module")
@@ -46,16 +27,17 @@ def rigid_case(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_diagnosis_on_a_dask_cluster_matches_the_process_pool(cluster, rigid_case, capsys):
-    out, meta = rigid_case
-    common = ["diagnose", "--config", str(out / "case" / "nominal.toml"), *meta["files"]["fit"],
-              "--holdout", *meta["files"]["holdout"], "--no-hybrid"]
-    assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
-    rc = main([*common, "--out", str(out / "dask"), "--scheduler", cluster.scheduler_address])
-    assert rc == 0, capsys.readouterr().err
-    assert "conclusion: coulomb_friction" in capsys.readouterr().out
-    rc = main([*common, "--out", str(out / "pool"), "--jobs", "2"])
-    assert rc == 0
+@pytest.mark.background("dask_vs_pool")
+def test_diagnosis_on_a_dask_cluster_matches_the_process_pool(request):
+    """``virtualaxis diagnose --scheduler tcp://...`` on a ``LocalCluster`` and ``--jobs 2`` on the same case,
+    run in the background (tests/background.py, ``dask_vs_pool``)."""
+    job = background.result(request.config, "dask_vs_pool")
+    out = job["out"]
+    assert job["scheduler_address"].startswith("tcp://127.0.0.1:")
+    rc, text, err = job["dask"]
+    assert rc == 0, err
+    assert "conclusion: coulomb_friction" in text
+    assert job["pool"][0] == 0, job["pool"][2]
     dask_rep = json.loads((out / "dask" / "report.json").read_text())
     pool_rep = json.loads((out / "pool" / "report.json").read_text())
     assert dask_rep["accepted"] == pool_rep["accepted"] == ["coulomb_friction"]
@@ -65,7 +47,7 @@ def test_diagnosis_on_a_dask_cluster_matches_the_process_pool(cluster, rigid_cas
 
     assert params(dask_rep) == pytest.approx(params(pool_rep), rel=1e-9)
     # the cluster's workers did the fitting: the scheduler saw the candidate-fit tasks finish
-    assert cluster.done_fits >= 2
+    assert job["done_fits"] >= 2
 
 
 def test_unreachable_scheduler_is_a_clear_error(rigid_case, capsys):

@@ -1,10 +1,9 @@
 """The compiled kernel against an independent solve_ivp integration of the same equations."""
 
+import background
 import numpy as np
+import pytest
 from plant_helpers import config_with
-
-from virtualaxis.sim.batch import simulate_command
-from virtualaxis.sim.reference import ReferenceAxis
 
 
 def every_effect_config():
@@ -18,15 +17,23 @@ def every_effect_config():
     })
 
 
-def test_kernel_matches_solve_ivp_within_one_percent_of_tracking_rms():
-    cfg = every_effect_config()
-    assert cfg.backlash.enabled and cfg.friction.enabled and cfg.motor.cogging_amplitude_nm > 0
-    amp, vmax, dur = 0.025, 0.1, 1.0  # 50 mm stroke at F6000, 1 s: one reversal (at 0.79 s)
+def reference_command():
+    """50 mm stroke at F6000 for 1 s, one reversal (at 0.79 s): time, position, velocity, acceleration."""
+    amp, vmax, dur = 0.025, 0.1, 1.0
     w = vmax / amp
     t = np.arange(int(round(dur / 1e-3)) + 1) * 1e-3
-    p, v, a = amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
-    kern = simulate_command(cfg, t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
-    ref = ReferenceAxis(cfg, rtol=1e-8, atol=1e-12).run(t, p, v, a)
+    return t, amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
+
+
+@pytest.mark.background("plant_reference")
+def test_kernel_matches_solve_ivp_within_one_percent_of_tracking_rms(request):
+    """Kernel: ``simulate_command(cfg, t, p, v, a)``; reference: ``ReferenceAxis(cfg, rtol=1e-8,
+    atol=1e-12).run(t, p, v, a)`` on :func:`reference_command`, both computed in the background
+    (tests/background.py)."""
+    cfg = every_effect_config()
+    assert cfg.backlash.enabled and cfg.friction.enabled and cfg.motor.cogging_amplitude_nm > 0
+    job = background.result(request.config, "plant_reference")
+    kern, ref = job["kernel"], job["reference"]
     ek = kern["pos_meas"] - kern["pos_cmd"]
     er = ref["pos_meas"] - ref["pos_cmd"]
     rms_k, rms_r = np.sqrt(np.mean(ek**2)), np.sqrt(np.mean(er**2))

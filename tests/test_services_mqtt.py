@@ -141,9 +141,9 @@ def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
         # slowly, and the first batches then leave back to back)
         sub.wait(lambda: len(sub.of("telemetry")) >= 5 and len(svc.channels[0].buffer) < 10)
         t0 = time.monotonic()
-        n0 = len(sub.of("telemetry"))
+        n0, taken0 = len(sub.of("telemetry")), svc.channels[0].buffer.taken
         time.sleep(2.0)
-        n1 = len(sub.of("telemetry"))
+        n1, taken1 = len(sub.of("telemetry")), svc.channels[0].buffer.taken
         wall = time.monotonic() - t0
         ax.drive.inject_fault(0x4210, 42)
         sub.wait(lambda: any(f["event"] == "fault" for f in sub.of("faults")))
@@ -159,15 +159,20 @@ def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
     topics = {t for _, t, _, _ in sub.msgs}
     assert topics == {f"virtualaxis/rig1/X/{leaf}" for leaf in ("status", "state", "telemetry", "faults")}
     tel = sub.of("telemetry")
-    # 100 Hz in batches of 10 = 10 messages per second
-    assert (n1 - n0) / wall == pytest.approx(10.0, rel=0.15)
+    # 100 Hz sampled (wall clock) in batches of 10 = 10 messages per second. The messages received in the
+    # window are checked loosely (a loaded machine may still be draining a start-up backlog through it, seen:
+    # 14.5 messages/s); the sampling rate itself tightly, from the sampler's own count.
+    assert (taken1 - taken0) / wall == pytest.approx(100.0, rel=0.1)
+    assert 0.85 * 10.0 <= (n1 - n0) / wall <= 2.0 * 10.0
     assert all(len(m["samples"]) == 10 for m in tel[:-1])
     samples = [s for m in tel for s in m["samples"]]
     seqs = [s["seq"] for s in samples]
     assert seqs == list(range(len(seqs)))  # nothing lost, no duplicates, in order
     dts = sorted(b["t_s"] - a["t_s"] for a, b in zip(samples[:-1], samples[1:], strict=True))
     assert dts[len(dts) // 2] == pytest.approx(0.010, abs=0.0015)  # 100 Hz in drive time (real-time pacing)
-    moving = [s for s in samples if s["velocity_mm_min"] > 1100]
+    # steady travel: the samples published before the fault was injected (the fault reaction brakes through
+    # 1100 mm/min, and a braking sample may fall into the last 20 above 1100 mm/min)
+    moving = [s for m in tel[:n1] for s in m["samples"] if s["velocity_mm_min"] > 1100]
     assert moving and all(abs(s["velocity_mm_min"] - 1200) < 60 for s in moving[-20:])
     assert abs(moving[-1]["speed_rpm"] - 1200 / 16.0) < 5  # 16 mm lead
     ev = [f for f in sub.of("faults") if f["event"] == "fault"][0]

@@ -1,0 +1,202 @@
+"""Expensive, pure computations of the suite, run in the background on CPU time nobody else wants.
+
+Most of the suite is paced by the wall clock (a drive served at 1 ms SYNC, a master waiting for its
+answers), so one of the two cores is idle for most of the run. The few computations that take minutes (the
+gap bench's quick cases, a joint refit, the solve_ivp reference of the plant) are started at collection time
+in one subprocess at ``SCHED_IDLE`` priority: the scheduler runs it only when no other task wants a CPU, and a
+waking test preempts it at once, so it takes nothing from the timing tests. The tests that need a result are
+moved to the end of the run and wait for it (:func:`result`); what they assert is unchanged, only where the
+computation ran.
+
+A job is a module-level function ``name`` in this file taking the folder it may write to and returning a
+picklable result. A test asks for it with ``background.result(request.config, "name")``; the conftest starts
+the jobs its selected tests declare with ``@pytest.mark.background("name", ...)``.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+# ---------------------------------------------------------------------------------------------- the jobs
+def quick_bench(out: Path) -> dict:
+    """The gap bench's quick cases (tests/test_diagnosis_bench.py)."""
+    from virtualaxis.diagnosis.bench import run_bench
+
+    return run_bench(out, seed=3, quick=True, jobs=2)
+
+
+def withheld_pair(out: Path) -> dict:
+    """Backlash + Coulomb friction withheld together (tests/test_diagnosis_bench.py); the per-case report is
+    read from ``out``."""
+    from virtualaxis.diagnosis.bench import run_bench
+
+    return {"bench": run_bench(out, seed=3, case_names=["backlash+coulomb"], quick=True, jobs=2), "out": out}
+
+
+def plant_reference(out: Path) -> dict:
+    """The compiled kernel and the independent solve_ivp reference on one command with every effect on
+    (tests/test_plant_reference.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_plant_reference import every_effect_config, reference_command
+
+    from virtualaxis.sim.batch import simulate_command
+    from virtualaxis.sim.reference import ReferenceAxis
+
+    cfg = every_effect_config()
+    t, p, v, a = reference_command()
+    kern = simulate_command(cfg, t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
+    ref = ReferenceAxis(cfg, rtol=1e-8, atol=1e-12).run(t, p, v, a)
+    keep = ("pos_cmd", "pos_meas")
+    return {"kernel": {k: np.asarray(kern[k]) for k in keep}, "reference": {k: np.asarray(ref[k]) for k in keep}}
+
+
+def _main_captured(argv: list[str]) -> tuple[int, str, str]:
+    """``virtualaxis`` CLI in this process: exit status, stdout, stderr."""
+    import contextlib
+    import io
+
+    from virtualaxis.cli.main import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main(argv)
+    return rc, out.getvalue(), err.getvalue()
+
+
+def rigid_force_diagnosis(out: Path) -> dict:
+    """``virtualaxis diagnose`` on the gap bench's rigid-coulomb case (seed 5, quick), one job
+    (tests/test_diagnosis_bench.py reads the report from ``out / "diag"``)."""
+    from virtualaxis.diagnosis.bench import all_cases, generate_case
+
+    case = next(c for c in all_cases() if c.name == "rigid-coulomb")
+    meta = generate_case(case, out / "case", seed=5, quick=True)
+    rc, text, err = _main_captured(["diagnose", "--config", str(out / "case" / "nominal.toml"), *meta["files"]["fit"],
+                                    "--holdout", *meta["files"]["holdout"], "--out", str(out / "diag"),
+                                    "--jobs", "1"])
+    return {"rc": rc, "stdout": text, "stderr": err, "out": out / "diag"}
+
+
+def dask_vs_pool(out: Path) -> dict:
+    """The rigid-coulomb case diagnosed on a local Dask cluster (worker processes, 127.0.0.1) and on the
+    process pool (tests/test_diagnosis_dask.py)."""
+    from distributed import LocalCluster
+    from distributed.diagnostics.plugin import SchedulerPlugin
+
+    from virtualaxis.diagnosis.bench import all_cases, generate_case
+
+    class CountFits(SchedulerPlugin):
+        def __init__(self, owner):
+            self.owner = owner
+
+        def transition(self, key, start, finish, *args, **kwargs):
+            if finish == "memory" and str(key).startswith("_safe_fit"):
+                self.owner["done_fits"] += 1
+
+    case = next(c for c in all_cases() if c.name == "rigid-coulomb")
+    meta = generate_case(case, out / "case", seed=5, quick=True)
+    common = ["diagnose", "--config", str(out / "case" / "nominal.toml"), *meta["files"]["fit"],
+              "--holdout", *meta["files"]["holdout"], "--no-hybrid"]
+    res: dict = {"done_fits": 0, "out": out}
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None, silence_logs=40) as cluster:
+        cluster.scheduler.add_plugin(CountFits(res), name="count-fits")
+        res["scheduler_address"] = cluster.scheduler_address
+        res["dask"] = _main_captured([*common, "--out", str(out / "dask"), "--scheduler",
+                                      cluster.scheduler_address])
+    res["pool"] = _main_captured([*common, "--out", str(out / "pool"), "--jobs", "2"])
+    return res
+
+
+JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool")
+
+
+# ---------------------------------------------------------------------------------------------- the runner
+def _run(names: list[str], folder: Path) -> int:
+    """Child process: each job in turn; ``<name>.pkl`` when done, ``<name>.err`` with the traceback if it
+    raised (written under a temporary name and renamed, so a waiting test never reads half a file)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        os.nice(19)
+    try:  # killed with the pytest process, even when that one is killed without a chance to clean up
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    for name in names:
+        out = folder / name
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            value = globals()[name](out)
+            data, suffix = pickle.dumps(("ok", value)), ".pkl"
+        except BaseException:  # reported to the test that waits for it
+            data, suffix = traceback.format_exc().encode(), ".err"
+        tmp = folder / f"{name}{suffix}.part"
+        tmp.write_bytes(data)
+        tmp.rename(folder / f"{name}{suffix}")
+    return 0
+
+
+def start(config, names: list[str]) -> None:
+    """Start the jobs ``names`` in one SCHED_IDLE subprocess (from the conftest's collection hook)."""
+    if not names:
+        return
+    folder = Path(config._tmp_path_factory.mktemp("background"))
+    proc = subprocess.Popen([sys.executable, str(Path(__file__)), str(folder), *names],
+                            stdout=subprocess.DEVNULL, stderr=open(folder / "stderr.txt", "wb"),
+                            start_new_session=True, cwd=str(HERE.parent))
+    config._background = (proc, folder, set(names))
+
+
+def stop(config) -> None:
+    """Kill the runner and its pool workers if they are still running (end of session, also on interrupt)."""
+    bg = getattr(config, "_background", None)
+    if bg is None:
+        return
+    proc = bg[0]
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
+
+
+def result(config, name: str, timeout_s: float = 1800.0):
+    """The result of job ``name``: waits for the runner (which runs at full speed once the tests before
+    it are done); the job's own traceback if it raised."""
+    bg = getattr(config, "_background", None)
+    if bg is None or name not in bg[2]:
+        raise RuntimeError(f"background job {name!r} was not started (mark the test "
+                           f"@pytest.mark.background({name!r}))")
+    proc, folder, _ = bg
+    done, failed = folder / f"{name}.pkl", folder / f"{name}.err"
+    t_end = time.monotonic() + timeout_s
+    while not done.exists() and not failed.exists():
+        if proc.poll() is not None and not done.exists() and not failed.exists():
+            err = (folder / "stderr.txt").read_text(errors="replace")[-4000:]
+            raise RuntimeError(f"background runner exited with {proc.returncode} before {name!r}:\n{err}")
+        if time.monotonic() > t_end:
+            raise TimeoutError(f"background job {name!r} not done after {timeout_s:.0f} s")
+        time.sleep(0.05)
+    if failed.exists():
+        raise RuntimeError(f"background job {name!r} raised:\n{failed.read_text()}")
+    status, value = pickle.loads(done.read_bytes())
+    return value
+
+
+if __name__ == "__main__":
+    sys.exit(_run(sys.argv[2:], Path(sys.argv[1])))
