@@ -295,6 +295,83 @@ CASES += [
     ("diag-jobs-0", ["diagnose", "--config", str(C4), _tr("good.csv"), "--out", "{T}/d", "--jobs", "0"], ["--jobs"]),
 ]
 
+# ---- second audit (docs/bad-input.md "Second audit"): one representative case per defect class it found
+CASES += [
+    # option errors argparse reports: one line, not a usage block
+    ("opt-not-an-int", ["frf", "--config", str(C4), "--points", "1.5", "--out", "{T}/o"],
+     ["error: virtualaxis frf: argument --points", "invalid int value: '1.5'"]),
+    ("opt-empty-float", ["simulate", "--config", str(C4), "--profile", STEP, "--duration", "", "--out", "{T}/t.csv"],
+     ["argument --duration", "invalid float value"]),
+    # subnormal numbers (1e-320): a typing error, never a value
+    ("cfg-subnormal", ["modal", "--config", "{T}/subnormal.toml"], ["mechanics.lead_m", "subnormal"]),
+    ("prof-subnormal", ["simulate", "--config", str(C4), "--profile", "sine:stroke_mm=1e-320,feed_mm_min=100",
+                        "--out", "{T}/t.csv"], ["stroke_mm", "subnormal"]),
+    ("frf-fmin-subnormal", ["frf", "--config", str(C4), "--fmin", "1e-320", "--out", "{T}/o"], ["--fmin", "below"]),
+    ("sim-duration-below-one-cycle", ["simulate", "--config", str(C4), "--profile", STEP, "--duration", "1e-320",
+                                      "--out", "{T}/t.csv"], ["--duration", "shorter than one position cycle"]),
+    # numbers beyond the 64-bit range and non-finite values in sections other packages own
+    ("cfg-int-400-digits", ["modal", "--config", "{T}/bigint.toml"], ["effects.force_offset_n", "400 digits"]),
+    ("cfg-extension-nan", ["modal", "--config", "{T}/extnan.toml"], ["metadata.weight", "finite"]),
+    ("cfg-empty-name", ["modal", "--config", "{T}/noname.toml"], ["axis.name", "must not be empty"]),
+    # huge values that overflowed an int (traceback before)
+    ("sim-duration-1e308", ["simulate", "--config", str(C4), "--profile", STEP, "--duration", "1e308", "--out",
+                            "{T}/t.csv"], ["--duration", "MiB"]),
+    # empty or repeated list options silently meant "the default" or gave NaN results
+    ("modal-positions-empty", ["modal", "--config", str(C4), "--positions", ""], ["--positions", "empty list"]),
+    ("modal-positions-twice", ["modal", "--config", str(C4), "--positions", "0.5,0.5"], ["--positions", "twice"]),
+    ("study-values-empty", ["study", "kv-sweep", "--config", str(C4), "--out", "{T}/s", "--values", ""],
+     ["--values", "empty list"]),
+    ("study-values-twice", ["study", "kv-sweep", "--config", str(C4), "--out", "{T}/s", "--values", "5,5"],
+     ["--values", "twice"]),
+    ("study-values-out-of-range", ["study", "feed-sweep", "--config", str(C4), "--out", "{T}/s", "--values",
+                                   "1e308"], ["--values", "1e+308 is outside"]),
+    ("diag-effects-empty", ["diagnose", "--config", str(C4), _tr("good.csv"), "--out", "{T}/d", "--effects", ""],
+     ["--effects", "empty effect name"]),
+    ("gap-bench-cases-empty", ["gap-bench", "--out", "{T}/gb", "--cases", ""], ["--cases", "empty case name"]),
+    ("gap-bench-cases-unknown", ["gap-bench", "--out", "{T}/gb", "--cases", "bogus"], ["--cases", "unknown", "--list"]),
+    ("diag-scheduler-garbage", ["diagnose", "--config", str(C4), _tr("good.csv"), "--out", "{T}/d", "--scheduler",
+                                "nonsense"], ["--scheduler", "tcp://HOST:PORT"]),
+    # an option checked only after the inputs were read (notes printed before the error)
+    ("ident-weight-nan-first", ["identify-joints", "--config", str(RCSA), "--modes", "{T}/m.csv",
+                                "--train-positions", "0.6", "--amplitude-weight", "nan"], ["--amplitude-weight"]),
+    # output paths: a refused command leaves no folder; names too long, loops, one path for two outputs, '~', '/'
+    ("out-folder-not-left-behind", ["frf", "--config", str(C4), "--points", "0", "--out", "{T}/new/o"],
+     ["--points"]),
+    ("out-name-too-long", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "{T}/" + "a" * 300 + ".csv"],
+     ["--out", "255 bytes"]),
+    ("out-name-too-long-for-temp", ["simulate", "--config", str(C4), "--profile", STEP, "--out",
+                                    "{T}/" + "a" * 240 + ".csv"], ["--out", "temporary name"]),
+    ("out-symlink-loop", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "{T}/loop"],
+     ["--out", "loop"]),
+    ("out-same-for-json-and-plot", ["modal", "--config", str(C4), "--json", "{T}/x", "--plot", "{T}/x"],
+     ["--plot", "also the output of --json"]),
+    ("out-tilde-not-expanded", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "~/t.csv"],
+     ["--out", "'~'"]),
+    ("out-trailing-slash", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "{T}/t.csv/"],
+     ["--out", "ends with '/'"]),
+    # traces and sidecars: no motion (a traceback in the plots before), sidecar fields of the wrong type
+    ("diag-trace-no-motion", ["diagnose", "--config", str(C4), "{T}/still.csv", "--out", "{T}/d"],
+     ["still.csv", "column pos_cmd", "does not move"]),
+    ("diag-sidecar-axis-wrong-type", ["diagnose", "--config", str(C4), "{T}/sc2.csv", "--out", "{T}/d"],
+     ["sc2.toml", "column axis", "axis name"]),
+    # serve / conformance / fault: refused before the bus opens (forever, hangs, tracebacks at the end before)
+    ("serve-duration-inf", ["serve", "--config", str(C4), "--can", "virtual:a18", "--duration", "inf"],
+     ["--duration", "finite"]),
+    ("serve-status-interval-negative", ["serve", "--config", str(C4), "--can", "virtual:a18", "--duration", "1",
+                                        "--status-interval", "-1"], ["--status-interval"]),
+    ("serve-latency-probe-folder", ["serve", "--config", str(C4), "--can", "virtual:a18", "--duration", "1",
+                                    "--latency-probe", "{T}"], ["--latency-probe", "is a folder"]),
+    ("serve-axis-names-twice", ["serve", "--can", "virtual:a18", "--duration", "1", "--axis", f"X=1:{C4}", "--axis",
+                                f"X=2:{C4}"], ["--axis", "names must be unique"]),
+    ("serve-eds-not-an-eds", ["serve", "--config", str(C4), "--can", "virtual:a18", "--duration", "1", "--eds",
+                              str(C4)], ["seed004-siemens.toml", "not an EDS file"]),
+    ("serve-udp-not-multicast", ["serve", "--config", str(C4), "--can", "udp_multicast:1.2.3.4", "--duration", "1",
+                                 "--bitrate", "0"], ["1.2.3.4 is not a multicast address"]),
+    ("conformance-sdo-timeout-nan", ["conformance", "--can", "virtual:nobody", "--sdo-timeout", "nan"],
+     ["--sdo-timeout"]),
+    ("fault-timeout-negative", ["fault", "--can", "virtual:nobody", "--timeout", "-1", "status"], ["--timeout"]),
+]
+
 
 def _setup(tmp: Path) -> None:
     (tmp / "f.csv").write_text("x\n")
@@ -313,10 +390,23 @@ def _setup(tmp: Path) -> None:
     (tmp / "done").mkdir()
     for name in ("frf.csv", "report.json"):
         (tmp / "done" / name).write_text("old output\n")
+    c4 = C4.read_text()
+    (tmp / "subnormal.toml").write_text(c4.replace('lead_m = { value = 0.01,', 'lead_m = { value = 1e-320,'))
+    (tmp / "bigint.toml").write_text(c4 + "\n[effects]\nforce_offset_n = " + "9" * 400 + "\n")
+    (tmp / "extnan.toml").write_text(c4 + "\n[metadata]\nweight = nan\n")
+    (tmp / "noname.toml").write_text(c4.replace('name = "seed004-siemens"', 'name = " "'))
+    os.symlink(tmp / "loop", tmp / "loop")
+    good = (D / "traces" / "good.csv").read_text().splitlines()
+    (tmp / "still.csv").write_text("\n".join([good[0]] + [r.split(",")[0] + ",0" * (len(r.split(",")) - 1)
+                                                           for r in good[1:]]) + "\n")
+    (tmp / "sc2.csv").write_text("\n".join(good) + "\n")
+    (tmp / "sc2.toml").write_text("axis = 5\n")
 
 
-def _snapshot(tmp: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(tmp)): p.read_bytes() for p in sorted(tmp.rglob("*")) if p.is_file()}
+def _snapshot(tmp: Path) -> dict[str, bytes | None]:
+    """Every file's bytes and every folder (a refused command must not leave an empty output folder either)."""
+    return {str(p.relative_to(tmp)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(tmp.rglob("*")) if p.is_file() or p.is_dir()}
 
 
 @pytest.mark.timeout(60)

@@ -128,6 +128,8 @@ def validate_eds(eds_path: str | Path) -> None:
     checked; a bad one raises :class:`InputError` naming the file, the ``[section]`` and the key with the value
     found and what was expected (e.g. ``eds/x.eds: [6040] DataType = '0x9999': unknown CANopen data type``)."""
     path = Path(eds_path)
+    if path.suffix.lower() not in (".eds", ".dcf", ".epf"):  # canopen picks its importer by the suffix
+        raise InputError(str(path), f"not an EDS file (suffix {path.suffix or 'none'!r}; expected .eds, .dcf or .epf)")
     parser = RawConfigParser(inline_comment_prefixes=(";",), strict=True)
     parser.optionxform = str
     try:

@@ -24,11 +24,15 @@ def progress(total: int, desc: str):
 
 
 def parse_float_list(text: str, name: str, hint: str = "") -> list[float]:
-    """'0.1,0.5,0.9' -> [0.1, 0.5, 0.9]; a CliError naming the option on an empty item, text or NaN/inf."""
+    """'0.1,0.5,0.9' -> [0.1, 0.5, 0.9]; a CliError naming the option on an empty list or item, text, NaN/inf,
+    a subnormal number (1e-320: a typo, never a position or a gain) or a value given twice."""
     import math
+    import sys
 
     from virtualaxis.cli.errors import CliError
 
+    if not text.strip():
+        raise CliError(f"{name}: empty list; give comma-separated numbers{hint} or leave the option out")
     vals = []
     for item in (x.strip() for x in text.split(",")):
         try:
@@ -37,5 +41,10 @@ def parse_float_list(text: str, name: str, hint: str = "") -> list[float]:
             raise CliError(f"{name}: not a number: {item!r}{hint}") from None
         if not math.isfinite(v):
             raise CliError(f"{name}: not a finite number: {item!r}")
+        if v != 0 and abs(v) < sys.float_info.min:
+            raise CliError(f"{name}: {item!r} is a subnormal number (below 2.2e-308 in magnitude); give 0 or a "
+                           "real value")
+        if v in vals:
+            raise CliError(f"{name}: {item!r} given twice")
         vals.append(v)
     return vals

@@ -58,8 +58,10 @@ def run(args) -> int:
         raise CliError(f"--only {args.only!r} selects no check (ids: {', '.join(c.id for c in runner.REGISTRY)})")
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
-    if not args.units_per_mm > 0:
-        raise CliError(f"--units-per-mm must be > 0 (got {args.units_per_mm})")
+    if not 1e-6 <= args.units_per_mm <= 1e9:  # (also refuses nan and inf)
+        raise CliError(f"--units-per-mm must be 1e-06 .. 1e+09 (got {args.units_per_mm})")
+    if not 0.001 <= args.sdo_timeout <= 60:
+        raise CliError(f"--sdo-timeout must be 0.001..60 s (got {args.sdo_timeout})")
     junit, json_out = _out_path("--junit", args.junit), _out_path("--json", args.json)
     eds = args.eds
     if eds is not None:

@@ -40,6 +40,26 @@ def register(subparsers) -> None:
 
 
 
+def _effect_names(text: str | None) -> list[str] | None:
+    """``--effects`` checked before any work: not empty, no empty item, known names, none twice."""
+    from virtualaxis.cli.main import CliError
+    from virtualaxis.diagnosis.effects import EFFECTS
+
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",")]
+    if not text.strip() or "" in names:
+        raise CliError(f"--effects: empty effect name in {text!r}; give comma-separated names of the library "
+                       f"({', '.join(EFFECTS)}) or leave the option out for all")
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise CliError(f"--effects: unknown effect(s) {', '.join(unknown)}; known: {', '.join(EFFECTS)}")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise CliError(f"--effects: {', '.join(dup)} given twice")
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -49,10 +69,16 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1 <= args.jobs <= 256:
         raise CliError(f"--jobs must be 1 .. 256 (got {args.jobs})")
+    names = _effect_names(args.effects)
+    if args.scheduler is not None:
+        import re
+
+        m = re.fullmatch(r"(tcp|tls|inproc|ucx)://([^:/\s]+|\[[0-9a-fA-F:]+\]):(\d{1,5})", args.scheduler.strip())
+        if not m or not 1 <= int(m.group(3)) <= 65535:
+            raise CliError(f"--scheduler: {args.scheduler!r} is not an address tcp://HOST:PORT (port 1..65535)")
     cfg = load_axis_config(args.config)
     inputs = [args.config, *args.traces, *args.holdout]
     check_output_dir(args.out, args.force, OUT_NAMES, inputs=inputs)
-    names = [n.strip() for n in args.effects.split(",")] if args.effects else None
     bars: list = []
 
     def progress(msg: str) -> None:

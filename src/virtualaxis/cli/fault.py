@@ -56,6 +56,8 @@ def run(args) -> int:
         raise CliError("fault: give an action: inject KIND, clear [KIND], status or list")
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
+    if not 0.001 <= args.timeout <= 60:  # (also refuses nan: every comparison with nan is false)
+        raise CliError(f"--timeout must be 0.001..60 s (got {args.timeout})")
     if args.action == "inject":
         if not 0 < args.duty <= 1:
             raise CliError(f"--duty must be in (0, 1] (got {args.duty})")

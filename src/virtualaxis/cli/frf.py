@@ -18,6 +18,10 @@ OUT_NAMES = ("frf.csv", "frf.json", "frf.png")
 MAX_POINTS = 100_000
 
 
+#: lowest --fmin [Hz]: below it s = j 2 pi f underflows the loop models' ratios (1e-320 Hz gave inf / nan)
+FMIN_FLOOR_HZ = 1e-3
+
+
 def register(sub) -> None:
     p = sub.add_parser("frf", help="frequency responses of mechanics, speed loop and position loop")
     add_config_argument(p)
@@ -39,6 +43,9 @@ def run(args) -> int:
     nyquist = 0.5 / cfg.control.current_cycle_s
     if not (math.isfinite(args.fmin) and math.isfinite(args.fmax) and 0 < args.fmin < args.fmax):
         raise CliError(f"need finite 0 < --fmin < --fmax (got --fmin {args.fmin:g}, --fmax {args.fmax:g})")
+    if args.fmin < FMIN_FLOOR_HZ:
+        raise CliError(f"--fmin {args.fmin:g} Hz is below {FMIN_FLOOR_HZ:g} Hz (a {1 / FMIN_FLOOR_HZ / 60:.0f}-minute "
+                       "period): no loop response is defined by the axis there and the numbers would overflow")
     if args.fmax > nyquist:
         raise CliError(f"--fmax {args.fmax:g} Hz is above {nyquist:g} Hz, the Nyquist frequency of the "
                        f"{cfg.control.current_cycle_s:g} s current cycle: the sampled loops have no response there")
@@ -49,7 +56,13 @@ def run(args) -> int:
     check_output_dir(args.out, args.force, OUT_NAMES, inputs=[args.config])
     nut = cfg.axis.nut_offset_m + (args.position - 0.5) * cfg.axis.stroke_m
     f = np.logspace(np.log10(args.fmin), np.log10(args.fmax), args.points)
-    frfs = loop_frfs(cfg, f, nut)
+    with np.errstate(all="ignore"):
+        frfs = loop_frfs(cfg, f, nut)
+    for key, fr in frfs.items():  # never write a silently non-finite response
+        bad = ~(np.isfinite(fr.magnitude_db) & np.isfinite(fr.phase_deg))
+        if bad.any():
+            raise CliError(f"--fmin/--fmax: the {key} response is not finite at {f[np.flatnonzero(bad)[0]]:g} Hz "
+                           f"with {args.config} (nothing written)")
     out = Path(args.out)
     with staged_dir(out) as stage:
         _write(stage, out, cfg, args, nut, f, frfs, bandwidth_hz)

@@ -29,6 +29,26 @@ def _pct(x) -> str:  # "-" where the run had no case of that kind (NaN)
     return "-" if x is None or x != x else f"{100 * x:.0f} %"
 
 
+def _case_list(text: str | None, known: list[str], what: str) -> list[str] | None:
+    """``--cases`` checked before any bar or run starts: not empty, no empty item, no unknown or repeated name."""
+    from virtualaxis.cli.errors import CliError
+
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",")]
+    if not text.strip() or "" in names:
+        raise CliError(f"--cases: empty case name in {text!r}; give comma-separated names (see --list) or leave "
+                       "the option out for all")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise CliError(f"--cases: unknown {what}(s) {', '.join(unknown)} (virtualaxis gap-bench --list shows the "
+                       f"{len(known)} names)")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise CliError(f"--cases: {', '.join(dup)} given twice")
+    return names
+
+
 def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
     """The independent reference axis' cases (virtualaxis.gapbench)."""
     from tqdm import tqdm
@@ -36,8 +56,8 @@ def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
     from virtualaxis.gapbench.reference import run_reference_bench
     from virtualaxis.refaxis import case_names
 
-    names = [n.strip() for n in args.cases.split(",")] if args.cases else list(case_names())
-    bar = tqdm(total=len(names), desc="gap bench (reference axis)", unit="case")
+    names = _case_list(args.cases, list(case_names()), "reference case") or list(case_names())
+    bar = tqdm(total=len(names), desc="gap bench (reference axis)", unit="case", disable=None)
 
     def progress(ev: dict) -> None:
         bar.update(1)
@@ -87,9 +107,9 @@ def run(args: argparse.Namespace) -> int:
         if args.suite == "reference":
             return 0
         args.cases = None  # the reference's case names are not our own cases
-    names = [n.strip() for n in args.cases.split(",")] if args.cases else None
+    names = _case_list(args.cases, [c.name for c in all_cases()], "case")
     total = len(names) if names else (len(QUICK_CASES) if args.quick else len(all_cases()))
-    bar = tqdm(total=total, desc="gap bench", unit="case")
+    bar = tqdm(total=total, desc="gap bench", unit="case", disable=None)
 
     def progress(ev: dict) -> None:
         bar.update(1)

@@ -98,6 +98,11 @@ def run(args: argparse.Namespace) -> int:
                              ("--workers", args.workers, 1, 256), ("--seed", args.seed, 0, 2**63 - 1)):
         if val is not None and not lo <= val <= hi:
             raise CliError(f"{opt} must be {lo} .. {hi} (got {val})")
+    weight = ident.amplitude_weight if args.amplitude_weight is None else args.amplitude_weight
+    if args.frequencies_only:
+        weight = 0.0
+    if not (math.isfinite(weight) and weight >= 0):
+        raise CliError(f"--amplitude-weight: must be a number >= 0 (got {weight})")
     inputs = [args.config] + [x for x in (args.frf, args.modes) if x]
     for opt, val in (("--frf", args.frf), ("--modes", args.modes)):
         if val:
@@ -115,11 +120,6 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     _report_gaps(train, model, source)
-    weight = ident.amplitude_weight if args.amplitude_weight is None else args.amplitude_weight
-    if args.frequencies_only:
-        weight = 0.0
-    if not (math.isfinite(weight) and weight >= 0):
-        raise CliError(f"--amplitude-weight: must be a number >= 0 (got {weight})")
     use_amp = weight > 0
     if not np.any(np.isfinite(train.frequencies_hz)):
         raise CliError(f"{source}: no natural frequency found at any training position")

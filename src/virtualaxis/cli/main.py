@@ -40,8 +40,18 @@ COMMANDS = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's error contract: a wrong option (``--points abc``, a missing ``--out``, an unknown
+    choice) is ONE line ``error: <command>: <what argparse says>`` and exit status 2, not a usage block followed
+    by a differently prefixed line. Sub-parsers inherit the class."""
+
+    def error(self, message: str):  # noqa: D401 - argparse's hook
+        hint = f" (see {self.prog} --help)"
+        self.exit(2, f"error: {self.prog}: {' '.join(message.split())}{hint}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="virtualaxis",
         description="A virtual CNC ball-screw servo axis: plant, CiA 402 drive, gap diagnosis.",
     )
@@ -72,7 +82,10 @@ def _on_sigterm(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0) or an option error (2, one line printed by _Parser)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
@@ -80,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     old_term = None
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, _on_sigterm)
+    from virtualaxis.cli.outputs import reset_claims
+
+    reset_claims()
     try:
         return int(args.func(args) or 0)
     except (ConfigError, InputError, CliError) as exc:

@@ -37,7 +37,7 @@ def run(args) -> int:
     from virtualaxis.plant.modal import modal_analysis
 
     cfg = load_axis_config(args.config)
-    fracs = parse_float_list(args.positions, "--positions") if args.positions else [0.5]
+    fracs = parse_float_list(args.positions, "--positions") if args.positions is not None else [0.5]
     for fr in fracs:
         if not 0.0 <= fr <= 1.0:
             raise CliError(f"--positions: {fr:g} is not a fraction of the stroke (0..1)")

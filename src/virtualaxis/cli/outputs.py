@@ -34,22 +34,95 @@ def _forbidden(path: Path) -> bool:
     return any(s == root or s.startswith(root + "/") for root in _FORBIDDEN_ROOTS)
 
 
-def _probe_folder(folder: Path, option: str) -> None:
-    """Create ``folder`` (and parents) and prove a file can be created in it."""
+#: bytes a temporary sibling adds to a file name (``.`` + ``.partial-`` + 8 random characters)
+_TMP_NAME_EXTRA = 18
+#: outputs claimed by the running command: resolved path -> option (two outputs must not be one path)
+_CLAIMED: dict[str, str] = {}
+
+
+def reset_claims() -> None:
+    """Forget the outputs of the previous command (``main`` calls it for each command)."""
+    _CLAIMED.clear()
+
+
+def _claim(p: Path, option: str) -> None:
+    key = os.path.abspath(os.path.expanduser(str(p)))
+    try:
+        key = str(Path(key).resolve())
+    except OSError:
+        pass
+    other = _CLAIMED.get(key)
+    if other is not None and other != option:
+        raise CliError(f"{option}: {p} is also the output of {other}; give each output its own path")
+    _CLAIMED[key] = option
+
+
+def _check_spelling(path: str | Path, option: str) -> None:
+    """Paths the shell would have meant otherwise: an unexpanded ``~`` (quoted), an empty path."""
+    s = str(path)
+    if s.strip() == "":
+        raise CliError(f"{option}: empty path")
+    if s.startswith("~"):
+        raise CliError(f"{option}: {s} starts with '~', which the shell did not expand (quoted?); "
+                       "write the full path or $HOME/...")
+    for part in Path(s).parts:  # before any stat(): a name over NAME_MAX makes even exists() raise
+        n = len(os.fsencode(part))
+        if n > 255:
+            raise CliError(f"{option}: name {part[:24]}... is {n} bytes long; file systems take at most 255 bytes "
+                           "per name")
+
+
+def _os_errors_named(fn):
+    """Any OS error while checking a path (a name too long, a loop of symbolic links, no permission to look)
+    becomes one line naming the option and the path, not an internal error."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(path, *args, **kwargs):
+        try:
+            return fn(path, *args, **kwargs)
+        except (OSError, RuntimeError) as exc:  # (pathlib's resolve() raises RuntimeError on a symlink loop)
+            option = kwargs.get("option") or next((a for a in args if isinstance(a, str) and a.startswith("--")),
+                                                  "--out")
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else " ".join(str(exc).split())
+            raise CliError(f"{option}: {path}: {why}") from None
+
+    return wrapper
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def _probe_folder(folder: Path, option: str, leaf: str | None = None) -> None:
+    """Prove that ``folder`` can be created (if missing) and a file (``leaf``, via its temporary sibling) can be
+    created in it, without leaving anything behind: a refused command leaves no empty folder."""
     if _forbidden(folder):
         raise CliError(f"{option}: {folder}: not a place for output files (a virtual file system)")
+    missing: list[str] = []
+    anc = folder
     for anc in [folder, *folder.parents]:
         if anc.exists():
             if not anc.is_dir():
                 raise CliError(f"{option}: {anc} is a file, not a folder")
             break
+        missing.append(anc.name)
+    limit = _name_max(anc)
+    for name in [*missing, *([leaf] if leaf else [])]:
+        extra = _TMP_NAME_EXTRA if name == leaf else 0
+        n = len(os.fsencode(name))
+        if n + extra > limit:
+            raise CliError(f"{option}: name {name[:24]}... is {n} bytes long; the file system takes {limit} bytes "
+                           f"per name{f' ({limit - extra} with the temporary name of the write)' if extra else ''}")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".virtualaxis-probe-", dir=folder)
+        fd, probe = tempfile.mkstemp(prefix=".virtualaxis-probe-", dir=anc)
         os.close(fd)
         os.unlink(probe)
     except OSError as exc:
-        raise CliError(f"{option}: cannot write in {folder} ({exc.strerror or exc})") from None
+        raise CliError(f"{option}: cannot write in {anc} ({exc.strerror or exc})") from None
 
 
 def check_input_file(path: str | Path, option: str) -> Path:
@@ -77,13 +150,15 @@ def same_file(a: str | Path, b: str | Path) -> bool:
         return Path(a).resolve() == Path(b).resolve()
 
 
+@_os_errors_named
 def check_output_file(path: str | Path, force: bool, option: str = "--out",
                       inputs: Iterable[str | Path] = ()) -> Path:
     """Check an output file path before any work: not a folder, not an input, a writable folder, and either
     new or ``force``. Creates the parent folder. Returns the path."""
+    _check_spelling(path, option)
+    if str(path).endswith(("/", os.sep)):
+        raise CliError(f"{option}: {path} ends with '/', which names a folder; give a file name")
     p = Path(path)
-    if str(path).strip() == "":
-        raise CliError(f"{option}: empty path")
     for src in inputs:
         if same_file(p, src):
             raise CliError(f"{option}: {p} is also an input ({src}); it would be overwritten by its own output")
@@ -95,19 +170,23 @@ def check_output_file(path: str | Path, force: bool, option: str = "--out",
         raise CliError(f"{option}: {p} is a dangling symbolic link")
     if p.exists() and not force:
         raise CliError(f"{option}: {p} exists (use --force to overwrite it)")
-    _probe_folder(p.parent if str(p.parent) else Path("."), option)
+    _probe_folder(p.parent if str(p.parent) else Path("."), option, leaf=p.name)
+    _claim(p, option)
     return p
 
 
+@_os_errors_named
 def check_output_dir(path: str | Path, force: bool, names: Iterable[str], option: str = "--out",
                      inputs: Iterable[str | Path] = ()) -> Path:
     """Check an output folder before any work: not a file, writable, and none of the files the command writes
     (``names``: file names or glob patterns) already there unless ``force``. Creates the folder."""
+    _check_spelling(path, option)
     p = Path(path)
-    if str(path).strip() == "":
-        raise CliError(f"{option}: empty path")
     if p.exists() and not p.is_dir():
         raise CliError(f"{option}: {p} is a file; give a folder")
+    for src in inputs:
+        if same_file(p, src):
+            raise CliError(f"{option}: {p} is also an input ({src})")
     _probe_folder(p, option)
     existing = sorted({str(q) for n in names for q in p.glob(n) if q.is_file() or q.is_dir()})
     for src in inputs:
@@ -120,6 +199,7 @@ def check_output_dir(path: str | Path, force: bool, names: Iterable[str], option
     for q in existing:
         if Path(q).is_dir():
             raise CliError(f"{option}: {q} is a folder where an output file goes")
+    _claim(p, option)
     return p
 
 

@@ -85,8 +85,16 @@ def run(args) -> int:
     _check_inputs(args, eds)
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
-    if args.duration is not None and not args.duration > 0:
-        raise CliError(f"--duration must be > 0 (got {args.duration})")
+    if args.duration is not None and not 0 < args.duration < 1e9:  # (also nan and inf: "forever" is no --duration)
+        raise CliError(f"--duration must be a finite number of seconds > 0 (got {args.duration}); leave it out to "
+                       "serve until interrupted")
+    if not 0 <= args.status_interval < 1e9:
+        raise CliError(f"--status-interval must be a finite number of seconds >= 0, 0 for none (got "
+                       f"{args.status_interval})")
+    if args.latency_probe is not None:
+        from virtualaxis.cli.outputs import check_output_file
+
+        check_output_file(args.latency_probe, True, "--latency-probe")
     specs = [AxisSpec.parse(a) for a in args.axis]
     if args.config is not None or not specs:
         cfg_path = Path(args.config) if args.config else DEFAULT_CONFIG
@@ -95,6 +103,9 @@ def run(args) -> int:
     ids = [s.node_id for s in specs]
     if len(set(ids)) != len(ids):
         raise ConfigError("--axis", "node id", f"node ids must be unique (got {ids})")
+    names = [s.name for s in specs]
+    if len(set(names)) != len(names):  # status lines, JSON keys and MQTT topics are per axis name
+        raise ConfigError("--axis", "name", f"axis names must be unique (got {names})")
     configs = [load_axis_config(s.config) for s in specs]
     # ---- side channels (Modbus TCP, MQTT): options checked before the bus opens
     from virtualaxis.services.serve_options import prepare as prepare_side_channels

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -46,6 +47,8 @@ def run(args) -> int:
 
     if not args.out.strip():
         raise CliError("--out: empty path")
+    if args.out.endswith(("/", os.sep)):  # (Path() would drop the slash and write a file of that name)
+        raise CliError(f"--out: {args.out} ends with '/', which names a folder; give a file name")
     cfg = load_axis_config(args.config)
     if args.seed is not None and not 0 <= args.seed < 2**63:
         raise CliError(f"--seed must be an integer 0 .. 2^63-1 (got {args.seed})")
@@ -57,10 +60,14 @@ def run(args) -> int:
     if not (math.isfinite(dur) and dur > 0):
         raise CliError(f"{what} must be a finite number > 0 s (got {dur:g})")
     cyc = cfg.control.position_cycle_s
-    n = int(round(dur / cyc)) + 1
+    if dur < cyc:
+        raise CliError(f"{what}: {dur:g} s is shorter than one position cycle ({cyc:g} s of the config): the trace "
+                       "would hold the start only")
+    n_f = dur / cyc + 1.0  # a float first: 1e308 s must be refused by the size bound, not overflow an int
     out_path = Path(args.out)
     cols = columns_for(cfg) + (list(EXTRA_COLUMNS) if args.extras else [])
-    est_bytes = float(n) * (len(cols) + 1) * CSV_BYTES_PER_VALUE * len(prof.axes)
+    est_bytes = n_f * (len(cols) + 1) * CSV_BYTES_PER_VALUE * len(prof.axes)
+    n = int(round(dur / cyc)) + 1 if est_bytes <= args.max_output_mb * 2**20 else int(min(n_f, 2**62))
     if est_bytes > args.max_output_mb * 2**20:
         raise CliError(
             f"{what}: {dur:g} s at the {cyc:g} s position cycle are {n:.3g} rows x {len(cols) + 1} columns"

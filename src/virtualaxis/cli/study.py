@@ -34,11 +34,27 @@ def _write_rows(path: Path, rows: list[dict]) -> None:
         w.writerows(rows)
 
 
+def _value_range(name: str, cfg) -> tuple[float, float, str]:
+    """The range of ``--values`` a study accepts: what the config itself may hold (config/bounds.py) once the
+    value is applied, so a sweep value is refused naming ``--values``, not the config key it lands in."""
+    from virtualaxis.config.bounds import BOUNDS
+
+    if name == "kv-sweep":
+        lo, hi = BOUNDS["control.kv_per_min"]
+        return max(lo, 1e-3), hi, "1/min (control.kv_per_min's range)"
+    if name == "support-stiffness":
+        k = cfg.mechanics.support_axial_stiffness_n_per_m
+        hi = BOUNDS["mechanics.support_axial_stiffness_n_per_m"][1]
+        return 1e-6, (hi / k if k > 0 else 1e6), "x the nominal support stiffness"
+    vmax_mm_min = cfg.limits.max_velocity_m_s * 60e3  # feed-sweep, inverter: feeds [mm/min]
+    return 1e-3, vmax_mm_min, "mm/min (up to limits.max_velocity_m_s)"
+
+
 def run(args) -> int:
     from virtualaxis.config import load_axis_config
 
     cfg = load_axis_config(args.config)
-    vals = parse_float_list(args.values, "--values") if args.values else None
+    vals = parse_float_list(args.values, "--values") if args.values is not None else None
     if vals is not None:
         if len(vals) > MAX_VALUES:
             raise CliError(f"--values: {len(vals)} values; at most {MAX_VALUES}")
@@ -46,6 +62,10 @@ def run(args) -> int:
         if bad:
             raise CliError(f"--values: {bad[0]:g} is not > 0 (kv [1/min], stiffness scales and feeds [mm/min] are "
                            "positive)")
+        lo, hi, what = _value_range(args.name, cfg)
+        bad = [v for v in vals if not lo <= v <= hi]
+        if bad:
+            raise CliError(f"--values: {bad[0]:g} is outside {lo:g} .. {hi:g} {what} for study {args.name}")
     stem = args.name.replace("-", "_")
     check_output_dir(args.out, args.force, (f"{stem}.csv", f"{stem}.json", f"{stem}*.png"), inputs=[args.config])
     with staged_dir(args.out) as stage:

@@ -427,12 +427,17 @@ def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field, unit: str | Non
             raise ConfigError(file, key, f"must be a string (got {raw!r})")
         if meta["choices"] and raw not in meta["choices"]:
             raise ConfigError(file, key, f"must be one of {', '.join(meta['choices'])} (got {raw!r})")
+        if not raw.strip():
+            raise ConfigError(file, key, "must not be empty")
         return raw
     if isinstance(raw, bool) or not isinstance(raw, (int, float)):
         kind = "an integer" if typ == "int" else "a number"
         raise ConfigError(file, key, f"must be {kind} (got {raw!r})")
     if isinstance(raw, float) and not math.isfinite(raw):
         raise ConfigError(file, key, f"must be a finite number (got {raw!r})")
+    if isinstance(raw, int) and not _int_fits_float(raw):  # 400 digits parse as a Python int
+        raise ConfigError(file, key, f"must be a finite number (got an integer of {len(str(abs(raw)))} digits, "
+                                     "beyond the range of a number)")
     if unit is not None:
         if not isinstance(unit, str):
             raise ConfigError(file, key, f"unit must be a string (got {unit!r})")
@@ -450,6 +455,9 @@ def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field, unit: str | Non
         val = float(raw)
         if not math.isfinite(val):
             raise ConfigError(file, key, f"must be a finite number (got {raw!r})")
+    if isinstance(val, float) and val != 0 and abs(val) < sys.float_info.min:
+        raise ConfigError(file, key, f"{val!r} is a subnormal number (below 2.2e-308 in magnitude): a typing error; "
+                                     "give 0 or a real value")
     check = meta["check"]
     if check == ">0" and not val > 0:
         raise ConfigError(file, key, f"must be > 0 (got {val})")
@@ -530,9 +538,35 @@ def axis_config_from_dict(data: dict, file: str = "<dict>", sources: dict | None
             raise ConfigError(file, sec, "missing section (required)")
     parts = {name: _section(file, name, cls, data.get(name), srcs) for name, cls in _SECTIONS.items()}
     extra = {k: v for k, v in data.items() if k in EXTENSION_SECTIONS}
+    for k, v in extra.items():
+        _refuse_non_finite(file, k, v)
     cfg = AxisConfig(**parts, sources=srcs, extra=extra, path=file)
     _check_consistency(cfg)
     return cfg
+
+
+def _refuse_non_finite(file: str, key: str, value: Any) -> None:
+    """Sections owned by other packages are kept verbatim, but no number in a config may be nan, inf or an
+    integer beyond TOML's 64 bits: refused here, naming the key, for every owner."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _refuse_non_finite(file, f"{key}.{k}", v)
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _refuse_non_finite(file, f"{key}[{i}]", v)
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(file, key, f"must be a finite number (got {value!r})")
+    elif isinstance(value, int) and not isinstance(value, bool) and not _int_fits_float(value):
+        raise ConfigError(file, key, f"must be a finite number (got an integer of {len(str(abs(value)))} digits, "
+                                     "beyond the range of a number)")
+
+
+def _int_fits_float(value: int) -> bool:
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
 
 
 def _check_consistency(cfg: AxisConfig) -> None:

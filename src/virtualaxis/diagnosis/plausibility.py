@@ -238,6 +238,15 @@ def _check_magnitudes(tr, cfg) -> None:
                                       f"{f_peak:.4g} N: not a measurement (unit?)", i + 2, col)
 
 
+def _check_motion(tr) -> None:
+    """A command that never moves carries no dynamics to diagnose (every effect is unidentifiable; it crashed the
+    plots before): refused, naming the column."""
+    x = tr.columns["pos_cmd"]
+    if x.size and float(np.max(x) - np.min(x)) == 0.0:
+        raise InputError(tr.path, f"the command does not move (constant {float(x[0]):g} m over {x.size} rows): "
+                                  "nothing to diagnose; give traces of moves", None, "pos_cmd")
+
+
 def _check_duplicates(traces, n_fit: int | None) -> None:
     seen: dict[str, int] = {}
     for i, tr in enumerate(traces):
@@ -256,6 +265,7 @@ def check_plausibility(cfg, traces: list, fit_paths: list[str], holdout_paths: l
     """Run every check on every trace (see the module doc). Returns warnings; raises InputError to stop."""
     warnings: list[str] = []
     for tr in traces:
+        _check_motion(tr)
         _check_time(tr, cfg, warnings)
         _check_magnitudes(tr, cfg)
         _check_positions(tr, cfg, warnings)

@@ -241,13 +241,37 @@ def read_sidecar(csv_path: Path) -> dict:
     if not side.is_file():
         raise _err(str(side), "sidecar metadata is not a regular file (a device, pipe or socket)")
     try:
-        return tomllib.loads(side.read_text(encoding="utf-8-sig"))
+        return _check_sidecar(side, tomllib.loads(side.read_text(encoding="utf-8-sig")))
     except UnicodeDecodeError as exc:
         raise _err(str(side), f"sidecar metadata is not UTF-8 text (byte offset {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise _err(str(side), f"sidecar metadata is not valid TOML: {exc}") from None
     except OSError as exc:
         raise _err(str(side), f"cannot read sidecar metadata ({exc.strerror})") from None
+
+
+def _check_sidecar(side: Path, meta: dict) -> dict:
+    """The sidecar is free metadata, but what the reader uses must have its type (``axis`` a name or a table with
+    a ``name``), and no number in it may be nan or inf: refused naming the key rather than silently skipped."""
+    import math
+
+    ax = meta.get("axis")
+    if ax is not None and not isinstance(ax, str) and not (isinstance(ax, dict) and isinstance(ax.get("name"), str)):
+        raise _err(str(side), f"must be the axis name, a string, or a table with a string 'name' (got {ax!r})", None,
+                   "axis")
+
+    def walk(key: str, v) -> None:
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(f"{key}.{k}" if key else k, x)
+        elif isinstance(v, list):
+            for i, x in enumerate(v):
+                walk(f"{key}[{i}]", x)
+        elif isinstance(v, float) and not math.isfinite(v):
+            raise _err(str(side), f"must be a finite number (got {v!r})", None, key)
+
+    walk("", meta)
+    return meta
 
 
 def sidecar_axis_name(meta: dict) -> str | None:

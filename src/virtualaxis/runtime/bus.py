@@ -58,7 +58,13 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
     """
 
     def __init__(self, channel: str = DEFAULT_UDP_GROUP, port: int = 43113, hop_limit: int = 0, **kwargs: Any):
-        super().__init__(channel=channel, port=port, hop_limit=hop_limit, **kwargs)
+        try:
+            super().__init__(channel=channel, port=port, hop_limit=hop_limit, **kwargs)
+        except BaseException:
+            # a bus that never opened has nothing to shut down: without this, python-can's __del__ logs
+            # "OwnFrameFilteringUdpBus was not properly shut down" after the one error line (issue 18)
+            self._is_shutdown = True
+            raise
         self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"
         self.own_frames_dropped = 0
         self.malformed_dropped = 0
@@ -158,6 +164,17 @@ def open_bus(spec: str = DEFAULT_BUS, *, receive_own_messages: bool = False) -> 
         channel = channel or DEFAULT_UDP_GROUP
     if interface == "virtual" and not channel:
         channel = "virtualaxis"
+    if interface == "udp_multicast":
+        import ipaddress
+
+        try:
+            group = ipaddress.ip_address(channel)
+        except ValueError:
+            raise BusOpenError(f"bus {spec!r}: {channel!r} is not an IP address; udp_multicast needs a multicast "
+                               f"group, e.g. {DEFAULT_UDP_GROUP}") from None
+        if not group.is_multicast:
+            raise BusOpenError(f"bus {spec!r}: {channel} is not a multicast address (224.0.0.0/4 or ff00::/8), "
+                               f"e.g. {DEFAULT_UDP_GROUP}")
     try:
         if interface == "udp_multicast" and not receive_own_messages:
             return OwnFrameFilteringUdpBus(channel=channel, **options)

@@ -83,6 +83,9 @@ def _kv(spec: str, body: str, required: tuple[str, ...], optional: dict) -> dict
                 raise ProfileError(spec, f"parameter '{k}' must be a number, got '{v}'") from None
             if not math.isfinite(vals[k]):
                 raise ProfileError(spec, f"parameter '{k}' must be finite")
+            if vals[k] != 0 and abs(vals[k]) < 2.2250738585072014e-308:
+                raise ProfileError(spec, f"parameter '{k}' = {v} is a subnormal number (below 2.2e-308 in "
+                                         "magnitude): a typing error; give 0 or a real value")
         seen.add(k)
     missing = [k for k in required if k not in seen]
     if missing:
