@@ -352,6 +352,8 @@ CASES += [
     # traces and sidecars: no motion (a traceback in the plots before), sidecar fields of the wrong type
     ("diag-trace-no-motion", ["diagnose", "--config", str(C4), "{T}/still.csv", "--out", "{T}/d"],
      ["still.csv", "column pos_cmd", "does not move"]),
+    ("diag-trace-epoch-time", ["diagnose", "--config", str(C4), "{T}/epoch.csv", "--out", "{T}/d"],
+     ["epoch.csv", "column t", "subtract the start time"]),
     ("diag-sidecar-axis-wrong-type", ["diagnose", "--config", str(C4), "{T}/sc2.csv", "--out", "{T}/d"],
      ["sc2.toml", "column axis", "axis name"]),
     # serve / conformance / fault: refused before the bus opens (forever, hangs, tracebacks at the end before)
@@ -400,6 +402,8 @@ def _setup(tmp: Path) -> None:
     (tmp / "still.csv").write_text("\n".join([good[0]] + [r.split(",")[0] + ",0" * (len(r.split(",")) - 1)
                                                            for r in good[1:]]) + "\n")
     (tmp / "sc2.csv").write_text("\n".join(good) + "\n")
+    epoch = [repr(float(r.split(",", 1)[0]) + 1.7e9) + "," + r.split(",", 1)[1] for r in good[1:]]
+    (tmp / "epoch.csv").write_text("\n".join([good[0], *epoch]) + "\n")
     (tmp / "sc2.toml").write_text("axis = 5\n")
 
 

@@ -345,6 +345,11 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         raise _err(sp, f"time is not increasing ({float(t[i - 1])!r} then {float(t[i])!r})", i + 2, "t")
     dt_med = float(np.median(dt))
     check_sample_interval(sp, dt_med)
+    quantum = float(np.spacing(max(abs(float(t[0])), abs(float(t[-1])))))
+    if quantum > 1e-5 * dt_med:  # epoch time stamps: the double has lost the sub-sample time before we read it
+        raise _err(sp, f"time stamps reach {max(abs(float(t[0])), abs(float(t[-1]))):.6g} s, where a number resolves "
+                       f"only {quantum:.2g} s ({quantum / dt_med:.1e} of the {dt_med:.3g} s sample interval; it would "
+                       "look like jitter and be resampled): subtract the start time (epoch time stamps?)", 2, "t")
     gaps = np.flatnonzero(dt > _GAP_FACTOR * dt_med)
     if gaps.size:
         i = int(gaps[0]) + 1
