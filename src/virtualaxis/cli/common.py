@@ -23,7 +23,7 @@ def progress(total: int, desc: str):
         bar.close()
 
 
-def parse_float_list(text: str, name: str, hint: str = "") -> list[float]:
+def parse_float_list(text: str, name: str, hint: str = "", what: str = "value") -> list[float]:
     """'0.1,0.5,0.9' -> [0.1, 0.5, 0.9]; a CliError naming the option on an empty list or item, text, NaN/inf,
     a subnormal number (1e-320: a typo, never a position or a gain) or a value given twice."""
     import math
@@ -45,6 +45,6 @@ def parse_float_list(text: str, name: str, hint: str = "") -> list[float]:
             raise CliError(f"{name}: {item!r} is a subnormal number (below 2.2e-308 in magnitude); give 0 or a "
                            "real value")
         if v in vals:
-            raise CliError(f"{name}: {item!r} given twice")
+            raise CliError(f"{name}: duplicate {what} {item!r} (given twice)")
         vals.append(v)
     return vals

@@ -30,7 +30,7 @@ def parse_positions(text: str | None, what: str = "--positions") -> list[float]:
 
     if text is None:
         return []
-    out = parse_float_list(text, what, hint=" (give metres, e.g. 0.6,0.8,1.0)")
+    out = parse_float_list(text, what, hint=" (give metres, e.g. 0.6,0.8,1.0)", what="position")
     if len(set(out)) != len(out):
         raise CliError(f"{what}: duplicate position")
     return out
