@@ -347,6 +347,8 @@ CASES += [
      ["--plot", "also the output of --json"]),
     ("out-tilde-not-expanded", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "~/t.csv"],
      ["--out", "'~'"]),
+    ("out-suffix-not-written", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "{T}/t.xlsx"],
+     ["--out", "not as '.xlsx'"]),
     ("out-trailing-slash", ["simulate", "--config", str(C4), "--profile", STEP, "--out", "{T}/t.csv/"],
      ["--out", "ends with '/'"]),
     # traces and sidecars: no motion (a traceback in the plots before), sidecar fields of the wrong type

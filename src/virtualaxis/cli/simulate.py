@@ -16,6 +16,8 @@ from virtualaxis.cli.outputs import add_force_argument, atomic_path, check_free_
 
 #: default bound on the trace files one run writes [MiB]; ``--max-output-mb`` raises it
 DEFAULT_MAX_OUTPUT_MB = 2048.0
+#: --out suffixes: what the trace writer writes (CSV, or NPZ for .npz); a .xlsx would hold CSV under a lie
+TRACE_SUFFIXES = ("", ".csv", ".txt", ".dat", ".npz")
 #: estimated CSV bytes per value ("%.10g" plus the separator; measured 11-14 on simulated traces)
 CSV_BYTES_PER_VALUE = 14
 
@@ -83,6 +85,9 @@ def run(args) -> int:
         if any(same_path(args.json, pth) for pth in paths.values()):
             raise CliError(f"--json: {args.json} is also the trace output (--out)")
         check_output_file(args.json, args.force, "--json", inputs=inputs)
+    if Path(args.out).suffix.lower() not in (*TRACE_SUFFIXES, ".parquet", ".pq"):  # (Parquet: trace_io says why)
+        raise CliError(f"--out: {args.out}: a trace is written as CSV (.csv, .txt, .dat or no suffix) or as a NumPy "
+                       f"archive (.npz), not as {Path(args.out).suffix!r}")
     check_free_space(out_path.parent, est_bytes)
     prof.check_duration(dur)
     peaks = check_limits(prof, cfg, dur, cyc)
