@@ -10,6 +10,8 @@ import math
 
 from numba import njit
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
+
 
 @njit(cache=True, inline="always")
 def pi_step(error: float, integral: float, kp: float, cycle_over_ti: float, limit: float) -> tuple:

@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 from scipy.optimize import differential_evolution
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
 from virtualaxis.rcsa import receptance as R
 from virtualaxis.rcsa.params import JOINT_SYMBOLS, JointParams, RcsaModel
 from virtualaxis.rcsa.peaks import GRID_POINTS_PER_BAND, find_model_modes, model_modes

@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
 from virtualaxis.rcsa.receptance import table_receptance
 
 GRID_POINTS_PER_BAND = 100

@@ -25,6 +25,8 @@ import math
 import numpy as np
 from numba import njit
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
+
 # index of each model constant in the parameter vector (SI units)
 P_LENGTH_M = 0  # L, total screw length between the bearing groups [m]
 P_AXIAL_RIGIDITY_N = 1  # E S [N]

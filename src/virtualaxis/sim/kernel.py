@@ -26,6 +26,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
 from virtualaxis.control.loops import clamp, pi_step, quantise
 from virtualaxis.sim.layout import (
     MODE_POSITION,

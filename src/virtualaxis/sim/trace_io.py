@@ -25,6 +25,8 @@ from typing import BinaryIO
 import numpy as np
 from numba import njit
 
+from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
+
 #: relative precision of a CSV value read back (ten significant digits, see the module docstring)
 CSV_RELATIVE_PRECISION = 5.0001e-10
 #: key of the column-order array in an NPZ trace
