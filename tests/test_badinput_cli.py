@@ -201,6 +201,16 @@ CASES += [
     ("frf-position-nan", ["frf", "--config", str(C4), "--position", "nan", "--out", "{T}/o"], ["--position"]),
     ("frf-out-is-file", ["frf", "--config", str(C4), "--out", "{T}/f.csv"], ["--out", "is a file"]),
     ("frf-out-exists", ["frf", "--config", str(C4), "--out", "{T}/done"], ["frf.csv", "--force"]),
+    # reports of serve / conformance and the bench folder: never replaced without --force (checked before the
+    # bus is opened or any case runs)
+    ("serve-json-exists", ["serve", "--can", "udp_multicast:239.74.1.1", "--json", "{T}/done/report.json"],
+     ["--json", "report.json: exists", "--force"]),
+    ("conformance-json-exists", ["conformance", "--can", "udp_multicast:239.74.1.1", "--json",
+                                 "{T}/done/report.json"], ["--json", "report.json exists", "--force"]),
+    ("conformance-junit-exists", ["conformance", "--can", "udp_multicast:239.74.1.1", "--junit",
+                                  "{T}/done/frf.csv"], ["--junit", "frf.csv exists", "--force"]),
+    ("gap-bench-out-holds-files", ["gap-bench", "--out", "{T}/done", "--quick", "--cases", "rigid-clean"],
+     ["--out", "holds files", "--force"]),
     # ---- study / rcsa / identify-joints
     ("study-values-negative", ["study", "kv-sweep", "--config", str(C4), "--out", "{T}/s", "--values", "-5"],
      ["--values", "> 0"]),

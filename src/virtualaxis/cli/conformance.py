@@ -27,21 +27,22 @@ def register(sub) -> None:
     p.add_argument("--junit", default=None, help="write a JUnit XML report here")
     p.add_argument("--json", default=None, help="write a JSON report here")
     p.add_argument("--list", action="store_true", help="list the checks and exit")
+    p.add_argument("--force", action="store_true", help="overwrite existing --junit / --json files")
     p.set_defaults(func=run)
 
 
-def _out_path(opt: str, value: str | None) -> Path | None:
-    from virtualaxis.cli.errors import CliError
-
+def _out_path(opt: str, value: str | None, force: bool) -> Path | None:
+    """An output report path, checked before the bus is opened: its folder exists, and (cli.outputs) it is not a
+    folder, the folder is writable, the file is new unless ``--force``."""
     if value is None:
         return None
-    path = Path(value)
-    if path.is_dir():
-        raise CliError(f"{opt} {path}: is a folder, expected a file path")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise CliError(f"{opt} {path}: folder {parent} does not exist")
-    return path
+    from virtualaxis.cli.errors import CliError
+    from virtualaxis.cli.outputs import check_output_file
+
+    parent = Path(value).parent if str(Path(value).parent) else Path(".")
+    if not parent.exists():  # (a report beside the CI job's files: a missing folder is a typing mistake)
+        raise CliError(f"{opt} {value}: folder {parent} does not exist")
+    return check_output_file(value, force, opt)
 
 
 def run(args) -> int:
@@ -62,7 +63,8 @@ def run(args) -> int:
         raise CliError(f"--units-per-mm must be 1e-06 .. 1e+09 (got {args.units_per_mm})")
     if not 0.001 <= args.sdo_timeout <= 60:
         raise CliError(f"--sdo-timeout must be 0.001..60 s (got {args.sdo_timeout})")
-    junit, json_out = _out_path("--junit", args.junit), _out_path("--json", args.json)
+    junit = _out_path("--junit", args.junit, args.force)
+    json_out = _out_path("--json", args.json, args.force)
     eds = args.eds
     if eds is not None:
         if not Path(eds).is_file():
@@ -97,9 +99,13 @@ def run(args) -> int:
     print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped "
           f"in {dt:.1f} s (node {args.node_id} on {args.can})")
     meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3)}
+    from virtualaxis.cli.outputs import atomic_path
+
     if junit:
-        runner.write_junit(junit, results)
+        with atomic_path(junit) as tmp:  # complete or not at all
+            runner.write_junit(tmp, results)
     if json_out:
-        runner.write_json(json_out, results, meta)
+        with atomic_path(json_out) as tmp:
+            runner.write_json(tmp, results, meta)
     sys.stdout.flush()
     return 1 if s["fail"] else 0

@@ -13,7 +13,10 @@ def register(subparsers) -> None:
         description="For each effect of the library (and pairs, and clean cases) simulate 'measured' traces "
         "with the effect and diagnose them against the nominal config without it.",
     )
-    p.add_argument("--out", metavar="DIR", help="output directory (required unless --list)")
+    p.add_argument("--out", metavar="DIR", help="output directory (required unless --list); a new or empty folder "
+                   "unless --force")
+    p.add_argument("--force", action="store_true", help="write into a folder that already holds files (results "
+                   "of the same cases are replaced)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cases", default=None, help="comma-separated case names (default: all, or the quick set)")
     p.add_argument("--quick", action="store_true", help="short traces (10 mm stroke) and a handful of cases")
@@ -102,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         from virtualaxis.cli.main import CliError
 
         raise CliError("gap-bench needs --out DIR")
+    _check_out_dir(Path(args.out), args.force)
     if args.suite in ("reference", "both"):
         run_reference(args, Path(args.out) / "reference" if args.suite == "both" else Path(args.out))
         if args.suite == "reference":
@@ -129,3 +133,14 @@ def run(args: argparse.Namespace) -> int:
           f"parameters within 15 %: {pct(s['param_within_15pct'])}")
     print(f"wrote {own_dir / 'bench.json'}")
     return 0
+
+
+def _check_out_dir(out: Path, force: bool) -> None:
+    """A bench writes many files (traces, per-case reports, bench.json): into a new or empty folder, or with
+    ``--force``; never into a file or a virtual file system."""
+    from virtualaxis.cli.main import CliError
+    from virtualaxis.cli.outputs import check_output_dir
+
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise CliError(f"--out {out}: folder exists and holds files (use --force to write into it)")
+    check_output_dir(out, True, [], "--out")

@@ -43,6 +43,7 @@ def register(sub) -> None:
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--status-interval", type=float, default=5.0, help="seconds between status lines (0: none)")
     p.add_argument("--json", default=None, help="write final statistics to this JSON file")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --json file")
     p.add_argument(
         "--bitrate",
         type=int,
@@ -254,6 +255,8 @@ def _check_inputs(args, eds: Path) -> None:
             raise CliError(f"--json {out}: folder {parent} does not exist")
         if out.exists() and not out.is_file():
             raise CliError(f"--json {out}: exists and is not a regular file")
+        if out.exists() and not args.force:
+            raise CliError(f"--json {out}: exists (use --force to overwrite it)")
         try:
             with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{out.name}.", suffix=".tmp"):
                 pass
