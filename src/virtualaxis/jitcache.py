@@ -10,7 +10,9 @@ failed a ``simulate`` command. Numba only tolerates such errors on Windows (``EA
 :func:`install` (run on import) wraps ``Cache.save_overload`` and ``Cache.load_overload``: a failed save is
 logged and skipped (the compiled function is already registered with its dispatcher, so the call goes on and the
 next process compiles again); a failed load is logged and treated as a miss (the function is compiled). Neither
-changes what is computed.
+changes what is computed. The modules with compiled functions import this one; the reference axis
+(``virtualaxis.refaxis``) does not, as it imports nothing of the package it checks (the guard is process-wide
+once any other kernel module is loaded, as in the gap bench).
 """
 
 from __future__ import annotations

@@ -24,8 +24,6 @@ import math
 import numpy as np
 from numba import njit
 
-from virtualaxis import jitcache  # noqa: F401  (numba cache failures are not fatal)
-
 # ---- parameter vector layout -------------------------------------------------------------------------
 PARAM_NAMES = (
     "structure",  # 0 = two_mass (motor side + table through the axial spring), 1 = rigid (one mass, force)
