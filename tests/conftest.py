@@ -43,3 +43,20 @@ def pytest_unconfigure(config):
     import background
 
     background.stop(config)
+
+
+@pytest.fixture(autouse=True)
+def _exclusive_of_background(request):
+    """Tests marked ``exclusive`` (timing-sensitive: a drive served at 1 ms, a master judging its answers) run
+    with the background computations stopped (tests/background.py)."""
+    if request.node.get_closest_marker("exclusive") is None:
+        yield
+        return
+    import background
+
+    paused = background.pause(request.config)
+    try:
+        yield
+    finally:
+        if paused:
+            background.resume(request.config)

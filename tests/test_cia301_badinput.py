@@ -25,6 +25,8 @@ from served_drive import served
 
 from virtualaxis.drive.core import DEFAULT_EDS
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 NODE = 1
 SDO_RX, SDO_TX, EMCY, NMT = 0x600 + NODE, 0x580 + NODE, 0x80 + NODE, 0x000
 ANSWER_S = 0.3  # an abort must come at once, not after the 1 s SDO server timeout

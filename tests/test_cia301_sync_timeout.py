@@ -10,9 +10,12 @@ import time
 
 import can
 import canopen
+import pytest
 from served_drive import served
 
 from virtualaxis.drive.core import DEFAULT_EDS
+
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
 NODE = 1
 SYNC_COB, EMCY_COB = 0x80, 0x80 + NODE

@@ -16,6 +16,8 @@ from virtualaxis.conformance import run_conformance
 from virtualaxis.conformance.runner import REGISTRY, select
 from virtualaxis.testing import start_virtual_axis
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
 
 

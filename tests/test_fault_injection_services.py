@@ -17,6 +17,7 @@ import json
 import time
 
 import canopen
+import pytest
 from pymodbus.client import ModbusTcpClient
 from served_drive import served
 from services_fixtures import mosquitto  # noqa: F401 (fixture)
@@ -24,6 +25,8 @@ from test_services_mqtt import SCHEMAS
 
 from virtualaxis.master import DEFAULT_EDS, connect
 from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
+
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
 A = 40001  # register number -> PDU address
 FI_DUTY, FI_PERIOD, FI_MAGNITUDE, FI_INJECT, FI_CLEAR, FI_ACTIVE, FI_ALLOWED = (

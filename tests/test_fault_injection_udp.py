@@ -25,6 +25,8 @@ from virtualaxis.drive.faults import fault_info
 from virtualaxis.master import DEFAULT_EDS, connect
 from virtualaxis.testing import RemoteInjector
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 NODE = 1
 MASTER_ID = 0x7E  # the master's heartbeat producer id (0x1016 consumer of the drive)
 FAULT_MASK, FAULT, SOD, FRA = 0x4F, 0x08, 0x40, 0x0F

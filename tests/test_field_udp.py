@@ -13,10 +13,13 @@ import time
 
 import can
 import canopen
+import pytest
 from served_drive import served
 
 from virtualaxis.drive.core import DEFAULT_EDS
 from virtualaxis.master import connect
+
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
 NODE = 1
 UNIT_M = 1e-6

@@ -14,6 +14,8 @@ from served_drive import served
 
 from virtualaxis.runtime.bitrate import BitRateBus, frame_bits
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 
 def _msg(cob: int, n: int, fill: int = 0x55, ext: bool = False, rtr: bool = False) -> can.Message:
     return can.Message(arbitration_id=cob, data=bytes([fill] * n) if not rtr else b"", dlc=n, is_extended_id=ext,

@@ -23,6 +23,8 @@ from test_drive_rig import seed_config, seed_discrete
 from virtualaxis.runtime import AxisNode, Runtime, open_bus
 from virtualaxis.sim import AxisSimulator
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 _channels = iter(range(1_000_000))
 
 

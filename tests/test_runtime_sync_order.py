@@ -18,6 +18,8 @@ from test_drive_rig import seed_config, seed_discrete
 
 from virtualaxis.runtime import AxisNode, Runtime, open_bus
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 EDS = os.path.join(os.path.dirname(__file__), "..", "eds", "virtualaxis.eds")
 N_AXES = 3
 

@@ -36,6 +36,8 @@ from virtualaxis.services.mqtt import (
     project_pending,
 )
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 
 def test_telemetry_ring_order_overwrite_and_counters():
     ring = TelemetryRing(memoryview(bytearray(TelemetryRing.size(2))), 2)

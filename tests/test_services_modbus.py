@@ -21,6 +21,8 @@ from virtualaxis.drive import Drive
 from virtualaxis.services.modbus import ModbusService
 from virtualaxis.services.modbus_map import REGISTERS, AxisLink, render_markdown
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -29,6 +29,8 @@ from virtualaxis.services.mqtt import (
     parse_mqtt_url,
 )
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 ROOT = Path(__file__).resolve().parents[1]
 # topic under virtualaxis/<machine>/<axis>/ -> its schema file in docs/schemas/
 SCHEMA_FILES = {"status": "status", "state": "state", "telemetry": "telemetry", "faults": "faults",
