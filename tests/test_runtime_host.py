@@ -16,6 +16,8 @@ from virtualaxis.runtime.host import (
     hold_cpu_latency,
 )
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 
 def _qos_usable() -> bool:
     try:

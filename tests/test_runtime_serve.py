@@ -15,6 +15,8 @@ from test_drive_rig import Rig
 from virtualaxis.drive.core import DEFAULT_EDS
 from virtualaxis.runtime import BusOpenError, open_bus, parse_bus_spec
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 
 def test_bus_spec_parsing():
     assert parse_bus_spec("socketcan:vcan0") == ("socketcan", "vcan0", {})
