@@ -154,6 +154,14 @@ class FaultInjector:
         with self._lock:
             return dict(self._active)
 
+    @property
+    def active_bits(self) -> int:
+        """Bit (kind number - 1) set for each active kind (0x5FF5, Modbus 40607)."""
+        bits = 0
+        for kind in self.active:
+            bits |= 1 << (KINDS[kind] - 1)
+        return bits
+
     def now_s(self) -> float:
         """Drive time [s] as counted by the injector's cycle hook."""
         return self._cycles * self.drive.cycle_s
@@ -356,6 +364,28 @@ class FaultInjector:
         slave.send = filtered_send
 
 
+def check_channel_value(index: int, value: int) -> None:
+    """The register-style channel's value checks (CANopen 0x5FF0..0x5FF3, the same values on Modbus
+    40600..): kind numbers to inject / clear (0 / 0xFF clear all), duty [per mille], period [ms]. Raises
+    :class:`InjectionRefused` (0x06090030) naming what was expected."""
+    if index == OBJ_INJECT and value not in KIND_NAMES:
+        raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind number {value} (1..{len(KINDS)})")
+    if index == OBJ_CLEAR and value not in KIND_NAMES and value not in (0, 0xFF):
+        raise InjectionRefused(ABORT_VALUE_INVALID,
+                               f"unknown fault kind number {value} (1..{len(KINDS)}, 0 / 255: all)")
+    if index == OBJ_DUTY and not 0 <= value <= 1000:
+        raise InjectionRefused(ABORT_VALUE_INVALID, f"duty is 0..1000 per mille (got {value})")
+    if index == OBJ_PERIOD and not 2 <= value <= 3_600_000:
+        raise InjectionRefused(ABORT_VALUE_INVALID, f"period is 2..3600000 ms (got {value})")
+
+
+def channel_options(duty_permille: int, period_ms: int, magnitude: int) -> dict:
+    """:meth:`FaultInjector.inject` options from the channel's integer values (duty 0 or 1000: permanent,
+    magnitude 0: the kind's default)."""
+    return {"duty": 1.0 if duty_permille in (0, 1000) else duty_permille / 1000.0, "period_s": period_ms / 1000.0,
+            "magnitude": float(magnitude) or None}
+
+
 class InjectionApp:
     """The CANopen channel: wraps the drive's CiA 402 application for the slave and serves 0x5FF0..0x5FF6.
 
@@ -380,13 +410,10 @@ class InjectionApp:
 
             if not self.injector.allowed:
                 raise SdoAbort(ABORT_DEVICE_STATE, "fault injection is off (serve --allow-fault-injection)")
-            if index in (OBJ_INJECT, OBJ_CLEAR) and value not in KIND_NAMES and not (index == OBJ_CLEAR and
-                                                                                    value in (0, 0xFF)):
-                raise SdoAbort(ABORT_VALUE_INVALID, f"unknown fault kind number {value}")
-            if index == OBJ_DUTY and not 0 <= value <= 1000:
-                raise SdoAbort(ABORT_VALUE_INVALID, "duty is 0..1000 per mille")
-            if index == OBJ_PERIOD and not 2 <= value <= 3_600_000:
-                raise SdoAbort(ABORT_VALUE_INVALID, "period is 2..3600000 ms")
+            try:
+                check_channel_value(index, value)
+            except InjectionRefused as exc:
+                raise SdoAbort(exc.code, str(exc)) from None
             return
         self._app.validate_write(index, sub, value)
 
@@ -394,13 +421,8 @@ class InjectionApp:
         if index in CHANNEL_OBJECTS:
             slave = self.injector.slave
             if index == OBJ_INJECT:
-                duty = slave.read(OBJ_DUTY, 0)
-                self.injector.inject(
-                    KIND_NAMES[value],
-                    duty=1.0 if duty in (0, 1000) else duty / 1000.0,
-                    period_s=slave.read(OBJ_PERIOD, 0) / 1000.0,
-                    magnitude=float(slave.read(OBJ_MAGNITUDE, 0)) or None,
-                )
+                self.injector.inject(KIND_NAMES[value], **channel_options(
+                    slave.read(OBJ_DUTY, 0), slave.read(OBJ_PERIOD, 0), slave.read(OBJ_MAGNITUDE, 0)))
             elif index == OBJ_CLEAR:
                 self.injector.clear(None if value in (0, 0xFF) else KIND_NAMES[value])
             self._publish()
@@ -417,10 +439,7 @@ class InjectionApp:
         slave = self.injector.slave
         if slave is None or (OBJ_ACTIVE, 0) not in slave.od.entries:
             return
-        bits = 0
-        for kind in self.injector.active:
-            bits |= 1 << (KINDS[kind] - 1)
-        slave.write_entry(slave.entry(OBJ_ACTIVE, 0), bits)
+        slave.write_entry(slave.entry(OBJ_ACTIVE, 0), self.injector.active_bits)
         slave.write_entry(slave.entry(OBJ_ALLOWED, 0), 1 if self.injector.allowed else 0)
 
 

@@ -25,6 +25,16 @@ from functools import cached_property
 from typing import TYPE_CHECKING
 
 from virtualaxis import __version__
+from virtualaxis.drive.injection import (
+    ABORT_DEVICE_STATE,
+    OBJ_CLEAR,
+    OBJ_DUTY,
+    OBJ_INJECT,
+    OBJ_PERIOD,
+    InjectionRefused,
+    channel_options,
+    check_channel_value,
+)
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
@@ -164,14 +174,7 @@ class AxisLink:
 
     def active_fault_bits(self) -> int:
         """Bit (kind number - 1) set for each injected kind (as 0x5FF5)."""
-        if self.injector is None:
-            return 0
-        from virtualaxis.drive.injection import KINDS
-
-        bits = 0
-        for kind in self.injector.active:
-            bits |= 1 << (KINDS[kind] - 1)
-        return bits
+        return 0 if self.injector is None else self.injector.active_bits
 
     def rpm_per_m_s(self) -> float:
         """Motor (or virtual) revolutions per minute per m/s of table speed."""
@@ -332,29 +335,29 @@ def _check_reference_speed(link: AxisLink, value: int) -> None:
         raise RegisterError(REASON_REGISTER_RANGE, f"reference speed must be >= 1 rpm (got {value})")
 
 
-# ---- fault injection (40600 ...): the CANopen channel 0x5FF0..0x5FF6 of drive/injection.py on Modbus
-ABORT_DEVICE_STATE = 0x08000022
-ABORT_VALUE_INVALID = 0x06090030
-FAULT_KIND_COUNT = 10  # kind numbers 1..10 (drive.injection.KINDS)
-
-
+# ---- fault injection (40600 ...): the CANopen channel 0x5FF0..0x5FF6 of drive/injection.py on Modbus, with its
+# value checks (check_channel_value) and option conversion (channel_options)
 def _injection_refused(link: AxisLink, message: str, code: int) -> RegisterError:
     reason = REASON_DRIVE_STATE if code == ABORT_DEVICE_STATE else REASON_DRIVE_VALUE
     return RegisterError(reason, message, abort_code=code)
 
 
-def _check_injection_allowed(link: AxisLink) -> None:
+def _check_injection(link: AxisLink, index: int | None = None, value: int = 0) -> None:
+    """Allowed on this axis, and (``index`` of the CANopen channel object) the value the channel accepts."""
     if link.injector is None:
         raise _injection_refused(link, "fault injection is not available on this axis", ABORT_DEVICE_STATE)
     if not link.injector.allowed:
         raise _injection_refused(link, "fault injection is off (serve with --allow-fault-injection)",
                                  ABORT_DEVICE_STATE)
+    if index is not None:
+        try:
+            check_channel_value(index, value)
+        except InjectionRefused as exc:
+            raise _injection_refused(link, str(exc), exc.code) from None
 
 
 def _check_fault_duty(link: AxisLink, value: int) -> None:
-    _check_injection_allowed(link)
-    if not 0 <= value <= 1000:
-        raise _injection_refused(link, f"duty is 0..1000 per mille (got {value})", ABORT_VALUE_INVALID)
+    _check_injection(link, OBJ_DUTY, value)
 
 
 def _write_fault_duty(link: AxisLink, value: int) -> None:
@@ -362,9 +365,7 @@ def _write_fault_duty(link: AxisLink, value: int) -> None:
 
 
 def _check_fault_period(link: AxisLink, value: int) -> None:
-    _check_injection_allowed(link)
-    if not 2 <= value <= 3_600_000:
-        raise _injection_refused(link, f"period is 2..3600000 ms (got {value})", ABORT_VALUE_INVALID)
+    _check_injection(link, OBJ_PERIOD, value)
 
 
 def _write_fault_period(link: AxisLink, value: int) -> None:
@@ -372,7 +373,7 @@ def _write_fault_period(link: AxisLink, value: int) -> None:
 
 
 def _check_fault_magnitude(link: AxisLink, value: int) -> None:
-    _check_injection_allowed(link)
+    _check_injection(link)
 
 
 def _write_fault_magnitude(link: AxisLink, value: int) -> None:
@@ -380,15 +381,10 @@ def _write_fault_magnitude(link: AxisLink, value: int) -> None:
 
 
 def _check_fault_inject(link: AxisLink, value: int) -> None:
-    _check_injection_allowed(link)
-    if not 1 <= value <= FAULT_KIND_COUNT:
-        raise _injection_refused(link, f"unknown fault kind number {value} (1..{FAULT_KIND_COUNT})",
-                                 ABORT_VALUE_INVALID)
+    _check_injection(link, OBJ_INJECT, value)
 
 
 def _run_injection(link: AxisLink, action: str, kind: int | None, **options) -> None:
-    from virtualaxis.drive.injection import InjectionRefused
-
     try:
         link.injector.command(action, kind, **options)
     except InjectionRefused as exc:
@@ -396,17 +392,13 @@ def _run_injection(link: AxisLink, action: str, kind: int | None, **options) -> 
 
 
 def _write_fault_inject(link: AxisLink, value: int) -> None:
-    duty = link.fault_duty_permille
-    _run_injection(link, "inject", value, duty=1.0 if duty in (0, 1000) else duty / 1000.0,
-                   period_s=link.fault_period_ms / 1000.0, magnitude=float(link.fault_magnitude) or None)
+    _run_injection(link, "inject", value,
+                   **channel_options(link.fault_duty_permille, link.fault_period_ms, link.fault_magnitude))
     link.fault_last_injected = value
 
 
 def _check_fault_clear(link: AxisLink, value: int) -> None:
-    _check_injection_allowed(link)
-    if not (1 <= value <= FAULT_KIND_COUNT or value in (0, 0xFF)):
-        raise _injection_refused(link, f"unknown fault kind number {value} (1..{FAULT_KIND_COUNT}, 0 / 255: all)",
-                                 ABORT_VALUE_INVALID)
+    _check_injection(link, OBJ_CLEAR, value)
 
 
 def _write_fault_clear(link: AxisLink, value: int) -> None:
