@@ -81,12 +81,15 @@ class ImagePublisher:
         return self.shm.name
 
     def publish(self, unit: int) -> None:
-        """Evaluate unit ``unit``'s map on its drive now and publish it (sequence-locked)."""
+        """Evaluate unit ``unit``'s map on its drive now and publish it (sequence-locked). The image is built
+        under the publisher's lock: a periodic build started before a write (or a refusal) was recorded must not
+        be published after the fresh image the bridge published for it (seen in CI: a refused write's last-error
+        registers read 0 right after the refusal)."""
         t0 = time.perf_counter()
-        image = build_image(self.links[unit])
         off = SLOT_BYTES * self.units.index(unit)
         buf = self.shm.buf
         with self._lock:
+            image = build_image(self.links[unit])
             seq = _HEADER.unpack_from(buf, off)[0]
             struct.pack_into("=Q", buf, off, seq + 1)  # odd: being written
             buf[off + _HEADER.size : off + _HEADER.size + len(image)] = image
