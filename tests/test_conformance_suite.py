@@ -14,6 +14,7 @@ import pytest
 
 from virtualaxis.conformance import run_conformance
 from virtualaxis.conformance.runner import REGISTRY, select
+from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis
 
 pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
@@ -37,6 +38,27 @@ def test_suite_passes_against_the_emulator_across_processes(tmp_path, lockstep):
     assert proc.stdout.count("\n") >= len(REGISTRY) + 1 and "summary:" in proc.stdout
     suite = ET.parse(junit).getroot()
     assert suite.get("tests") == str(len(REGISTRY)) and suite.get("failures") == "0"
+
+
+def test_motion_checks_pass_with_the_axis_left_at_the_end_of_the_travel():
+    """A second run of the suite finds the axis where the first left it: 402-FLD-6 drives onto the + limit
+    switch and stops ~5 mm before it. The motion checks then move toward the middle of the travel (before:
+    PP-1, PV-1, CSP-1, FLD-1 and FLD-2 failed on every later run against the same drive)."""
+    with start_virtual_axis(transport="virtual") as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            (first,) = run_conformance(net, axis.node_id, only="402-FLD-6")
+            assert first.status == "pass", first
+            node = net.add_node(axis.node_id, str(DEFAULT_EDS))
+            at_end = node.sdo[0x6064].raw
+            assert at_end > 250_000, at_end  # units of 1 um: near the + switch (~300 mm)
+            again = run_conformance(net, axis.node_id,
+                                    only="402-PP-1,402-PV-1,402-CSP-1,402-FE-1,402-FLD-1,402-FLD-2,402-FLD-3")
+        finally:
+            net.disconnect()
+    assert len(again) == 7
+    assert [(r.id, r.status) for r in again if r.status != "pass"] == [], [str(r) for r in again]
 
 
 def test_limit_switch_check_skips_with_a_reason_without_injection():

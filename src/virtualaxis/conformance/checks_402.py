@@ -262,13 +262,13 @@ def modes_follow(ctx: Context) -> str:
 
 
 @check("402-PP-1", "modes", "CiA 402 12 (profile position: set-point handshake, target reached); CL 19",
-       "PP, 0x6081 = 100 mm/s, 0x607A = actual + 10 mm, CW 0x1F then 0x0F",
+       "PP, 0x6081 = 100 mm/s, 0x607A = actual +/- 10 mm (toward the middle of the travel), CW 0x1F then 0x0F",
        "bit 12 = 1 (acknowledge), bit 12 = 0 after bit 4 drops, bit 10 = 1 inside 0x6067 at the target")
 def pp_move(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         p0 = _start_pp(ctx, mo, velocity_mm_s=100)
-        target = p0 + ctx.mm(10)
+        target = p0 + _toward_origin(ctx) * ctx.mm(10)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
         ctx.wait_sw(0x1000, 0x1000, 0.5, "set-point acknowledge (bit 12)")
@@ -285,7 +285,8 @@ def pp_move(ctx: Context) -> str:
 
 
 @check("402-PV-1", "modes", "CiA 402 11 (profile velocity: velocity reached, speed zero); CL 20",
-       "PV, 0x60FF = 50 mm/s, then 0", "bit 10 (velocity reached) at 50 mm/s; bit 12 (speed zero) at 0")
+       "PV, 0x60FF = +/-50 mm/s (toward the middle of the travel), then 0",
+       "bit 10 (velocity reached) at 50 mm/s; bit 12 (speed zero) at 0")
 def pv_move(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
@@ -293,11 +294,12 @@ def pv_move(ctx: Context) -> str:
         ctx.write(0x6084, 0, ctx.mm(2000))
         _enable_mode(ctx, 3)
         ctx.start_sync()
-        ctx.write(0x60FF, 0, ctx.mm(50))
+        v_target = _toward_origin(ctx) * ctx.mm(50)
+        ctx.write(0x60FF, 0, v_target)
         ctx.wait_sw(0x400, 0x400, 1.5, "velocity reached (bit 10)")
         v = ctx.read(0x606C)
-        if abs(v - ctx.mm(50)) > ctx.mm(5):
-            raise Fail(f"0x606C = {v} with bit 10 set, target {ctx.mm(50)}")
+        if abs(v - v_target) > ctx.mm(5):
+            raise Fail(f"0x606C = {v} with bit 10 set, target {v_target}")
         ctx.write(0x60FF, 0, 0)
         ctx.wait_sw(0x1000, 0x1000, 1.5, "speed zero (bit 12)")
         return f"0x606C = {v} at bit 10; bit 12 at rest"
@@ -307,14 +309,16 @@ def pv_move(ctx: Context) -> str:
 
 
 @check("402-CSP-1", "modes", "CiA 402 (cyclic synchronous position); CL 22",
-       "CSP, RPDO1 target advanced 50 mm/s every SYNC for 0.4 s", "the axis follows: bit 12 = 1, "
+       "CSP, RPDO1 target advanced +/-50 mm/s (toward the middle of the travel) every SYNC for 0.4 s",
+       "the axis follows: bit 12 = 1, "
        "|position - target| < 1 mm while moving and < 0x6067 after the stream stops")
 def csp_follow(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
-        mo.stream(p0, ctx.mm(50))
+        d = _toward_origin(ctx)
+        mo.stream(p0, d * ctx.mm(50))
         time.sleep(0.4)
         s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
         err = abs(mo.target - s[0].pos)
@@ -324,7 +328,7 @@ def csp_follow(ctx: Context) -> str:
         final = abs(round(mo.target) - s2.pos)
         if not s2.sw & 0x1000:
             raise Fail(f"SW 0x{s2.sw:04X}: bit 12 (drive follows the target) not set in CSP")
-        if s2.pos - p0 < ctx.mm(10):
+        if d * (s2.pos - p0) < ctx.mm(10):
             raise Fail(f"moved {s2.pos - p0} units for a 20 mm stream")
         if final > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"settled {final} units from the target")
@@ -374,7 +378,7 @@ def following_error_fault(ctx: Context) -> str:
         ctx.start_sync()
         mark = ctx.frames.mark()
         p0 = mo.last().pos
-        ctx.write(0x607A, 0, p0 + ctx.mm(20))
+        ctx.write(0x607A, 0, p0 + _toward_origin(ctx) * ctx.mm(20))
         ctx.write(0x6040, 0, 0x1F)
         ctx.write(0x6040, 0, 0x0F)
         emcy = ctx.wait_emcy(mark, 0x8611, 2.0)
@@ -405,7 +409,8 @@ def _stop_bound(v: float, a: float, reaction_s: float, margin: float) -> float:
 
 
 @check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085); issue #15 item 1",
-       "CSP at 100 mm/s, 0x605E = 2, 0x6085 = 10 m/s^2; 0x6065 tightened to 1 unit while moving; the master "
+       "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2, 0x6085 = 10 m/s^2; "
+       "0x6065 tightened to 1 unit while moving; the master "
        "keeps streaming", "the drive brakes from the ACTUAL speed: travel after the fault <= v^2/(2 a) + v * 20 ms "
        "+ 1 mm, at rest (< 1 mm/s), then fault (SW & 0x4F = 0x08)")
 def fault_reaction_from_motion(ctx: Context) -> str:
@@ -417,10 +422,11 @@ def fault_reaction_from_motion(ctx: Context) -> str:
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
         v_cmd = ctx.mm(100)
+        d = _toward_origin(ctx)
         mo.step_units = 0.0
         mo.stream(p0, 0.0)
-        for i in range(1, 51):  # ramp to 100 mm/s over 50 SYNC periods
-            mo.step_units = v_cmd * ctx.sync_period_s * i / 50
+        for i in range(1, 51):  # ramp to 100 mm/s over 50 SYNC periods (toward the middle of the travel)
+            mo.step_units = d * v_cmd * ctx.sync_period_s * i / 50
             time.sleep(ctx.sync_period_s)
         time.sleep(0.25)
         # judge the stop only from speed: wait (up to 2 s on a loaded host) until the axis really runs
@@ -471,28 +477,31 @@ def fault_reaction_from_motion(ctx: Context) -> str:
 
 @check("402-FLD-2", "rpdo", "CiA 301 7.2.2 (all PDO entries stored before the application reacts); CiA 402 12 "
        "(new set-point); issue #15 item 2",
-       "PP, old 0x607A = actual + 5 mm by SDO; ONE RPDO1 [CW 0x1F, 0x607A = actual + 20 mm], then [0x0F, same]",
+       "PP, old 0x607A = actual + 5 mm by SDO; ONE RPDO1 [CW 0x1F, 0x607A = actual + 20 mm], then [0x0F, same] "
+       "(- instead of + when the axis is on the + side of the travel's middle)",
        "the axis moves to actual + 20 mm (the target of the same PDO), not to the old target")
 def cw_and_target_in_one_rpdo(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         p0 = _start_pp(ctx, mo, velocity_mm_s=200)
-        ctx.write(0x607A, 0, p0 + ctx.mm(5))
-        new = p0 + ctx.mm(20)
+        d = _toward_origin(ctx)
+        stale = p0 + d * ctx.mm(5)
+        ctx.write(0x607A, 0, stale)
+        new = p0 + d * ctx.mm(20)
         mo.rpdo(0x1F, new)
         ctx.note(f"RPDO1 [1f 00 {new.to_bytes(4, 'little', signed=True).hex(' ')}]")
         time.sleep(0.05)
         mo.rpdo(0x0F, new)
         try:
-            s = mo.wait(lambda s: s.sw & 0x400 and s.pos - p0 > ctx.mm(1), 2.0, "target reached")
+            s = mo.wait(lambda s: s.sw & 0x400 and d * (s.pos - p0) > ctx.mm(1), 2.0, "target reached")
         except Fail:
             s = mo.last()
         time.sleep(0.05)
         s = mo.last()
         if abs(s.pos - new) > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"axis at {s.pos} (moved {(s.pos - p0) / ctx.units_per_mm:.2f} mm); the RPDO's target was "
-                       f"{new} (+20 mm), the stale one {p0 + ctx.mm(5)} (+5 mm)")
-        return f"moved to {s.pos} (+{(s.pos - p0) / ctx.units_per_mm:.2f} mm)"
+                       f"{new} ({d * 20:+d} mm), the stale one {stale} ({d * 5:+d} mm)")
+        return f"moved to {s.pos} ({(s.pos - p0) / ctx.units_per_mm:+.2f} mm)"
     finally:
         mo.close()
         ctx.disable()
@@ -510,8 +519,9 @@ def _loss_of_control(ctx: Context, command: int) -> str:
         ctx.write(0x6083, 0, ctx.mm(2000))
         _enable_mode(ctx, 3)
         ctx.start_sync()
-        ctx.write(0x60FF, 0, ctx.mm(50))
-        mo.wait(lambda s: s.vel is not None and abs(s.vel - ctx.mm(50)) < ctx.mm(3), 2.0, "50 mm/s")
+        v_target = _toward_origin(ctx) * ctx.mm(50)
+        ctx.write(0x60FF, 0, v_target)
+        mo.wait(lambda s: s.vel is not None and abs(s.vel - v_target) < ctx.mm(3), 2.0, "50 mm/s")
         p0 = mo.last().pos
         mark = ctx.frames.mark()
         ctx.nmt(command)
@@ -654,9 +664,20 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
 
 # ============================================================================ PP halt, software limits, fault reset
 def _toward_origin(ctx: Context) -> int:
-    """+1 or -1: the direction from the present position toward 0 (NMT Reset Node does not move the axis back,
-    so a check moves toward the middle of the travel, away from the limit switches)."""
-    return -1 if ctx.read(0x6064) > 0 else 1
+    """+1 or -1: the direction from the present position toward the middle of the travel, where a check has
+    room to move (NMT Reset Node does not move the axis back, and an earlier check or run may have left it
+    near an end): toward the middle of the software limits 0x607D when both are set (finite, not the full
+    32-bit range), else toward 0."""
+    pos = ctx.read(0x6064)
+    middle = 0
+    if 0x607D in ctx.od:
+        try:
+            lo, hi = ctx.read(0x607D, 1), ctx.read(0x607D, 2)
+        except canopen.SdoAbortedError:
+            lo, hi = 0, 0
+        if -2**31 < lo < hi < 2**31 - 1:
+            middle = (lo + hi) // 2
+    return -1 if pos > middle else 1
 
 
 def _pp_to(ctx: Context, mo: Motion, target: int, timeout: float) -> Sample:
