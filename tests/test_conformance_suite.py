@@ -13,7 +13,7 @@ import canopen
 import pytest
 
 from virtualaxis.conformance import run_conformance
-from virtualaxis.conformance.runner import REGISTRY, select
+from virtualaxis.conformance.runner import REGISTRY, select, summary
 from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis
 
@@ -59,6 +59,41 @@ def test_motion_checks_pass_with_the_axis_left_at_the_end_of_the_travel():
             net.disconnect()
     assert len(again) == 7
     assert [(r.id, r.status) for r in again if r.status != "pass"] == [], [str(r) for r in again]
+
+
+def test_a_lost_sdo_request_is_sent_again_and_reported():
+    """The suite's master sends an SDO request once more after a timeout and reports it: the drive here drops
+    the first (then every) download of 0x607C that reaches it. One lost request: the check passes, its trace
+    and ``sdo_retries`` name the request. Every request lost: the check fails with "no SDO answer"."""
+    with start_virtual_axis(transport="virtual") as axis:
+        slave = axis.runtime.axes[0].slave
+        real = slave.sdo.on_frame
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            for drop_every in (False, True):
+                dropped = []
+
+                def on_frame(data, now_s, drop_every=drop_every, dropped=dropped):
+                    if data[0] & 0xE0 == 0x20 and data[1:3] == b"\x7c\x60" and (drop_every or not dropped):
+                        dropped.append(bytes(data))
+                        return
+                    real(data, now_s)
+
+                with pytest.MonkeyPatch.context() as mp:
+                    mp.setattr(slave.sdo, "on_frame", on_frame)
+                    (res,) = run_conformance(net, axis.node_id, only="402-HM-1", sdo_timeout_s=0.3)
+                if not drop_every:
+                    assert len(dropped) == 1
+                    assert res.status == "pass", res
+                    assert res.sdo_retries == ["SDO write 0x607C:0 = 1000"], res
+                else:
+                    assert len(dropped) == 2  # the request and its one retry
+                    assert res.status == "fail" and res.detail.startswith("no SDO answer"), res
+                    assert res.sdo_retries == ["SDO write 0x607C:0 = 1000"], res
+        finally:
+            net.disconnect()
+    assert summary([res])["sdo_retries"] == 1
 
 
 def test_limit_switch_check_skips_with_a_reason_without_injection():

@@ -96,8 +96,10 @@ def run(args) -> int:
         net.disconnect()
     s = runner.summary(results)
     dt = time.monotonic() - t0
+    retried = (f"; {s['sdo_retries']} SDO request(s) sent again after no answer in {ctx.sdo_timeout_s:g} s "
+               f"({', '.join(r.id for r in results if r.sdo_retries)})" if s["sdo_retries"] else "")
     print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped "
-          f"in {dt:.1f} s (node {args.node_id} on {args.can})")
+          f"in {dt:.1f} s (node {args.node_id} on {args.can}){retried}")
     meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3)}
     from virtualaxis.cli.outputs import atomic_path
 
