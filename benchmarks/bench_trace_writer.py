@@ -1,5 +1,7 @@
 """Trace writing and the ``simulate`` command's real-time factor: old writer (``numpy.savetxt``, the writer
-before issue 17, kept here as the baseline) vs the compiled CSV formatter vs NPZ, measured in the same run.
+before issue 17, kept here as the baseline) vs the compiled CSV formatter (in the simulating thread, and in a
+writer thread of its own beside the next chunk's simulation, as ``simulate`` runs it now) vs NPZ, measured in
+the same run.
 
     python benchmarks/bench_trace_writer.py [--reps 5] [--json out.json]
 
@@ -9,7 +11,8 @@ Two figures per variant:
   sine:stroke_mm=100,feed_mm_min=6000 --duration D --out t.<ext> --json s.json``, each repetition a fresh process,
   reporting the command's own ``real_time_factor`` (simulated s / wall s of simulating + writing + closing the
   trace; start-up -- imports, config, the one-off numba kernel load -- is excluded and reported as ``startup_s``).
-  The old-writer variant runs the same command with ``TraceWriter`` replaced by the old class.
+  The old-writer variant runs the same command with ``TraceWriter`` replaced by the old class; the
+  one-thread variant with ``TraceWriter(threaded=False)`` (the compiled formatter in the simulating thread).
 Medians of ``--reps`` repetitions, variants interleaved. The machine is shared and noisy.
 """
 
@@ -39,8 +42,9 @@ import numpy as np
 import virtualaxis.sim.trace_io as tio
 
 class OldTraceWriter:
-    """The writer before issue 17 (numpy.savetxt per chunk), verbatim apart from the name."""
-    def __init__(self, path, columns):
+    """The writer before issue 17 (numpy.savetxt per chunk), verbatim apart from the name and the ignored
+    threaded flag that simulate passes now."""
+    def __init__(self, path, columns, *, threaded=False):
         self.path = Path(path)
         self.columns = ["t"] + [c for c in columns if c != "t"]
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -59,6 +63,20 @@ class OldTraceWriter:
         self.close()
 
 tio.TraceWriter = OldTraceWriter
+from virtualaxis.cli.main import main
+sys.exit(main(sys.argv[1:]))
+'''
+
+ONE_THREAD = '''
+import sys
+import virtualaxis.sim.trace_io as tio
+
+class OneThreadWriter(tio.TraceWriter):
+    """The compiled CSV formatter, run in the caller's thread (simulate before the writer thread)."""
+    def __init__(self, path, columns, *, threaded=False):
+        super().__init__(path, columns, threaded=False)
+
+tio.TraceWriter = OneThreadWriter
 from virtualaxis.cli.main import main
 sys.exit(main(sys.argv[1:]))
 '''
@@ -129,9 +147,10 @@ def main() -> None:
                   f"new CSV {w['new_csv'] * 1e3:.1f} ms ({w['old_csv'] / w['new_csv']:.1f}x), "
                   f"NPZ {w['npz'] * 1e3:.1f} ms ({w['old_csv'] / w['npz']:.1f}x)", flush=True)
         for dur in (21.0, 200.0):
-            runs: dict[str, list[dict]] = {"old_csv": [], "new_csv": [], "npz": []}
+            runs: dict[str, list[dict]] = {"old_csv": [], "csv_one_thread": [], "new_csv": [], "npz": []}
             for _ in range(a.reps):
-                for name, code, ext in (("old_csv", LEGACY, "csv"), ("new_csv", NEW, "csv"), ("npz", NEW, "npz")):
+                for name, code, ext in (("old_csv", LEGACY, "csv"), ("csv_one_thread", ONE_THREAD, "csv"),
+                                        ("new_csv", NEW, "csv"), ("npz", NEW, "npz")):
                     runs[name].append(run_command(code, dur, tmp / f"t.{ext}", tmp / "s.json"))
             summary = {}
             for name, rs in runs.items():

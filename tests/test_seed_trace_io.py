@@ -82,3 +82,31 @@ def test_simulate_csv_and_npz_read_by_diagnosis(tmp_path, capsys) -> None:
     rc = main(["simulate", "--config", cfg, "--profile", prof, "--duration", "1", "--out", str(tmp_path / "t.parquet")])
     assert rc == 2
     assert "Parquet" in capsys.readouterr().err
+
+
+def _blocks(rng, n_blocks=5, rows=3000):
+    for k in range(n_blocks):
+        t = np.arange(k * rows, (k + 1) * rows) * 1e-3
+        yield {"t": t, "a": rng.standard_normal(rows), "b": rng.standard_normal(rows) * 1e-7}
+
+
+def test_threaded_csv_writer_writes_the_same_bytes(tmp_path) -> None:
+    """The writer thread (simulate's) gives byte for byte the file of the plain writer, blocks in order."""
+    for threaded in (False, True):
+        with TraceWriter(tmp_path / f"{threaded}.csv", ["a", "b"], threaded=threaded) as w:
+            for data in _blocks(np.random.default_rng(7)):
+                w.write(data)
+        assert w.rows == 15000
+    assert (tmp_path / "True.csv").read_bytes() == (tmp_path / "False.csv").read_bytes()
+    assert (tmp_path / "True.csv").read_bytes().count(b"\n") == 15001
+
+
+def test_threaded_csv_writer_reports_a_full_disk() -> None:
+    """A write error in the writer thread (ENOSPC of /dev/full) is raised in the caller, naming the path, and
+    nothing after it is written."""
+    w = TraceWriter("/dev/full", ["a", "b"], threaded=True)
+    with pytest.raises(OSError, match="/dev/full: writing the trace failed"):
+        for data in _blocks(np.random.default_rng(1), n_blocks=50):
+            w.write(data)
+        w.close()
+    w.close()  # closing again after the error: nothing left to do, no hang

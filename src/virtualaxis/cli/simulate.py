@@ -105,7 +105,8 @@ def run(args) -> int:
         sq = 0.0
         mx = 0.0
         sq_fe = 0.0
-        with atomic_path(path) as tmp, TraceWriter(tmp, cols) as w, progress(n, f"simulate {name}") as bar:
+        with (atomic_path(path) as tmp, TraceWriter(tmp, cols, threaded=True) as w,
+              progress(n, f"simulate {name}") as bar):
             for a in range(0, n, chunk):
                 b = min(n, a + chunk)
                 t = np.arange(a, b) * cyc

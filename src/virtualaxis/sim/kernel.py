@@ -660,7 +660,7 @@ def end_stop_force(x, v, lo, hi, k, c, travel, kh):
 
 # _nrt=False: no reference counting (and no allocation possible) in the hot loop; every array is owned by the
 # caller for the duration of the call.
-@njit(cache=True, fastmath=True, _nrt=False)
+@njit(cache=True, fastmath=True, _nrt=False, nogil=True)
 def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, wk, wc, ztmp,
                cmd_pos, cmd_vel, cmd_acc, cmd_aux, f_ext, noise, out):
     """Run ``len(cmd_pos)`` position-loop cycles. Row ``j`` of ``out`` holds the signals at the start of

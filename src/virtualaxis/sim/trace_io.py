@@ -7,7 +7,10 @@ The file name chooses the container:
   (8 bytes x columns x rows: 200 s at 1 kHz with 10 columns is 16 MB).
 - anything else (``*.csv``) -- CSV with a header row, the same columns and number format as before
   (``%.10g``: ten significant digits). Rows are formatted by a compiled (numba) formatter into one byte
-  block per chunk and streamed, so memory does not grow with duration.
+  block per chunk and streamed, so memory does not grow with duration. With ``threaded=True`` the
+  formatting and writing run in a thread of their own, beside the caller's next simulation chunk (both the
+  formatter and the plant kernel release the GIL): a run's wall time is then about the larger of the two
+  instead of their sum. At most two blocks wait in that thread's queue.
 
 Precision of the CSV: each value is written with ten significant digits, i.e. the relative error of a
 value read back is at most 5.0e-10 (half a unit in the tenth digit). The digits are those of Python's
@@ -19,6 +22,8 @@ in the tenth digit, where the last digit may differ by one (the error bound stay
 from __future__ import annotations
 
 import math
+import queue
+import threading
 from pathlib import Path
 from typing import BinaryIO
 
@@ -158,7 +163,7 @@ def _format_g10(x: float, buf: np.ndarray, pos: int) -> int:
     return _put_int(buf, pos, e, 3 if e >= 100 else 2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _format_block(block: np.ndarray, buf: np.ndarray) -> int:
     """Format a (rows, cols) float64 block as CSV lines into ``buf``; return the number of bytes written."""
     pos = 0
@@ -200,10 +205,12 @@ class TraceWriter:
     """Streams trace blocks to ``path`` (CSV or NPZ by suffix, see the module docstring).
 
     ``columns``: signal names; ``t`` (s) always comes first. ``write(data)`` takes a dict of equal-length
-    arrays (SI units) holding at least these columns.
+    arrays (SI units) holding at least these columns. ``threaded``: CSV blocks are formatted and written by
+    a thread of the writer (see the module docstring); an error there (a full disk) is raised by the next
+    ``write`` or by ``close``.
     """
 
-    def __init__(self, path: str | Path, columns: list[str]):
+    def __init__(self, path: str | Path, columns: list[str], *, threaded: bool = False):
         self.path = Path(path)
         self.format = trace_format_for(self.path)
         self.columns = ["t"] + [c for c in columns if c != "t"]
@@ -211,9 +218,38 @@ class TraceWriter:
         self.rows = 0
         self._fh: BinaryIO | None = None
         self._blocks: list[np.ndarray] = []
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._reported = False
         if self.format == "csv":
             self._fh = self.path.open("wb")
             self._fh.write((",".join(self.columns) + "\n").encode("ascii"))
+            if threaded:
+                self._queue = queue.Queue(maxsize=2)
+                self._thread = threading.Thread(target=self._drain, name="trace-writer", daemon=True)
+                self._thread.start()
+
+    def _drain(self) -> None:
+        """The writer thread: format and write each queued block until the ``None`` that ``close`` sends; after
+        an error, the blocks still coming are taken and dropped (the error is raised in the caller)."""
+        q = self._queue
+        while True:
+            block = q.get()
+            if block is None:
+                return
+            if self._error is None:
+                try:
+                    self._fh.write(format_csv_rows(block))
+                except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+                    self._error = exc
+
+    def _raise_pending(self, unless_reported: bool = False) -> None:
+        """The writer thread's error, again at every ``write`` once it happened (nothing after it is written);
+        ``close`` raises it only if no ``write`` has."""
+        if self._error is not None and not (unless_reported and self._reported):
+            self._reported = True
+            raise OSError(f"{self.path}: writing the trace failed: {self._error}") from self._error
 
     def write(self, data: dict[str, np.ndarray]) -> None:
         missing = [c for c in self.columns if c not in data]
@@ -222,16 +258,28 @@ class TraceWriter:
         block = np.empty((len(np.asarray(data["t"])), len(self.columns)), dtype=np.float64)
         for j, c in enumerate(self.columns):
             block[:, j] = data[c]
-        if self._fh is not None:
+        if self._queue is not None:
+            self._raise_pending()
+            self._queue.put(block)  # (a fresh array: the caller may reuse its own)
+        elif self._fh is not None:
             self._fh.write(format_csv_rows(block))
         else:
             self._blocks.append(block)
         self.rows += len(block)
 
     def close(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = self._queue = None
         if self._fh is not None:
-            self._fh.close()
-            self._fh = None
+            fh, self._fh = self._fh, None
+            try:
+                fh.close()  # (flushes the last bytes: may fail too)
+            except OSError as exc:
+                if self._error is None:  # after a reported failure the file is known to be bad already
+                    self._error = exc
+            self._raise_pending(unless_reported=True)
             return
         if self.format == "npz":
             allr = np.concatenate(self._blocks) if self._blocks else np.zeros((0, len(self.columns)))
@@ -244,8 +292,14 @@ class TraceWriter:
     def __enter__(self) -> TraceWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        try:  # already failing: the file is closed, the first error is the one raised
+            self.close()
+        except Exception:  # noqa: BLE001
+            pass
 
 
 def write_trace_csv(path: str | Path, data: dict[str, np.ndarray], columns: list[str] | None = None) -> Path:
