@@ -153,7 +153,10 @@ def test_nmt_stop_while_moving_is_a_loss_of_control_across_processes():
             assert node.sdo[0x603F].raw == 0x8131
             x1 = node.sdo[0x6064].raw
             time.sleep(0.1)
-            assert node.sdo[0x6064].raw == x1  # at rest
+            # at rest: within 2 units (2 um) in 0.1 s, i.e. below 0.02 mm/s. Not "equal": at rest the measured
+            # position dithers by +/-0.4 um in encoder steps of 0.12 um (seen in process: 15035.77..15036.62 um
+            # over 0.4 s after the same stop), which can flip the rounding of 0x6064 by one unit (CI10: 1840 -> 1841)
+            assert abs(node.sdo[0x6064].raw - x1) <= 2, (x1, node.sdo[0x6064].raw)
             # ramp 0.6 mm + the time between the SDO read of x0 and the NMT frame (a loaded host: tens of ms)
             assert (x1 - x0) * UNIT_M * 1e3 < 10.0
         finally:
