@@ -86,7 +86,6 @@ def run(args) -> int:
     try:
         ctx = runner.Context(net, args.node_id, eds or DEFAULT_EDS, sdo_timeout_s=args.sdo_timeout,
                              units_per_mm=args.units_per_mm)
-        ctx.node.sdo.RESPONSE_TIMEOUT = args.sdo_timeout
         try:
             ctx.read(0x1000)
         except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here

@@ -268,7 +268,7 @@ def pp_move(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         p0 = _start_pp(ctx, mo, velocity_mm_s=100)
-        target = p0 + _toward_origin(ctx) * ctx.mm(10)
+        target = p0 + _toward_middle(ctx) * ctx.mm(10)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
         ctx.wait_sw(0x1000, 0x1000, 0.5, "set-point acknowledge (bit 12)")
@@ -294,7 +294,7 @@ def pv_move(ctx: Context) -> str:
         ctx.write(0x6084, 0, ctx.mm(2000))
         _enable_mode(ctx, 3)
         ctx.start_sync()
-        v_target = _toward_origin(ctx) * ctx.mm(50)
+        v_target = _toward_middle(ctx) * ctx.mm(50)
         ctx.write(0x60FF, 0, v_target)
         ctx.wait_sw(0x400, 0x400, 1.5, "velocity reached (bit 10)")
         v = ctx.read(0x606C)
@@ -317,7 +317,7 @@ def csp_follow(ctx: Context) -> str:
     try:
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
-        d = _toward_origin(ctx)
+        d = _toward_middle(ctx)
         mo.stream(p0, d * ctx.mm(50))
         time.sleep(0.4)
         s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
@@ -378,7 +378,7 @@ def following_error_fault(ctx: Context) -> str:
         ctx.start_sync()
         mark = ctx.frames.mark()
         p0 = mo.last().pos
-        ctx.write(0x607A, 0, p0 + _toward_origin(ctx) * ctx.mm(20))
+        ctx.write(0x607A, 0, p0 + _toward_middle(ctx) * ctx.mm(20))
         ctx.write(0x6040, 0, 0x1F)
         ctx.write(0x6040, 0, 0x0F)
         emcy = ctx.wait_emcy(mark, 0x8611, 2.0)
@@ -422,7 +422,7 @@ def fault_reaction_from_motion(ctx: Context) -> str:
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
         v_cmd = ctx.mm(100)
-        d = _toward_origin(ctx)
+        d = _toward_middle(ctx)
         mo.step_units = 0.0
         mo.stream(p0, 0.0)
         for i in range(1, 51):  # ramp to 100 mm/s over 50 SYNC periods (toward the middle of the travel)
@@ -484,7 +484,7 @@ def cw_and_target_in_one_rpdo(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         p0 = _start_pp(ctx, mo, velocity_mm_s=200)
-        d = _toward_origin(ctx)
+        d = _toward_middle(ctx)
         stale = p0 + d * ctx.mm(5)
         ctx.write(0x607A, 0, stale)
         new = p0 + d * ctx.mm(20)
@@ -519,7 +519,7 @@ def _loss_of_control(ctx: Context, command: int) -> str:
         ctx.write(0x6083, 0, ctx.mm(2000))
         _enable_mode(ctx, 3)
         ctx.start_sync()
-        v_target = _toward_origin(ctx) * ctx.mm(50)
+        v_target = _toward_middle(ctx) * ctx.mm(50)
         ctx.write(0x60FF, 0, v_target)
         mo.wait(lambda s: s.vel is not None and abs(s.vel - v_target) < ctx.mm(3), 2.0, "50 mm/s")
         p0 = mo.last().pos
@@ -663,7 +663,7 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
 
 
 # ============================================================================ PP halt, software limits, fault reset
-def _toward_origin(ctx: Context) -> int:
+def _toward_middle(ctx: Context) -> int:
     """+1 or -1: the direction from the present position toward the middle of the travel, where a check has
     room to move (NMT Reset Node does not move the axis back, and an earlier check or run may have left it
     near an end): toward the middle of the software limits 0x607D when both are set (finite, not the full
@@ -696,7 +696,7 @@ def pp_halt(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
         p0 = _start_pp(ctx, mo, velocity_mm_s=100)
-        target = p0 + _toward_origin(ctx) * ctx.mm(40)
+        target = p0 + _toward_middle(ctx) * ctx.mm(40)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
         time.sleep(0.1)
@@ -726,7 +726,7 @@ def software_limit(ctx: Context) -> str:
         ctx.write(0x6081, 0, ctx.mm(100))
         ctx.write(0x6083, 0, ctx.mm(2000))
         ctx.write(0x6084, 0, ctx.mm(2000))
-        d = _toward_origin(ctx)
+        d = _toward_middle(ctx)
         p0 = ctx.read(0x6064)
         limit = p0 + d * ctx.mm(5)
         lo, hi = (p0 - ctx.mm(1000), limit) if d > 0 else (limit, p0 + ctx.mm(1000))
@@ -771,7 +771,7 @@ def fault_reset_edge(ctx: Context) -> str:
         ctx.start_sync()
         mark = ctx.frames.mark()
         p0 = mo.last().pos
-        ctx.write(0x607A, 0, p0 + _toward_origin(ctx) * ctx.mm(5))
+        ctx.write(0x607A, 0, p0 + _toward_middle(ctx) * ctx.mm(5))
         ctx.write(0x6040, 0, 0x1F)
         ctx.write(0x6040, 0, 0x0F)
         ctx.wait_sw(0x4F, 0x08, 2.0, "fault after a following error")
