@@ -99,6 +99,15 @@ def test_threaded_csv_writer_writes_the_same_bytes(tmp_path) -> None:
         assert w.rows == 15000
     assert (tmp_path / "True.csv").read_bytes() == (tmp_path / "False.csv").read_bytes()
     assert (tmp_path / "True.csv").read_bytes().count(b"\n") == 15001
+    # read back by a reader of its own (Python's csv module, float()): every value within the documented precision
+    import csv
+
+    with (tmp_path / "True.csv").open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["t", "a", "b"]
+    got = np.array([[float(v) for v in r] for r in rows[1:]])
+    want = np.concatenate([np.column_stack([d["t"], d["a"], d["b"]]) for d in _blocks(np.random.default_rng(7))])
+    np.testing.assert_allclose(got, want, rtol=CSV_RELATIVE_PRECISION, atol=0)
 
 
 def test_threaded_csv_writer_reports_a_full_disk() -> None:
