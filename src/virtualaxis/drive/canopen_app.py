@@ -31,6 +31,7 @@ class Cia402Application:
         self.drive = drive
         self.slave: CanopenSlave | None = None
         self._entries: dict = {}
+        self._float_keys: frozenset = frozenset()
         self.nmt_state: NmtState | None = None
         self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
         self._syncs_seen = 0
@@ -44,6 +45,8 @@ class Cia402Application:
         self.drive.emcy_sink = slave.emcy
         self.drive.emcy_reset_sink = slave.emcy_reset
         self._entries = {key: slave.entry(*key) for key in list(SPECS) + list(ALIASES) if key in slave.od.entries}
+        #: keys whose OD entry is a REAL32/REAL64 (the drive may hold an int there)
+        self._float_keys = frozenset(key for key, entry in self._entries.items() if entry.fmt in ("f", "d"))
         self._sync_from_slave()
 
     def missing_objects(self) -> list[tuple[int, int]]:
@@ -70,18 +73,24 @@ class Cia402Application:
         if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
             self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
             self._watch_sync(slave)
-        if not everything and not drive._changed:  # the common case of the several flushes per cycle
-            return
-        changes = drive.take_changes()
         if everything:
-            changes = [(k[0], k[1], v) for k, v in self.drive.objects.items()]
-            for alias, target in ALIASES.items():
-                changes.append((alias[0], alias[1], self.drive.objects[target]))
-        entries = self._entries
-        for index, sub, value in changes:
-            entry = entries.get((index, sub))
+            drive.take_changed()
+            objects = drive.objects
+            changes = [(key, objects[ALIASES.get(key, key)]) for key in self._entries]
+        elif not drive._changed:  # the common case of the several flushes per cycle
+            return
+        else:
+            changes = drive.take_changed()
+        float_keys = self._float_keys
+        for key, value in changes:  # (slave.write_entry inlined: this runs every cycle for every changed value)
+            entry = self._entries.get(key)
             if entry is not None:
-                slave.write_entry(entry, float(value) if entry.fmt in ("f", "d") else value)
+                if key in float_keys:
+                    value = float(value)
+                if entry.value != value:
+                    entry.value = value
+                    for tpdo in entry.tpdos:
+                        tpdo.dirty = True
 
     # ------------------------------------------------------------------ DeviceApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:

@@ -111,6 +111,7 @@ ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 
 #: actual-value objects written every cycle by Drive._publish_outputs, in its order (none is an alias)
+_I32_MIN, _I32_MAX = -0x80000000, 0x7FFFFFFF
 _OUTPUT_KEYS = ((0x6061, 0), (0x6062, 0), (0x6063, 0), (0x6064, 0), (0x606B, 0), (0x606C, 0), (0x6077, 0),
                 (0x6078, 0), (0x6079, 0), (0x60F4, 0), (0x60FD, 0), (0x2020, 0), (0x2031, 0), (0x2110, 5))
 assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
@@ -143,6 +144,28 @@ _VALUE_RANGES = {
     (0x60C2, 2): (-6, 0),
     (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
 }
+#: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
+#: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_object_write (the
+#: fast path of an RPDO's controlword and targets; anything else, and any value outside, takes the full check)
+_OWN_RULES = frozenset({0x6060, 0x607E, 0x6088, 0x6086, 0x6098, 0x608F, 0x6091, 0x6092, 0x2000, 0x2001, 0x2003,
+                        0x2004, 0x200A, 0x200B, 0x2011, 0x2010})
+
+
+def _plain_int_ranges() -> dict[tuple[int, int], tuple[int, int]]:
+    out = {}
+    for key, spec in SPECS.items():
+        if spec.access == "ro" or spec.dtype == "f32" or key[0] in _OWN_RULES:
+            continue
+        lo, hi = DTYPE_RANGES[spec.dtype]
+        lo2, hi2 = _VALUE_RANGES.get(key, (lo, hi))
+        out[key] = (max(lo, lo2), min(hi, hi2))
+    for alias, target in ALIASES.items():
+        if target in out:
+            out[alias] = out[target]
+    return out
+
+
+_PLAIN_INT_RANGES = _plain_int_ranges()
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
@@ -306,6 +329,7 @@ class Drive:
             for alias, target in ALIASES.items():
                 self.objects[alias] = self.objects[target]
             self._changed = set(self.objects)
+            self._published: tuple = (None,) * len(_OUTPUT_KEYS)  # the outputs last published (none yet)
             self._zero_m = 0.0  # plant position that reads as position 0 (shifted by homing)
             self._faults: list[FaultRecord] = []
             self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
@@ -375,6 +399,9 @@ class Drive:
 
     def check_object_write(self, index: int, sub: int, value) -> None:
         """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
+        plain = _PLAIN_INT_RANGES.get((index, sub))
+        if plain is not None and type(value) is int and plain[0] <= value <= plain[1]:
+            return  # (an integer object without rules of its own, value in range: what the checks below find)
         key = ALIASES.get((index, sub), (index, sub))
         spec = SPECS.get(key)
         if spec is None:
@@ -474,12 +501,17 @@ class Drive:
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
 
     def take_changes(self) -> list[tuple[int, int, int | float]]:
-        """Objects changed since the last call (the CANopen application mirrors them into the OD)."""
+        """Objects changed since the last call: (index, sub, value) (the CANopen application mirrors them into
+        the OD)."""
+        return [(k[0], k[1], v) for k, v in self.take_changed()]
+
+    def take_changed(self) -> list[tuple[tuple[int, int], int | float]]:
+        """Objects changed since the last call: ((index, sub), value), the values as of this call."""
         if not self._changed:  # (read without the lock: a change being made now is taken by the next call)
             return []
         with self._lock:
             o = self.objects
-            out = [(k[0], k[1], o[k]) for k in self._changed]
+            out = [(k, o[k]) for k in self._changed]
             self._changed = set()
             return out
 
@@ -1184,39 +1216,60 @@ class Drive:
 
     def _publish_outputs(self) -> None:
         """Statusword and actual values into the objects (changed ones marked for the OD mirror). Hot path:
-        the output objects are no aliases, so they are compared and stored directly (not via _store)."""
+        the output objects are no aliases, so they are compared with the last values published and only the
+        changed ones stored (not via _store); the integer conversions are inlined (round, then saturate: the
+        same values as :func:`_i32` / :func:`_i16`, which take over for a NaN or an infinity)."""
         ax, pc, o = self._axis, self._pc, self.objects
         self._update_statusword()
         inv_u = pc.inv_u
         x = ax.position_m - self._zero_m
-        torque_pm = _i16(self._torque_actual_nm(ax) / pc.rated_nm * 1000.0) if pc.rated_nm else 0
         fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0
         self._fe_m = fe
-        neg, pos, home = self._switches(ax.position_m, int(o[(0x6098, 0)]))
+        rated_nm, rated_a = pc.rated_nm, pc.rated_a
+        try:
+            p_dem = round(self._demand_m * inv_u)
+            p_inc = round(x * self._inc_per_m)
+            p_act = round(x * inv_u)
+            v_dem = round(self._demand_v * inv_u)
+            v_act = round(ax.velocity_m_s * inv_u)
+            fe_u = round(fe * inv_u)
+            torque_pm = round(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
+            current_pm = round(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+        except (OverflowError, ValueError):  # NaN or inf (never expected: the cycle guards the plant)
+            p_dem = p_inc = p_act = v_dem = v_act = fe_u = torque_pm = current_pm = None
+        if p_dem is None or not (
+                _I32_MIN <= p_dem <= _I32_MAX and _I32_MIN <= p_inc <= _I32_MAX and _I32_MIN <= p_act <= _I32_MAX
+                and _I32_MIN <= v_dem <= _I32_MAX and _I32_MIN <= v_act <= _I32_MAX and _I32_MIN <= fe_u <= _I32_MAX
+                and -0x8000 <= torque_pm <= 0x7FFF and -0x8000 <= current_pm <= 0x7FFF):
+            p_dem, p_inc, p_act = _i32(self._demand_m * inv_u), _i32(x * self._inc_per_m), _i32(x * inv_u)
+            v_dem, v_act, fe_u = _i32(self._demand_v * inv_u), _i32(ax.velocity_m_s * inv_u), _i32(fe * inv_u)
+            torque_pm = _i16(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
+            current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+        vdc_mv = ax.dc_link_v * 1000.0
+        neg_at, pos_at, h = self._switch_at_m
+        xp = ax.position_m
+        method = o[(0x6098, 0)]
+        home = xp <= h if method == 21 or method == 22 else xp >= h
         values = (
-            self._mode,
-            _i32(self._demand_m * inv_u),
-            _i32(x * self._inc_per_m),
-            _i32(x * inv_u),
-            _i32(self._demand_v * inv_u),
-            _i32(ax.velocity_m_s * inv_u),
-            torque_pm,
-            _i16(ax.current_q_a / pc.rated_a * 1000.0) if pc.rated_a else 0,
-            clamp_to_dtype(ax.dc_link_v * 1000, "u32"),
-            _i32(fe * inv_u),
-            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
-            round(MOTOR_AMBIENT_C + self._motor_rise_k, 2),
+            self._mode, p_dem, p_inc, p_act, v_dem, v_act, torque_pm, current_pm,
+            round(vdc_mv) if 0.0 <= vdc_mv <= 4294967295.0 else clamp_to_dtype(vdc_mv, "u32"),
+            fe_u,
+            (1 if xp <= neg_at else 0) | (2 if xp >= pos_at else 0) | (4 if home else 0),
+            round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self._alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
         )
-        changed = self._changed
-        for key, value in zip(_OUTPUT_KEYS, values, strict=True):
-            if o[key] != value:
-                o[key] = value
-                changed.add(key)
+        last = self._published
+        if values != last:
+            changed = self._changed
+            for key, value, old in zip(_OUTPUT_KEYS, values, last, strict=True):
+                if value != old:
+                    o[key] = value
+                    changed.add(key)
+            self._published = values
         if self._mode not in TORQUE_MODES and o[(0x6074, 0)] != torque_pm:
             o[(0x6074, 0)] = torque_pm
-            changed.add((0x6074, 0))
+            self._changed.add((0x6074, 0))
 
     def record_overrun(self, n: int = 1) -> None:
         """The runtime reports cycles that started late (shown in 0x2110:2 and the counters)."""

@@ -56,9 +56,10 @@ def monitor_limit_switches(drive: Drive, x_plant_m: float, v_m_s: float) -> None
     """Switch states, reaction on reaching a switch while moving toward it, warning bookkeeping."""
     neg, pos, _ = drive._switches(x_plant_m)
     drive._limit_switches = (1 if neg else 0) | (2 if pos else 0)
-    for code, active in zip(LIMIT_CODES, (neg, pos), strict=True):
-        if not active and code in drive._warnings:
-            drive.set_warning(code, False)
+    if drive._warnings:
+        for code, active in zip(LIMIT_CODES, (neg, pos), strict=True):
+            if not active and code in drive._warnings:
+                drive.set_warning(code, False)
     if not (neg or pos) or homing_owns_switches(drive):
         return
     if not drive._power or drive._state is not S.OPERATION_ENABLED or drive._stop is not None:
