@@ -232,13 +232,11 @@ class PdoEngine:
         ``end_pdo`` hooks bracket the stores: CiA 402 needs controlword + target of one RPDO together)."""
         values = rpdo.packer.unpack(data)
         slave = self.slave
-        store = slave.store_from_pdo
         begin, end = slave.hook_begin_pdo, slave.hook_end_pdo
         if begin is not None:
             begin()
         try:
-            for entry, value in zip(rpdo.entries, values, strict=True):
-                store(entry, value)
+            slave.store_all_from_pdo(rpdo.entries, values)
         finally:
             if end is not None:
                 end()

@@ -422,27 +422,39 @@ class CanopenSlave:
         if entry.low is not None and value < entry.low:
             raise SdoAbort(ab.VALUE_TOO_LOW)
 
-    def store_from_pdo(self, entry: Entry, value) -> None:
-        """An RPDO value: limits and the application's validate_write, then stored and after_write."""
-        try:
-            self._check_limits(entry, value)
-            if self._hook_validate is not None:
-                self._hook_validate(entry.index, entry.sub, value)
-        except SdoAbort:
-            self.counters["rpdo_values_refused"] += 1
-            return
-        except Exception:  # noqa: BLE001
-            self.counters["internal_errors"] += 1
-            return
-        if entry.value != value:
-            entry.value = value
-            for tpdo in entry.tpdos:
-                tpdo.dirty = True
-        if self._hook_after is not None:
+    def store_all_from_pdo(self, entries, values) -> None:
+        """The entries of one received PDO, in mapping order, each: limits and the application's
+        validate_write, then stored and after_write; a refused value is dropped and counted
+        (``rpdo_values_refused``), the others are stored. One call per PDO (a hot path: the limits are compared
+        inline and :meth:`_check_limits` runs only to refuse)."""
+        validate, after, counters = self._hook_validate, self._hook_after, self.counters
+        for entry, value in zip(entries, values, strict=True):
             try:
-                self._hook_after(entry.index, entry.sub, value)
+                high, low = entry.high, entry.low
+                if ((high is not None and value > high) or (low is not None and value < low)
+                        or (isinstance(value, float) and not math.isfinite(value))):
+                    self._check_limits(entry, value)
+                if validate is not None:
+                    validate(entry.index, entry.sub, value)
+            except SdoAbort:
+                counters["rpdo_values_refused"] += 1
+                continue
             except Exception:  # noqa: BLE001
-                self.counters["internal_errors"] += 1
+                counters["internal_errors"] += 1
+                continue
+            if entry.value != value:
+                entry.value = value
+                for tpdo in entry.tpdos:
+                    tpdo.dirty = True
+            if after is not None:
+                try:
+                    after(entry.index, entry.sub, value)
+                except Exception:  # noqa: BLE001
+                    counters["internal_errors"] += 1
+
+    def store_from_pdo(self, entry: Entry, value) -> None:
+        """One RPDO value (see :meth:`store_all_from_pdo`)."""
+        self.store_all_from_pdo((entry,), (value,))
 
     # ================================================================== communication objects
     def _comm_validate(self, index: int, sub: int, value) -> None:

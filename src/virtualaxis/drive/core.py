@@ -103,6 +103,8 @@ _MONITOR_PARAMETER_INDICES = frozenset(
         0x608F,
         0x6091,
         0x6092,
+        0x607D,
+        0x60C2,
     }
 )
 
@@ -839,12 +841,20 @@ class Drive:
         return self._state is S.OPERATION_ENABLED
 
     def _interp_cycles(self) -> int:
+        """Drive cycles per interpolation period 0x60C2 (at least 1); cached with the parameters."""
+        return self._params().interp_cycles
+
+    def _limits_m(self) -> tuple[float, float] | None:
+        """Software position limits 0x607D [m], None when min >= max (off); cached with the parameters."""
+        return self._params().travel_limits_m
+
+    def _interp_cycles_from_objects(self) -> int:
         value = int(self._obj(0x60C2, 1))
         exp = int(self._obj(0x60C2, 2))
         period = value * 10.0**exp
         return max(1, int(round(period / self.cycle_s)))
 
-    def _limits_m(self) -> tuple[float, float] | None:
+    def _limits_m_from_objects(self) -> tuple[float, float] | None:
         lo, hi = int(self._obj(0x607D, 1)), int(self._obj(0x607D, 2))
         if lo >= hi:
             return None
@@ -1129,6 +1139,8 @@ class Drive:
             kt_nm_per_a=mot.kt_nm_per_a,
             reluctance_nm_per_a2=1.5 * mot.pole_pairs * (mot.ld_h - mot.lq_h),
             max_torque_nm=float(o[(0x6072, 0)]) / 1000.0 * float(o[(0x6076, 0)]) / 1000.0,
+            travel_limits_m=self._limits_m_from_objects(),
+            interp_cycles=self._interp_cycles_from_objects(),
         )
         self._params_dirty = False
 
@@ -1402,6 +1414,8 @@ class _Params:
     kt_nm_per_a: float  # torque constant (0x6077 from the currents)
     reluctance_nm_per_a2: float  # 1.5 p (L_d - L_q)
     max_torque_nm: float  # 0x6072 as torque
+    travel_limits_m: tuple[float, float] | None  # 0x607D in m (None: min >= max, no limits)
+    interp_cycles: int  # 0x60C2 in drive cycles
 
 
 def _reaction_rank(item: tuple[tuple[int, int], int | float]) -> int:
