@@ -50,8 +50,10 @@ from virtualaxis.drive.profiles import WindowTimer
 from virtualaxis.drive.settings import drive_settings
 from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
 from virtualaxis.drive.statemachine import (
+    STATE,
     STATE_BITS,
     TARGET_STATE,
+    TRANSITION,
     Cia402State,
     Transition,
     decode,
@@ -59,9 +61,9 @@ from virtualaxis.drive.statemachine import (
 )
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.resources import project_file
-from virtualaxis.sim import AxisSimulator, ControlMode
+from virtualaxis.sim import CONTROL_MODE, AxisSimulator, ControlMode
 
-S = Cia402State
+S = STATE  # (the members as plain attributes; Cia402State is the type)
 log = logging.getLogger("virtualaxis.drive")
 DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
@@ -171,7 +173,7 @@ _PLAIN_INT_RANGES = _plain_int_ranges()
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
-_TRANSITIONS = {(state.value, bits): transition_for(state, decode(bits)) for state in S for bits in range(16)}
+_TRANSITIONS = {(state.value, bits): transition_for(state, decode(bits)) for state in Cia402State for bits in range(16)}
 
 
 class ObjectAccessError(Exception):
@@ -607,32 +609,32 @@ class Drive:
             self._mode_controlword(old_cw, cw)
             return
         tr = _TRANSITIONS[(self._state._value_, cw & 0xF)]
-        if tr == Transition.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
-            tr = Transition.ILLEGAL
-        if tr == Transition.ILLEGAL and cw != old_cw:
+        if tr == TRANSITION.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
+            tr = TRANSITION.ILLEGAL
+        if tr == TRANSITION.ILLEGAL and cw != old_cw:
             self.counters["illegal_controlword"] += 1
             self._store((0x2110, 1), clamp_to_dtype(self.counters["illegal_controlword"], "u32"))
-        elif tr not in (Transition.HOLD, Transition.IGNORED):
+        elif tr not in (TRANSITION.HOLD, TRANSITION.IGNORED):
             self._do_transition(tr)
         self._mode_controlword(old_cw, cw)
         self._update_statusword()
 
     def _do_transition(self, tr: Transition) -> None:
         target = TARGET_STATE[tr]
-        if tr in (Transition.T4, Transition.T3_4, Transition.T16):
+        if tr in (TRANSITION.T4, TRANSITION.T3_4, TRANSITION.T16):
             self._stop = None
             if not self._power:
                 self._power_on()
             self._enter_mode(self._mode)
             self._set_state(target)
-        elif tr in (Transition.T5, Transition.T8):
-            option = int(self._obj(0x605C if tr == Transition.T5 else 0x605B))
+        elif tr in (TRANSITION.T5, TRANSITION.T8):
+            option = int(self._obj(0x605C if tr == TRANSITION.T5 else 0x605B))
             if option == 1 and self._power:
                 self._start_stop("slow", then=target)  # state changes once stopped
             else:
                 self._power_off()
                 self._set_state(target)
-        elif tr == Transition.T11:
+        elif tr == TRANSITION.T11:
             option = int(self._obj(0x605A))
             kind = {
                 0: "coast",
@@ -652,7 +654,7 @@ class Drive:
             else:
                 self._start_stop(kind, then=S.SWITCH_ON_DISABLED if option <= 4 else None)
         else:  # T2, T3, T6, T7, T9, T10, T12: no motion involved (T9/T12 coast)
-            if tr in (Transition.T9, Transition.T12):
+            if tr in (TRANSITION.T9, TRANSITION.T12):
                 self._power_off()
             self._set_state(target)
 
@@ -665,7 +667,7 @@ class Drive:
         self._demand_m = self.sim.state.position_m - self._zero_m
         self._demand_v = 0.0
         self._last_vff = 0.0
-        self._set_sim_mode(ControlMode.POSITION)
+        self._set_sim_mode(CONTROL_MODE.POSITION)
         self.sim.set_position_setpoint(self._demand_m + self._zero_m, 0.0, 0.0)
         self.sim.enable(True)
         self._power = True
@@ -803,7 +805,7 @@ class Drive:
                 self._power_off()
                 self._set_state(S.SWITCH_ON_DISABLED)
             elif option == 3 and self._state == S.OPERATION_ENABLED:
-                self._do_transition(Transition.T11)
+                self._do_transition(TRANSITION.T11)
 
     # ================================================================================ modes
     def _on_mode(self, mode: int) -> None:
@@ -822,7 +824,7 @@ class Drive:
         and every mode object's own state), then the mode object takes over from the actual motion
         (:meth:`virtualaxis.drive.modes.OperatingMode.enter`)."""
         ax = self._axis
-        if self._smode != ControlMode.POSITION or not self._power:
+        if self._smode != CONTROL_MODE.POSITION or not self._power:
             self._demand_m = ax.position_m - self._zero_m
         p = self._demand_m
         self._last_vff = 0.0
@@ -1080,7 +1082,7 @@ class Drive:
             elif self._state == S.OPERATION_ENABLED:
                 self._mode_obj.cycle(self)
             elif self._state == S.QUICK_STOP_ACTIVE:
-                self._set_sim_mode(ControlMode.POSITION)
+                self._set_sim_mode(CONTROL_MODE.POSITION)
                 self._set_position(self._demand_m, 0.0)
         self.sim.advance(1)
         self._prev_actual_m = self._axis.position_m
@@ -1149,7 +1151,7 @@ class Drive:
         fe_m = ax.following_error_m
         in_position_control = (
             self._power
-            and self._smode == ControlMode.POSITION
+            and self._smode == CONTROL_MODE.POSITION
             and (self._state is S.OPERATION_ENABLED or self._state is S.QUICK_STOP_ACTIVE)
         )
         # following error 0x6065 / 0x6066 (position control only)
@@ -1235,7 +1237,7 @@ class Drive:
         self._update_statusword()
         inv_u = pc.inv_u
         x = ax.position_m - self._zero_m
-        fe = ax.following_error_m if self._power and self._smode == ControlMode.POSITION else 0.0
+        fe = ax.following_error_m if self._power and self._smode == CONTROL_MODE.POSITION else 0.0
         self._fe_m = fe
         rated_nm, rated_a = pc.rated_nm, pc.rated_a
         try:
@@ -1258,15 +1260,12 @@ class Drive:
             torque_pm = _i16(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
             current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
         vdc_mv = ax.dc_link_v * 1000.0
-        neg_at, pos_at, h = self._switch_at_m
-        xp = ax.position_m
-        method = o[(0x6098, 0)]
-        home = xp <= h if method == 21 or method == 22 else xp >= h
+        neg, pos, home = self._switches(ax.position_m, o[(0x6098, 0)])  # (a method: fault injection wraps it)
         values = (
             self._mode, p_dem, p_inc, p_act, v_dem, v_act, torque_pm, current_pm,
             round(vdc_mv) if 0.0 <= vdc_mv <= 4294967295.0 else clamp_to_dtype(vdc_mv, "u32"),
             fe_u,
-            (1 if xp <= neg_at else 0) | (2 if xp >= pos_at else 0) | (4 if home else 0),
+            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self._alarm,
             self.counters["cycles"] & 0xFFFFFFFF,

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 from virtualaxis.drive import homing as hm
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.profiles import JerkFilter, LinearInterpolator, PositionProfile, VelocityRamp
-from virtualaxis.sim import ControlMode
+from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
@@ -71,7 +71,7 @@ class OperatingMode:
     """Common contract; the base class is "no mode" (0x6060 = 0): hold the position."""
 
     number = 0
-    control = ControlMode.POSITION
+    control = CONTROL_MODE.POSITION
 
     def __init__(self, gen: ProfileGenerator):
         self.gen = gen
@@ -96,10 +96,10 @@ class OperatingMode:
             gen.jerk.reset(p, 1)
             gen.target_m = stop_at
             d._last_vff = v_act
-            d._set_sim_mode(ControlMode.POSITION)
+            d._set_sim_mode(CONTROL_MODE.POSITION)
             d.sim.set_position_setpoint(p + d._zero_m, v_act, 0.0)
             return
-        d._set_sim_mode(ControlMode.POSITION)
+        d._set_sim_mode(CONTROL_MODE.POSITION)
         d.sim.set_position_setpoint(d._demand_m + d._zero_m, 0.0, 0.0)
 
     def entry_decel_m_s2(self, d: Drive) -> float:
@@ -402,10 +402,10 @@ class CyclicPosition(OperatingMode):
         # the master's next target takes over; until then the demand is the actual position (+ lag)
         moving = d._power and not rx.at_standstill(d)
         v_act = d._axis.velocity_m_s if moving else 0.0
-        if moving and d._smode != ControlMode.POSITION:
+        if moving and d._smode != CONTROL_MODE.POSITION:
             d._demand_m += d._lag_m(v_act)
             self.interp.reset(d._demand_m)
-        d._set_sim_mode(ControlMode.POSITION)
+        d._set_sim_mode(CONTROL_MODE.POSITION)
         d.sim.set_position_setpoint(d._demand_m + d._zero_m, v_act, 0.0)
 
     def on_target_position(self, d: Drive, value: int) -> None:
@@ -436,7 +436,7 @@ class ProfileVelocity(OperatingMode):
     """PV (3): 0x60FF ramped with 0x6083 / 0x6084 (``vramp``), from the actual speed."""
 
     number = PV
-    control = ControlMode.VELOCITY
+    control = CONTROL_MODE.VELOCITY
 
     def __init__(self, gen: ProfileGenerator):
         super().__init__(gen)
@@ -447,7 +447,7 @@ class ProfileVelocity(OperatingMode):
         self.vramp.velocity_m_s = d._axis.velocity_m_s if d._power else 0.0
         self.interp_v = LinearInterpolator()
         self.interp_v.reset(self.vramp.velocity_m_s)
-        d._set_sim_mode(ControlMode.VELOCITY)
+        d._set_sim_mode(CONTROL_MODE.VELOCITY)
         d.sim.set_velocity_setpoint(self.vramp.velocity_m_s)
 
     def cycle(self, d: Drive) -> None:
@@ -513,7 +513,7 @@ class ProfileTorque(OperatingMode):
     is the ramp's output [N m]."""
 
     number = PT
-    control = ControlMode.TORQUE
+    control = CONTROL_MODE.TORQUE
 
     def __init__(self, gen: ProfileGenerator):
         super().__init__(gen)
@@ -521,9 +521,9 @@ class ProfileTorque(OperatingMode):
 
     def enter(self, d: Drive) -> None:
         # ramps from the torque the motor gives now (bumpless from CST), else from zero
-        from_torque = d._power and d._smode == ControlMode.TORQUE
+        from_torque = d._power and d._smode == CONTROL_MODE.TORQUE
         self.torque_nm = d._axis.torque_nm if from_torque else 0.0
-        d._set_sim_mode(ControlMode.TORQUE)
+        d._set_sim_mode(CONTROL_MODE.TORQUE)
 
     def target_nm(self, d: Drive, rated_nm: float) -> float:
         """Where the ramp goes: 0x6071 limited by 0x6072, zero while halted (CW bit 8) [N m]."""

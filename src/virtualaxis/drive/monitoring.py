@@ -22,12 +22,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from virtualaxis.drive import reactions as rx
-from virtualaxis.drive.statemachine import Cia402State
+from virtualaxis.drive.statemachine import STATE
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
 
-S = Cia402State
+S = STATE  # (the members as plain attributes; Cia402State is the type)
 HM = 6
 LIMIT_CODES = (0xFF10, 0xFF11)  # negative, positive switch
 I32_MAX = 0x7FFFFFFF

@@ -26,13 +26,13 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from virtualaxis.drive.profiles import VelocityRamp
-from virtualaxis.drive.statemachine import Cia402State
-from virtualaxis.sim import ControlMode
+from virtualaxis.drive.statemachine import STATE, Cia402State
+from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
 
-S = Cia402State
+S = STATE  # (the members as plain attributes; Cia402State is the type)
 
 #: hold at standstill before the pulses are switched off [s] (SINAMICS p1228 default 0.01 s... chosen 20 ms,
 #: two speed-controller settling times of the bench axes)
@@ -93,7 +93,7 @@ class StopRamp:
         decel_obj = 0x6084 if kind == "slow" else 0x6085
         decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
-        drive._set_sim_mode(ControlMode.VELOCITY)
+        drive._set_sim_mode(CONTROL_MODE.VELOCITY)
         drive._hm.run = None
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
                    vramp=VelocityRamp(drive.cycle_s))
@@ -101,7 +101,7 @@ class StopRamp:
         if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
             ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
             if velocity_control:
-                drive._set_sim_mode(ControlMode.POSITION)
+                drive._set_sim_mode(CONTROL_MODE.POSITION)
                 ramp.velocity_control = False
         return ramp
 
@@ -137,7 +137,7 @@ def run_stop(drive: Drive) -> None:
         s.stopped_s = s.t_s
         if s.velocity_control:  # hold the position where the axis came to rest
             drive._demand_m = ax.position_m - drive._zero_m
-            drive._set_sim_mode(ControlMode.POSITION)
+            drive._set_sim_mode(CONTROL_MODE.POSITION)
             drive._set_position(drive._demand_m, 0.0)
             s.velocity_control = False
             s.kind = "hold"

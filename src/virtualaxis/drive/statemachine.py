@@ -6,6 +6,7 @@ Only the logic lives here (pure functions); the drive applies the reactions (ram
 from __future__ import annotations
 
 import enum
+import types
 
 
 class Cia402State(enum.Enum):
@@ -74,6 +75,13 @@ class Transition(enum.IntEnum):
     T3_4 = 34  # ready -> switched on -> operation enabled in one command
     ILLEGAL = -1
     IGNORED = -2  # commands have no meaning in this state (fault reaction active, fault)
+
+
+#: the members as plain attributes (``STATE.FAULT is Cia402State.FAULT``, ``TRANSITION.T4 is Transition.T4``):
+#: CPython 3.11 looks an Enum member up through the class's descriptors, ~10x a plain attribute, and the drive
+#: cycle reads states and transitions several times per cycle
+STATE = types.SimpleNamespace(**Cia402State.__members__)
+TRANSITION = types.SimpleNamespace(**Transition.__members__)
 
 
 _TABLE: dict[Cia402State, dict[Command, Transition]] = {

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import enum
 import math
+import types
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,12 @@ class ControlMode(enum.IntEnum):
     POSITION = L.MODE_POSITION
     VELOCITY = L.MODE_VELOCITY
     TORQUE = L.MODE_TORQUE
+
+
+#: the :class:`ControlMode` members as plain attributes (``CONTROL_MODE.POSITION is ControlMode.POSITION``): CPython
+#: 3.11 looks an Enum member up through the class's descriptors, ~10x a plain attribute, and the drive cycle
+#: compares modes several times per cycle
+CONTROL_MODE = types.SimpleNamespace(**ControlMode.__members__)
 
 
 @dataclass(frozen=True)
