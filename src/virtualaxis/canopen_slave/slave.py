@@ -34,6 +34,7 @@ from virtualaxis.canopen_slave.heartbeat import (
 from virtualaxis.canopen_slave.nmt import (
     COMMAND_STATES,
     NMT_COB,
+    NMT_STATE,
     RESET_COMMUNICATION,
     RESET_NODE,
     NmtState,
@@ -88,7 +89,7 @@ class CanopenSlave:
         self.app = app
         self.counters: dict[str, int] = new_counters()
         self.od = ObjectStore(eds_path, node_id)
-        self.nmt_state = NmtState.INITIALISING
+        self.nmt_state = NMT_STATE.INITIALISING
         self._queue: deque[can.Message] = deque()
         self._now = 0.0
         self._rx_fd: int | None = None   # the bus's receive file descriptor (-1: none), looked up once
@@ -139,7 +140,7 @@ class CanopenSlave:
         self._now = now_s
         self.send(HEARTBEAT_BASE + self.node_id, b"\x00")
         self.heartbeat.restart(now_s)
-        self._set_state(NmtState.PRE_OPERATIONAL)
+        self._set_state(NMT_STATE.PRE_OPERATIONAL)
 
     def poll(self, now_s: float) -> list[int]:
         """Handle queued frames and timers; returns the SYNC counters received since the last poll."""
@@ -147,7 +148,7 @@ class CanopenSlave:
         self._wall_to_now = now_s - time.time()
         queue = self._queue
         counters = self.counters
-        if self.nmt_state == NmtState.INITIALISING:      # not booted yet: a node hears nothing
+        if self.nmt_state == NMT_STATE.INITIALISING:      # not booted yet: a node hears nothing
             counters["frames_received"] += len(queue)
             queue.clear()
             return []
@@ -173,7 +174,7 @@ class CanopenSlave:
                 self.emcy_producer.poll(now_s)
             if self.sdo.state:
                 self.sdo.check_timeout(now_s)
-            if self.nmt_state == NmtState.OPERATIONAL:
+            if self.nmt_state == NMT_STATE.OPERATIONAL:
                 self.pdo.poll(now_s)
                 if self.sync.timeout_s and self.sync.check_timeout(now_s, self._rx_pending):
                     self._sync_timeout()
@@ -186,7 +187,7 @@ class CanopenSlave:
         received before that SYNC now (``on_sync`` for that SYNC then only transmits)."""
         due = self._due_sync_rpdos.popleft() if self._due_sync_rpdos else None
         self._applied_ahead += 1
-        if due and self.nmt_state == NmtState.OPERATIONAL:
+        if due and self.nmt_state == NMT_STATE.OPERATIONAL:
             try:
                 for rpdo, data in due:
                     self.pdo.apply(rpdo, data)
@@ -220,7 +221,7 @@ class CanopenSlave:
         """First half of :meth:`on_sync`: send the synchronous TPDOs due at this SYNC (OPERATIONAL only, within
         the synchronous window 0x1007)."""
         self._now = now_s
-        if self.nmt_state != NmtState.OPERATIONAL:
+        if self.nmt_state != NMT_STATE.OPERATIONAL:
             return
         try:
             if self.sync.window_open(now_s):
@@ -232,7 +233,7 @@ class CanopenSlave:
         """Second half of :meth:`on_sync`: apply the synchronous RPDOs received before the SYNC just answered
         (dropped outside OPERATIONAL)."""
         due = self._take_due_sync_rpdos()
-        if self.nmt_state != NmtState.OPERATIONAL:
+        if self.nmt_state != NMT_STATE.OPERATIONAL:
             return
         try:
             self._apply_rpdos(due)
@@ -283,7 +284,7 @@ class CanopenSlave:
             self.emcy_producer.push_history(code)
             if (0x603F, 0) in entries:
                 self.write(0x603F, 0, code & 0xFFFF)
-        if self.nmt_state in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+        if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(code, register.value, data, self._now)
 
     def emcy_reset(self) -> None:
@@ -291,7 +292,7 @@ class CanopenSlave:
         self.write(0x1001, 0, 0)
         if (0x603F, 0) in self.od.entries:
             self.write(0x603F, 0, 0)
-        if self.nmt_state in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+        if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(0x0000, 0, b"", self._now)
 
     # ================================================================== services' helpers
@@ -311,10 +312,10 @@ class CanopenSlave:
     def error_behaviour(self) -> None:
         """0x1029:1 reaction to a communication error (heartbeat / life guarding lost)."""
         mode = self.od.value(0x1029, 1) if (0x1029, 1) in self.od.entries else 0
-        if mode == 0 and self.nmt_state == NmtState.OPERATIONAL:
-            self._set_state(NmtState.PRE_OPERATIONAL)
+        if mode == 0 and self.nmt_state == NMT_STATE.OPERATIONAL:
+            self._set_state(NMT_STATE.PRE_OPERATIONAL)
         elif mode == 2:
-            self._set_state(NmtState.STOPPED)
+            self._set_state(NMT_STATE.STOPPED)
 
     def rebuild_dispatch(self) -> None:
         """COB-ID -> handler table; rebuilt whenever a COB-ID or a monitored node changes."""
@@ -513,11 +514,11 @@ class CanopenSlave:
         if state == self.nmt_state:
             return
         self.nmt_state = state
-        if state == NmtState.OPERATIONAL:
+        if state == NMT_STATE.OPERATIONAL:
             self.pdo.on_operational()
             self.sync.last_sync_s = None        # SYNC monitoring restarts with the next SYNC
             self.sync.timed_out = False
-        elif state == NmtState.STOPPED:
+        elif state == NMT_STATE.STOPPED:
             self.sdo.reset()
         self._due_sync_rpdos.clear()
         self._applied_ahead = 0
@@ -528,7 +529,7 @@ class CanopenSlave:
                 self.counters["internal_errors"] += 1
 
     def _reset(self, application: bool) -> None:
-        self.nmt_state = NmtState.INITIALISING
+        self.nmt_state = NMT_STATE.INITIALISING
         if application:
             self._power_on_values(0x0000, 0xFFFF)
         else:
@@ -569,7 +570,7 @@ class CanopenSlave:
         if msg.is_remote_frame:
             self.counters["malformed_frames"] += 1
             return
-        if self.nmt_state == NmtState.STOPPED:
+        if self.nmt_state == NMT_STATE.STOPPED:
             self.counters["sdo_ignored_stopped"] += 1
             return
         self.sdo.on_frame(bytes(msg.data), now_s)
@@ -624,10 +625,10 @@ class CanopenSlave:
             return
         self.counters["sync_received"] += 1
         arrival = self.arrival_s(msg, now_s)
-        if self.sync.on_arrival(arrival) and self.nmt_state == NmtState.OPERATIONAL:
+        if self.sync.on_arrival(arrival) and self.nmt_state == NMT_STATE.OPERATIONAL:
             self._sync_timeout()          # a gap longer than 1.5 periods the timer had not caught
         self._sync_counters.append(counter)
-        if self.nmt_state == NmtState.OPERATIONAL and self.pdo.sync_rpdos:
+        if self.nmt_state == NMT_STATE.OPERATIONAL and self.pdo.sync_rpdos:
             self._due_sync_rpdos.append(self.pdo.latch_sync_rpdos())
         else:
             self._due_sync_rpdos.append(_NOTHING_DUE)
@@ -645,7 +646,7 @@ def _rpdo_handler(slave: CanopenSlave, rpdo) -> Callable[[can.Message, float], N
     pdo = slave.pdo
 
     def handle(msg: can.Message, now_s: float) -> None:
-        if slave.nmt_state != NmtState.OPERATIONAL:
+        if slave.nmt_state != NMT_STATE.OPERATIONAL:
             slave.counters["pdo_ignored_nmt_state"] += 1
             return
         if msg.is_remote_frame:

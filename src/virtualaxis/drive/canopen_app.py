@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 from virtualaxis.canopen_slave import CanopenSlave, NmtState, SdoAbort
+from virtualaxis.canopen_slave.nmt import NMT_STATE
 from virtualaxis.drive.core import ALIASES, Drive, ObjectAccessError
 from virtualaxis.drive.objects import SPECS
 
@@ -125,7 +126,7 @@ class Cia402Application:
     def on_nmt_state(self, state: NmtState) -> None:
         """NMT Stopped while the drive is enabled is a loss of control (0x6007, CiA 402)."""
         self.nmt_state = state
-        if state == NmtState.STOPPED:
+        if state == NMT_STATE.STOPPED:
             self.drive.communication_error("nmt_stopped", 0)
             self.flush()
 
@@ -142,7 +143,7 @@ class Cia402Application:
             self._cycles_at_sync = cycles
             self._sync_loss_reported = False
             return
-        if self._sync_loss_reported or slave.nmt_state != NmtState.OPERATIONAL or not syncs:
+        if self._sync_loss_reported or slave.nmt_state != NMT_STATE.OPERATIONAL or not syncs:
             return
         period_s = slave.sync.timeout_s / 1.5
         if period_s <= 0.0:
