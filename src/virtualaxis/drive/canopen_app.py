@@ -23,6 +23,8 @@ from virtualaxis.drive.objects import SPECS
 SYNC_LOSS_PERIODS = 5
 #: ... and at least this long [s] (chosen: a busy host delays a SYNC by a few ms, rarely by tens of ms)
 SYNC_LOSS_MIN_S = 0.050
+#: the objects the drive serves (its own and the manufacturer aliases)
+_DRIVE_KEYS = frozenset(SPECS) | frozenset(ALIASES)
 
 
 class Cia402Application:
@@ -95,7 +97,7 @@ class Cia402Application:
 
     # ------------------------------------------------------------------ DeviceApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:
-        if (index, sub) in SPECS or (index, sub) in ALIASES:
+        if (index, sub) in _DRIVE_KEYS:
             try:
                 self.drive.check_object_write(index, sub, value)
             except ObjectAccessError as exc:
@@ -113,7 +115,7 @@ class Cia402Application:
             self.flush()
 
     def after_write(self, index: int, sub: int, value) -> None:
-        if (index, sub) in SPECS or (index, sub) in ALIASES:
+        if (index, sub) in _DRIVE_KEYS:
             if self._batch is not None:
                 self._batch.append((index, sub, value))
                 return

@@ -74,6 +74,8 @@ class AxisNode:
                                                           allowed=allow_fault_injection, store_path=store_path)
         self.app.attach(self.slave)
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
+        #: the live 0x1006 entry (read every SYNC in lockstep; None when the EDS has no 0x1006)
+        self._comm_period = self.slave.entry(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else None
 
     def fault_internal(self, code: int) -> None:
         """Put the drive in FAULT with ``code`` (EMCY through the slave) after an exception in its cycle; not
@@ -91,7 +93,7 @@ class AxisNode:
 
     def sync_cycles(self) -> int:
         """Drive cycles per SYNC in lockstep: 0x1006 (communication cycle) / position cycle, at least 1."""
-        period_us = self.slave.read(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else 0
+        period_us = self._comm_period.value if self._comm_period is not None else 0
         if not period_us:
             return 1
         return max(1, int(round(period_us * 1e-6 / self.drive.cycle_s)))

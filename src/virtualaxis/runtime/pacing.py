@@ -354,13 +354,15 @@ class Runtime:
         if not answered:
             return
         for ax, counters in answered:
+            if lockstep:
+                # the cycles run once every axis has answered; the flush after them mirrors what the RPDOs
+                # changed (the frames of the poll flushed their own changes through the application's hooks)
+                ax.slave.apply_sync()
+                stepping.append((ax, counters))
+                continue
             self._flush(ax)
             ax.slave.apply_sync()
             self._flush(ax)
-            if lockstep:
-                # the cycles run once every axis has answered
-                stepping.append((ax, counters))
-                continue
             for counter in counters[1:]:  # real time, several SYNCs in one pass: answered in order
                 ax.slave.on_sync(counter, now)
                 self._flush(ax)
