@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from virtualaxis.canopen_slave import CanopenSlave, NmtState, SdoAbort
 from virtualaxis.canopen_slave.nmt import NMT_STATE
-from virtualaxis.drive.core import ALIASES, Drive, ObjectAccessError
+from virtualaxis.drive.core import ALIASES, OUTPUT_KEYS, Drive, ObjectAccessError
 from virtualaxis.drive.objects import SPECS
 
 #: SYNC loss = this many communication cycles (0x1006) of drive time without SYNC ...
@@ -35,6 +35,9 @@ class Cia402Application:
         self.slave: CanopenSlave | None = None
         self._entries: dict = {}
         self._float_keys: frozenset = frozenset()
+        self._output_entries: tuple = ()
+        self._output_float: tuple = ()
+        self._outputs_mirrored: tuple = ()
         self.nmt_state: NmtState | None = None
         self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
         self._syncs_seen = 0
@@ -50,6 +53,11 @@ class Cia402Application:
         self._entries = {key: slave.entry(*key) for key in list(SPECS) + list(ALIASES) if key in slave.od.entries}
         #: keys whose OD entry is a REAL32/REAL64 (the drive may hold an int there)
         self._float_keys = frozenset(key for key, entry in self._entries.items() if entry.fmt in ("f", "d"))
+        #: the OD entries of the drive's per-cycle outputs (Drive.outputs order; None: not in the EDS), whether
+        #: each is REAL, and the outputs last copied into them
+        self._output_entries = tuple(self._entries.get(key) for key in OUTPUT_KEYS)
+        self._output_float = tuple(key in self._float_keys for key in OUTPUT_KEYS)
+        self._outputs_mirrored = (None,) * len(OUTPUT_KEYS)
         self._sync_from_slave()
 
     def missing_objects(self) -> list[tuple[int, int]]:
@@ -76,6 +84,18 @@ class Cia402Application:
         if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
             self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
             self._watch_sync(slave)
+        outputs = drive.outputs
+        if outputs is not self._outputs_mirrored:  # a cycle changed actual values: only those compared
+            for entry, value, old, real in zip(self._output_entries, outputs, self._outputs_mirrored,
+                                               self._output_float, strict=True):
+                if value != old and entry is not None:
+                    if real:
+                        value = float(value)
+                    if entry.value != value:
+                        entry.value = value
+                        for tpdo in entry.tpdos:
+                            tpdo.dirty = True
+            self._outputs_mirrored = outputs
         if everything:
             drive.take_changed()
             objects = drive.objects

@@ -116,7 +116,7 @@ ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 
 #: actual-value objects written every cycle by Drive._publish_outputs, in its order (none is an alias)
 _I32_MIN, _I32_MAX = -0x80000000, 0x7FFFFFFF
-_OUTPUT_KEYS = ((0x6061, 0), (0x6062, 0), (0x6063, 0), (0x6064, 0), (0x606B, 0), (0x606C, 0), (0x6077, 0),
+OUTPUT_KEYS = _OUTPUT_KEYS = ((0x6061, 0), (0x6062, 0), (0x6063, 0), (0x6064, 0), (0x606B, 0), (0x606C, 0), (0x6077, 0),
                 (0x6078, 0), (0x6079, 0), (0x60F4, 0), (0x60FD, 0), (0x2020, 0), (0x2031, 0), (0x2110, 5))
 assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
 #: statusword base per state value: the state bits | 0x10 voltage enabled | 0x200 remote (keyed by the enum's
@@ -509,8 +509,19 @@ class Drive:
         the OD)."""
         return [(k[0], k[1], v) for k, v in self.take_changed()]
 
+    @property
+    def outputs(self) -> tuple:
+        """The actual values published by the last cycle, in the order of :data:`OUTPUT_KEYS` (0x6061 mode
+        display, 0x6062 / 0x6063 / 0x6064 positions, 0x606B / 0x606C velocities, 0x6077 torque, 0x6078 current,
+        0x6079 DC link, 0x60F4 following error, 0x60FD inputs, 0x2020 temperature, 0x2031 alarm, 0x2110:5
+        cycles). A new tuple object whenever a value changed (compare by identity to see whether anything
+        did); :attr:`objects` holds the same values. These objects are not reported by :meth:`take_changed`
+        after a cycle (a mirror compares this tuple instead: one comparison per value and cycle, no set)."""
+        return self._published
+
     def take_changed(self) -> list[tuple[tuple[int, int], int | float]]:
-        """Objects changed since the last call: ((index, sub), value), the values as of this call."""
+        """Objects changed since the last call: ((index, sub), value), the values as of this call; the
+        per-cycle actual values are in :attr:`outputs` instead (they are reported here only after a reset)."""
         if not self._changed:  # (read without the lock: a change being made now is taken by the next call)
             return []
         with self._lock:
@@ -1272,12 +1283,10 @@ class Drive:
         )
         last = self._published
         if values != last:
-            changed = self._changed
             for key, value, old in zip(_OUTPUT_KEYS, values, last, strict=True):
                 if value != old:
                     o[key] = value
-                    changed.add(key)
-            self._published = values
+            self._published = values  # (not in _changed: a mirror compares :attr:`outputs` itself)
         if self._mode not in TORQUE_MODES and o[(0x6074, 0)] != torque_pm:
             o[(0x6074, 0)] = torque_pm
             self._changed.add((0x6074, 0))

@@ -157,9 +157,16 @@ class _Router(can.Listener):
             slave.on_dispatch_change = self.routes.clear
 
     def on_message_received(self, msg: can.Message) -> None:
+        """A frame from a receive thread: to its slaves, then the loop woken."""
+        if self.route(msg):
+            self.event.set()
+
+    def route(self, msg: can.Message) -> bool:
+        """A frame to the slaves that listen to its COB-ID (the loop reading the bus itself: no wake-up);
+        True when some slave took it."""
         if msg.is_extended_id or msg.is_error_frame:
             self.unrouted += 1
-            return
+            return False
         cob = msg.arbitration_id
         targets = self.routes.get(cob)
         if targets is None:
@@ -167,10 +174,10 @@ class _Router(can.Listener):
             self.routes[cob] = targets
         if not targets:
             self.unrouted += 1
-            return
+            return False
         for slave in targets:
             slave.receive(msg)
-        self.event.set()
+        return True
 
     def on_error(self, exc: Exception) -> None:
         for slave in self.slaves:
@@ -398,7 +405,7 @@ class Runtime:
     def _drain(self) -> None:
         """Direct reading: every frame waiting on the bus (at most :data:`DRAIN_LIMIT`) to its slaves."""
         router = self.router
-        route = router.on_message_received
+        route = router.route  # (this thread reads and serves the frames: nobody to wake)
         try:
             if self._bus_drain is not None:
                 for msg in self._bus_drain(DRAIN_LIMIT, router.on_error):
