@@ -139,16 +139,22 @@ def test_udp_drain_takes_waiting_frames_drops_own_and_counts_undecodable():
         for i in range(5):
             other.send(can.Message(arbitration_id=0x600 + i, data=bytes([i] * 8), is_extended_id=False))
         ours.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))  # looped back to us
+        # a frame whose data are the packed "channel" key, and a frame of another bus of this process: both
+        # foreign (own frames are recognised by the key followed by this bus's own tag)
+        other.send(can.Message(arbitration_id=0x605, data=b"\xa7channel", is_extended_id=False))
+        sibling = open_bus(spec)
+        sibling.send(can.Message(arbitration_id=0x606, data=b"\x06", is_extended_id=False))
+        sibling.shutdown()
         raw.sendto(b"\xc1 not msgpack", ("239.74.163.77", port))
         errors: list[Exception] = []
         got: list[can.Message] = []
         end = time.monotonic() + 2.0
-        while len(got) < 5 and time.monotonic() < end:
+        while len(got) < 7 and time.monotonic() < end:
             got += ours.drain(256, errors.append)
             time.sleep(0.01)
         got += ours.drain(256, errors.append)
-        assert [m.arbitration_id for m in got] == [0x600 + i for i in range(5)]
-        assert [bytes(m.data) for m in got] == [bytes([i] * 8) for i in range(5)]
+        assert [m.arbitration_id for m in got] == [0x600 + i for i in range(7)]
+        assert [bytes(m.data) for m in got] == [bytes([i] * 8) for i in range(5)] + [b"\xa7channel", b"\x06"]
         assert all(t0 - 0.01 <= m.timestamp <= time.time() + 0.01 for m in got)  # kernel receive time
         assert ours.own_frames_dropped == 1
         assert ours.malformed_dropped == 1 and len(errors) == 1
