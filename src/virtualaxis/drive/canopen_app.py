@@ -84,7 +84,7 @@ class Cia402Application:
         if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
             self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
             self._watch_sync(slave)
-        outputs = drive.outputs
+        outputs = drive._published  # (Drive.outputs without the property call: every flush reads it)
         if outputs is not self._outputs_mirrored:  # a cycle changed actual values: only those compared
             for entry, value, old, real in zip(self._output_entries, outputs, self._outputs_mirrored,
                                                self._output_float, strict=True):

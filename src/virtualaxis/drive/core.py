@@ -117,7 +117,8 @@ ALIASES_BACK = {v: k for k, v in ALIASES.items()}
 #: actual-value objects written every cycle by Drive._publish_outputs, in its order (none is an alias)
 _I32_MIN, _I32_MAX = -0x80000000, 0x7FFFFFFF
 OUTPUT_KEYS = _OUTPUT_KEYS = ((0x6061, 0), (0x6062, 0), (0x6063, 0), (0x6064, 0), (0x606B, 0), (0x606C, 0), (0x6077, 0),
-                (0x6078, 0), (0x6079, 0), (0x60F4, 0), (0x60FD, 0), (0x2020, 0), (0x2031, 0), (0x2110, 5))
+                (0x6078, 0), (0x6079, 0), (0x60F4, 0), (0x60FD, 0), (0x2020, 0), (0x2031, 0), (0x2110, 5),
+                (0x6074, 0))
 assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
 #: statusword base per state value: the state bits | 0x10 voltage enabled | 0x200 remote (keyed by the enum's
 #: string value: hashing a str is cheaper than an Enum member, and this runs every cycle)
@@ -514,9 +515,10 @@ class Drive:
         """The actual values published by the last cycle, in the order of :data:`OUTPUT_KEYS` (0x6061 mode
         display, 0x6062 / 0x6063 / 0x6064 positions, 0x606B / 0x606C velocities, 0x6077 torque, 0x6078 current,
         0x6079 DC link, 0x60F4 following error, 0x60FD inputs, 0x2020 temperature, 0x2031 alarm, 0x2110:5
-        cycles). A new tuple object whenever a value changed (compare by identity to see whether anything
-        did); :attr:`objects` holds the same values. These objects are not reported by :meth:`take_changed`
-        after a cycle (a mirror compares this tuple instead: one comparison per value and cycle, no set)."""
+        cycles, 0x6074 torque demand). A new tuple object whenever a value changed (compare by identity to
+        see whether anything did); :attr:`objects` holds the same values. These objects are not reported by
+        :meth:`take_changed` after a cycle (a mirror compares this tuple instead: one comparison per value and
+        cycle, no set)."""
         return self._published
 
     def take_changed(self) -> list[tuple[tuple[int, int], int | float]]:
@@ -1280,6 +1282,7 @@ class Drive:
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self._alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
+            o[(0x6074, 0)] if self._mode in TORQUE_MODES else torque_pm,  # torque demand (torque modes: theirs)
         )
         last = self._published
         if values != last:
@@ -1287,9 +1290,6 @@ class Drive:
                 if value != old:
                     o[key] = value
             self._published = values  # (not in _changed: a mirror compares :attr:`outputs` itself)
-        if self._mode not in TORQUE_MODES and o[(0x6074, 0)] != torque_pm:
-            o[(0x6074, 0)] = torque_pm
-            self._changed.add((0x6074, 0))
 
     def record_overrun(self, n: int = 1) -> None:
         """The runtime reports cycles that started late (shown in 0x2110:2 and the counters)."""
