@@ -457,9 +457,10 @@ class Runtime:
             t_busy = perf()
             if end is not None and t_busy >= end:
                 break
-            wake.clear()
             if direct:
-                self._drain()
+                self._drain()  # (reading the socket itself, the loop waits on it, not on the wake event)
+            else:
+                wake.clear()
             with self.lock:
                 self._service(perf() - self._t0)
                 if not self.lockstep:
@@ -487,9 +488,10 @@ class Runtime:
                             if len(axes) > 1 and self._frames_waiting():
                                 # a frame arrived meanwhile (a SYNC?): answer it before the next axis's
                                 # cycle, so no SYNC waits for the cycles of every axis
-                                wake.clear()
                                 if direct:
                                     self._drain()
+                                else:
+                                    wake.clear()
                                 self._service(perf() - self._t0)
                         stats.cycles += 1
                         next_cycle += period
