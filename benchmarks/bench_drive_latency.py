@@ -24,7 +24,8 @@ timestamp in the master's socket (SO_TIMESTAMPNS) minus the master's ``time.time
 The master's own stalls are reported apart (``master_stalls``: SYNCs sent more than two periods after the previous
 one, and the longest gap): after one, a burst of SYNCs follows that the drive must work off, and the late answers
 that follow are the master's doing. A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after
-the next SYNC is counted as late. Writes a JSON beside the printed table (``--json``).
+the next SYNC is counted as late. Writes a JSON beside the printed table only with ``--json FILE`` (the committed
+figures are ``benchmarks/bench_drive_latency.json``: name it to regenerate them).
 """
 
 from __future__ import annotations
@@ -254,8 +255,8 @@ def main() -> int:
     ap.add_argument("--cases", default="1ms:1,1ms:2,500us:1,500us:2", help="period:axes,...")
     ap.add_argument("--rt-priority", type=int, default=0)
     ap.add_argument("--json", default=None,
-                    help="results file (default: benchmarks/bench_drive_latency.json, the committed figures; "
-                         "--cycle-cost writes one only when given)")
+                    help="results file, written only when given (the committed figures are "
+                         "benchmarks/bench_drive_latency.json: name it to regenerate them)")
     ap.add_argument("--lockstep", action="store_true", help="serve --lockstep (0x1006 = the SYNC period)")
     ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
     ap.add_argument("--scale", action="store_true",
@@ -278,8 +279,6 @@ def main() -> int:
             Path(args.json).write_text(json.dumps({"machine": _machine(), "cycle_cost": res}, indent=2))
             print(f"wrote {args.json}")
         return 0
-    if args.json is None:
-        args.json = str(REPO / "benchmarks" / "bench_drive_latency.json")
     if args.scale:
         return scale(args)
     cases = []
@@ -312,8 +311,10 @@ def main() -> int:
                 f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}% "
                 f"{r['master_max_sync_gap_ms']:>13.2f}"
             )
-    Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results}, indent=2))
-    print(f"wrote {args.json}")
+    if args.json:  # (only when asked: a profiling or trial run must not replace the committed figures)
+        Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results},
+                                              indent=2))
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -384,9 +385,10 @@ def scale(args) -> int:
                    "serve_cpu_share_of_one_core": float(np.median([r["serve_cpu_share_of_one_core"] for r in rs]))}
             summary.append(med)
             print(line(med, "med"))
-    Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "fifo_permitted": fifo_ok,
-                                           "results": results, "median_over_rounds": summary}, indent=2))
-    print(f"wrote {args.json}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "fifo_permitted": fifo_ok,
+                                               "results": results, "median_over_rounds": summary}, indent=2))
+        print(f"wrote {args.json}")
     return 0
 
 
