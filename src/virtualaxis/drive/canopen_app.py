@@ -86,6 +86,7 @@ class Cia402Application:
             self._watch_sync(slave)
         outputs = drive._published  # (Drive.outputs without the property call: every flush reads it)
         if outputs is not self._outputs_mirrored:  # a cycle changed actual values: only those compared
+            # (CanopenSlave.write_entry inlined: ~10 values of every axis in every cycle)
             for entry, value, old, real in zip(self._output_entries, outputs, self._outputs_mirrored,
                                                self._output_float, strict=True):
                 if value != old and entry is not None:
@@ -105,15 +106,10 @@ class Cia402Application:
         else:
             changes = drive.take_changed()
         float_keys = self._float_keys
-        for key, value in changes:  # (slave.write_entry inlined: this runs every cycle for every changed value)
+        for key, value in changes:  # (few per cycle since the outputs have their own loop above)
             entry = self._entries.get(key)
             if entry is not None:
-                if key in float_keys:
-                    value = float(value)
-                if entry.value != value:
-                    entry.value = value
-                    for tpdo in entry.tpdos:
-                        tpdo.dirty = True
+                slave.write_entry(entry, float(value) if key in float_keys else value)
 
     # ------------------------------------------------------------------ DeviceApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:

@@ -505,11 +505,6 @@ class Drive:
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
 
-    def take_changes(self) -> list[tuple[int, int, int | float]]:
-        """Objects changed since the last call: (index, sub, value) (the CANopen application mirrors them into
-        the OD)."""
-        return [(k[0], k[1], v) for k, v in self.take_changed()]
-
     @property
     def outputs(self) -> tuple:
         """The actual values published by the last cycle, in the order of :data:`OUTPUT_KEYS` (0x6061 mode
