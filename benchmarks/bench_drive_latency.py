@@ -24,8 +24,10 @@ timestamp in the master's socket (SO_TIMESTAMPNS) minus the master's ``time.time
 The master's own stalls are reported apart (``master_stalls``: SYNCs sent more than two periods after the previous
 one, and the longest gap): after one, a burst of SYNCs follows that the drive must work off, and the late answers
 that follow are the master's doing. A SYNC that gets no TPDO at all is a missed cycle; a TPDO that arrives after
-the next SYNC is counted as late. Writes a JSON beside the printed table only with ``--json FILE`` (the committed
-figures are ``benchmarks/bench_drive_latency.json``: name it to regenerate them).
+the next SYNC is counted as late. ``cycles`` / ``overrun``: the drive's own count, read by SDO before and after
+the SYNCs, of the drive cycles it ran (0x2110:5) and of those that started late or were given up (0x2110:2; in
+lockstep, the cycles of SYNCs it answered but could not run). Writes a JSON beside the printed table only with
+``--json FILE`` (the committed figures are ``benchmarks/bench_drive_latency.json``: name it to regenerate them).
 """
 
 from __future__ import annotations
@@ -139,6 +141,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
                 sdo(bus, reply, nid, 0x60FF, value=int(SPINDLE_RPM / 60 * 3600))
         for lst in clock.times.values():
             lst.clear()
+        # the drives' own count of cycles run (0x2110:5) and of cycles started late or given up (0x2110:2)
+        counts0 = {nid: (sdo(bus, reply, nid, 0x2110, 5), sdo(bus, reply, nid, 0x2110, 2)) for nid in node_ids}
         n_sync = int(seconds / period_s)
         cpu0, wall0 = cpu_seconds(proc.pid), time.perf_counter()
         with tqdm(
@@ -149,6 +153,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             sync_times = sync_loop(bus, x0, period_s, n_sync, spin_s=0.0 if rt_priority else 3e-4, bar=bar)
         time.sleep(0.2)
         cpu1, wall1 = cpu_seconds(proc.pid), time.perf_counter()
+        counts1 = {nid: (sdo(bus, reply, nid, 0x2110, 5), sdo(bus, reply, nid, 0x2110, 2)) for nid in node_ids}
         result = {
             "sync_period_us": period_s * 1e6,
             "axes": n_axes,
@@ -164,6 +169,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         for nid, cob in zip(node_ids, tpdo_cobs, strict=True):
             result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
                                     if k != "latency_us_p999"}
+            result[f"node{nid}"]["drive_cycles"] = (counts1[nid][0] - counts0[nid][0]) & 0xFFFFFFFF
+            result[f"node{nid}"]["drive_overruns"] = (counts1[nid][1] - counts0[nid][1]) & 0xFFFFFFFF
         result["sdo_rtt_us_p50"] = float(np.percentile(rtts, 50) * 1e6)
         # the master's own stalls: SYNCs sent more than 2 periods after the previous one (then a burst follows
         # that the drive must work off: its late answers are the master's doing, not the drive's)
@@ -184,6 +191,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         "latency_us_max": max(x["latency_us_max"] or 0 for x in lat),
         "missed_cycles": sum(x["missed_cycles"] for x in lat),
         "late_tpdos": sum(x["late_tpdos"] for x in lat),
+        "drive_overruns": sum(x["drive_overruns"] for x in lat),
         "master_stalls": result["master_stalls"],
         "master_max_sync_gap_ms": result["master_max_sync_gap_ms"],
     }
@@ -300,7 +308,7 @@ def main() -> int:
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
     print(
         f"{'SYNC':>7} {'axes':>4} {'node':>4} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} "
-        f"{'SDO p50 us':>10} {'CPU':>6} {'master gap ms':>13}"
+        f"{'cycles':>7} {'overrun':>7} {'SDO p50 us':>10} {'CPU':>6} {'master gap ms':>13}"
     )
     for r in results:
         for nid in range(1, r["axes"] + 1):
@@ -308,7 +316,8 @@ def main() -> int:
             print(
                 f"{r['sync_period_us']:>5.0f}us {r['axes']:>4} {nid:>4} {n['latency_us_p50']:>8.0f} "
                 f"{n['latency_us_p99']:>8.0f} {n['latency_us_max']:>9.0f} {n['missed_cycles']:>7} {n['late_tpdos']:>6} "
-                f"{r['sdo_rtt_us_p50']:>10.0f} {r['serve_cpu_share_of_one_core'] * 100:>5.0f}% "
+                f"{n.get('drive_cycles', -1):>7} {n.get('drive_overruns', -1):>7} {r['sdo_rtt_us_p50']:>10.0f} "
+                f"{r['serve_cpu_share_of_one_core'] * 100:>5.0f}% "
                 f"{r['master_max_sync_gap_ms']:>13.2f}"
             )
     if args.json:  # (only when asked: a profiling or trial run must not replace the committed figures)

@@ -1,7 +1,8 @@
 """Issue #15 "Scale": what the serving fast paths must keep.
 
 - lockstep on a host that cannot keep up: every SYNC of a backlog is answered (TPDO, RPDOs applied) but only
-  the latest SYNC's cycle runs, the others are counted; ``catch_up_syncs=True`` works the backlog off;
+  the latest SYNC's cycle runs, the others are counted; ``catch_up_syncs=True`` works the backlog off; a SYNC
+  that arrives while the axes' cycles run is answered before the remaining axes' cycles;
 - the runtime thread reading a ``udp_multicast`` bus itself (``read_in_loop``): no receive thread, SDO and
   SYNC answered; ``OwnFrameFilteringUdpBus.drain`` takes every waiting datagram, drops the bus's own frames
   and counts one that does not decode;
@@ -116,6 +117,65 @@ def test_lockstep_sync_backlog_answered_once_or_worked_off(catch_up):
         tpdo2 = _backlog(master, ax, rt, [targets[-1], targets[-1]])
         assert len(tpdo2) == 2 and drive.counters["cycles"] - cycles1 == 2
         assert rt.stats.syncs_skipped == (0 if catch_up else 2)
+    finally:
+        rt.stop()
+        master.shutdown()
+        bus.shutdown()
+
+
+def test_lockstep_answers_a_sync_that_arrives_during_the_cycles_before_the_remaining_cycles():
+    """Three axes in lockstep; while the first axis runs its cycle for SYNC 1, SYNC 2 arrives (a host that does
+    not keep up). The third axis answers SYNC 2 (its TPDO2 on the bus) before it runs its cycle for SYNC 1, as
+    real-time pacing answers between two axes' cycles; then both cycles run, in order, none given up."""
+    channel = f"va-scale-{os.getpid()}-{next(_channels)}"
+    bus = open_bus(f"virtual:{channel}")
+    master = can.Bus(interface="virtual", channel=channel)
+    axes = [AxisNode(bus, n, seed_config(), discrete=seed_discrete(), name=f"A{n}") for n in (1, 2, 3)]
+    rt = Runtime(bus, axes, lockstep=True)
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+    try:
+        rt.open()
+        for ax in axes:
+            ax.slave.write(0x1006, 0, 1000)  # one drive cycle per SYNC
+            ax.slave.write(0x1801, 2, 1)  # TPDO2 on every SYNC
+            master.send(can.Message(arbitration_id=0x000, data=bytes([0x01, ax.node_id]), is_extended_id=False))
+        for ax in axes:
+            _wait_queued(ax.slave, 1)
+        rt.poll_once()  # NMT start taken
+        while master.recv(0.01) is not None:  # boot-up frames
+            pass
+        events: list[str] = []
+        third = axes[2]
+        transmit = third.slave.transmit_sync
+
+        def recorded_transmit(counter: int, now_s: float) -> None:
+            events.append("answer")
+            transmit(counter, now_s)
+
+        third.slave.transmit_sync = recorded_transmit
+        third.drive.add_cycle_hook(lambda drive: events.append("cycle"))
+        second_sent: list[int] = []
+
+        def second_sync(drive) -> None:  # (axis 1's cycle for SYNC 1 is running)
+            if not second_sent:
+                second_sent.append(1)
+                master.send(sync)
+                for ax in axes:
+                    _wait_queued(ax.slave, 1)
+
+        axes[0].drive.add_cycle_hook(second_sync)
+        cycles0 = [ax.drive.counters["cycles"] for ax in axes]
+        master.send(sync)
+        for ax in axes:
+            _wait_queued(ax.slave, 1)
+        rt.poll_once()
+        assert events == ["answer", "answer", "cycle", "cycle"]
+        assert [ax.drive.counters["cycles"] - c for ax, c in zip(axes, cycles0, strict=True)] == [2, 2, 2]
+        assert rt.stats.syncs == 2 and rt.stats.syncs_skipped == 0 and rt.stats.skipped == 0
+        frames = []
+        while (msg := master.recv(0.05)) is not None:
+            frames.append(msg.arbitration_id)
+        assert [frames.count(0x280 + ax.node_id) for ax in axes] == [2, 2, 2]  # every SYNC answered by all
     finally:
         rt.stop()
         master.shutdown()

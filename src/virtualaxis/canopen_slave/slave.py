@@ -240,13 +240,13 @@ class CanopenSlave:
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
 
-    def skip_sync(self, counter: int, now_s: float) -> None:
-        """A SYNC whose application cycle the runtime gives up (lockstep, a backlog the host could not keep up
-        with): answered like any SYNC -- the TPDOs due go out with the values of the last cycle run, then the
-        synchronous RPDOs received before it are applied (no set-point or controlword edge is lost) -- and
-        counted in ``counters["syncs_skipped"]``; the plant does not run its cycle."""
+    def skip_answered_sync(self) -> None:
+        """A SYNC already answered (:meth:`transmit_sync`) whose application cycle the runtime gives up
+        (lockstep, a backlog the host could not keep up with): its synchronous RPDOs are applied (no set-point
+        or controlword edge is lost) and it is counted in ``counters["syncs_skipped"]``; the plant does not run
+        its cycle."""
         self.counters["syncs_skipped"] += 1
-        self.on_sync(counter, now_s)
+        self.apply_sync()
 
     def read(self, index: int, sub: int = 0):
         """Internal read, no access checks (KeyError for an object not in the EDS)."""

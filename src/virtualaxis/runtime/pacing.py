@@ -20,12 +20,15 @@
   set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
   real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
   machine's speed, as long as the host keeps up. SDO, NMT, heartbeat and timers keep running between SYNCs.
-  A pass that finds up to ``max_sync_backlog`` (default 2) SYNCs works them off in order (a host that was busy for
-  a moment). When it does not keep up (more SYNCs arrived since the last pass: a saturated CPU), the runtime does
-  what a drive does with cycles it could not run in time: it gives them up and counts them. Every SYNC of the
-  backlog is still answered at once, in order, as real-time pacing answers a late SYNC (its TPDOs with the values
-  of the last cycle run, its synchronous RPDOs applied: no set-point or controlword edge is lost, the master's
-  PDO monitoring sees an answer to every SYNC), but only the LATEST SYNC's cycles run
+  While the axes' cycles run, the runtime looks at the bus between two axes' cycles (as real-time pacing does):
+  a SYNC that arrived meanwhile is answered at once (its TPDOs with the values of the last cycle run) and its
+  cycles run after the current ones, so no SYNC's answer waits for the cycles of every axis. Up to
+  ``max_sync_backlog`` (default 2) SYNCs of an axis waiting for their cycles are worked off in order (a host that
+  was busy for a moment). When it does not keep up (more of them: a saturated CPU), the runtime does what a drive
+  does with cycles it could not run in time: it gives them up and counts them. Every SYNC of the backlog has
+  still been answered at once, in order, as real-time pacing answers a late SYNC (its TPDOs with the values of
+  the last cycle run, its synchronous RPDOs applied: no set-point or controlword edge is lost, the master's PDO
+  monitoring sees an answer to every SYNC), but only the LATEST SYNC's cycles run
   (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
   :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2). Working the backlog's cycles off instead
   (``catch_up_syncs=True``, the exact SYNC-count plant time of a deterministic run) makes every later answer
@@ -233,8 +236,9 @@ class Runtime:
         self._bus_drain = None  # the bus's own drain(limit, on_error) -> frames, when it has one
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
-        self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
-        self._answered: list = []  # (axis, SYNC counters) whose TPDOs went out in this pass, RPDOs still to apply
+        self._answered: list = []  # real time: (axis, SYNC counters) whose TPDOs went out, RPDOs still to apply
+        self._pending = [0] * len(axes)  # lockstep, per axis: SYNCs answered whose RPDOs and cycle are still due
+        self._pending_count = 0  # (their sum)
 
     def now(self) -> float:
         return time.perf_counter() - self._t0
@@ -340,66 +344,107 @@ class Runtime:
         every axis' synchronous TPDOs (the values at the SYNC instant), then every axis' synchronous RPDOs
         applied. The last axis' TPDO therefore waits only for the other axes' frame handling and TPDO
         transmission, not for their set-point processing (see ``CanopenSlave.on_sync`` for why a drive may
-        answer in that order)."""
+        answer in that order). Lockstep then runs the communication cycles (:meth:`_run_sync_cycles`)."""
+        if self.lockstep:
+            self._answer_syncs(now)
+            if self._pending_count:
+                self._run_sync_cycles()
+            return
         axes = self.axes
-        stats = self.stats
-        stepping = self._stepping
         answered = self._answered
-        lockstep = self.lockstep
         for ax in axes:
             counters = ax.slave.poll(now)
             if not counters:
                 self._flush(ax)
                 continue
             if ax is axes[0]:
-                stats.syncs += len(counters)
-            if lockstep and len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
-                counters = self._skip_backlog(ax, counters, now)
-            # the TPDOs of the oldest SYNC out now (real time with a backlog: one after the other, below)
+                self.stats.syncs += len(counters)
+            # the TPDOs of the oldest SYNC out now (with a backlog: one after the other, below)
             ax.slave.transmit_sync(counters[0], now)
             answered.append((ax, counters))
         if not answered:
             return
         for ax, counters in answered:
-            if lockstep:
-                # the cycles run once every axis has answered; the flush after them mirrors what the RPDOs
-                # changed (the frames of the poll flushed their own changes through the application's hooks)
-                ax.slave.apply_sync()
-                stepping.append((ax, counters))
-                continue
             self._flush(ax)
             ax.slave.apply_sync()
             self._flush(ax)
-            for counter in counters[1:]:  # real time, several SYNCs in one pass: answered in order
+            for counter in counters[1:]:  # several SYNCs in one pass: answered in order
                 ax.slave.on_sync(counter, now)
                 self._flush(ax)
         answered.clear()
-        if stepping:
-            for ax, counters in stepping:
+
+    def _answer_syncs(self, now: float) -> None:
+        """Lockstep: frames and timers of every axis; every SYNC received is answered at once (its synchronous
+        TPDOs, with the values of the last cycle run) and queued for its RPDOs and its cycle
+        (:attr:`_pending`: per axis, the SYNCs answered whose cycles are still to run)."""
+        axes = self.axes
+        pending = self._pending
+        for i, ax in enumerate(axes):
+            counters = ax.slave.poll(now)
+            if not counters:
+                self._flush(ax)
+                continue
+            if i == 0:
+                self.stats.syncs += len(counters)
+            for counter in counters:
+                ax.slave.transmit_sync(counter, now)
+            pending[i] += len(counters)
+            self._pending_count += len(counters)
+
+    def _run_sync_cycles(self) -> None:
+        """Lockstep: for every axis with a SYNC answered, that SYNC's RPDOs applied (every axis first), then
+        one communication cycle per axis. Between two axes' cycles the bus is looked at: a SYNC that arrived
+        meanwhile (a host that does not keep up) is answered at once, as real-time pacing answers it, and its
+        cycle runs in the next round, so no SYNC waits for the cycles of every axis. An axis with more than
+        ``max_sync_backlog`` SYNCs waiting gives up the cycles of all but the latest (their RPDOs are still
+        applied, in order; counted), unless ``catch_up_syncs``. At most ``max_sync_backlog`` + 1 rounds per
+        call: the loop comes back at once for the rest (and lets other threads take the lock meanwhile)."""
+        axes = self.axes
+        pending = self._pending
+        stats = self.stats
+        several = len(axes) > 1
+        for _ in range(self.max_sync_backlog + 1):
+            if not self.catch_up_syncs:
+                for i, ax in enumerate(axes):
+                    if pending[i] > self.max_sync_backlog:
+                        self._skip_backlog(i, ax)
+            due = [i for i in range(len(axes)) if pending[i]]
+            for i in due:
+                axes[i].slave.apply_sync()
+            for i in due:
+                ax = axes[i]
+                pending[i] -= 1
+                self._pending_count -= 1
                 n = ax.sync_cycles()
                 self._step(ax, n)
-                for counter in counters[1:]:  # a backlog of SYNCs: one communication cycle per SYNC, in order
-                    ax.slave.on_sync(counter, now)
-                    self._flush(ax)
-                    self._step(ax, n)
-                if ax is axes[0]:
-                    stats.cycles += n * len(counters)
-            stepping.clear()
+                if i == 0:
+                    stats.cycles += n
+                if several and self._frames_waiting():
+                    # a frame arrived meanwhile (the next SYNC?): answered before the next axis' cycle
+                    if self._fd >= 0:
+                        self._drain()
+                    else:
+                        self._wake.clear()
+                    self._answer_syncs(self.now())
+            if not self._pending_count:
+                return
 
-    def _skip_backlog(self, ax: AxisNode, counters: list[int], now: float) -> list[int]:
-        """Lockstep, more SYNCs since the last pass than ``max_sync_backlog``: the cycles of all but the latest
-        are given up (see the module doc: answered, RPDOs applied, no cycles, counted); returns the latest."""
-        skipped = counters[:-1]
-        for counter in skipped:
-            ax.slave.skip_sync(counter, now)
+    def _skip_backlog(self, i: int, ax: AxisNode) -> None:
+        """Lockstep, axis ``i`` has more SYNCs answered than ``max_sync_backlog`` whose cycles have not run:
+        the cycles of all but the latest are given up (see the module doc: their RPDOs applied in order, no
+        cycles, counted)."""
+        skipped = self._pending[i] - 1
+        for _ in range(skipped):
+            ax.slave.skip_answered_sync()
+        self._pending[i] = 1
+        self._pending_count -= skipped
         self._flush(ax)
-        lost = len(skipped) * ax.sync_cycles()
+        lost = skipped * ax.sync_cycles()
         ax.drive.record_overrun(lost)
-        if ax is self.axes[0]:
-            self.stats.syncs_skipped += len(skipped)
+        if i == 0:
+            self.stats.syncs_skipped += skipped
             self.stats.skipped += lost
             self.stats.overruns += lost
-        return counters[-1:]
 
     # ------------------------------------------------------------------ frames
     def _drain(self) -> None:
@@ -505,6 +550,8 @@ class Runtime:
             deadline = t + self.idle_poll_s if self.lockstep else min(next_cycle, t + self.idle_poll_s)
             remaining = deadline - t
             spin = 0.0 if self.lockstep else self.spin_s  # (lockstep: no deadline to meet, nothing to spin for)
+            if self._pending_count:  # lockstep: cycles of answered SYNCs still to run (a host behind)
+                continue
             if remaining > spin:
                 self._wait(remaining - spin)
             if spin:
