@@ -35,7 +35,7 @@
   later still on a machine that cannot keep up.
 
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
-(``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
+(``CanopenSlave.transmit_sync`` / ``apply_sync``; in lockstep each axis' RPDOs right before its own cycle). Answering axis by axis (RPDO applied, then TPDO) made the
 n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
 
 Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
@@ -392,10 +392,10 @@ class Runtime:
             self._pending_count += len(counters)
 
     def _run_sync_cycles(self) -> None:
-        """Lockstep: for every axis with a SYNC answered, that SYNC's RPDOs applied (every axis first), then
-        one communication cycle per axis. Between two axes' cycles the bus is looked at: a SYNC that arrived
-        meanwhile (a host that does not keep up) is answered at once, as real-time pacing answers it, and its
-        cycle runs in the next round, so no SYNC waits for the cycles of every axis. An axis with more than
+        """Lockstep: for every axis with a SYNC answered, that SYNC's RPDOs applied and one communication cycle
+        run, axis after axis. Between two axes the bus is looked at: a SYNC that arrived meanwhile (a host that
+        does not keep up) is answered at once, as real-time pacing answers it, and its cycle runs in the next
+        round, so no SYNC waits for the cycles of every axis. An axis with more than
         ``max_sync_backlog`` SYNCs waiting gives up the cycles of all but the latest (their RPDOs are still
         applied, in order; counted), unless ``catch_up_syncs``. At most ``max_sync_backlog`` + 1 rounds per
         call: the loop comes back at once for the rest (and lets other threads take the lock meanwhile)."""
@@ -408,11 +408,11 @@ class Runtime:
                 for i, ax in enumerate(axes):
                     if pending[i] > self.max_sync_backlog:
                         self._skip_backlog(i, ax)
-            due = [i for i in range(len(axes)) if pending[i]]
-            for i in due:
-                axes[i].slave.apply_sync()
-            for i in due:
+            for i in [i for i in range(len(axes)) if pending[i]]:
                 ax = axes[i]
+                # (the TPDOs went out when the SYNC was answered; its RPDOs right before the axis' own cycle leave
+                # no stretch of every axis' RPDOs in which the bus is not looked at)
+                ax.slave.apply_sync()
                 pending[i] -= 1
                 self._pending_count -= 1
                 n = ax.sync_cycles()
