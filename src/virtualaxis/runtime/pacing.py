@@ -35,8 +35,9 @@
   later still on a machine that cannot keep up.
 
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
-(``CanopenSlave.transmit_sync`` / ``apply_sync``; in lockstep each axis' RPDOs right before its own cycle). Answering axis by axis (RPDO applied, then TPDO) made the
-n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
+(``CanopenSlave.transmit_sync`` / ``apply_sync``; in lockstep each axis' RPDOs right before its own cycle).
+Answering axis by axis (RPDO applied, then TPDO) made the n-th axis' TPDO wait for n - 1 set-point processings
+(~47 us each: +280 us for the 7th of 7 axes).
 
 Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
 them) the runtime thread reads the bus itself (``read_in_loop``, default): it waits on the descriptor, then
