@@ -2,7 +2,8 @@
 
 - lockstep on a host that cannot keep up: every SYNC of a backlog is answered (TPDO, RPDOs applied) but only
   the latest SYNC's cycle runs, the others are counted; ``catch_up_syncs=True`` works the backlog off; a SYNC
-  that arrives while the axes' cycles run is answered before the remaining axes' cycles;
+  that arrives while the axes' cycles run is answered before the remaining axes' cycles, and only the axes with
+  frames waiting are polled between two axes' cycles;
 - the runtime thread reading a ``udp_multicast`` bus itself (``read_in_loop``): no receive thread, SDO and
   SYNC answered; ``OwnFrameFilteringUdpBus.drain`` takes every waiting datagram, drops the bus's own frames
   and counts one that does not decode;
@@ -176,6 +177,59 @@ def test_lockstep_answers_a_sync_that_arrives_during_the_cycles_before_the_remai
         while (msg := master.recv(0.05)) is not None:
             frames.append(msg.arbitration_id)
         assert [frames.count(0x280 + ax.node_id) for ax in axes] == [2, 2, 2]  # every SYNC answered by all
+    finally:
+        rt.stop()
+        master.shutdown()
+        bus.shutdown()
+
+
+def test_between_two_axes_cycles_only_the_axes_with_frames_waiting_are_polled():
+    """Lockstep, three axes: an SDO request for axis 2 arrives while axis 1 runs its cycle. Between the cycles
+    the runtime polls axis 2 (the request is answered before axis 3's cycle) but not axis 3, which has no frame
+    (a full poll of every axis for each frame, e.g. each own TPDO looped back by udp_multicast, cost seven
+    polls per frame with seven axes)."""
+    channel = f"va-scale-{os.getpid()}-{next(_channels)}"
+    bus = open_bus(f"virtual:{channel}")
+    master = can.Bus(interface="virtual", channel=channel)
+    axes = [AxisNode(bus, n, seed_config(), discrete=seed_discrete(), name=f"A{n}") for n in (1, 2, 3)]
+    rt = Runtime(bus, axes, lockstep=True)
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+    try:
+        rt.open()
+        polls = {ax.node_id: 0 for ax in axes}
+        events: list[str] = []
+        for ax in axes:
+            poll = ax.slave.poll
+
+            def counted(now_s: float, poll=poll, node=ax.node_id):
+                polls[node] += 1
+                return poll(now_s)
+
+            ax.slave.poll = counted
+        sdo_sent: list[int] = []
+
+        def sdo_request(drive) -> None:  # (axis 1's cycle is running)
+            if not sdo_sent:
+                sdo_sent.append(1)
+                master.send(can.Message(arbitration_id=0x602, data=bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]),
+                                        is_extended_id=False))
+                _wait_queued(axes[1].slave, 1)
+
+        axes[0].drive.add_cycle_hook(sdo_request)
+        axes[2].drive.add_cycle_hook(lambda drive: events.append(f"cycle 3, SDO answered: {answered()}"))
+        answers: list[can.Message] = []
+
+        def answered() -> bool:
+            while (msg := master.recv(0.0)) is not None:
+                answers.append(msg)
+            return any(m.arbitration_id == 0x582 for m in answers)
+
+        master.send(sync)
+        for ax in axes:
+            _wait_queued(ax.slave, 1)
+        rt.poll_once()
+        assert sdo_sent and events == ["cycle 3, SDO answered: True"]
+        assert polls == {1: 1, 2: 2, 3: 1}
     finally:
         rt.stop()
         master.shutdown()

@@ -338,6 +338,11 @@ class CanopenSlave:
         if self.on_dispatch_change is not None:
             self.on_dispatch_change()
 
+    @property
+    def frames_queued(self) -> bool:
+        """Frames received (:meth:`receive`) that :meth:`poll` has not handled yet."""
+        return bool(self._queue)
+
     def listens_to(self, cob_id: int) -> bool:
         """True if a frame on ``cob_id`` (11-bit, data or RTR) is for this node (NMT, SYNC, SDO, RPDOs, the
         monitored heartbeats, node guarding)."""

@@ -340,20 +340,24 @@ class Runtime:
         with self.lock:
             self._service(self.now())
 
-    def _service(self, now: float) -> None:
+    def _service(self, now: float, queued_only: bool = False) -> None:
         """Frames and timers of every axis; the SYNCs received are answered in two passes over the axes: first
         every axis' synchronous TPDOs (the values at the SYNC instant), then every axis' synchronous RPDOs
         applied. The last axis' TPDO therefore waits only for the other axes' frame handling and TPDO
         transmission, not for their set-point processing (see ``CanopenSlave.on_sync`` for why a drive may
-        answer in that order). Lockstep then runs the communication cycles (:meth:`_run_sync_cycles`)."""
+        answer in that order). Lockstep then runs the communication cycles (:meth:`_run_sync_cycles`).
+        ``queued_only`` (between two axes' cycles): only the axes with frames waiting are polled (their timers
+        run at the next full pass, at least once per loop)."""
         if self.lockstep:
-            self._answer_syncs(now)
+            self._answer_syncs(now, queued_only)
             if self._pending_count:
                 self._run_sync_cycles()
             return
         axes = self.axes
         answered = self._answered
         for ax in axes:
+            if queued_only and not ax.slave.frames_queued:
+                continue
             counters = ax.slave.poll(now)
             if not counters:
                 self._flush(ax)
@@ -374,13 +378,16 @@ class Runtime:
                 self._flush(ax)
         answered.clear()
 
-    def _answer_syncs(self, now: float) -> None:
-        """Lockstep: frames and timers of every axis; every SYNC received is answered at once (its synchronous
-        TPDOs, with the values of the last cycle run) and queued for its RPDOs and its cycle
-        (:attr:`_pending`: per axis, the SYNCs answered whose cycles are still to run)."""
+    def _answer_syncs(self, now: float, queued_only: bool = False) -> None:
+        """Lockstep: frames and timers of every axis (``queued_only``: only of the axes with frames waiting);
+        every SYNC received is answered at once (its synchronous TPDOs, with the values of the last cycle run)
+        and queued for its RPDOs and its cycle (:attr:`_pending`: per axis, the SYNCs answered whose cycles are
+        still to run)."""
         axes = self.axes
         pending = self._pending
         for i, ax in enumerate(axes):
+            if queued_only and not ax.slave.frames_queued:
+                continue
             counters = ax.slave.poll(now)
             if not counters:
                 self._flush(ax)
@@ -426,7 +433,7 @@ class Runtime:
                         self._drain()
                     else:
                         self._wake.clear()
-                    self._answer_syncs(self.now())
+                    self._answer_syncs(self.now(), queued_only=True)
             if not self._pending_count:
                 return
 
@@ -538,7 +545,7 @@ class Runtime:
                                     self._drain()
                                 else:
                                     wake.clear()
-                                self._service(perf() - self._t0)
+                                self._service(perf() - self._t0, queued_only=True)
                         stats.cycles += 1
                         next_cycle += period
                         t = perf()
