@@ -72,10 +72,12 @@ def _csp_node_on_virtual_bus(catch_up: bool):
     return bus, master, ax, rt
 
 
-def _backlog(master: can.BusABC, ax: AxisNode, rt: Runtime, targets: list[int]) -> list[can.Message]:
+def _backlog(master: can.BusABC, ax: AxisNode, rt: Runtime, targets: list[int],
+             controlwords: list[int] | None = None) -> list[can.Message]:
     """Three RPDO2 + SYNC pairs queued before the runtime gets to run, then one pass; the TPDO2s sent."""
-    for target in targets:
-        data = (0x0F).to_bytes(2, "little") + target.to_bytes(4, "little", signed=True)
+    for k, target in enumerate(targets):
+        cw = controlwords[k] if controlwords else 0x0F
+        data = cw.to_bytes(2, "little") + target.to_bytes(4, "little", signed=True)
         master.send(can.Message(arbitration_id=0x301, data=data, is_extended_id=False))
         master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
     _wait_queued(ax.slave, 2 * len(targets))
@@ -109,6 +111,8 @@ def test_lockstep_sync_backlog_answered_once_or_worked_off(catch_up):
             assert drive.counters["cycles"] - cycles0 == 1
             assert rt.stats.syncs_skipped == slave.counters["syncs_skipped"] == 2
             assert rt.stats.skipped == 2 and drive.read_object(0x2110, 2) - overruns0 == 2
+            # the two given up carried only targets that the third replaces: not applied, counted
+            assert slave.counters["rpdos_superseded"] == 2
         # the CSP interpolator heads for the latest target: the demand moves toward it
         assert drive._csp.interp.end == pytest.approx(targets[-1] * drive._u)
         # after the backlog the runtime answers every SYNC again; two at once (a short hiccup) are worked off
@@ -118,6 +122,30 @@ def test_lockstep_sync_backlog_answered_once_or_worked_off(catch_up):
         tpdo2 = _backlog(master, ax, rt, [targets[-1], targets[-1]])
         assert len(tpdo2) == 2 and drive.counters["cycles"] - cycles1 == 2
         assert rt.stats.syncs_skipped == (0 if catch_up else 2)
+    finally:
+        rt.stop()
+        master.shutdown()
+        bus.shutdown()
+
+
+def test_a_controlword_edge_in_a_given_up_sync_is_not_lost():
+    """A backlog of three SYNCs on a host that cannot keep up: the first SYNC's RPDO carries a quick stop
+    (controlword 0x0B), the other two enable operation again (0x0F). The first SYNC's cycle is given up but its
+    RPDO is applied: the quick stop happens (a drive whose 0x605A ends a quick stop in SWITCH ON DISABLED does
+    not come back by 0x0F alone). Only the second SYNC's RPDO, which changes nothing but the target the third
+    replaces, is left out."""
+    bus, master, ax, rt = _csp_node_on_virtual_bus(False)
+    try:
+        drive, slave = ax.drive, ax.slave
+        x0 = drive.read_object(0x6064)
+        assert drive.read_object(0x605A) in (0, 1, 2)  # quick stop ends in SWITCH ON DISABLED
+        _backlog(master, ax, rt, [x0, x0 + 10, x0 + 20], controlwords=[0x0B, 0x0F, 0x0F])
+        assert slave.counters["syncs_skipped"] == 2 and slave.counters["rpdos_superseded"] == 1
+        for _ in range(200):  # the quick stop ramp runs out
+            if drive.cia402_state.name != "QUICK_STOP_ACTIVE":
+                break
+            drive.step(1)
+        assert drive.cia402_state.name == "SWITCH_ON_DISABLED"
     finally:
         rt.stop()
         master.shutdown()

@@ -53,6 +53,8 @@ class Rpdo(Pdo):
     def __init__(self, number: int):
         super().__init__(number, RPDO_COMM + number - 1, RPDO_MAP + number - 1)
         self.pending: bytes | None = None   # synchronous RPDO data waiting for the next SYNC
+        #: byte ranges (start, end) of the mapped objects that are not set-points (slave.setpoint_objects)
+        self.held_bytes: tuple[tuple[int, int], ...] = ()
         self.last_rx_s: float | None = None
         self.timed_out = False
 
@@ -114,6 +116,13 @@ class PdoEngine:
             pdo.dirty = True
         else:
             assert isinstance(pdo, Rpdo)
+            held, offset, setpoints = [], 0, self.slave.setpoint_objects
+            for entry in entries:
+                size = struct.calcsize("<" + (entry.fmt or ""))
+                if (entry.index, entry.sub) not in setpoints:
+                    held.append((offset, offset + size))
+                offset += size
+            pdo.held_bytes = tuple(held)
             pdo.pending = None
             pdo.last_rx_s = None
             pdo.timed_out = False

@@ -52,6 +52,21 @@ RX_QUEUE_LIMIT = 4096
 _STATUS_OBJECTS = frozenset({0x1001, 0x1003})
 COB_EXTENDED = 0x20000000          # 29-bit frame bit of a COB-ID object (refused by each object's own rule)
 _NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchronous RPDO data
+
+
+def _superseded(due: list, later: list) -> bool:
+    """Every RPDO of ``due`` (one SYNC's synchronous RPDO data) comes again in one of the ``later`` SYNCs'
+    (in order, the first one counts) with the same bytes outside its set-point objects."""
+    for rpdo, data in due:
+        for other in later:
+            nxt = next((d for r, d in other if r is rpdo), None) if other else None
+            if nxt is not None:
+                if any(data[a:b] != nxt[a:b] for a, b in rpdo.held_bytes):
+                    return False
+                break
+        else:
+            return False
+    return True
 DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
 
 
@@ -110,6 +125,9 @@ class CanopenSlave:
         self._hook_reset = getattr(app, "on_reset", None)
         self.hook_begin_pdo = getattr(app, "begin_pdo", None)   # (looked up once: RPDOs are a hot path)
         self.hook_end_pdo = getattr(app, "end_pdo", None)
+        #: objects whose write only sets a value that the next write replaces (the application's
+        #: ``setpoint_objects``, e.g. CiA 402 targets); see :meth:`skip_answered_syncs`
+        self.setpoint_objects = frozenset(getattr(app, "setpoint_objects", ()) or ())
         self.store = ParameterStore(store_path, self.od)
         self._power_on_values(0x0000, 0xFFFF)
         self.sdo = SdoServer(self)
@@ -240,13 +258,29 @@ class CanopenSlave:
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
 
-    def skip_answered_sync(self) -> None:
-        """A SYNC already answered (:meth:`transmit_sync`) whose application cycle the runtime gives up
-        (lockstep, a backlog the host could not keep up with): its synchronous RPDOs are applied (no set-point
-        or controlword edge is lost) and it is counted in ``counters["syncs_skipped"]``; the plant does not run
-        its cycle."""
-        self.counters["syncs_skipped"] += 1
-        self.apply_sync()
+    def skip_answered_syncs(self, n: int) -> None:
+        """The ``n`` oldest SYNCs already answered (:meth:`transmit_sync`) whose application cycles the runtime
+        gives up (lockstep, a backlog the host could not keep up with), counted in ``counters["syncs_skipped"]``;
+        the plant does not run their cycles. Their synchronous RPDOs are applied in order (no controlword edge
+        is lost), except those of a SYNC whose every RPDO comes again in a later SYNC with the same bytes in
+        each object that is not a set-point (:attr:`setpoint_objects`): such a SYNC carried nothing but
+        set-points that a later one replaces before any cycle runs (counted in
+        ``counters["rpdos_superseded"]``)."""
+        self.counters["syncs_skipped"] += n
+        dues = [self._take_due_sync_rpdos() for _ in range(n)]
+        if self.nmt_state != NMT_STATE.OPERATIONAL:
+            return
+        later = dues + [self._due_sync_rpdos[0]] if self._due_sync_rpdos else dues
+        for j, due in enumerate(dues):
+            if not due:
+                continue
+            if _superseded(due, later[j + 1:]):
+                self.counters["rpdos_superseded"] += len(due)
+                continue
+            try:
+                self._apply_rpdos(due)
+            except Exception:  # noqa: BLE001
+                self.counters["internal_errors"] += 1
 
     def read(self, index: int, sub: int = 0):
         """Internal read, no access checks (KeyError for an object not in the EDS)."""

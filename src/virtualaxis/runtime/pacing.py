@@ -440,10 +440,10 @@ class Runtime:
     def _skip_backlog(self, i: int, ax: AxisNode) -> None:
         """Lockstep, axis ``i`` has more SYNCs answered than ``max_sync_backlog`` whose cycles have not run:
         the cycles of all but the latest are given up (see the module doc: their RPDOs applied in order, no
-        cycles, counted)."""
+        cycles, counted; a SYNC's RPDOs that carry only set-points a later SYNC replaces are not applied,
+        ``CanopenSlave.skip_answered_syncs``)."""
         skipped = self._pending[i] - 1
-        for _ in range(skipped):
-            ax.slave.skip_answered_sync()
+        ax.slave.skip_answered_syncs(skipped)
         self._pending[i] = 1
         self._pending_count -= skipped
         self._flush(ax)
