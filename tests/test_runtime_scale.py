@@ -152,18 +152,24 @@ def test_a_controlword_edge_in_a_given_up_sync_is_not_lost():
         bus.shutdown()
 
 
-def test_lockstep_answers_a_sync_that_arrives_during_the_cycles_before_the_remaining_cycles():
-    """Three axes in lockstep; while the first axis runs its cycle for SYNC 1, SYNC 2 arrives (a host that does
-    not keep up). The third axis answers SYNC 2 (its TPDO2 on the bus) before it runs its cycle for SYNC 1, as
-    real-time pacing answers between two axes' cycles; then both cycles run, in order, none given up."""
+def _three_axes_in_lockstep() -> tuple[can.BusABC, can.BusABC, list[AxisNode], Runtime]:
+    """Three axes (nodes 1-3) in lockstep on a ``virtual`` bus, opened (boot-up sent), and a master bus."""
     channel = f"va-scale-{os.getpid()}-{next(_channels)}"
     bus = open_bus(f"virtual:{channel}")
     master = can.Bus(interface="virtual", channel=channel)
     axes = [AxisNode(bus, n, seed_config(), discrete=seed_discrete(), name=f"A{n}") for n in (1, 2, 3)]
     rt = Runtime(bus, axes, lockstep=True)
+    rt.open()
+    return bus, master, axes, rt
+
+
+def test_lockstep_answers_a_sync_that_arrives_during_the_cycles_before_the_remaining_cycles():
+    """Three axes in lockstep; while the first axis runs its cycle for SYNC 1, SYNC 2 arrives (a host that does
+    not keep up). The third axis answers SYNC 2 (its TPDO2 on the bus) before it runs its cycle for SYNC 1, as
+    real-time pacing answers between two axes' cycles; then both cycles run, in order, none given up."""
+    bus, master, axes, rt = _three_axes_in_lockstep()
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
     try:
-        rt.open()
         for ax in axes:
             ax.slave.write(0x1006, 0, 1000)  # one drive cycle per SYNC
             ax.slave.write(0x1801, 2, 1)  # TPDO2 on every SYNC
@@ -216,14 +222,9 @@ def test_between_two_axes_cycles_only_the_axes_with_frames_waiting_are_polled():
     the runtime polls axis 2 (the request is answered before axis 3's cycle) but not axis 3, which has no frame
     (a full poll of every axis for each frame, e.g. each own TPDO looped back by udp_multicast, cost seven
     polls per frame with seven axes)."""
-    channel = f"va-scale-{os.getpid()}-{next(_channels)}"
-    bus = open_bus(f"virtual:{channel}")
-    master = can.Bus(interface="virtual", channel=channel)
-    axes = [AxisNode(bus, n, seed_config(), discrete=seed_discrete(), name=f"A{n}") for n in (1, 2, 3)]
-    rt = Runtime(bus, axes, lockstep=True)
+    bus, master, axes, rt = _three_axes_in_lockstep()
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
     try:
-        rt.open()
         polls = {ax.node_id: 0 for ax in axes}
         events: list[str] = []
         for ax in axes:

@@ -64,6 +64,7 @@ import select
 import threading
 import time
 import traceback
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import can
@@ -353,17 +354,8 @@ class Runtime:
             if self._pending_count:
                 self._run_sync_cycles()
             return
-        axes = self.axes
         answered = self._answered
-        for ax in axes:
-            if queued_only and not ax.slave.frames_queued:
-                continue
-            counters = ax.slave.poll(now)
-            if not counters:
-                self._flush(ax)
-                continue
-            if ax is axes[0]:
-                self.stats.syncs += len(counters)
+        for _, ax, counters in self._poll_axes(now, queued_only):
             # the TPDOs of the oldest SYNC out now (with a backlog: one after the other, below)
             ax.slave.transmit_sync(counters[0], now)
             answered.append((ax, counters))
@@ -378,13 +370,12 @@ class Runtime:
                 self._flush(ax)
         answered.clear()
 
-    def _answer_syncs(self, now: float, queued_only: bool = False) -> None:
-        """Lockstep: frames and timers of every axis (``queued_only``: only of the axes with frames waiting);
-        every SYNC received is answered at once (its synchronous TPDOs, with the values of the last cycle run)
-        and queued for its RPDOs and its cycle (:attr:`_pending`: per axis, the SYNCs answered whose cycles are
-        still to run)."""
+    def _poll_axes(self, now: float, queued_only: bool) -> Iterator[tuple[int, AxisNode, list[int]]]:
+        """Frames and timers of every axis (``queued_only``: only of the axes with frames waiting), axis after
+        axis; yields (index, axis, SYNC counters received) for each axis that received a SYNC, before the next
+        axis is polled (an axis without one is flushed)."""
         axes = self.axes
-        pending = self._pending
+        stats = self.stats
         for i, ax in enumerate(axes):
             if queued_only and not ax.slave.frames_queued:
                 continue
@@ -393,7 +384,16 @@ class Runtime:
                 self._flush(ax)
                 continue
             if i == 0:
-                self.stats.syncs += len(counters)
+                stats.syncs += len(counters)
+            yield i, ax, counters
+
+    def _answer_syncs(self, now: float, queued_only: bool = False) -> None:
+        """Lockstep: frames and timers of every axis (``queued_only``: only of the axes with frames waiting);
+        every SYNC received is answered at once (its synchronous TPDOs, with the values of the last cycle run)
+        and queued for its RPDOs and its cycle (:attr:`_pending`: per axis, the SYNCs answered whose cycles are
+        still to run)."""
+        pending = self._pending
+        for i, ax, counters in self._poll_axes(now, queued_only):
             for counter in counters:
                 ax.slave.transmit_sync(counter, now)
             pending[i] += len(counters)
