@@ -20,24 +20,20 @@
   set-points. The SYNC -> TPDO latency therefore contains no axis's computation (lockstep answers as fast as
   real-time pacing, whatever the number of axes), and the result depends only on the frames, never on the
   machine's speed, as long as the host keeps up. SDO, NMT, heartbeat and timers keep running between SYNCs.
-  While the axes' cycles run, the runtime looks at the bus between two axes' cycles (as real-time pacing does):
-  a SYNC that arrived meanwhile is answered at once (its TPDOs with the values of the last cycle run) and its
-  cycles run after the current ones, so no SYNC's answer waits for the cycles of every axis. Up to
-  ``max_sync_backlog`` (default 2) SYNCs of an axis waiting for their cycles are worked off in order (a host that
-  was busy for a moment). When it does not keep up (more of them: a saturated CPU), the runtime does what a drive
-  does with cycles it could not run in time: it gives them up and counts them. Every SYNC of the backlog has
-  still been answered at once, in order, as real-time pacing answers a late SYNC (its TPDOs with the values of
-  the last cycle run, its synchronous RPDOs applied: no set-point or controlword edge is lost, the master's PDO
-  monitoring sees an answer to every SYNC), but only the LATEST SYNC's cycles run
+  A pass that finds up to ``max_sync_backlog`` (default 2) SYNCs works them off in order (a host that was busy for
+  a moment). When it does not keep up (more SYNCs arrived since the last pass: a saturated CPU), the runtime does
+  what a drive does with cycles it could not run in time: it gives them up and counts them. Every SYNC of the
+  backlog is still answered at once, in order, as real-time pacing answers a late SYNC (its TPDOs with the values
+  of the last cycle run, its synchronous RPDOs applied: no set-point or controlword edge is lost, the master's
+  PDO monitoring sees an answer to every SYNC), but only the LATEST SYNC's cycles run
   (:attr:`RuntimeStats.syncs_skipped`, the slave's ``syncs_skipped``, the cycles given up in
   :attr:`RuntimeStats.skipped` and as overruns, OD 0x2110:2). Working the backlog's cycles off instead
   (``catch_up_syncs=True``, the exact SYNC-count plant time of a deterministic run) makes every later answer
   later still on a machine that cannot keep up.
 
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
-(``CanopenSlave.transmit_sync`` / ``apply_sync``; in lockstep each axis' RPDOs right before its own cycle).
-Answering axis by axis (RPDO applied, then TPDO) made the n-th axis' TPDO wait for n - 1 set-point processings
-(~47 us each: +280 us for the 7th of 7 axes).
+(``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
+n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
 
 Frames: on a bus with a file descriptor (``udp_multicast``, ``socketcan``, and :class:`BitRateBus` around
 them) the runtime thread reads the bus itself (``read_in_loop``, default): it waits on the descriptor, then
@@ -239,8 +235,7 @@ class Runtime:
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
         self._answered: list = []  # real time: (axis, SYNC counters) whose TPDOs went out, RPDOs still to apply
-        self._pending = [0] * len(axes)  # lockstep, per axis: SYNCs answered whose RPDOs and cycle are still due
-        self._pending_count = 0  # (their sum)
+        self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
 
     def now(self) -> float:
         return time.perf_counter() - self._t0
@@ -346,29 +341,45 @@ class Runtime:
         every axis' synchronous TPDOs (the values at the SYNC instant), then every axis' synchronous RPDOs
         applied. The last axis' TPDO therefore waits only for the other axes' frame handling and TPDO
         transmission, not for their set-point processing (see ``CanopenSlave.on_sync`` for why a drive may
-        answer in that order). Lockstep then runs the communication cycles (:meth:`_run_sync_cycles`).
-        ``queued_only`` (between two axes' cycles): only the axes with frames waiting are polled (their timers
-        run at the next full pass, at least once per loop)."""
-        if self.lockstep:
-            self._answer_syncs(now, queued_only)
-            if self._pending_count:
-                self._run_sync_cycles()
-            return
+        answer in that order). ``queued_only`` (real time, between two axes' cycles): only the axes with
+        frames waiting are polled (their timers run at the next full pass, at least once per loop)."""
+        stepping = self._stepping
         answered = self._answered
+        lockstep = self.lockstep
         for _, ax, counters in self._poll_axes(now, queued_only):
-            # the TPDOs of the oldest SYNC out now (with a backlog: one after the other, below)
+            if lockstep and len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
+                counters = self._skip_backlog(ax, counters, now)
+            # the TPDOs of the oldest SYNC out now (real time with a backlog: one after the other, below)
             ax.slave.transmit_sync(counters[0], now)
             answered.append((ax, counters))
         if not answered:
             return
         for ax, counters in answered:
+            if lockstep:
+                # the cycles run once every axis has answered; the flush after them mirrors what the RPDOs
+                # changed (the frames of the poll flushed their own changes through the application's hooks)
+                ax.slave.apply_sync()
+                stepping.append((ax, counters))
+                continue
             self._flush(ax)
             ax.slave.apply_sync()
             self._flush(ax)
-            for counter in counters[1:]:  # several SYNCs in one pass: answered in order
+            for counter in counters[1:]:  # real time, several SYNCs in one pass: answered in order
                 ax.slave.on_sync(counter, now)
                 self._flush(ax)
         answered.clear()
+        if stepping:
+            axes0 = self.axes[0]
+            for ax, counters in stepping:
+                n = ax.sync_cycles()
+                self._step(ax, n)
+                for counter in counters[1:]:  # a backlog of SYNCs: one communication cycle per SYNC, in order
+                    ax.slave.on_sync(counter, now)
+                    self._flush(ax)
+                    self._step(ax, n)
+                if ax is axes0:
+                    self.stats.cycles += n * len(counters)
+            stepping.clear()
 
     def _poll_axes(self, now: float, queued_only: bool) -> Iterator[tuple[int, AxisNode, list[int]]]:
         """Frames and timers of every axis (``queued_only``: only of the axes with frames waiting), axis after
@@ -387,72 +398,23 @@ class Runtime:
                 stats.syncs += len(counters)
             yield i, ax, counters
 
-    def _answer_syncs(self, now: float, queued_only: bool = False) -> None:
-        """Lockstep: frames and timers of every axis (``queued_only``: only of the axes with frames waiting);
-        every SYNC received is answered at once (its synchronous TPDOs, with the values of the last cycle run)
-        and queued for its RPDOs and its cycle (:attr:`_pending`: per axis, the SYNCs answered whose cycles are
-        still to run)."""
-        pending = self._pending
-        for i, ax, counters in self._poll_axes(now, queued_only):
-            for counter in counters:
-                ax.slave.transmit_sync(counter, now)
-            pending[i] += len(counters)
-            self._pending_count += len(counters)
-
-    def _run_sync_cycles(self) -> None:
-        """Lockstep: for every axis with a SYNC answered, that SYNC's RPDOs applied and one communication cycle
-        run, axis after axis. Between two axes the bus is looked at: a SYNC that arrived meanwhile (a host that
-        does not keep up) is answered at once, as real-time pacing answers it, and its cycle runs in the next
-        round, so no SYNC waits for the cycles of every axis. An axis with more than
-        ``max_sync_backlog`` SYNCs waiting gives up the cycles of all but the latest (their RPDOs are still
-        applied, in order; counted), unless ``catch_up_syncs``. At most ``max_sync_backlog`` + 1 rounds per
-        call: the loop comes back at once for the rest (and lets other threads take the lock meanwhile)."""
-        axes = self.axes
-        pending = self._pending
-        stats = self.stats
-        several = len(axes) > 1
-        for _ in range(self.max_sync_backlog + 1):
-            if not self.catch_up_syncs:
-                for i, ax in enumerate(axes):
-                    if pending[i] > self.max_sync_backlog:
-                        self._skip_backlog(i, ax)
-            for i in [i for i in range(len(axes)) if pending[i]]:
-                ax = axes[i]
-                # (the TPDOs went out when the SYNC was answered; its RPDOs right before the axis' own cycle leave
-                # no stretch of every axis' RPDOs in which the bus is not looked at)
-                ax.slave.apply_sync()
-                pending[i] -= 1
-                self._pending_count -= 1
-                n = ax.sync_cycles()
-                self._step(ax, n)
-                if i == 0:
-                    stats.cycles += n
-                if several and self._frames_waiting():
-                    # a frame arrived meanwhile (the next SYNC?): answered before the next axis' cycle
-                    if self._fd >= 0:
-                        self._drain()
-                    else:
-                        self._wake.clear()
-                    self._answer_syncs(self.now(), queued_only=True)
-            if not self._pending_count:
-                return
-
-    def _skip_backlog(self, i: int, ax: AxisNode) -> None:
-        """Lockstep, axis ``i`` has more SYNCs answered than ``max_sync_backlog`` whose cycles have not run:
-        the cycles of all but the latest are given up (see the module doc: their RPDOs applied in order, no
-        cycles, counted; a SYNC's RPDOs that carry only set-points a later SYNC replaces are not applied,
-        ``CanopenSlave.skip_answered_syncs``)."""
-        skipped = self._pending[i] - 1
-        ax.slave.skip_answered_syncs(skipped)
-        self._pending[i] = 1
-        self._pending_count -= skipped
+    def _skip_backlog(self, ax: AxisNode, counters: list[int], now: float) -> list[int]:
+        """Lockstep, more SYNCs since the last pass than ``max_sync_backlog``: the cycles of all but the latest
+        are given up (see the module doc: answered, RPDOs applied in order, no cycles, counted; a SYNC's RPDOs
+        that carry only set-points a later SYNC replaces are not applied, ``CanopenSlave.skip_answered_syncs``);
+        returns the latest."""
+        skipped = counters[:-1]
+        for counter in skipped:  # each answered, then its RPDOs (a TPDO shows what the SYNCs before it changed)
+            ax.slave.transmit_sync(counter, now)
+            ax.slave.skip_answered_syncs(1)
         self._flush(ax)
-        lost = skipped * ax.sync_cycles()
+        lost = len(skipped) * ax.sync_cycles()
         ax.drive.record_overrun(lost)
-        if i == 0:
-            self.stats.syncs_skipped += skipped
+        if ax is self.axes[0]:
+            self.stats.syncs_skipped += len(skipped)
             self.stats.skipped += lost
             self.stats.overruns += lost
+        return counters[-1:]
 
     # ------------------------------------------------------------------ frames
     def _drain(self) -> None:
@@ -558,8 +520,6 @@ class Runtime:
             deadline = t + self.idle_poll_s if self.lockstep else min(next_cycle, t + self.idle_poll_s)
             remaining = deadline - t
             spin = 0.0 if self.lockstep else self.spin_s  # (lockstep: no deadline to meet, nothing to spin for)
-            if self._pending_count:  # lockstep: cycles of answered SYNCs still to run (a host behind)
-                continue
             if remaining > spin:
                 self._wait(remaining - spin)
             if spin:
