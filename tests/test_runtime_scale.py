@@ -2,7 +2,7 @@
 
 - lockstep on a host that cannot keep up: every SYNC of a backlog is answered (TPDO, RPDOs applied) but only
   the latest SYNC's cycle runs, the others are counted; ``catch_up_syncs=True`` works the backlog off; a given-up
-  SYNC's RPDOs that carry only set-points a later SYNC replaces are left out, a controlword edge never;
+  SYNC's RPDOs that carry only set-points the next SYNC replaces are left out, a controlword edge never;
 - the runtime thread reading a ``udp_multicast`` bus itself (``read_in_loop``): no receive thread, SDO and
   SYNC answered; ``OwnFrameFilteringUdpBus.drain`` takes every waiting datagram, drops the bus's own frames
   and counts one that does not decode;

@@ -45,6 +45,6 @@ def abort_key(code: int) -> str:
 def new_counters() -> dict[str, int]:
     counters = {key: 0 for key, _name in COUNTERS_2100}
     counters.update({abort_key(code): 0 for code in ABORT_CODES})
-    counters["syncs_skipped"] = 0  # SYNCs answered without their cycle (a backlog; CanopenSlave.skip_answered_syncs)
-    counters["rpdos_superseded"] = 0  # their RPDOs not applied: only set-points a later SYNC replaces
+    counters["syncs_skipped"] = 0  # SYNCs answered without their cycle (a backlog; CanopenSlave.skip_sync)
+    counters["rpdos_superseded"] = 0  # their RPDOs not applied: only set-points the next SYNC replaces
     return counters

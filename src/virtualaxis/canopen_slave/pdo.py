@@ -118,7 +118,7 @@ class PdoEngine:
             assert isinstance(pdo, Rpdo)
             held, offset, setpoints = [], 0, self.slave.setpoint_objects
             for entry in entries:
-                size = struct.calcsize("<" + (entry.fmt or ""))
+                size = entry.size or 0  # (what the packer takes of it: entries without a format take none)
                 if (entry.index, entry.sub) not in setpoints:
                     held.append((offset, offset + size))
                 offset += size

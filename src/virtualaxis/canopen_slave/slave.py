@@ -53,20 +53,6 @@ _STATUS_OBJECTS = frozenset({0x1001, 0x1003})
 COB_EXTENDED = 0x20000000          # 29-bit frame bit of a COB-ID object (refused by each object's own rule)
 _NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchronous RPDO data
 
-
-def _superseded(due: list, later: list) -> bool:
-    """Every RPDO of ``due`` (one SYNC's synchronous RPDO data) comes again in one of the ``later`` SYNCs'
-    (in order, the first one counts) with the same bytes outside its set-point objects."""
-    for rpdo, data in due:
-        for other in later:
-            nxt = next((d for r, d in other if r is rpdo), None) if other else None
-            if nxt is not None:
-                if any(data[a:b] != nxt[a:b] for a, b in rpdo.held_bytes):
-                    return False
-                break
-        else:
-            return False
-    return True
 DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
 
 
@@ -90,6 +76,16 @@ class _SlaveListener(can.Listener):
 
     def on_error(self, exc: Exception) -> None:  # python-can calls this on a receive error; keep running
         self._slave.counters["internal_errors"] += 1
+
+
+def _superseded(due: list, following: list) -> bool:
+    """Every RPDO of ``due`` (one SYNC's synchronous RPDO data) comes again in ``following`` (the next SYNC's)
+    with the same bytes outside its set-point objects (:attr:`Rpdo.held_bytes`)."""
+    for rpdo, data in due:
+        again = next((d for r, d in following if r is rpdo), None)
+        if again is None or any(data[a:b] != again[a:b] for a, b in rpdo.held_bytes):
+            return False
+    return True
 
 
 class CanopenSlave:
@@ -126,7 +122,7 @@ class CanopenSlave:
         self.hook_begin_pdo = getattr(app, "begin_pdo", None)   # (looked up once: RPDOs are a hot path)
         self.hook_end_pdo = getattr(app, "end_pdo", None)
         #: objects whose write only sets a value that the next write replaces (the application's
-        #: ``setpoint_objects``, e.g. CiA 402 targets); see :meth:`skip_answered_syncs`
+        #: ``setpoint_objects``, e.g. CiA 402 targets); see :meth:`skip_sync`
         self.setpoint_objects = frozenset(getattr(app, "setpoint_objects", ()) or ())
         self.store = ParameterStore(store_path, self.od)
         self._power_on_values(0x0000, 0xFFFF)
@@ -258,29 +254,21 @@ class CanopenSlave:
         except Exception:  # noqa: BLE001
             self.counters["internal_errors"] += 1
 
-    def skip_answered_syncs(self, n: int) -> None:
-        """The ``n`` oldest SYNCs already answered (:meth:`transmit_sync`) whose application cycles the runtime
-        gives up (lockstep, a backlog the host could not keep up with), counted in ``counters["syncs_skipped"]``;
-        the plant does not run their cycles. Their synchronous RPDOs are applied in order (no controlword edge
-        is lost), except those of a SYNC whose every RPDO comes again in a later SYNC with the same bytes in
-        each object that is not a set-point (:attr:`setpoint_objects`): such a SYNC carried nothing but
-        set-points that a later one replaces before any cycle runs (counted in
-        ``counters["rpdos_superseded"]``)."""
-        self.counters["syncs_skipped"] += n
-        dues = [self._take_due_sync_rpdos() for _ in range(n)]
-        if self.nmt_state != NMT_STATE.OPERATIONAL:
+    def skip_sync(self, counter: int, now_s: float) -> None:
+        """A SYNC whose application cycle the runtime gives up (lockstep, a backlog the host could not keep up
+        with): answered like any SYNC -- the TPDOs due go out with the values of the last cycle run, then the
+        synchronous RPDOs received before it are applied (no controlword edge is lost) -- and counted in
+        ``counters["syncs_skipped"]``; the plant does not run its cycle. Its RPDOs are left out when every one
+        of them comes again in the next SYNC with the same bytes in each object that is not a set-point
+        (:attr:`setpoint_objects`): they carried nothing but set-points that the next SYNC's replace before any
+        cycle runs (counted in ``counters["rpdos_superseded"]``)."""
+        self.counters["syncs_skipped"] += 1
+        self.transmit_sync(counter, now_s)
+        due = self._due_sync_rpdos
+        if not self._applied_ahead and len(due) > 1 and due[0] and _superseded(due[0], due[1]):
+            self.counters["rpdos_superseded"] += len(due.popleft())
             return
-        later = dues + [self._due_sync_rpdos[0]] if self._due_sync_rpdos else dues
-        for j, due in enumerate(dues):
-            if not due:
-                continue
-            if _superseded(due, later[j + 1:]):
-                self.counters["rpdos_superseded"] += len(due)
-                continue
-            try:
-                self._apply_rpdos(due)
-            except Exception:  # noqa: BLE001
-                self.counters["internal_errors"] += 1
+        self.apply_sync()
 
     def read(self, index: int, sub: int = 0):
         """Internal read, no access checks (KeyError for an object not in the EDS)."""

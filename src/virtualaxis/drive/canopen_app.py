@@ -31,8 +31,8 @@ class Cia402Application:
     """The bridge between one :class:`Drive` and one :class:`CanopenSlave`."""
 
     #: objects whose write only sets a value that the next write replaces (targets and offsets, no edge
-    #: semantics): a SYNC's RPDO that changes nothing else may be left out when a later SYNC's replaces it
-    #: (``CanopenSlave.skip_answered_syncs``, a lockstep host that gives up cycles)
+    #: semantics): a SYNC's RPDO that changes nothing else may be left out when the next SYNC's replaces it
+    #: (``CanopenSlave.skip_sync``, a lockstep host that gives up cycles)
     setpoint_objects = frozenset({(0x607A, 0), (0x60FF, 0), (0x6071, 0), (0x60B0, 0), (0x60B1, 0), (0x60B2, 0)})
 
     def __init__(self, drive: Drive):

@@ -401,12 +401,11 @@ class Runtime:
     def _skip_backlog(self, ax: AxisNode, counters: list[int], now: float) -> list[int]:
         """Lockstep, more SYNCs since the last pass than ``max_sync_backlog``: the cycles of all but the latest
         are given up (see the module doc: answered, RPDOs applied in order, no cycles, counted; a SYNC's RPDOs
-        that carry only set-points a later SYNC replaces are not applied, ``CanopenSlave.skip_answered_syncs``);
+        that carry only set-points the next SYNC replaces are not applied, ``CanopenSlave.skip_sync``);
         returns the latest."""
         skipped = counters[:-1]
-        for counter in skipped:  # each answered, then its RPDOs (a TPDO shows what the SYNCs before it changed)
-            ax.slave.transmit_sync(counter, now)
-            ax.slave.skip_answered_syncs(1)
+        for counter in skipped:
+            ax.slave.skip_sync(counter, now)
         self._flush(ax)
         lost = len(skipped) * ax.sync_cycles()
         ax.drive.record_overrun(lost)
