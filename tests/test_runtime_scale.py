@@ -151,6 +151,42 @@ def test_a_controlword_edge_in_a_given_up_sync_is_not_lost():
         bus.shutdown()
 
 
+def test_given_up_syncs_from_a_canopen_master_keep_the_quick_stop():
+    """The same backlog, but every frame made by the ``canopen`` package's master: RPDO2 packed from its own
+    reading of the EDS mapping (``rpdo.read(from_od=True)``), SYNC from its SYNC producer; so the bytes compared
+    as "not a set-point" are laid out by another library, not by this stack's packer."""
+    import canopen
+
+    from virtualaxis.drive.core import DEFAULT_EDS
+
+    bus, master, ax, rt = _csp_node_on_virtual_bus(False)
+    network = canopen.Network(master)  # (it only sends here: no notifier needed)
+    try:
+        node = network.add_node(1, str(DEFAULT_EDS))
+        node.rpdo.read(from_od=True)
+        rpdo2 = node.rpdo[2]
+        drive, slave = ax.drive, ax.slave
+        x0 = drive.read_object(0x6064)
+        for cw, target in ((0x0B, x0), (0x0F, x0 + 10), (0x0F, x0 + 20)):
+            rpdo2["Controlword"].raw = cw
+            rpdo2["Target position"].raw = target
+            rpdo2.transmit()
+            network.sync.transmit()
+        _wait_queued(slave, 6)
+        rt.poll_once()
+        assert slave.counters["syncs_skipped"] == 2 and slave.counters["rpdos_superseded"] == 1
+        assert drive.read_object(0x607A) == x0 + 20
+        for _ in range(200):
+            if drive.cia402_state.name != "QUICK_STOP_ACTIVE":
+                break
+            drive.step(1)
+        assert drive.cia402_state.name == "SWITCH_ON_DISABLED"
+    finally:
+        rt.stop()
+        master.shutdown()
+        bus.shutdown()
+
+
 def _udp_spec() -> tuple[str, int]:
     port = 42000 + (os.getpid() * 7 + next(_channels)) % 3000
     return f"udp_multicast:239.74.163.77,port={port}", port
