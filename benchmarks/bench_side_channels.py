@@ -94,8 +94,49 @@ def _become_load(priority: int, cpus: set[int] | None) -> None:
         os.sched_setaffinity(0, cpus)
 
 
-def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: str, start_unix: float = 0.0) -> None:
-    """``clients`` threads, each with its own TCP connection, polling POLL_RANGES at ``rate_hz``."""
+class RawModbusClient:
+    """A lean Modbus TCP client (FC03 only: struct-packed MBAP + PDU on a plain socket) for ``--modbus-client
+    raw``: the clients of a real drive sit on other machines, so on this host their own CPU is an artefact of the
+    rig; this one costs a fraction of pymodbus' client per request. Checks every answer (transaction id, protocol
+    0, unit, function, byte count) and counts exceptions and malformed answers as errors."""
+
+    def __init__(self, host: str, port: int, timeout: float = 2.0):
+        import socket
+        import struct
+
+        self._sock = socket.create_connection((host, port), timeout=timeout)
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._req = struct.Struct(">HHHBBHH")
+        self._tid = 0
+
+    def _recv(self, n: int) -> bytes:
+        buf = b""
+        while len(buf) < n:
+            chunk = self._sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionError("server closed the connection")
+            buf += chunk
+        return buf
+
+    def read_holding(self, address: int, count: int, unit: int) -> bool:
+        """FC03 of ``count`` registers at PDU ``address``; True if a well-formed answer of ``count`` registers."""
+        self._tid = (self._tid + 1) & 0xFFFF
+        self._sock.sendall(self._req.pack(self._tid, 0, 6, unit, 3, address, count))
+        head = self._recv(7)
+        tid, proto, length = int.from_bytes(head[0:2], "big"), int.from_bytes(head[2:4], "big"), \
+            int.from_bytes(head[4:6], "big")
+        body = self._recv(length - 1)
+        return (tid == self._tid and proto == 0 and head[6] == unit and body[0] == 3 and body[1] == 2 * count
+                and len(body) == 2 + 2 * count)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: str, start_unix: float = 0.0,
+                kind: str = "pymodbus") -> None:
+    """``clients`` threads, each with its own TCP connection, polling POLL_RANGES at ``rate_hz`` with pymodbus'
+    client or (``kind="raw"``) :class:`RawModbusClient`."""
     from pymodbus.client import ModbusTcpClient
 
     results: list[list[float]] = [[] for _ in range(clients)]
@@ -104,8 +145,11 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
     start = time.perf_counter() + max(0.2, start_unix - time.time())
 
     def worker(i: int) -> None:
-        c = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
-        c.connect()
+        if kind == "raw":
+            c = RawModbusClient("127.0.0.1", port)
+        else:
+            c = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+            c.connect()
         period = 1.0 / rate_hz
         nxt = start + i * period / clients
         end = start + seconds
@@ -120,9 +164,12 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
                 continue
             for number, count in POLL_RANGES:
                 t0 = time.perf_counter()
-                r = c.read_holding_registers(number - 40001, count=count, device_id=1)
+                if kind == "raw":
+                    ok = c.read_holding(number - 40001, count, 1)
+                else:
+                    ok = not c.read_holding_registers(number - 40001, count=count, device_id=1).isError()
                 results[i].append(time.perf_counter() - t0)
-                if r.isError():
+                if not ok:
                     errors[i] += 1
             nxt += period
         c.close()
@@ -338,7 +385,8 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
             t_start = time.time() + 3.0  # all clients start polling together, once their imports are done
             loader = [
                 subprocess.Popen([sys.executable, __file__, "--modbus-load", str(mb_port), str(seconds), o,
-                                  *load_flags, "--load-start", f"{t_start + i * 1e-3:.6f}"])
+                                  *load_flags, "--load-start", f"{t_start + i * 1e-3:.6f}",
+                                  "--modbus-client", opts.modbus_client])
                 for i, o in enumerate(outs)
             ]
             time.sleep(max(0.0, t_start - time.time()) + 0.1)  # clients polling
@@ -432,6 +480,10 @@ def main() -> int:
     ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
     ap.add_argument("--serve-arg", action="append", default=[], dest="serve_args",
                     help="extra argument for serve (repeatable), e.g. --serve-arg=--telemetry-rate=100")
+    ap.add_argument("--modbus-client", choices=("pymodbus", "raw"), default="pymodbus",
+                    help="the ten load clients: pymodbus' client (default) or a lean struct-packed FC03 client "
+                    "(raw), whose own CPU on this host (the clients of a real drive run on other machines) is a "
+                    "fraction of pymodbus'")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_side_channels.json"))
     ap.add_argument("--raw", default=None, metavar="DIR", help="also save every phase's timestamps (.npz) in DIR")
     ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -448,7 +500,7 @@ def main() -> int:
         _become_load(args.load_priority, _cpus(args.load_cpus) or None)
         if args.modbus_load:
             modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
-                        args.load_start)
+                        args.load_start, args.modbus_client)
         else:
             telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1])
         return 0

@@ -225,6 +225,11 @@ def test_mqtt_inject_result_fault_event_malformed_commands_and_serve_goes_on(mos
         ev = sub.wait(lambda: [f for f in sub.of("faults") if f["event"] == "fault"])[0]
         assert ev["emcy_code"] == "0x3220" and ev["error_code"] == "0x3220" and ev["injected"] is True, ev
         sub.wait(lambda: any(s["cia402_state"] == "FAULT" and s["error_code"] == "0x3220" for s in sub.of("state")))
+        # a command published with retain=true while serve listens: refused too (MQTT 5 retain-as-published;
+        # an MQTT 3.1.1 subscriber cannot tell it from a plain one; found by a docs-only client)
+        cmd.publish({"action": "clear", "id": "live-retained"}, retain=True)
+        live = cmd.result("live-retained")
+        assert live["ok"] is False and "retained" in live["error"], live
         # malformed / refused commands: one ok:false result each, naming what is wrong
         n = len(cmd.results())
         bad = [

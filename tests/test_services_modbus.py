@@ -413,3 +413,65 @@ def test_reads_are_answered_from_the_published_image_without_serve(server):
     server.svc.sync()
     w = server.client.read_holding_registers(40376 - 40001, count=2, device_id=1).registers
     assert (w[0] << 16 | w[1]) == cycles_now
+
+
+def _eds_limits_read_apart(eds: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
+    """LowLimit / HighLimit of every object of the EDS, read here from its text (not by the project's code)."""
+    import configparser
+
+    p = configparser.RawConfigParser(inline_comment_prefixes=(";",))
+    p.optionxform = str
+    p.read(eds, encoding="utf-8")
+    out = {}
+    for section in p.sections():
+        name = section.lower()
+        if len(name) == 4:
+            key = (int(name, 16), 0)
+        elif len(name) > 7 and name[4:7] == "sub":
+            key = (int(name[:4], 16), int(name[7:], 16))
+        else:
+            continue
+        lo, hi = (p.get(section, k, fallback="").strip() for k in ("LowLimit", "HighLimit"))
+        if lo or hi:
+            out[key] = (float(int(lo, 0) if lo.lstrip("-").isdigit() or lo.startswith("0x") else lo) if lo else None,
+                        float(int(hi, 0) if hi.lstrip("-").isdigit() or hi.startswith("0x") else hi) if hi else None)
+    return out
+
+
+def test_modbus_writes_refuse_what_the_eds_limits_refuse_over_sdo():
+    """docs/modbus-map.md: writes are checked exactly like an SDO download of the drive object. For every
+    writable register mapped onto an object with an EDS LowLimit / HighLimit, the extreme register values whose
+    object value lies beyond a limit are refused with exception 03 (SDO abort 0x06090031 / 0x06090032 in the
+    last-error registers) and change nothing; the values inside are taken. (Found by a docs-only client:
+    0x200A = 1000 C and 0x2001 = 65.535 were accepted over Modbus while SDO refused them.)"""
+    drive = make_drive()
+    srv = Server({1: drive}, writable=True)
+    limits = _eds_limits_read_apart(ROOT / "eds" / "virtualaxis.eds")
+    link = srv.links[1]
+    c = srv.client
+    refused = taken = 0
+    try:
+        for reg in REGISTERS:
+            w = reg.write
+            if not hasattr(w, "index") or (w.index, w.sub) not in limits or reg.dtype not in ("u16", "i16"):
+                continue
+            lo, hi = limits[(w.index, w.sub)]
+            raws = (0, 1, 0x7FFF, 0xFFFF) if reg.dtype == "u16" else (-0x8000, -1, 0, 1, 0x7FFF)
+            for raw in raws:
+                before = drive.read_object(w.index, w.sub)
+                value = w.object_value(link, raw)
+                beyond = (hi is not None and value > hi) or (lo is not None and value < lo)
+                r = c.write_register(reg.address, raw & 0xFFFF, device_id=1)
+                if beyond:
+                    assert srv.exc(r) == 3, (reg.number, raw, value)
+                    reason, address, abort = srv.last_error()
+                    assert address == reg.address and abort == (0x06090031 if hi is not None and value > hi
+                                                                 else 0x06090032), (reg.number, raw, hex(abort))
+                    assert drive.read_object(w.index, w.sub) == before
+                    refused += 1
+                elif not r.isError():
+                    assert drive.read_object(w.index, w.sub) == pytest.approx(value)
+                    taken += 1
+        assert refused >= 6 and taken >= 6, (refused, taken)  # 0x2000/01/03/04/0A/0B and option codes at least
+    finally:
+        srv.close()

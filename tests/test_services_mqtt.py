@@ -181,6 +181,12 @@ def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
     assert ev["emcy_code"] == "0x4210" and ev["fault_number"] == "F30004" and ev["fault_value"] == 42
     states = sub.of("state")
     assert any(s["cia402_state"] == "FAULT" and s["active_faults"] for s in states)
+    # one state message per drive event: never the same drive state twice in a row (an event's state was
+    # once published again at once as "the current state"; the last message is the one at stop)
+    same = [(a["time_s"], a["cia402_state"]) for a, b in zip(states[:-2], states[1:-1], strict=True)
+            if a["time_s"] == b["time_s"] and a["cia402_state"] == b["cia402_state"]]
+    assert not same, same
+    assert sum(1 for a, b in zip(states[:-1], states[1:], strict=True) if a["cia402_state"] != b["cia402_state"]) >= 2
     last = states[-1]["telemetry"]
     assert last["samples_taken"] == last["samples_published"] + last["samples_dropped"] + last["samples_buffered"]
     assert last["samples_published"] == len(samples) and last["samples_dropped"] == 0
@@ -427,3 +433,70 @@ def test_sample_dropped_while_its_batch_is_in_flight_counts_as_published():
     buf.add({"seq": 7})
     buf.add({"seq": 8})  # full again: seq 3 (not in flight) is dropped and stays a drop
     assert buf.counters()["samples_dropped"] == 1
+
+
+def test_a_broker_of_mqtt_3_1_1_only_is_served_in_3_1_1():
+    """serve's publisher speaks MQTT 5 (retain-as-published: a retained fault/set command is seen as one and
+    refused); a broker that knows only 3.1.1 answers its CONNECT with return code 1 (unacceptable protocol
+    version, MQTT 3.1.1 section 3.2.2.3). The publisher then connects again at once in 3.1.1. The broker here
+    is a minimal one written in the test: it refuses protocol level 5, accepts level 4 and records both."""
+    import socket
+
+    levels: list[int] = []
+    srv = socket.create_server(("127.0.0.1", 0))
+    srv.settimeout(0.2)
+    port = srv.getsockname()[1]
+    stop = threading.Event()
+
+    def connect_level(conn) -> int:
+        head = conn.recv(1)
+        assert head and head[0] >> 4 == 1  # CONNECT
+        length, shift = 0, 0
+        while True:
+            b = conn.recv(1)[0]
+            length |= (b & 0x7F) << shift
+            shift += 7
+            if not b & 0x80:
+                break
+        body = b""
+        while len(body) < length:
+            body += conn.recv(length - len(body))
+        name_len = int.from_bytes(body[:2], "big")
+        assert body[2:2 + name_len] == b"MQTT"
+        return body[2 + name_len]
+
+    def broker() -> None:
+        held = []
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except TimeoutError:
+                continue
+            conn.settimeout(2.0)
+            level = connect_level(conn)
+            levels.append(level)
+            if level == 5:
+                conn.sendall(bytes([0x20, 0x02, 0x00, 0x01]))  # a 3.1.1 CONNACK: unacceptable protocol version
+                conn.close()
+            else:
+                conn.sendall(bytes([0x20, 0x02, 0x00, 0x00]))  # accepted (then nothing more is answered)
+                held.append(conn)
+        for c in held:
+            c.close()
+
+    t = threading.Thread(target=broker, daemon=True)
+    t.start()
+    ax = ServedAxis()
+    svc = MqttService(settings(f"mqtt://127.0.0.1:{port}"), [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")])
+    try:
+        svc.start()
+        end = time.monotonic() + 15.0
+        while 4 not in levels and time.monotonic() < end:
+            time.sleep(0.05)
+    finally:
+        svc.stop()
+        ax.close()
+        stop.set()
+        t.join(5)
+        srv.close()
+    assert levels[:2] == [5, 4], levels

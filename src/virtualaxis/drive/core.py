@@ -45,7 +45,7 @@ from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
-from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults
+from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults, eds_limits
 from virtualaxis.drive.profiles import WindowTimer
 from virtualaxis.drive.settings import drive_settings
 from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
@@ -127,9 +127,9 @@ _STATE_SW = {state.value: bits | 0x10 | 0x200 for state, bits in STATE_BITS.item
 #: commissioned following-error window = margin x steady lag at the maximum speed + EDS default (chosen: 1.5,
 #: the usual MD36400 setting of "lag plus half again")
 FE_WINDOW_MARGIN = 1.5
-#: 0x2011 external force limit [N] (chosen: 10 MN, beyond any machine-tool axis; larger values only drive the
-#: integration out of the range where the end-stop contact holds the table)
-MAX_EXTERNAL_FORCE_N = 1e7
+#: 0x2011 external force limit [N] (chosen: 1 MN, the EDS's limit of 0x2011, beyond any machine-tool axis; larger
+#: values only drive the integration out of the range where the end-stop contact holds the table)
+MAX_EXTERNAL_FORCE_N = 1e6
 MOTOR_AMBIENT_C = 20.0
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
@@ -156,21 +156,27 @@ _OWN_RULES = frozenset({0x6060, 0x607E, 0x6088, 0x6086, 0x6098, 0x608F, 0x6091, 
                         0x2004, 0x200A, 0x200B, 0x2011, 0x2010})
 
 
-def _plain_int_ranges() -> dict[tuple[int, int], tuple[int, int]]:
+def _value_ranges(limits: dict[tuple[int, int], tuple[float | None, float | None]]) -> dict:
+    """:data:`_VALUE_RANGES` narrowed further by ``limits`` (the EDS's LowLimit / HighLimit): key -> (min, max)."""
+    out = dict(_VALUE_RANGES)
+    for key, (low, high) in limits.items():
+        lo, hi = out.get(key, DTYPE_RANGES[SPECS[key].dtype])
+        out[key] = (lo if low is None else max(lo, low), hi if high is None else min(hi, high))
+    return out
+
+
+def _plain_int_ranges(value_ranges: dict) -> dict[tuple[int, int], tuple[int, int]]:
     out = {}
     for key, spec in SPECS.items():
         if spec.access == "ro" or spec.dtype == "f32" or key[0] in _OWN_RULES:
             continue
         lo, hi = DTYPE_RANGES[spec.dtype]
-        lo2, hi2 = _VALUE_RANGES.get(key, (lo, hi))
+        lo2, hi2 = value_ranges.get(key, (lo, hi))
         out[key] = (max(lo, lo2), min(hi, hi2))
     for alias, target in ALIASES.items():
         if target in out:
             out[alias] = out[target]
     return out
-
-
-_PLAIN_INT_RANGES = _plain_int_ranges()
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
@@ -210,6 +216,10 @@ class Drive:
         self.cycle_s = cfg.control.position_cycle_s
         self._lock = threading.RLock()
         self._eds_defaults = eds_defaults(eds_path) if eds_path and Path(eds_path).exists() else {}
+        #: value ranges of the objects (option codes, and the EDS's LowLimit / HighLimit): every write path
+        #: refuses what an SDO download refuses
+        self._value_ranges = _value_ranges(eds_limits(eds_path) if eds_path and Path(eds_path).exists() else {})
+        self._plain_int_ranges = _plain_int_ranges(self._value_ranges)
         self._observers: list[Callable[[str, DriveState], None]] = []
         self._changed: set[tuple[int, int]] = set()
         self.emcy_sink: Callable[[int, int, bytes], None] | None = None  # (code, register bits, data)
@@ -404,7 +414,7 @@ class Drive:
 
     def check_object_write(self, index: int, sub: int, value) -> None:
         """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
-        plain = _PLAIN_INT_RANGES.get((index, sub))
+        plain = self._plain_int_ranges.get((index, sub))
         if plain is not None and type(value) is int and plain[0] <= value <= plain[1]:
             return  # (an integer object without rules of its own, value in range: what the checks below find)
         key = ALIASES.get((index, sub), (index, sub))
@@ -422,8 +432,8 @@ class Drive:
             raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi}")
         if value < lo:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo}")
-        if key in _VALUE_RANGES:
-            lo2, hi2 = _VALUE_RANGES[key]
+        if key in self._value_ranges:
+            lo2, hi2 = self._value_ranges[key]
             if value > hi2:
                 raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}")
             if value < lo2:

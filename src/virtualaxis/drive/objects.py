@@ -192,6 +192,43 @@ def _eds_defaults_cached(eds_path: str, _mtime: float) -> dict[tuple[int, int], 
     return out
 
 
+def eds_limits(eds_path: str | Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
+    """``LowLimit`` / ``HighLimit`` the EDS declares for the objects of :data:`OBJECTS` (those with either):
+    key -> (low, high), ``None`` where one is absent. The drive enforces them on every write (SDO, Modbus, API),
+    so that each path refuses what an SDO download of the object refuses."""
+    p = Path(eds_path).resolve()
+    return dict(_eds_limits_cached(str(p), p.stat().st_mtime))
+
+
+@functools.lru_cache(maxsize=8)
+def _eds_limits_cached(eds_path: str, _mtime: float) -> dict[tuple[int, int], tuple[float | None, float | None]]:
+    from configparser import RawConfigParser
+
+    parser = RawConfigParser(inline_comment_prefixes=(";",))
+    parser.optionxform = str  # type: ignore[assignment, method-assign]
+    parser.read(eds_path, encoding="utf-8")
+    sections = {name.lower(): name for name in parser.sections()}
+    out: dict[tuple[int, int], tuple[float | None, float | None]] = {}
+    for spec in OBJECTS:
+        name = sections.get(f"{spec.index:04x}sub{spec.sub:x}") or (
+            sections.get(f"{spec.index:04x}") if spec.sub == 0 else None)
+        if name is None:
+            continue
+        limits = []
+        for option in ("LowLimit", "HighLimit"):
+            text = parser.get(name, option, fallback="").strip()
+            if not text:
+                limits.append(None)
+                continue
+            try:
+                limits.append(float(text) if spec.dtype == "f32" else int(text, 0))
+            except ValueError:
+                limits.append(None)  # (the slave's EDS check names a malformed limit; not the drive's job)
+        if limits[0] is not None or limits[1] is not None:
+            out[spec.key] = (limits[0], limits[1])
+    return out
+
+
 def missing_from_eds(eds_path: str | Path) -> list[ObjectSpec]:
     """Objects the drive implements that the EDS does not declare."""
     import canopen

@@ -810,6 +810,7 @@ class PubChannel:
     last_error: str = ""
     ring_next: int = 0  # next ring seq to drain
     sampler_late: int = 0
+    mqtt5: bool = True  # MQTT 5 (retain-as-published for fault/set); False after a 3.1.1 broker refused it
 
     def counters(self) -> dict:
         return self.buffer.counters() | {
@@ -1054,6 +1055,7 @@ class Publisher:
         while not self._stop.is_set():
             ch.connect_attempts += 1
             self.export(ch)
+            v5 = ch.mqtt5
             try:
                 client = aiomqtt.Client(
                     st.host,
@@ -1065,7 +1067,9 @@ class Publisher:
                     keepalive=st.keepalive_s,
                     timeout=st.publish_timeout_s,
                     tls_context=tls,
-                    clean_session=True,
+                    protocol=aiomqtt.ProtocolVersion.V5 if v5 else aiomqtt.ProtocolVersion.V311,
+                    clean_session=None if v5 else True,
+                    clean_start=True if v5 else 3,
                 )
                 async with client:
                     _no_delay(client)
@@ -1077,6 +1081,9 @@ class Publisher:
                     return  # clean stop
             except aiomqtt.MqttError as exc:
                 ch.last_error = str(exc)
+                if v5 and getattr(getattr(exc, "rc", None), "value", getattr(exc, "rc", None)) in (1, 132):
+                    ch.mqtt5 = False  # an MQTT 3.1.1 broker ("unsupported protocol version"): again at once in 3.1.1
+                    continue
             except OSError as exc:
                 ch.last_error = str(exc)
             if ch.connected:
@@ -1099,7 +1106,13 @@ class Publisher:
         watcher = asyncio.ensure_future(self._watch(client, ch))
         try:
             # subscribed (SUBACK) before the birth message: a client that saw ``online`` can send commands
-            await client.subscribe(self.topic(ch, "fault/set"), qos=1)
+            if ch.mqtt5:  # the retain flag as the commanding client published it (3.1.1: only a replay has it)
+                from paho.mqtt.subscribeoptions import SubscribeOptions
+
+                await client.subscribe(self.topic(ch, "fault/set"),
+                                       options=SubscribeOptions(qos=1, retainAsPublished=True))
+            else:
+                await client.subscribe(self.topic(ch, "fault/set"), qos=1)
             await client.publish(self.topic(ch, "status"), self.status_payload(ch, True), qos=1, retain=True)
             while ch.current is None and not self._stop.is_set():  # serve forwards the state right at start
                 await asyncio.sleep(0.01)
@@ -1107,7 +1120,8 @@ class Publisher:
                 return
             # the state right after the birth message, before any backlog of telemetry ("on connect")
             ch.state_dirty = False
-            await client.publish(self.topic(ch, "state"), self.state_payload(ch, ch.current), qos=1, retain=True)
+            published = ch.current  # the state fields last published (an event's state goes out once)
+            await client.publish(self.topic(ch, "state"), self.state_payload(ch, published), qos=1, retain=True)
             next_state = time.monotonic() + st.state_interval_s
             while True:
                 stopping = self._stop.is_set()
@@ -1136,14 +1150,20 @@ class Publisher:
                     ch.batches_published += 1
                 while ch.states:
                     snap = ch.states[0]
-                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, snap), qos=1, retain=True)
+                    if snap != published:  # (a fault and its state transition are two drive events, one state)
+                        published = snap
+                        await client.publish(self.topic(ch, "state"), self.state_payload(ch, snap), qos=1,
+                                             retain=True)
                     with self._lock:
                         if ch.states and ch.states[0] is snap:
                             ch.states.popleft()
                 now = time.monotonic()
-                if ch.state_dirty or now >= next_state or stopping:
-                    ch.state_dirty = False  # (the current state last: the retained message is the newest)
-                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, ch.current), qos=1,
+                dirty, ch.state_dirty = ch.state_dirty, False
+                if now >= next_state or stopping or (dirty and ch.current != published):
+                    # (the current state last, so the retained message is the newest; not again when it is
+                    # the event's state just published: one state message per drive event)
+                    published = ch.current
+                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, published), qos=1,
                                          retain=True)
                     next_state = now + st.state_interval_s
                 if stopping:
