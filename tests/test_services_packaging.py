@@ -77,20 +77,35 @@ def test_serve_side_channel_errors_are_one_line(tmp_path):
              "--status-interval", "0", "--modbus", f"127.0.0.1:{port}"],
             capture_output=True, text=True, timeout=120, env=env,
         )
-    assert r.returncode == 2 and f"127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert r.returncode == 2 and f"--modbus 127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert "in use" in r.stderr, r.stderr  # the cause, not pymodbus' "please check address"
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     cases = [
         (["--modbus", "127.0.0.1:abc"], "--modbus '127.0.0.1:abc': port 'abc' is not a number"),
-        (["--mqtt", "mqtt://127.0.0.1:1", "--mqtt-credentials", str(tmp_path / "none.toml")], "none.toml"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--mqtt-credentials", str(tmp_path / "none.toml")],
+         f"--mqtt-credentials {tmp_path / 'none.toml'}: No such file"),
+        (["--modbus", "999.1.1.1:5020"], "--modbus 999.1.1.1:5020: cannot resolve"),
+        (["--modbus", "192.0.2.1:5020"], "--modbus 192.0.2.1:5020: cannot listen (Cannot assign requested address)"),
+        (["--mqtt", "mqtt://127.0.0.1:1/path"], "has no path"),
+        (["--mqtt", "mqtt://127.0.0.1:1?x=1"], "has no query"),
+        (["--mqtt", "mqtt://127.0.0.1:1#frag"], "has no fragment"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--telemetry-rate", "0"], "--telemetry-rate: must be > 0 and at most 1000"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--telemetry-rate", "5000"], "--telemetry-rate: must be > 0"),
         (["--mqtt", "mqtt://u:pw@127.0.0.1:1"], "not accepted on the command line"),
         (["--mqtt", "http://127.0.0.1:1"], "expected mqtt://HOST:PORT"),
-        (["--mqtt", "mqtt://127.0.0.1:1", "--telemetry-batch", "0"], "batch size must be >= 1"),
+        (["--mqtt", "mqtt://127.0.0.1:1", "--telemetry-batch", "0"], "--telemetry-batch: must be >= 1"),
         (["--modbus-writable"], "--modbus-writable needs --modbus"),
     ]
     for argv, expect in cases:
         with pytest.raises(ValueError) as exc:
             prepare(parser.parse_args(argv), "configs/seed000-hust.toml")
         assert expect in str(exc.value), (argv, str(exc.value))
+    pw_only = tmp_path / "pw.toml"
+    pw_only.write_text('password = "secret"\n')
+    with pytest.raises(ValueError) as exc:  # a password without a user name (MQTT 3.1.1 has none such)
+        prepare(parser.parse_args(["--mqtt", "mqtt://127.0.0.1:1", "--mqtt-credentials", str(pw_only)]),
+                "configs/seed000-hust.toml")
+    assert "no user name" in str(exc.value) and "secret" not in str(exc.value)
     ok = prepare(parser.parse_args(["--modbus", "--mqtt", "mqtt://127.0.0.1"]), "configs/seed000-hust.toml")
     assert ok.modbus_address == ("127.0.0.1", 5020) and ok.mqtt.port == 1883 and ok.mqtt.machine == "seed000-hust"

@@ -72,6 +72,22 @@ def parse_host_port(text: str | None) -> tuple[str, int]:
     return host, p
 
 
+def check_listen(host: str, port: int) -> None:
+    """Raise ValueError naming ``--modbus`` and the cause (host unknown, address in use or not local, ...) if a
+    server could not listen on ``host:port``: pymodbus' own message hides it ("please check address")."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ValueError(f"--modbus {host}:{port}: cannot resolve {host!r} ({exc.strerror})") from None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # (as asyncio's server does)
+            try:
+                s.bind(address)
+            except OSError as exc:
+                raise ValueError(f"--modbus {host}:{port}: cannot listen ({exc.strerror})") from None
+
+
 # ============================================================================================ serve side
 class RegisterAccess:
     """The register map of the axes (unit id -> ``AxisLink``) answering forwarded accesses."""

@@ -96,15 +96,16 @@ class MqttSettings:
 
     def validate(self) -> None:
         if not self.rate_hz > 0 or self.rate_hz > 1000:
-            raise MqttSettingsError(f"telemetry rate must be in (0, 1000] Hz (got {self.rate_hz})")
+            raise MqttSettingsError(f"--telemetry-rate: must be > 0 and at most 1000 Hz (got {self.rate_hz:g})")
         if self.batch_size < 1:
-            raise MqttSettingsError(f"telemetry batch size must be >= 1 (got {self.batch_size})")
+            raise MqttSettingsError(f"--telemetry-batch: must be >= 1 (got {self.batch_size})")
         if self.buffer_samples < self.batch_size:
             raise MqttSettingsError(
-                f"telemetry buffer ({self.buffer_samples}) must hold at least one batch ({self.batch_size})"
+                f"--telemetry-buffer: {self.buffer_samples} samples must hold at least one batch "
+                f"(--telemetry-batch {self.batch_size})"
             )
         if not re.fullmatch(r"[A-Za-z0-9_.\-]+", self.machine):
-            raise MqttSettingsError(f"machine name {self.machine!r}: use letters, digits, '_', '-', '.'")
+            raise MqttSettingsError(f"--machine {self.machine!r}: use letters, digits, '_', '-', '.'")
 
 
 def parse_mqtt_url(url: str, machine: str) -> MqttSettings:
@@ -120,6 +121,10 @@ def parse_mqtt_url(url: str, machine: str) -> MqttSettings:
         )
     if not parts.hostname:
         raise MqttSettingsError(f"--mqtt {url!r}: no host")
+    extra = [name for name, value in (("path", parts.path not in ("", "/")), ("query", parts.query),
+                                      ("fragment", parts.fragment)) if value]
+    if extra:
+        raise MqttSettingsError(f"--mqtt {url!r}: a broker URL has no {' / '.join(extra)} (mqtt://HOST:PORT)")
     tls = parts.scheme == "mqtts"
     try:
         port = parts.port or (8883 if tls else 1883)
@@ -140,28 +145,35 @@ def load_credentials(settings: MqttSettings, path: str | None, env: dict | None 
         try:
             settings.password = pw_path.read_text().strip()
         except OSError as exc:
-            raise MqttSettingsError(f"{pw_path} ({ENV_PASSWORD_FILE}): {exc.strerror}") from None
+            raise MqttSettingsError(f"{ENV_PASSWORD_FILE} {pw_path}: {exc.strerror}") from None
     settings.ca_file = env.get(ENV_CA_FILE) or settings.ca_file
-    if path is None:
-        return
+    if path is not None:
+        _credentials_file(settings, Path(path))
+    if settings.password and not settings.username:  # (MQTT 3.1.1 has no password without a user name)
+        raise MqttSettingsError(f"a password is given ({ENV_PASSWORD}, {ENV_PASSWORD_FILE} or --mqtt-credentials) "
+                                f"but no user name ({ENV_USERNAME} or username in --mqtt-credentials)")
+
+
+def _credentials_file(settings: MqttSettings, p: Path) -> None:
+    """The keys of a --mqtt-credentials TOML file into ``settings``."""
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib
 
-    p = Path(path)
     try:
         data = tomllib.loads(p.read_text())
     except OSError as exc:
-        raise MqttSettingsError(f"{p}: {exc.strerror}") from None
+        raise MqttSettingsError(f"--mqtt-credentials {p}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
-        raise MqttSettingsError(f"{p}: not valid TOML ({exc})") from None
+        raise MqttSettingsError(f"--mqtt-credentials {p}: not valid TOML ({exc})") from None
     allowed = {"username", "password", "ca_file", "cert_file", "key_file"}
     for key, value in data.items():
         if key not in allowed:
-            raise MqttSettingsError(f"{p}: {key}: unknown key (allowed: {', '.join(sorted(allowed))})")
+            raise MqttSettingsError(f"--mqtt-credentials {p}: {key}: unknown key (allowed: "
+                                    f"{', '.join(sorted(allowed))})")
         if not isinstance(value, str):
-            raise MqttSettingsError(f"{p}: {key}: must be a string")
+            raise MqttSettingsError(f"--mqtt-credentials {p}: {key}: must be a string")
         setattr(settings, key, value)
 
 
@@ -227,6 +239,8 @@ def parse_fault_command(payload: bytes | bytearray | str | None) -> tuple[dict |
             return refuse('action: missing ("inject" or "clear")')
         return refuse(f'action: must be "inject" or "clear" (got {json.dumps(action)[:60]})')
     kind = data.get("kind")
+    if isinstance(kind, float) and kind.is_integer():  # JSON Schema's "integer" includes 4.0: the number 4
+        kind = int(kind)
     if kind is not None and not isinstance(kind, str) and not (isinstance(kind, int) and not isinstance(kind, bool)):
         return refuse(f"kind: must be a fault kind name or number (got {type(kind).__name__})")
     if isinstance(kind, str) and len(kind) > 64:
@@ -810,6 +824,7 @@ class PubChannel:
     last_error: str = ""
     ring_next: int = 0  # next ring seq to drain
     sampler_late: int = 0
+    auth_warned: bool = False  # the broker's refusal of the credentials was reported on stderr
     mqtt5: bool = True  # MQTT 5 (retain-as-published for fault/set); False after a 3.1.1 broker refused it
 
     def counters(self) -> dict:
@@ -1081,6 +1096,12 @@ class Publisher:
                     return  # clean stop
             except aiomqtt.MqttError as exc:
                 ch.last_error = str(exc)
+                rc = getattr(getattr(exc, "rc", None), "value", getattr(exc, "rc", None))
+                if rc in (4, 5, 134, 135) and not ch.auth_warned:  # bad user name or password / not authorized
+                    ch.auth_warned = True  # (once: the backoff retries on, the --json summary has last_error)
+                    print(f"warning: mqtt {st.host}:{st.port}: the broker refused axis {ch.name}: {exc} (check "
+                          f"--mqtt-credentials / {ENV_USERNAME} / {ENV_PASSWORD}); retrying", file=sys.stderr,
+                          flush=True)
                 if v5 and getattr(getattr(exc, "rc", None), "value", getattr(exc, "rc", None)) in (1, 132):
                     ch.mqtt5 = False  # an MQTT 3.1.1 broker ("unsupported protocol version"): again at once in 3.1.1
                     continue

@@ -32,7 +32,8 @@ def add_arguments(p) -> None:
         metavar="FILE",
         help="TOML file with username / password / ca_file / cert_file / key_file (or VIRTUALAXIS_MQTT_* variables)",
     )
-    g.add_argument("--telemetry-rate", type=float, default=100.0, metavar="HZ", help="telemetry sample rate (100)")
+    g.add_argument("--telemetry-rate", type=float, default=100.0, metavar="HZ",
+                   help="telemetry sample rate, > 0 and at most 1000 (default 100)")
     g.add_argument("--telemetry-batch", type=int, default=10, metavar="N", help="samples per telemetry message (10)")
     g.add_argument(
         "--telemetry-buffer", type=int, default=1000, metavar="N", help="samples kept per axis while the broker is away"
@@ -117,11 +118,12 @@ def prepare(args, main_config) -> SideChannels:
     """Validate the options (raises ValueError with a message naming the option, file or variable)."""
     sc = SideChannels()
     if args.modbus is not None:
-        from virtualaxis.services.modbus import parse_host_port
+        from virtualaxis.services.modbus import check_listen, parse_host_port
     if args.mqtt is not None:
         from virtualaxis.services.mqtt import load_credentials, machine_name_from, parse_mqtt_url
     if args.modbus is not None:
         sc.modbus_address = parse_host_port(args.modbus)
+        check_listen(*sc.modbus_address)
         sc.modbus_writable = args.modbus_writable
     elif args.modbus_writable:
         raise ValueError("--modbus-writable needs --modbus")
