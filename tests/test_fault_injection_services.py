@@ -327,6 +327,9 @@ def test_fault_command_form_and_application_without_io():
     assert err is None and cmd == {"id": 5, "action": "inject", "kind": "over_current",
                                    "options": {"duty": 1.0, "magnitude": 3.0}}
     assert parse_fault_command('{"action": "clear"}')[0] == {"action": "clear", "kind": None, "options": {}}
+    # 4.0 is an integer to JSON Schema (docs/schemas/fault-set.schema.json accepts it): the kind number 4
+    assert parse_fault_command('{"action": "inject", "kind": 4.0}')[0]["kind"] == 4
+    assert parse_fault_command('{"action": "inject", "kind": 4.5}')[1]["ok"] is False
     for payload, words in ((None, "not JSON"), (b"", "not JSON"), (b'{"action": "inject", "kind": 1, "duty": NaN}',
                            "NaN"), (b'{"action": "inject", "kind": 1, "magnitude": 1e999}', "finite"),
                            (b'{"action": "inject", "kind": 1, "magnitude": 1' + b"0" * 400 + b"}", "out of range"),

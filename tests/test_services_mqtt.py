@@ -318,9 +318,10 @@ def test_credentials_come_from_a_file_or_the_environment_never_the_command_line(
         load_credentials(st, str(tmp_path / "nope.toml"), env={})
 
 
-def test_username_and_password_against_a_broker_that_requires_them(tmp_path):
+def test_username_and_password_against_a_broker_that_requires_them(tmp_path, capfd):
     """mosquitto with a password file: the right credentials (from the environment) connect, wrong ones are
-    refused and retried with backoff while the drive runs on."""
+    refused and retried with backoff while the drive runs on, and the refusal is said once on stderr (it was
+    silent but for the --json summary), without the password."""
     import pwd
     import shutil
     import tempfile
@@ -357,6 +358,8 @@ def test_username_and_password_against_a_broker_that_requires_them(tmp_path):
         assert s_good.channels[0].connects == 1
         assert s_bad.channels[0].connects == 0 and s_bad.channels[0].connect_attempts > 2
         assert s_bad.channels[0].last_error
+        err = capfd.readouterr().err
+        assert err.count("the broker refused axis X") == 1 and "wrong" not in err and "s3cret" not in err, err
     finally:
         ax.close()
         broker.stop()
