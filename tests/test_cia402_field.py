@@ -57,6 +57,7 @@ def test_csp_following_error_fault_brakes_from_the_actual_speed():
             if sw & 0x6F == 0x2F:
                 break
         assert seen[-1] == 0x2F, [hex(s) for s in seen]  # fault reaction active
+        assert sw & 0x2000  # bit 13 following error from the timeout on (before: only once in FAULT)
         p0 = node.sdo[0x6064].raw
         r.emcy.wait_for(0x8611)
         states = []
@@ -411,5 +412,30 @@ def test_torque_actual_is_computed_from_the_currents_and_stays_within_0x6072():
         mot = r.drive.cfg.motor
         t_currents = mot.kt_nm_per_a * s.current_a  # ld = lq on the seed motor: no reluctance torque
         assert s.torque_nm == pytest.approx(min(t_currents, node.sdo[0x6076].raw / 1000.0), rel=1e-6)
+    finally:
+        r.close()
+
+
+def test_zero_accelerations_are_refused_and_every_fault_reaction_option_is_offered():
+    """An acceleration / deceleration of 0 (0x6083, 0x6084, 0x6085, 0x609A) is refused with 0x06090032 and the
+    value kept (before: accepted, and a quick stop at 0x6085 = 0 kept the axis at 100 mm/s); 0x605E 3 and 4
+    (current / voltage limit, CiA 402) are taken, 5 is refused (0x06090031). Found by a docs-only master."""
+    r = Rig()
+    try:
+        node = r.node
+        for index in (0x6083, 0x6084, 0x6085, 0x609A):
+            before = node.sdo[index].raw
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo[index].raw = 0
+            assert exc.value.code == 0x06090032, (hex(index), hex(exc.value.code))
+            assert node.sdo[index].raw == before
+            node.sdo[index].raw = 1  # the smallest legal value
+            node.sdo[index].raw = before
+        for option in (3, 4):
+            node.sdo[0x605E].raw = option
+            assert node.sdo[0x605E].raw == option
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x605E].raw = 5
+        assert exc.value.code == 0x06090031
     finally:
         r.close()

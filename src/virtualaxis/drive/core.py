@@ -141,13 +141,16 @@ _VALUE_RANGES = {
     (0x605B, 0): (0, 1),
     (0x605C, 0): (0, 1),
     (0x605D, 0): (1, 3),
-    (0x605E, 0): (0, 2),
+    (0x605E, 0): (0, 4),  # 3 current limit, 4 voltage limit (both: the current-limit stop)
     (0x6007, 0): (0, 3),
     (0x2002, 0): (0, 2),
     (0x2012, 0): (0, 1),
     (0x2013, 0): (0, 1),
     (0x60C2, 2): (-6, 0),
     (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
+    # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
+    # running at speed); refused as SDO does from the EDS's LowLimit 1
+    **{(index, 0): (1, DTYPE_RANGES["u32"][1]) for index in (0x6083, 0x6084, 0x6085, 0x609A)},
 }
 #: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
 #: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_object_write (the
@@ -1227,8 +1230,9 @@ class Drive:
             if bits & 0x8000:
                 sw &= ~0x3400
             sw |= bits & 0x7FFF
-        elif self._state == S.FAULT and self._faults and self._faults[0].emcy_code == 0x8611:
-            sw |= 0x2000
+        elif ((self._state is S.FAULT or self._state is S.FAULT_REACTION_ACTIVE) and self._faults
+              and self._faults[0].emcy_code == 0x8611):
+            sw |= 0x2000  # following error (bit 13) from the timeout 0x6066 on: through the fault reaction, in FAULT
         self._store((0x6041, 0), sw)
 
     def _speed_zero_flag(self) -> bool:
