@@ -439,3 +439,60 @@ def test_zero_accelerations_are_refused_and_every_fault_reaction_option_is_offer
         assert exc.value.code == 0x06090031
     finally:
         r.close()
+
+
+def test_communication_errors_clear_themselves_and_never_hide_the_fault_code():
+    """CiA 301: a communication error that has gone (SYNC back after a gap, a heartbeat producer back) clears
+    0x1001's communication bit, and with no other error left EMCY 0x0000 goes out and 0x1001 = 0x603F = 0
+    (before: 0x1001 = 0x11 and 0x603F = 0x8100 stayed until a fault reset). In FAULT, a later SYNC gap does
+    not replace the fault's code in 0x603F (before: 0x3220 read back as 0x8100), and the SYNC coming back
+    sends no EMCY 0x0000 (the fault is still there); the fault reset does. Found by a docs-only master."""
+    r = Rig()
+    try:
+        node = r.node
+        node.sdo[0x1006].raw = 10_000  # 10 ms: timeout 15 ms
+        node.sdo[0x6007].raw = 0  # loss of SYNC: no drive reaction (only the EMCY)
+        node.nmt.state = "OPERATIONAL"
+        r.sync(5)
+        time.sleep(0.06)  # a gap of 4 x the timeout
+        r.sync(5)
+        r.emcy.wait_for(0x8100)
+        r.emcy.wait_for(0x0000)
+        assert r.emcy.codes().index(0x8100) < r.emcy.codes().index(0x0000)
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+        time.sleep(0.03)  # the SYNCs stop: 0x8100 again, cleared by switching SYNC monitoring off
+        node.sdo[0x1006].raw = 0
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+        # heartbeat consumer: master 0x7F every 20 ms, monitored with 100 ms; lost, then back
+        node.sdo[0x1016][1].raw = (0x7F << 16) | 100
+        for _ in range(5):
+            r.net.send_message(0x77F, b"\x05")
+            time.sleep(0.02)
+        n0 = len(r.emcy.codes())
+        r.wait(lambda: 0x8130 in r.emcy.codes()[n0:], timeout=2.0)
+        assert node.sdo[0x1001].raw & 0x10
+        r.net.send_message(0x77F, b"\x05")
+        r.wait(lambda: 0x0000 in r.emcy.codes()[n0 + 1:], timeout=2.0)
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+        node.sdo[0x1016][1].raw = 0
+        # a fault, then a SYNC gap: 0x603F keeps the fault's code; the SYNC back sends no error reset
+        node.sdo[0x1006].raw = 10_000
+        node.nmt.state = "OPERATIONAL"  # (the heartbeat loss took the node to PRE-OPERATIONAL, 0x1029)
+        r.sync(3)
+        node.sdo[0x2010].raw = 0x3220  # injected DC-link undervoltage
+        r.emcy.wait_for(0x3220)
+        r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)  # FAULT
+        n1 = len(r.emcy.codes())
+        time.sleep(0.06)
+        r.sync(5)
+        assert 0x8100 in r.emcy.codes()[n1:]
+        assert node.sdo[0x603F].raw == 0x3220
+        assert 0x0000 not in r.emcy.codes()[n1:]
+        assert node.sdo[0x1001].raw & 0x10 == 0 and node.sdo[0x1001].raw != 0  # the fault's bits stay
+        node.sdo[0x2010].raw = 0  # clear the injected fault, then reset it: EMCY 0x0000, all clear
+        node.sdo[0x6040].raw = 0x80
+        r.sync(3)
+        r.wait(lambda: 0x0000 in r.emcy.codes()[n1:], timeout=2.0)
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+    finally:
+        r.close()

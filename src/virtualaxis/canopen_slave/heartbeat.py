@@ -60,6 +60,9 @@ class HeartbeatConsumer:
             node, time_ms = _split(od.value(0x1016, sub))
             if time_ms and 1 <= node <= 127 and node != self.slave.node_id:
                 self.monitors[HEARTBEAT_BASE + node] = Monitor(node, time_ms * 1e-3)
+        monitored = {m.node_id for m in self.monitors.values()}
+        for node in set(self.slave._comm_errors.get(0x8130, ())) - monitored - {0}:
+            self.slave.clear_comm_error(0x8130, node)  # a producer no longer monitored is no longer lost
 
     def validate_write(self, _index: int, sub: int, value: int) -> None:
         node, time_ms = _split(value)
@@ -85,7 +88,9 @@ class HeartbeatConsumer:
             self.slave.counters["malformed_frames"] += 1
             return
         monitor.last_rx_s = now_s
-        monitor.lost = False
+        if monitor.lost:
+            monitor.lost = False
+            self.slave.clear_comm_error(0x8130, monitor.node_id)  # the producer is back
 
     def poll(self, now_s: float) -> None:
         for monitor in self.monitors.values():
@@ -93,7 +98,7 @@ class HeartbeatConsumer:
             if last is not None and not monitor.lost and now_s - last > monitor.timeout_s:
                 monitor.lost = True
                 self.slave.counters["heartbeat_timeouts"] += 1
-                self.slave.emcy(0x8130, 0x10, bytes((monitor.node_id,)))
+                self.slave.raise_comm_error(0x8130, monitor.node_id, bytes((monitor.node_id,)))
                 self.slave.communication_error("heartbeat_lost", monitor.node_id)
                 self.slave.error_behaviour()
 
@@ -120,7 +125,9 @@ class NodeGuarding:
         slave.counters["node_guard_replies"] += 1
         self.toggle ^= 1
         self.last_rtr_s = now_s
-        self.lost = False
+        if self.lost:
+            self.lost = False
+            slave.clear_comm_error(0x8130, 0)  # the master guards again
 
     def poll(self, now_s: float) -> None:
         if self.last_rtr_s is None or self.lost:
@@ -130,6 +137,6 @@ class NodeGuarding:
         if life_s > 0.0 and now_s - self.last_rtr_s > life_s:
             self.lost = True
             self.slave.counters["life_guarding_events"] += 1
-            self.slave.emcy(0x8130, 0x10)
+            self.slave.raise_comm_error(0x8130, 0)
             self.slave.communication_error("life_guarding", self.slave.node_id)
             self.slave.error_behaviour()

@@ -230,7 +230,9 @@ class PdoEngine:
             slave.emcy(0x8220, 0x10, bytes((rpdo.number,)))
             data = data[:rpdo.length]
         rpdo.last_rx_s = now_s
-        rpdo.timed_out = False
+        if rpdo.timed_out:  # the RPDO is back: its deadline error clears (EMCY 0x0000 when none is left)
+            rpdo.timed_out = False
+            slave.clear_comm_error(0x8250, rpdo.number)
         if rpdo.trans_type <= 240:
             rpdo.pending = data
             return
@@ -306,7 +308,7 @@ class PdoEngine:
             if rpdo.last_rx_s is not None and not rpdo.timed_out and now_s - rpdo.last_rx_s > rpdo.event_s:
                 rpdo.timed_out = True
                 self.slave.counters["rpdo_timeouts"] += 1
-                self.slave.emcy(0x8250, 0x10, bytes((rpdo.number,)))
+                self.slave.raise_comm_error(0x8250, rpdo.number, bytes((rpdo.number,)))
                 self.slave.communication_error("rpdo_timeout", rpdo.number)
 
     def on_operational(self) -> None:

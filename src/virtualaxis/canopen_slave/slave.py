@@ -111,6 +111,9 @@ class CanopenSlave:
         self._applied_ahead = 0
         self._handlers: dict[int, Callable[[can.Message, float], None]] = {}
         self._in_error_reaction = False
+        #: communication errors still present: EMCY code -> the sources of it (a heartbeat monitor's node id,
+        #: 0 for SYNC / life guarding); each clears itself when its cause is gone (:meth:`clear_comm_error`)
+        self._comm_errors: dict[int, set[int]] = {}
         #: called (no arguments) whenever the COB-IDs this node listens to change (a frame router's cache)
         self.on_dispatch_change: Callable[[], None] | None = None
         self._hook_validate = getattr(app, "validate_write", None)
@@ -298,21 +301,61 @@ class CanopenSlave:
                 tpdo.dirty = True
 
     def emcy(self, code: int, register_bits: int = 0, data: bytes = b"") -> None:
-        """Record and send an emergency: 0x1001 |= generic bit + register_bits, push 0x1003, 0x603F = code."""
+        """Record and send an emergency: 0x1001 |= generic bit + register_bits, push 0x1003, 0x603F = code
+        (a communication error 0x81xx does not replace another error's code there: a master that finds the
+        drive in FAULT reads the fault's cause, not a later SYNC gap)."""
         entries = self.od.entries
         register = entries[(0x1001, 0)]
         self.write(0x1001, 0, (register.value | register_bits | (0x01 if code else 0)) & 0xFF)
         if code:
             self.emcy_producer.push_history(code)
-            if (0x603F, 0) in entries:
+            error_code = entries.get((0x603F, 0))
+            if error_code is not None and not (code & 0xFF00 == 0x8100 and error_code.value
+                                               and error_code.value & 0xFF00 != 0x8100):
                 self.write(0x603F, 0, code & 0xFFFF)
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(code, register.value, data, self._now)
 
     def emcy_reset(self) -> None:
-        """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F)."""
-        self.write(0x1001, 0, 0)
+        """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F); a communication error still
+        present keeps its bits (generic + communication) in 0x1001."""
+        register = 0x11 if self._comm_errors else 0
+        self.write(0x1001, 0, register)
         if (0x603F, 0) in self.od.entries:
+            self.write(0x603F, 0, 0)
+        if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
+            self.emcy_producer.produce(0x0000, register, b"", self._now)
+
+    def raise_comm_error(self, code: int, source: int = 0, data: bytes = b"") -> None:
+        """A communication error (SYNC timeout 0x8100, heartbeat / life guarding 0x8130): EMCY with the
+        communication bit of 0x1001, remembered until :meth:`clear_comm_error` for the same code and source."""
+        self._comm_errors.setdefault(code, set()).add(source)
+        self.emcy(code, 0x10, data)
+
+    def clear_comm_error(self, code: int, source: int = 0) -> None:
+        """The cause of a communication error is gone (SYNC / heartbeat back). When no communication error is
+        left, 0x1001's communication bit clears; when nothing else is left either (the application reports no
+        error, 0x1001 holds no other bit), 0x1001 = 0, 0x603F = 0 and EMCY 0x0000 (error reset) goes out, as
+        CiA 301 has it. While the application is in error the EMCY stays unsent (a master's EMCY consumer
+        would take 0x0000 as 'all errors gone')."""
+        sources = self._comm_errors.get(code)
+        if not sources or source not in sources:
+            return
+        sources.discard(source)
+        if sources:
+            return
+        del self._comm_errors[code]
+        if self._comm_errors:
+            return
+        entries = self.od.entries
+        register = entries[(0x1001, 0)].value & ~0x10
+        has_error = getattr(self.app, "has_error", None)
+        if register & ~0x01 or (has_error is not None and has_error()):
+            self.write(0x1001, 0, register)
+            return
+        self.write(0x1001, 0, 0)
+        error_code = entries.get((0x603F, 0))
+        if error_code is not None and error_code.value & 0xFF00 == 0x8100:
             self.write(0x603F, 0, 0)
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(0x0000, 0, b"", self._now)
@@ -559,6 +602,7 @@ class CanopenSlave:
         self.nmt_state = NMT_STATE.INITIALISING
         if application:
             self._power_on_values(0x0000, 0xFFFF)
+            self._comm_errors.clear()
         else:
             self._power_on_values(0x1000, 0x1FFF, keep=_STATUS_OBJECTS)
         self.sdo.reset()
@@ -640,7 +684,7 @@ class CanopenSlave:
 
     def _sync_timeout(self) -> None:
         self.counters["sync_timeouts"] += 1
-        self.emcy(0x8100, 0x10)
+        self.raise_comm_error(0x8100)
         self.communication_error("sync_timeout", 0)
 
     def _on_sync_frame(self, msg: can.Message, now_s: float) -> None:
@@ -651,6 +695,8 @@ class CanopenSlave:
             self.emcy(0x8240, 0x10, bytes((len(msg.data),)))
             return
         self.counters["sync_received"] += 1
+        if 0x8100 in self._comm_errors:  # SYNC is back (a late one raised the error: the next one clears it)
+            self.clear_comm_error(0x8100)
         arrival = self.arrival_s(msg, now_s)
         if self.sync.on_arrival(arrival) and self.nmt_state == NMT_STATE.OPERATIONAL:
             self._sync_timeout()          # a gap longer than 1.5 periods the timer had not caught

@@ -45,6 +45,8 @@ class SyncConsumer:
         self.window_s = od.value(0x1007) * 1e-6
         self.timeout_s = 1.5 * od.value(0x1006) * 1e-6      # 0 = no SYNC monitoring
         self.timed_out = False
+        if self.timeout_s == 0.0:
+            self.slave.clear_comm_error(0x8100)  # monitoring off: a SYNC timeout reported is moot
         overflow = od.value(0x1019) if (0x1019, 0) in od else 0
         self.counter_enabled = overflow >= 2
         self.expected_dlc = 1 if self.counter_enabled else 0

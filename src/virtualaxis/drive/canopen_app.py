@@ -176,6 +176,10 @@ class Cia402Application:
             self._sync_loss_reported = True
             self.drive.communication_error("sync_loss", 0)
 
+    def has_error(self) -> bool:
+        """The drive is in FAULT / FAULT REACTION ACTIVE or has a warning (the stack keeps 0x1001 set)."""
+        return self.drive.cia402_state.name.startswith("FAULT") or bool(self.drive.warnings)
+
     def on_communication_error(self, kind: str, detail: int) -> None:
         self.drive.communication_error(kind, detail)
         self.flush()
