@@ -117,6 +117,29 @@ def test_profile_position_halt_stops_and_resumes():
         r.close()
 
 
+def test_profile_position_halt_brakes_with_the_profile_deceleration():
+    """19: halt (0x605D = 1) from 200 mm/s with 0x6084 = 2 m/s^2: the demand stops in v^2 / 2a = 10 mm and
+    v / a = 100 ms (before: 22.6 mm and 216 ms, the braking profile re-planned every cycle; found by a
+    docs-only master). Judged on the position demand 0x6062 (the profile itself, not the loop's lag)."""
+    r = _pp_rig(**{"0x6081": 200_000})
+    node = r.node
+    try:
+        node.sdo[0x607A].raw = 250_000
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        r.wait(lambda: node.sdo[0x606B].raw >= 200_000, sync=True, timeout=10)
+        r.sync(20)
+        cycles0, p0 = r.drive.counters["cycles"], node.sdo[0x6062].raw
+        node.sdo[0x6040].raw = 0x10F
+        r.wait(lambda: node.sdo[0x606B].raw == 0, sync=True, timeout=10)
+        cycles = r.drive.counters["cycles"] - cycles0
+        travel_mm = (node.sdo[0x6062].raw - p0) * 1e-3
+        assert 9.0 < travel_mm < 11.0, travel_mm
+        assert 90 <= cycles * r.drive.cycle_s * 1e3 <= 115, cycles
+    finally:
+        r.close()
+
+
 def test_profile_position_jerk_limited_profile_reaches_the_same_target_later():
     """19: 0x6086 = 3 with jerk 0x60A4: S-curve (moving average) - same end point, smoother start."""
     results = {}

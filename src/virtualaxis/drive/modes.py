@@ -154,10 +154,12 @@ class ProfilePosition(OperatingMode):
         super().__init__(gen)
         self.ack = False  # statusword bit 12 "set-point acknowledge"
         self.pending_m: float | None = None  # buffered set-point (single set-point, not change immediately)
+        self.halting = False  # the halt's braking profile is planned (once, when bit 8 rises)
 
     def reset(self, d: Drive, p_m: float) -> None:
         self.ack = False
         self.pending_m = None
+        self.halting = False
 
     def entry_decel_m_s2(self, d: Drive) -> float:
         return float(d._obj(0x6084)) * d._u
@@ -174,8 +176,11 @@ class ProfilePosition(OperatingMode):
         halt = bool(d._cw & 0x100)
         v, a, dec = self.limits(d)
         if halt:
-            gen.brake(a, d._halt_decel())
+            if not self.halting:  # planned once: re-planned every cycle it braked at about half of 0x6084
+                gen.brake(a, d._halt_decel())
+                self.halting = True
         else:
+            self.halting = False
             gen.profile.set_target(gen.target_m, v, a, dec)
         p = self._profile_step(d)
         if not halt and self.pending_m is not None and gen.profile.done and gen.jerk.settled(p):
