@@ -162,8 +162,9 @@ def test_limit_switch_stops_every_mode_and_allows_motion_only_away():
 
 def test_huge_external_force_stops_at_the_end_stop_and_reset_node_restores_the_plant():
     """Items 4 + #18: 0x2011 = -1e6 N on a disabled drive: the table stops at the hard end stop (before:
-    17 km, then NaN and a dead drive thread); enabling gives no NaN; NMT reset node puts the plant back
-    inside the stroke at rest."""
+    17 km, then NaN and a dead drive thread); enabling gives no NaN; NMT reset node restores the plant at
+    rest where it stands (the buffer relaxed: at its surface, on the limit switch), with valid position
+    objects, and the master drives it off the switch (only away from it) back into the stroke."""
     r = Rig()
     try:
         node = r.node
@@ -185,7 +186,14 @@ def test_huge_external_force_stops_at_the_end_stop_and_reset_node_restores_the_p
         node.nmt.wait_for_bootup(5)
         r.sync(10)
         s = r.drive.state
-        assert -half < s.table_position_m < half and abs(s.velocity_actual_m_s) < 1e-6
+        assert lo - 1e-6 <= s.table_position_m < -half and abs(s.velocity_actual_m_s) < 1e-3, s.table_position_m
+        assert node.sdo[0x60FD].raw & 0x1 and abs(node.sdo[0x6064].raw) < 2**31 - 1
+        _start(r, 3, **{"0x6083": 1_000_000, "0x6084": 1_000_000})
+        node.sdo[0x60FF].raw = -20_000  # into the switch: refused (stays put)
+        r.sync(200)
+        assert r.drive.state.table_position_m < -half + 0.001
+        node.sdo[0x60FF].raw = 50_000  # away from it: moves, back inside the stroke
+        r.wait(lambda: r.drive.state.table_position_m > -half + 0.01, sync=True, timeout=10)
         assert not node.sdo[0x60FD].raw & 0x3
         with pytest.raises(canopen.SdoAbortedError) as exc:
             node.sdo[0x2011].raw = float("nan")
@@ -494,5 +502,28 @@ def test_communication_errors_clear_themselves_and_never_hide_the_fault_code():
         r.sync(3)
         r.wait(lambda: 0x0000 in r.emcy.codes()[n1:], timeout=2.0)
         assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+    finally:
+        r.close()
+
+
+def test_every_target_the_default_software_limits_allow_is_reached_without_a_limit_switch():
+    """Item 5 / a docs-only master: with the defaults, 0x607D lies inside the hardware limit switches (before:
+    +-300 mm with the switches at +-298 mm, so a PP move to the legal target 300000 faulted 0xFF11). A PP
+    target beyond the limit is clamped to it (bit 11, 0x2110:3) and reached at full profile speed, no fault."""
+    r = Rig()
+    try:
+        node = r.node
+        lo, hi = node.sdo[0x607D][1].raw, node.sdo[0x607D][2].raw
+        neg_m, pos_m, _ = r.drive._switch_at_m
+        assert neg_m * 1e6 < lo < hi < pos_m * 1e6
+        _start(r, 1, **{"0x6081": node.sdo[0x607F].raw, "0x6083": 5_000_000, "0x6084": 5_000_000})
+        clamped0 = node.sdo[0x2110][3].raw
+        node.sdo[0x607A].raw = 400_000
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        r.wait(lambda: r.sw() & 0x400 or r.sw() & 0x08, sync=True, timeout=20)
+        assert not r.sw() & 0x08, [hex(c) for c in r.emcy.codes()]  # no fault
+        assert abs(node.sdo[0x6064].raw - hi) <= 50
+        assert node.sdo[0x2110][3].raw == clamped0 + 1 and node.sdo[0x60FD].raw & 0x3 == 0
     finally:
         r.close()

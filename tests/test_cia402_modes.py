@@ -217,6 +217,28 @@ def _run_homing(r: Rig, max_syncs: int = 8000) -> None:
     raise AssertionError("homing did not finish")
 
 
+def test_an_unexpected_limit_switch_in_a_homing_run_is_a_homing_error_not_a_fault():
+    """21: method 19 searching toward + at 100 mm/s; the + limit switch (injected, as
+    ``virtualaxis fault inject limit_switch`` does) reads active: statusword bits 13/12 = 1/0 (homing error),
+    the axis brakes to rest, no limit-switch fault 0xFF11 (before: the fault overtook the homing error while
+    the run braked; found by a docs-only master)."""
+    r = _homing_rig(19, -0.1)
+    try:
+        node = r.node
+        node.sdo[0x6040].raw = 0x1F
+        r.sync(150)  # searching at speed
+        assert node.sdo[0x606C].raw > 50_000
+        injector = next(iter(r.axes.values())).injection
+        injector.inject("limit_switch", magnitude=1.0)
+        r.wait(lambda: abs(node.sdo[0x606C].raw) < 100 and r.sw() & 0x2000, sync=True, timeout=10)
+        sw = r.sw()
+        assert sw & 0x3000 == 0x2000 and sw & 0x6F == 0x27, hex(sw)  # homing error, still OPERATION ENABLED
+        assert 0xFF11 not in r.emcy.codes(), [hex(c) for c in r.emcy.codes()]
+        injector.clear()
+    finally:
+        r.close()
+
+
 @pytest.mark.parametrize(
     ("method", "x0_m", "home_m"),
     [

@@ -62,6 +62,7 @@ from virtualaxis.drive.statemachine import (
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.resources import project_file
 from virtualaxis.sim import CONTROL_MODE, AxisSimulator, ControlMode
+from virtualaxis.sim.simulator import end_stops
 
 S = STATE  # (the members as plain attributes; Cia402State is the type)
 log = logging.getLogger("virtualaxis.drive")
@@ -131,6 +132,9 @@ FE_WINDOW_MARGIN = 1.5
 #: values only drive the integration out of the range where the end-stop contact holds the table)
 MAX_EXTERNAL_FORCE_N = 1e6
 MOTOR_AMBIENT_C = 20.0
+#: default software limits this far inside the hardware limit switches [m] (chosen: 1 mm, far more than the
+#: position loop's overshoot at a target, less than any stroke worth the name)
+SOFT_LIMIT_INSIDE_SWITCH_M = 0.001
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
 
@@ -241,6 +245,16 @@ class Drive:
         self._reset_all()
 
     # ================================================================================ object table
+    def _commissioned_travel_m(self) -> tuple[float, float]:
+        """The default software limits 0x607D [m]: the config's ``limits.travel_*_m``, kept
+        :data:`SOFT_LIMIT_INSIDE_SWITCH_M` inside the hardware limit switches (a commissioned axis reaches
+        every target 0x607D allows without tripping a switch; seed 000's config has +-300 mm, its switches act
+        at +-298 mm)."""
+        lo, hi = self.cfg.limits.travel_min_m, self.cfg.limits.travel_max_m
+        neg, pos, _ = self._switch_at_m
+        lo2, hi2 = max(lo, neg + SOFT_LIMIT_INSIDE_SWITCH_M), min(hi, pos - SOFT_LIMIT_INSIDE_SWITCH_M)
+        return (lo2, hi2) if lo2 < hi2 else (lo, hi)
+
     def derived_objects(self) -> dict[tuple[int, int], int | float]:
         """Objects whose values come from the axis config (written at boot and on NMT reset node)."""
         cfg, st = self.cfg, self.settings
@@ -271,8 +285,8 @@ class Drive:
             (0x6091, 2): 1,
             (0x6092, 1): int(round(lead / unit)),
             (0x6092, 2): 1,
-            (0x607D, 1): clamp_to_dtype(cfg.limits.travel_min_m / unit, "i32"),
-            (0x607D, 2): clamp_to_dtype(cfg.limits.travel_max_m / unit, "i32"),
+            (0x607D, 1): clamp_to_dtype(self._commissioned_travel_m()[0] / unit, "i32"),
+            (0x607D, 2): clamp_to_dtype(self._commissioned_travel_m()[1] / unit, "i32"),
             (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
             (0x6080, 0): self._default_max_motor_speed_rpm(),
             (0x6502, 0): sum(MODE_BITS.values()),
@@ -399,12 +413,18 @@ class Drive:
 
     def power_on_reset(self) -> None:
         """NMT reset node / power-on reset: application objects back to defaults, state machine restarted,
-        and the plant restored: at rest, back inside the stroke (clear of the limit switches) if it had
-        left it (e.g. pushed into an end stop), at the same place otherwise; the plant time runs on."""
+        and the plant restored at rest where the table is, as a real axis stays where it stood (on a limit
+        switch too: the master then moves it off, the drive lets it move only away); a table pressed into an
+        end stop's buffer is at the buffer's surface (the buffer relaxes); a plant state that is not finite
+        restarts inside the stroke. The plant time runs on."""
         with self._lock:
             x = self.sim.state.table_position_m
-            x = x if math.isfinite(x) else 0.0
-            self.sim.reset(self._inside_stroke(x), keep_time=True)
+            if math.isfinite(x):
+                lo, hi = end_stops(self.cfg)[:2]
+                x = min(max(x, lo), hi)
+            else:
+                x = self._inside_stroke(0.0)
+            self.sim.reset(x, keep_time=True)
             self._axis = self.sim.state
             self._reset_all()
 

@@ -257,6 +257,12 @@ class Homing(OperatingMode):
     def in_progress(self) -> bool:
         return self.run is not None and self.run.status in _ACTIVE_HOMING
 
+    def stopping_after_error(self, d: Drive) -> bool:
+        """A homing run ended in a homing error (an unexpected limit switch) and the axis still brakes (its
+        profile, or the actual motion behind it)."""
+        return (self.run is not None and self.run.status == hm.HomingStatus.ERROR
+                and (self.gen.profile.velocity_m_s != 0.0 or not rx.at_standstill(d)))
+
     @staticmethod
     def accel_m_s2(d: Drive) -> float:
         """Homing acceleration 0x609A [m/s^2]."""

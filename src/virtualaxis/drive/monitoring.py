@@ -36,8 +36,10 @@ OVERSPEED_FACTOR = 1.2
 
 
 def homing_owns_switches(drive: Drive) -> bool:
-    """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18)."""
-    return drive._mode == HM and drive._hm.in_progress()
+    """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
+    unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
+    switch fault must not overtake (it did: 0xFF11 instead of the homing error)."""
+    return drive._mode == HM and (drive._hm.in_progress() or drive._hm.stopping_after_error(drive))
 
 
 def blocked_direction(drive: Drive) -> int:
