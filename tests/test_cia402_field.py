@@ -10,7 +10,7 @@ import time
 
 import canopen
 import pytest
-from test_drive_rig import Rig
+from test_drive_rig import Rig, seed_config
 
 from virtualaxis.sim.simulator import end_stops
 
@@ -525,5 +525,38 @@ def test_every_target_the_default_software_limits_allow_is_reached_without_a_lim
         assert not r.sw() & 0x08, [hex(c) for c in r.emcy.codes()]  # no fault
         assert abs(node.sdo[0x6064].raw - hi) <= 50
         assert node.sdo[0x2110][3].raw == clamped0 + 1 and node.sdo[0x60FD].raw & 0x3 == 0
+    finally:
+        r.close()
+
+
+def test_csp_at_the_default_max_motor_speed_brakes_after_the_limit_switch_before_the_end_stop():
+    """A docs-only master ran CSP at the default 0x6080 (3000/min x 16 mm = 0.8 m/s; 0x607F does not limit
+    CSP) into the + switch: it reached 7 mm into the end-stop buffer, which was sized for 0.5 m/s. The end stops
+    are now sized for the fastest speed the defaults allow: the quick stop (0x6085 = 5 m/s^2) ends before the
+    buffer, fault 0xFF11."""
+    r = Rig({1: (seed_config(), 0.15)})
+    try:
+        node = r.node
+        v_max_um_s = node.sdo[0x6080].raw / 60.0 * r.drive.cfg.mechanics.lead_m * 1e6
+        _start(r, 8, **{"0x6085": 5_000_000})
+        node.sdo[0x607D][1].raw = 0  # software limits off
+        node.sdo[0x607D][2].raw = 0
+        x = float(node.sdo[0x6064].raw)
+        v = 0.0
+        peak = -1.0
+        for _ in range(2000):
+            v = min(v_max_um_s, v + 5_000_000 * 1e-3)  # 5 m/s^2 up to 0x6080
+            x += v * 1e-3
+            _raw_rpdo2(r, 0x0F, int(x))
+            r.sync(1)
+            peak = max(peak, r.drive.state.table_position_m)
+            if r.sw() & 0x4F == 0x08:
+                break
+        r.sync(300)
+        peak = max(peak, r.drive.state.table_position_m)
+        _, hi, _, _, _, _ = end_stops(r.drive.cfg)
+        assert 0xFF11 in r.emcy.codes()
+        assert r.drive.cfg.axis.stroke_m / 2 - 0.002 < peak < hi, (peak, hi)  # past the switch, not in the buffer
+        assert abs(v_max_um_s - 800_000) < 1_000  # the run was at the full default speed
     finally:
         r.close()

@@ -679,6 +679,22 @@ def read_text_file(path: str | Path, what: str = "file", max_bytes: int = MAX_CO
         ) from None
 
 
+#: without ``control.speed_limit_rpm``, the fastest speed = this x ``limits.max_velocity_m_s`` (chosen: 10 %
+#: headroom for the position controller's correction at full traverse speed)
+MAX_SPEED_HEADROOM = 1.1
+
+
+def max_table_speed_m_s(cfg: AxisConfig) -> float:
+    """The fastest table speed the axis runs at [m/s]: the motor speed limit ``control.speed_limit_rpm`` through
+    the lead, else :data:`MAX_SPEED_HEADROOM` x ``limits.max_velocity_m_s``; never below the latter. The drive's
+    default max motor speed 0x6080 and the plant's end-stop over-travel both come from it, so that every speed
+    the drive allows by default brakes after the limit switch."""
+    v_lim = cfg.limits.max_velocity_m_s
+    if cfg.control.speed_limit_rpm > 0 and cfg.actuator.kind != "force" and cfg.mechanics.lead_m > 0:
+        return max(v_lim, cfg.control.speed_limit_rpm / 60.0 * cfg.mechanics.lead_m)
+    return MAX_SPEED_HEADROOM * v_lim
+
+
 def load_axis_config(path: str | Path) -> AxisConfig:
     """Read and validate an axis config file. Raises :class:`ConfigError` naming file and key."""
     p = Path(path)

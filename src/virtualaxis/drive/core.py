@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from virtualaxis.config import AxisConfig
+from virtualaxis.config.axis import max_table_speed_m_s
 from virtualaxis.drive import homing as hm
 from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
@@ -319,15 +320,15 @@ class Drive:
         return FE_WINDOW_MARGIN * lag + floor
 
     def _default_max_motor_speed_rpm(self) -> int:
-        """0x6080 at boot: the config's speed limit, else 1.5 x rated speed (chosen: a servo motor's usual
-        maximum over rated); for a force actuator or an axis without a lead 1.5 x the maximum traverse speed
-        in (virtual) revolutions."""
+        """0x6080 at boot: the config's speed limit ``control.speed_limit_rpm``, else
+        :func:`~virtualaxis.config.axis.max_table_speed_m_s` (1.1 x ``limits.max_velocity_m_s``) in (virtual)
+        motor revolutions, as a commissioned drive has it (SINAMICS p1082 = the machine's maximum). The plant's
+        end stops are sized for that speed (before: 1.5 x rated speed, which an end stop sized for
+        ``limits.max_velocity_m_s`` alone did not stop in time)."""
         cfg = self.cfg
         if cfg.control.speed_limit_rpm > 0:
             return int(round(cfg.control.speed_limit_rpm))
-        if cfg.actuator.kind == "force" or cfg.mechanics.lead_m <= 0:
-            return int(math.ceil(1.5 * cfg.limits.max_velocity_m_s / self._lead_m() * 60.0))
-        return int(round(cfg.motor.rated_speed_rpm * 1.5))
+        return int(math.ceil(max_table_speed_m_s(cfg) / self._lead_m() * 60.0))
 
     def _max_speed_m_s(self) -> float:
         """0x6080 max motor speed as table speed [m/s]."""

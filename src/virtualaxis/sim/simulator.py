@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from virtualaxis.config import AxisConfig
+from virtualaxis.config.axis import max_table_speed_m_s
 from virtualaxis.control.loops import integral_gain_per_sample
 from virtualaxis.control.options import fill_option_parameters
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
@@ -118,9 +119,10 @@ def end_stop_mass_kg(cfg: AxisConfig) -> float:
 
 def end_stop_overtravel_m(cfg: AxisConfig) -> float:
     """Distance from the stroke end (+-stroke/2) to the end stop [m]: room to brake from the fastest speed the
-    limits allow (``limits.max_velocity_m_s``) after the limit switch, at least
-    :data:`END_STOP_MIN_OVERTRAVEL_M`. 0.5 m/s: 44.5 mm."""
-    v = cfg.limits.max_velocity_m_s
+    axis runs at (:func:`~virtualaxis.config.axis.max_table_speed_m_s`, which the drive's default 0x6080 allows)
+    after the limit switch, at least :data:`END_STOP_MIN_OVERTRAVEL_M`. Seed 000 (3000/min x 16 mm = 0.8 m/s):
+    106 mm; 0.5 m/s: 44.5 mm."""
+    v = max_table_speed_m_s(cfg)
     need = 0.002 + END_STOP_SIZING_MARGIN * v * v / (2 * END_STOP_SIZING_DECEL_M_S2) + END_STOP_REACTION_S * v
     return max(END_STOP_MIN_OVERTRAVEL_M, need)
 
