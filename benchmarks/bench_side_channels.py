@@ -36,6 +36,11 @@ master's ``time.time()`` before ``send`` -> its SYNC on the wire (not part of th
 
     python benchmarks/bench_side_channels.py --seconds 20 --rounds 2 --rt-priority 20
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 1 --rt-priority 20 --phases off,modbus,mqtt,load
+    python benchmarks/bench_side_channels.py --seconds 5 --rounds 3 --rt-priority 20 --modbus-client raw --json F
+
+``--modbus-client raw``: the ten clients pack their FC03 requests with ``struct`` on a plain socket (and check every
+answer) instead of using pymodbus' client, which on a slow host costs 2.5x the CPU per request: the clients of a
+real drive sit on other machines, so their own CPU here only takes CPU from what is measured.
 """
 
 from __future__ import annotations
