@@ -371,7 +371,7 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
     async def serve() -> None:
         loop_box.append(asyncio.get_running_loop())
         threading.Thread(target=read_replies, daemon=True).start()
-        server = ModbusTcpServer(
+        server = pipelining_server_class(ModbusTcpServer)(
             ForwardingContext(call, image), address=(host, port), custom_pdu=custom_pdus(call)
         )
         try:
@@ -402,6 +402,71 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
             conn.send(("error", str(exc)))
         except (EOFError, OSError):
             pass
+
+
+def pipelining_server_class(server_class):
+    """``server_class`` (pymodbus' ModbusTcpServer) whose connections answer every request a client sends
+    without waiting for the answers (pipelining, which the Modbus TCP implementation guide allows), in order.
+
+    pymodbus' own request handler decodes one frame per arrival of bytes and keeps one pending request per
+    connection (``last_pdu``), which the next request overwrites while the first one's (asynchronous) datastore
+    access runs: of several requests in flight only one was answered. Here every complete frame of an arrival is
+    decoded, each request is queued with its address, and a connection's requests are handled one after the
+    other. If pymodbus' handler is not the one this was written for
+    (3.16), its own is used."""
+    import asyncio
+    import logging
+    from collections import deque
+
+    try:
+        from pymodbus.exceptions import NoSuchIdException
+        from pymodbus.pdu import ExceptionResponse
+        from pymodbus.server.requesthandler import ServerRequestHandler
+    except ImportError:  # another pymodbus: its own handler
+        return server_class
+    if not all(hasattr(ServerRequestHandler, name) for name in ("callback_data", "handle_request", "server_send")):
+        return server_class
+
+    class OrderedRequestHandler(ServerRequestHandler):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self._requests: deque = deque()  # (pdu, addr) decoded, not yet answered
+            self._one_at_a_time = asyncio.Lock()
+
+        def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+            # pymodbus' transport hands over the whole receive buffer once per arrival and its handler decodes
+            # one frame of it (the rest waited for the client's next bytes): every complete frame here
+            total = 0
+            while total < len(data):
+                used = super().callback_data(data[total:], addr)  # one frame -> last_pdu, handle_request due
+                if self.last_pdu is not None:
+                    self._requests.append((self.last_pdu, self.last_addr))
+                if used <= 0:
+                    break
+                total += used
+            return total
+
+        async def handle_request(self) -> None:
+            async with self._one_at_a_time:
+                if not self._requests:
+                    return
+                pdu, addr = self._requests.popleft()
+                try:
+                    response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+                except NoSuchIdException:
+                    response = ExceptionResponse(pdu.function_code, _exc(0x0B))
+                except Exception:  # noqa: BLE001 - as pymodbus: the device could not serve it
+                    logging.getLogger(__name__).exception("Modbus request failed")
+                    response = ExceptionResponse(pdu.function_code, _exc(0x04))
+                response.transaction_id = pdu.transaction_id
+                response.dev_id = pdu.dev_id
+                self.server_send(response, addr)
+
+    class PipeliningServer(server_class):
+        def callback_new_connection(self):
+            return OrderedRequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+    return PipeliningServer
 
 
 def _exc(code: int):
