@@ -215,3 +215,31 @@ def test_frame_bits_equals_the_bit_by_bit_reference_on_random_and_pathological_f
         for stuffing in ("computed", "worst"):
             assert frame_bits(msg, stuffing) == _reference_frame_bits(msg, stuffing), (msg, stuffing)
             assert frame_bits(msg, stuffing) == _reference_frame_bits(msg, stuffing)  # (the cached answer too)
+
+
+def test_frames_received_during_a_stall_take_the_bus_when_they_were_on_the_wire(request):
+    """Another node's frames that wait in the socket while this process is stalled were on the wire at their
+    receive timestamps, not when they are finally handled: after a 0.3 s stall with 400 frames waiting (each
+    ~0.1 ms at 1 Mbit/s, 40 ms in all, spread over the 0.3 s), a frame sent right after the drain leaves at
+    once. (Before, the 400 frames were stacked on the bus timeline after the stall, 40 ms of a backlog the
+    wire never had; with serve stalling on a loaded host, two CSP axes at 25 % load queued for seconds. Found
+    by a docs-only tester.)"""
+    channel = f"va-bitrate-stall-{id(request)}"
+    rx = BitRateBus(can.Bus(interface="virtual", channel=channel), 1_000_000)
+    other = can.Bus(interface="virtual", channel=channel)
+    try:
+        for _ in range(400):
+            other.send(_msg(0x201, 8, 0x55))
+            time.sleep(0.3 / 400)
+        time.sleep(0.02)  # the stall: nothing handled until now
+        frames = rx.drain(1000)
+        assert len(frames) == 400
+        rx.send(_msg(0x181, 2))
+        time.sleep(0.05)
+        s = rx.stats()
+        assert s["frames_sent"] == 1 and s["frames_received"] == 400
+        assert s["tx_delay_max_ms"] < 5.0, s  # before: ~45 ms behind the phantom backlog
+        assert 0.5 * 400 * frame_bits(_msg(0x201, 8, 0x55)) <= s["bits_received"]
+    finally:
+        rx.shutdown()
+        other.shutdown()
