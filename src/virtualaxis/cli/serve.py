@@ -187,8 +187,10 @@ def run(args) -> int:
                 if hasattr(bus, "stats"):
                     b = bus.stats()
                     print(f"CAN bus: load {b['load_percent']:.1f} % of {b['bitrate_bit_s']} bit/s (peak "
-                          f"{b['peak_load_percent']:.1f} %), tx delay max {b['tx_delay_max_ms']:.3f} ms, "
-                          f"{b['tx_refused']} frames refused", flush=True)
+                          f"{b['peak_load_percent']:.1f} %, mean {b['mean_load_percent']:.1f} %), frames sent / "
+                          f"received {b['frames_sent']} / {b['frames_received']}, bits {b['bits_sent']} / "
+                          f"{b['bits_received']}, tx delay mean {b['tx_delay_mean_ms']:.3f} ms, max "
+                          f"{b['tx_delay_max_ms']:.3f} ms, {b['tx_refused']} frames refused", flush=True)
     except KeyboardInterrupt:
         pass
     finally:
