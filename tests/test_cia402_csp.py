@@ -186,6 +186,10 @@ def test_interpolation_over_the_communication_cycle():
         r.enable()
         c0 = r.drive.counters["cycles"]
         r.sync(1)
+        # (Rig.sync returns once the SYNC is answered; its 4 cycles run after the answer, and a loaded machine
+        # may still be running them: CI26 read 1 of them)
+        r.wait(lambda: r.drive.counters["cycles"] - c0 >= 4, timeout=5.0)
+        time.sleep(0.02)  # nothing more runs without the next SYNC
         assert r.drive.counters["cycles"] - c0 == 4
         demands = []
         step = r.drive.step
