@@ -366,6 +366,15 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
                 os.sched_setaffinity(int(tid), opts.drive_cpus if name in DRIVE_THREADS else opts.load_cpus)
             except OSError:
                 pass
+    if opts.drive_boost and opts.rt_priority:  # serve's SYNC path above its own service threads (experiment)
+        for tid in os.listdir(f"/proc/{proc.pid}/task"):
+            name = Path(f"/proc/{proc.pid}/task/{tid}/comm").read_text().strip()
+            if name in DRIVE_THREADS:
+                try:
+                    os.sched_setscheduler(int(tid), os.SCHED_FIFO,
+                                          os.sched_param(opts.rt_priority + opts.drive_boost))
+                except OSError:
+                    pass
     bus = can.Bus(interface="udp_multicast", channel="239.74.163.3", port=port, hop_limit=0)
     clock = TpdoClock([0x280 + node, SYNC_COB])
     reply = SdoReply([node])
@@ -485,6 +494,11 @@ def main() -> int:
     ap.add_argument("--bitrate", type=int, default=0, help="serve --bitrate (0: no CAN timing emulation)")
     ap.add_argument("--serve-arg", action="append", default=[], dest="serve_args",
                     help="extra argument for serve (repeatable), e.g. --serve-arg=--telemetry-rate=100")
+    ap.add_argument("--drive-boost", type=int, default=0, metavar="K",
+                    help="with --rt-priority N: serve's runtime and CAN receive threads at SCHED_FIFO N + K, above "
+                    "serve's service threads (which stay at N) -- an experiment on the side channels' tail; it made "
+                    "the tail 100x worse (the GIL inversion serve avoids by running all its threads at N), "
+                    "BENCHMARKS.md")
     ap.add_argument("--modbus-client", choices=("pymodbus", "raw"), default="pymodbus",
                     help="the ten load clients: pymodbus' client (default) or a lean struct-packed FC03 client "
                     "(raw), whose own CPU on this host (the clients of a real drive run on other machines) is a "
