@@ -71,6 +71,16 @@ def _csp_node_on_virtual_bus(catch_up: bool):
     return bus, master, ax, rt
 
 
+def _quick_stop_runs_out(drive) -> None:
+    """Step the drive until its quick-stop ramp has run out (at most 200 cycles); it ends in SWITCH ON DISABLED
+    (quick stop option 0..2)."""
+    for _ in range(200):
+        if drive.cia402_state.name != "QUICK_STOP_ACTIVE":
+            break
+        drive.step(1)
+    assert drive.cia402_state.name == "SWITCH_ON_DISABLED"
+
+
 def _backlog(master: can.BusABC, ax: AxisNode, rt: Runtime, targets: list[int],
              controlwords: list[int] | None = None) -> list[can.Message]:
     """Three RPDO2 + SYNC pairs queued before the runtime gets to run, then one pass; the TPDO2s sent."""
@@ -140,11 +150,7 @@ def test_a_controlword_edge_in_a_given_up_sync_is_not_lost():
         assert drive.read_object(0x605A) in (0, 1, 2)  # quick stop ends in SWITCH ON DISABLED
         _backlog(master, ax, rt, [x0, x0 + 10, x0 + 20], controlwords=[0x0B, 0x0F, 0x0F])
         assert slave.counters["syncs_skipped"] == 2 and slave.counters["rpdos_superseded"] == 1
-        for _ in range(200):  # the quick stop ramp runs out
-            if drive.cia402_state.name != "QUICK_STOP_ACTIVE":
-                break
-            drive.step(1)
-        assert drive.cia402_state.name == "SWITCH_ON_DISABLED"
+        _quick_stop_runs_out(drive)
     finally:
         rt.stop()
         master.shutdown()
@@ -176,11 +182,7 @@ def test_given_up_syncs_from_a_canopen_master_keep_the_quick_stop():
         rt.poll_once()
         assert slave.counters["syncs_skipped"] == 2 and slave.counters["rpdos_superseded"] == 1
         assert drive.read_object(0x607A) == x0 + 20
-        for _ in range(200):
-            if drive.cia402_state.name != "QUICK_STOP_ACTIVE":
-                break
-            drive.step(1)
-        assert drive.cia402_state.name == "SWITCH_ON_DISABLED"
+        _quick_stop_runs_out(drive)
     finally:
         rt.stop()
         master.shutdown()

@@ -433,9 +433,15 @@ def _eds_limits_read_apart(eds: Path) -> dict[tuple[int, int], tuple[float | Non
             continue
         lo, hi = (p.get(section, k, fallback="").strip() for k in ("LowLimit", "HighLimit"))
         if lo or hi:
-            out[key] = (float(int(lo, 0) if lo.lstrip("-").isdigit() or lo.startswith("0x") else lo) if lo else None,
-                        float(int(hi, 0) if hi.lstrip("-").isdigit() or hi.startswith("0x") else hi) if hi else None)
+            out[key] = (_eds_number(lo), _eds_number(hi))
     return out
+
+
+def _eds_number(text: str) -> float | None:
+    """An EDS limit (decimal, 0x hex or a REAL) as a float; None when empty."""
+    if not text:
+        return None
+    return float(int(text, 0) if text.lstrip("-").isdigit() or text.startswith("0x") else text)
 
 
 def test_modbus_writes_refuse_what_the_eds_limits_refuse_over_sdo():

@@ -185,6 +185,8 @@ def _plain_int_ranges(value_ranges: dict) -> dict[tuple[int, int], tuple[int, in
         if target in out:
             out[alias] = out[target]
     return out
+
+
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
@@ -223,10 +225,11 @@ class Drive:
         AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=self.sim.dm).advance(1)
         self.cycle_s = cfg.control.position_cycle_s
         self._lock = threading.RLock()
-        self._eds_defaults = eds_defaults(eds_path) if eds_path and Path(eds_path).exists() else {}
+        has_eds = bool(eds_path) and Path(eds_path).exists()
+        self._eds_defaults = eds_defaults(eds_path) if has_eds else {}
         #: value ranges of the objects (option codes, and the EDS's LowLimit / HighLimit): every write path
         #: refuses what an SDO download refuses
-        self._value_ranges = _value_ranges(eds_limits(eds_path) if eds_path and Path(eds_path).exists() else {})
+        self._value_ranges = _value_ranges(eds_limits(eds_path) if has_eds else {})
         self._plain_int_ranges = _plain_int_ranges(self._value_ranges)
         self._observers: list[Callable[[str, DriveState], None]] = []
         self._changed: set[tuple[int, int]] = set()
@@ -269,6 +272,7 @@ class Drive:
         i_lim = c.current_limit_a if c.current_limit_a > 0 else 3.0 * mot.rated_current_a
         ff_mode = 2 if c.torque_ff_factor > 0 else (1 if c.velocity_ff_factor > 0 else 0)
         enc = cfg.sensors.motor_encoder_counts_per_rev or (1 << 20)
+        travel_min_m, travel_max_m = self._commissioned_travel_m()
         out: dict[tuple[int, int], int | float] = {
             (0x2000, 0): c.kv_1_per_s * 60.0 / 1000.0,
             (0x2001, 0): float(c.velocity_ff_factor),
@@ -286,8 +290,8 @@ class Drive:
             (0x6091, 2): 1,
             (0x6092, 1): int(round(lead / unit)),
             (0x6092, 2): 1,
-            (0x607D, 1): clamp_to_dtype(self._commissioned_travel_m()[0] / unit, "i32"),
-            (0x607D, 2): clamp_to_dtype(self._commissioned_travel_m()[1] / unit, "i32"),
+            (0x607D, 1): clamp_to_dtype(travel_min_m / unit, "i32"),
+            (0x607D, 2): clamp_to_dtype(travel_max_m / unit, "i32"),
             (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
             (0x6080, 0): self._default_max_motor_speed_rpm(),
             (0x6502, 0): sum(MODE_BITS.values()),

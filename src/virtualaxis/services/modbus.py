@@ -412,8 +412,7 @@ def pipelining_server_class(server_class):
     connection (``last_pdu``), which the next request overwrites while the first one's (asynchronous) datastore
     access runs: of several requests in flight only one was answered. Here every complete frame of an arrival is
     decoded, each request is queued with its address, and a connection's requests are handled one after the
-    other. If pymodbus' handler is not the one this was written for
-    (3.16), its own is used."""
+    other. If pymodbus' handler is not the one this was written for (3.16), its own is used."""
     import asyncio
     import logging
     from collections import deque

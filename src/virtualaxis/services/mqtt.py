@@ -1102,7 +1102,7 @@ class Publisher:
                     print(f"warning: mqtt {st.host}:{st.port}: the broker refused axis {ch.name}: {exc} (check "
                           f"--mqtt-credentials / {ENV_USERNAME} / {ENV_PASSWORD}); retrying", file=sys.stderr,
                           flush=True)
-                if v5 and getattr(getattr(exc, "rc", None), "value", getattr(exc, "rc", None)) in (1, 132):
+                if v5 and rc in (1, 132):
                     ch.mqtt5 = False  # an MQTT 3.1.1 broker ("unsupported protocol version"): again at once in 3.1.1
                     continue
             except OSError as exc:
