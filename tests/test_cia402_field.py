@@ -506,6 +506,39 @@ def test_communication_errors_clear_themselves_and_never_hide_the_fault_code():
         r.close()
 
 
+def test_rpdo_deadline_and_pdo_length_errors_never_hide_the_fault_code_and_clear_0x603f():
+    """The rule of docs/canopen.md for every communication EMCY, not only 0x81xx (before: the RPDO deadline
+    0x8250 and a short RPDO 0x8210 replaced a fault's 0x3220 in 0x603F, and after the RPDO came back 0x603F
+    kept 0x8250 while 0x1001 read 0): a communication error takes 0x603F only while the application has no
+    error of its own, and its clearing resets 0x603F with 0x1001."""
+    r = Rig()
+    try:
+        node = r.node
+        node.sdo[0x6007].raw = 0  # no drive reaction to the RPDO deadline: only the stack's EMCY
+        node.sdo[0x1401][5].raw = 30  # RPDO2 deadline 30 ms
+        node.nmt.state = "OPERATIONAL"
+        _raw_rpdo2(r, 0x06, 0)
+        r.emcy.wait_for(0x8250)
+        assert node.sdo[0x603F].raw == 0x8250 and node.sdo[0x1001].raw == 0x11
+        n0 = len(r.emcy.codes())
+        _raw_rpdo2(r, 0x06, 0)  # the RPDO is back: error reset
+        r.wait(lambda: 0x0000 in r.emcy.codes()[n0:], timeout=2.0)
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+        # in FAULT: neither the deadline nor a short RPDO replaces the fault's code
+        node.sdo[0x2010].raw = 0x3220
+        r.emcy.wait_for(0x3220)
+        r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)
+        n1 = len(r.emcy.codes())
+        r.wait(lambda: 0x8250 in r.emcy.codes()[n1:], timeout=2.0)
+        r.net.send_message(0x300 + node.id, b"\x06")  # 1 byte of a 6-byte RPDO: EMCY 0x8210
+        r.wait(lambda: 0x8210 in r.emcy.codes()[n1:], timeout=2.0)
+        assert node.sdo[0x603F].raw == 0x3220
+        assert node.sdo[0x1003][1].raw & 0xFFFF in (0x8210, 0x8250)  # the history has them all
+        node.sdo[0x1401][5].raw = 0
+    finally:
+        r.close()
+
+
 def test_every_target_the_default_software_limits_allow_is_reached_without_a_limit_switch():
     """Item 5 / a docs-only master: with the defaults, 0x607D lies inside the hardware limit switches (before:
     +-300 mm with the switches at +-298 mm, so a PP move to the legal target 300000 faulted 0xFF11). A PP

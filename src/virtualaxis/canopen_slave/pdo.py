@@ -223,11 +223,11 @@ class PdoEngine:
         if n < rpdo.length:
             counters["rpdo_length_errors"] += 1
             slave.communication_error("rpdo_length", rpdo.number)
-            slave.emcy(0x8210, 0x10, bytes((rpdo.number,)))
+            slave.emcy(0x8210, 0x10, bytes((rpdo.number,)), communication=True)
             return
         if n > rpdo.length:
             counters["rpdo_length_errors"] += 1
-            slave.emcy(0x8220, 0x10, bytes((rpdo.number,)))
+            slave.emcy(0x8220, 0x10, bytes((rpdo.number,)), communication=True)
             data = data[:rpdo.length]
         rpdo.last_rx_s = now_s
         if rpdo.timed_out:  # the RPDO is back: its deadline error clears (EMCY 0x0000 when none is left)

@@ -114,6 +114,8 @@ class CanopenSlave:
         #: communication errors still present: EMCY code -> the sources of it (a heartbeat monitor's node id,
         #: 0 for SYNC / life guarding); each clears itself when its cause is gone (:meth:`clear_comm_error`)
         self._comm_errors: dict[int, set[int]] = {}
+        #: 0x603F holds the code of a communication EMCY (not an application fault's cause)
+        self._error_code_from_comm = False
         #: called (no arguments) whenever the COB-IDs this node listens to change (a frame router's cache)
         self.on_dispatch_change: Callable[[], None] | None = None
         self._hook_validate = getattr(app, "validate_write", None)
@@ -300,21 +302,31 @@ class CanopenSlave:
             for tpdo in entry.tpdos:
                 tpdo.dirty = True
 
-    def emcy(self, code: int, register_bits: int = 0, data: bytes = b"") -> None:
-        """Record and send an emergency: 0x1001 |= generic bit + register_bits, push 0x1003, 0x603F = code
-        (a communication error 0x81xx does not replace another error's code there: a master that finds the
-        drive in FAULT reads the fault's cause, not a later SYNC gap)."""
+    def emcy(self, code: int, register_bits: int = 0, data: bytes = b"", communication: bool = False) -> None:
+        """Record and send an emergency: 0x1001 |= generic bit + register_bits, push 0x1003, 0x603F = code.
+
+        ``communication``: the stack's own error (SYNC / heartbeat / RPDO deadline, a PDO or SYNC of the wrong
+        length, bus off recovered). Such a code never replaces an application error's code in 0x603F: a
+        master that finds the drive in FAULT reads the fault's cause there, not a later SYNC gap or RPDO
+        deadline. It takes 0x603F only when that is 0 or holds another communication error's code while the
+        application reports no error of its own."""
         entries = self.od.entries
         register = entries[(0x1001, 0)]
         self.write(0x1001, 0, (register.value | register_bits | (0x01 if code else 0)) & 0xFF)
         if code:
             self.emcy_producer.push_history(code)
             error_code = entries.get((0x603F, 0))
-            if error_code is not None and not (code & 0xFF00 == 0x8100 and error_code.value
-                                               and error_code.value & 0xFF00 != 0x8100):
+            if error_code is not None and (not communication or not error_code.value
+                                           or (self._error_code_from_comm and not self._app_has_error())):
                 self.write(0x603F, 0, code & 0xFFFF)
+                self._error_code_from_comm = communication
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(code, register.value, data, self._now)
+
+    def _app_has_error(self) -> bool:
+        """The application reports an error of its own (a drive in fault or with a warning)."""
+        has_error = getattr(self.app, "has_error", None)
+        return has_error is not None and bool(has_error())
 
     def emcy_reset(self) -> None:
         """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F); a communication error still
@@ -323,6 +335,7 @@ class CanopenSlave:
         self.write(0x1001, 0, register)
         if (0x603F, 0) in self.od.entries:
             self.write(0x603F, 0, 0)
+        self._error_code_from_comm = False
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(0x0000, register, b"", self._now)
 
@@ -330,7 +343,7 @@ class CanopenSlave:
         """A communication error (SYNC timeout 0x8100, heartbeat / life guarding 0x8130): EMCY with the
         communication bit of 0x1001, remembered until :meth:`clear_comm_error` for the same code and source."""
         self._comm_errors.setdefault(code, set()).add(source)
-        self.emcy(code, 0x10, data)
+        self.emcy(code, 0x10, data, communication=True)
 
     def clear_comm_error(self, code: int, source: int = 0) -> None:
         """The cause of a communication error is gone (SYNC / heartbeat back). When no communication error is
@@ -349,14 +362,13 @@ class CanopenSlave:
             return
         entries = self.od.entries
         register = entries[(0x1001, 0)].value & ~0x10
-        has_error = getattr(self.app, "has_error", None)
-        if register & ~0x01 or (has_error is not None and has_error()):
+        if register & ~0x01 or self._app_has_error():
             self.write(0x1001, 0, register)
             return
         self.write(0x1001, 0, 0)
-        error_code = entries.get((0x603F, 0))
-        if error_code is not None and error_code.value & 0xFF00 == 0x8100:
+        if self._error_code_from_comm and (0x603F, 0) in entries:
             self.write(0x603F, 0, 0)
+            self._error_code_from_comm = False
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(0x0000, 0, b"", self._now)
 
@@ -603,6 +615,7 @@ class CanopenSlave:
         if application:
             self._power_on_values(0x0000, 0xFFFF)
             self._comm_errors.clear()
+            self._error_code_from_comm = False
         else:
             self._power_on_values(0x1000, 0x1FFF, keep=_STATUS_OBJECTS)
         self.sdo.reset()
@@ -692,7 +705,7 @@ class CanopenSlave:
         if counter is None or msg.is_remote_frame:
             self.counters["sync_length_errors"] += 1
             self.counters["malformed_frames"] += 1
-            self.emcy(0x8240, 0x10, bytes((len(msg.data),)))
+            self.emcy(0x8240, 0x10, bytes((len(msg.data),)), communication=True)
             return
         self.counters["sync_received"] += 1
         if 0x8100 in self._comm_errors:  # SYNC is back (a late one raised the error: the next one clears it)

@@ -319,7 +319,7 @@ class FaultInjector:
     def _recover_from_bus_off(self) -> None:
         """Back on the bus: EMCY 0x8140 (recovered from bus off), then the 0x6007 reaction."""
         if self.slave is not None:
-            self.slave.emcy(0x8140, 0x10, b"")
+            self.slave.emcy(0x8140, 0x10, b"", communication=True)
         self.drive.communication_error("bus_off", 0)
 
     def _force_switch(self, side: int) -> None:
