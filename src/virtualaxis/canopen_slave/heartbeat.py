@@ -61,7 +61,7 @@ class HeartbeatConsumer:
             if time_ms and 1 <= node <= 127 and node != self.slave.node_id:
                 self.monitors[HEARTBEAT_BASE + node] = Monitor(node, time_ms * 1e-3)
         monitored = {m.node_id for m in self.monitors.values()}
-        for node in set(self.slave._comm_errors.get(0x8130, ())) - monitored - {0}:
+        for node in self.slave.comm_error_sources(0x8130) - monitored - {0}:
             self.slave.clear_comm_error(0x8130, node)  # a producer no longer monitored is no longer lost
 
     def validate_write(self, _index: int, sub: int, value: int) -> None:

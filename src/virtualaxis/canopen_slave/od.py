@@ -16,6 +16,7 @@ from canopen.objectdictionary import ODArray, ODRecord, ODVariable, import_od
 from canopen.objectdictionary import datatypes as dt
 
 from virtualaxis.config.errors import InputError
+from virtualaxis.eds_text import declared_limits
 
 # struct formats of the fixed-size types we map into PDOs or serve by SDO
 _STRUCT_FORMATS: dict[int, str] = {
@@ -197,32 +198,14 @@ def validate_eds(eds_path: str | Path) -> None:
 
 def _parse_float_limits(eds_path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """canopen only parses integer limits; REAL32/REAL64 LowLimit/HighLimit are read here."""
-    parser = RawConfigParser(inline_comment_prefixes=(";",))
-    parser.optionxform = str
-    parser.read(eds_path, encoding="utf-8")
     limits: dict[tuple[int, int], tuple[float | None, float | None]] = {}
-    for section in parser.sections():
-        name = section.lower()
-        if len(name) == 4:
-            key = (int(name, 16), 0) if all(c in "0123456789abcdef" for c in name) else None
-        elif len(name) > 7 and name[4:7] == "sub":
-            try:
-                key = (int(name[:4], 16), int(name[7:], 16))
-            except ValueError:
-                key = None
-        else:
-            key = None
-        if key is None or not parser.has_option(section, "DataType"):
-            continue
-        if int(parser.get(section, "DataType"), 0) not in (dt.REAL32, dt.REAL64):
-            continue
-        low = parser.get(section, "LowLimit", fallback=None)
-        high = parser.get(section, "HighLimit", fallback=None)
+    for key, (low, high, data_type) in declared_limits(eds_path).items():
         try:
-            limits[key] = (float(low) if low not in (None, "") else None,
-                           float(high) if high not in (None, "") else None)
+            if data_type is None or int(data_type, 0) not in (dt.REAL32, dt.REAL64):
+                continue
+            limits[key] = (float(low) if low is not None else None, float(high) if high is not None else None)
         except ValueError as exc:
-            raise InputError(str(eds_path), f"[{section}] bad LowLimit/HighLimit: {exc}") from None
+            raise InputError(str(eds_path), f"[{key[0]:04X}sub{key[1]:X}] bad LowLimit/HighLimit: {exc}") from None
     return limits
 
 

@@ -345,6 +345,10 @@ class CanopenSlave:
         self._comm_errors.setdefault(code, set()).add(source)
         self.emcy(code, 0x10, data, communication=True)
 
+    def comm_error_sources(self, code: int) -> frozenset[int]:
+        """The sources of the communication error ``code`` still present (empty when it is not)."""
+        return frozenset(self._comm_errors.get(code, ()))
+
     def clear_comm_error(self, code: int, source: int = 0) -> None:
         """The cause of a communication error is gone (SYNC / heartbeat back). When no communication error is
         left, 0x1001's communication bit clears; when nothing else is left either (the application reports no

@@ -202,26 +202,18 @@ def eds_limits(eds_path: str | Path) -> dict[tuple[int, int], tuple[float | None
 
 @functools.lru_cache(maxsize=8)
 def _eds_limits_cached(eds_path: str, _mtime: float) -> dict[tuple[int, int], tuple[float | None, float | None]]:
-    from configparser import RawConfigParser
+    from virtualaxis.eds_text import declared_limits
 
-    parser = RawConfigParser(inline_comment_prefixes=(";",))
-    parser.optionxform = str  # type: ignore[assignment, method-assign]
-    parser.read(eds_path, encoding="utf-8")
-    sections = {name.lower(): name for name in parser.sections()}
+    declared = declared_limits(eds_path)
     out: dict[tuple[int, int], tuple[float | None, float | None]] = {}
     for spec in OBJECTS:
-        name = sections.get(f"{spec.index:04x}sub{spec.sub:x}") or (
-            sections.get(f"{spec.index:04x}") if spec.sub == 0 else None)
-        if name is None:
+        texts = declared.get(spec.key)
+        if texts is None:
             continue
-        limits = []
-        for option in ("LowLimit", "HighLimit"):
-            text = parser.get(name, option, fallback="").strip()
-            if not text:
-                limits.append(None)
-                continue
+        limits: list[float | None] = []
+        for text in texts[:2]:
             try:
-                limits.append(float(text) if spec.dtype == "f32" else int(text, 0))
+                limits.append(None if text is None else (float(text) if spec.dtype == "f32" else int(text, 0)))
             except ValueError:
                 limits.append(None)  # (the slave's EDS check names a malformed limit; not the drive's job)
         if limits[0] is not None or limits[1] is not None:
