@@ -178,7 +178,7 @@ def _enable_mode(ctx: Context, mode: int) -> None:
         raise Skip(f"mode {mode} ({MODES.get(mode, '?')}) not supported (0x6502 = 0x{supported:X})")
     ctx.write(0x6060, 0, mode)
     end = time.monotonic() + 0.5
-    while ctx.node.sdo[0x6061].raw != mode:
+    while ctx.poll(0x6061) != mode:
         if time.monotonic() > end:
             raise Fail(f"0x6061 did not follow 0x6060 = {mode} within 0.5 s")
         time.sleep(0.005)
@@ -253,7 +253,7 @@ def modes_follow(ctx: Context) -> str:
         if supported & bit:
             ctx.write(0x6060, 0, m)
             end = time.monotonic() + 0.5
-            while (got := ctx.node.sdo[0x6061].raw) != m:
+            while (got := ctx.poll(0x6061)) != m:
                 if time.monotonic() > end:
                     raise Fail(f"0x6061 = {got} 0.5 s after 0x6060 = {m}")
                 time.sleep(0.005)
@@ -865,7 +865,7 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         hit = None
         while hit is None and time.monotonic() < end:
             time.sleep(0.02)
-            if ctx.node.sdo[0x60FD].raw & 0x2:
+            if ctx.poll(0x60FD) & 0x2:
                 hit = mo.samples(mark)
         if hit is None:
             ctx.note(f"no switch: 0x6064 = {ctx.read(0x6064)}, 0x606C = {ctx.read(0x606C)}, SW 0x{ctx.sw():04X}")

@@ -128,21 +128,34 @@ class Context:
         self.state: dict[str, Any] = {}  # facts one check learns for later ones (e.g. PDO layout)
         self.sdo_timeout_s = sdo_timeout_s
         self.retries: list[str] = []  # this check's SDO requests sent again after a timeout
+        self.late_answers_due = 0  # requests that timed out and may still be answered (across checks)
 
     def _sdo(self, op: Callable[[], Any], what: str) -> Any:
         """An expedited SDO exchange with one retry after a timeout, as a field master does: a request or its
         answer lost once (a host that stalled for longer than the timeout, a frame dropped by a loaded
         machine's socket) is not taken for the behaviour under check. Every retry is noted in the check's
         trace and in :attr:`Result.sdo_retries`, and the summary counts them, so a node that drops requests
-        is still seen; a second timeout fails the check ("no SDO answer")."""
+        is still seen; a second timeout fails the check ("no SDO answer").
+
+        A request that timed out may still be answered, late: that answer then arrives during a later
+        exchange, which sees a response of the wrong kind or for another object. Only while such a late
+        answer is due (one per timeout) is that exchange sent again once (noted the same way); any other
+        wrong answer fails the check."""
         try:
             return op()
         except canopen.SdoCommunicationError as exc:
-            if "No SDO response" not in str(exc):  # a wrong answer is not retried
+            text = str(exc)
+            if "No SDO response" in text:
+                self.late_answers_due += 1
+                self.retries.append(what)
+                self.note(f"{what}: no answer in {self.sdo_timeout_s:g} s, sent again")
+            elif self.late_answers_due and ("Unexpected response" in text or " instead" in text):
+                self.late_answers_due -= 1
+                self.retries.append(what)
+                self.note(f"{what}: a late answer to an earlier request arrived ({text}), sent again")
+            else:
                 raise
-            self.retries.append(what)
-            self.note(f"{what}: no answer in {self.sdo_timeout_s:g} s, sent again")
-            return op()
+        return op()
 
     # ------------------------------------------------------------------ trace helpers
     def note(self, text: str) -> None:
@@ -150,7 +163,7 @@ class Context:
 
     def read(self, index: int, sub: int = 0) -> int:
         """SDO upload (raw value per the EDS type); an abort raises ``canopen.SdoAbortedError``."""
-        var = self.node.sdo[index] if sub == 0 and not self._is_container(index) else self.node.sdo[index][sub]
+        var = self._var(index, sub)
         try:
             value = self._sdo(lambda: var.raw, f"SDO read 0x{index:04X}:{sub}")
         except canopen.SdoAbortedError as exc:
@@ -159,8 +172,18 @@ class Context:
         self.note(f"SDO read 0x{index:04X}:{sub} -> {value!r}")
         return value
 
+    def _var(self, index: int, sub: int):
+        """The master's SDO variable of ``index:sub`` (a plain object's sub 0 is the object itself)."""
+        return self.node.sdo[index] if sub == 0 and not self._is_container(index) else self.node.sdo[index][sub]
+
+    def poll(self, index: int, sub: int = 0) -> Any:
+        """SDO upload in a polling loop: like :meth:`read` (one retry after a timeout, noted) but without a
+        trace line per poll."""
+        var = self._var(index, sub)
+        return self._sdo(lambda: var.raw, f"SDO read 0x{index:04X}:{sub}")
+
     def write(self, index: int, sub: int, value: Any) -> None:
-        var = self.node.sdo[index] if sub == 0 and not self._is_container(index) else self.node.sdo[index][sub]
+        var = self._var(index, sub)
         try:
             self._sdo(lambda: setattr(var, "raw", value), f"SDO write 0x{index:04X}:{sub} = {value!r}")
         except canopen.SdoAbortedError as exc:
@@ -230,20 +253,20 @@ class Context:
 
     def wait_sw(self, mask: int, value: int, timeout: float = 1.0, what: str = "") -> int:
         end = time.monotonic() + timeout
-        sw = self.node.sdo[0x6041].raw
+        sw = self.poll(0x6041)
         while sw & mask != value:
             if time.monotonic() > end:
                 self.note(f"statusword 0x{sw:04X}, waited for & 0x{mask:04X} == 0x{value:04X}")
                 raise Fail(f"{what or 'statusword'}: 0x{sw:04X} after {timeout:g} s, expected "
                            f"(sw & 0x{mask:04X}) == 0x{value:04X}")
             time.sleep(0.005)
-            sw = self.node.sdo[0x6041].raw
+            sw = self.poll(0x6041)
         self.note(f"statusword 0x{sw:04X}")
         return sw
 
     def enable(self) -> None:
         """Fault reset if needed, then shutdown / switch on / enable operation by SDO controlword."""
-        sw = self.node.sdo[0x6041].raw
+        sw = self.poll(0x6041)
         if sw & 0x4F == 0x08:
             self.write(0x6040, 0, 0x00)
             self.write(0x6040, 0, 0x80)
