@@ -34,9 +34,10 @@ def test_emcy_frame_error_register_and_history():
         assert node.sdo[0x603F].raw == 0x4210
         assert node.sdo[0x1003][0].raw == 2
         assert [node.sdo[0x1003][s].raw & 0xFFFF for s in (1, 2)] == [0x4210, 0x2310]   # newest first
-        with pytest.raises(canopen.SdoAbortedError) as info:
-            node.sdo[0x1003][0].raw = 1
-        assert info.value.code == ab.INVALID_VALUE
+        for value in (1, 8, 9, 255):  # any value but 0, also beyond the EDS HighLimit 8 (before: 9 -> 0x06090031)
+            with pytest.raises(canopen.SdoAbortedError) as info:
+                node.sdo[0x1003][0].raw = value
+            assert info.value.code == ab.INVALID_VALUE, value
         node.sdo[0x1003][0].raw = 0                        # clears the history
         assert node.sdo[0x1003][0].raw == 0
         with pytest.raises(canopen.SdoAbortedError) as info:

@@ -114,6 +114,10 @@ def test_nmt_stop_or_reset_communication_while_moving_is_a_loss_of_control(comma
         s = r.drive.state
         assert s.cia402_state == "FAULT"
         assert s.faults[0].emcy_code == 0x8131
+        if command == "reset_communication":  # CiA 301: the fault's EMCY, once the node is PRE-OPERATIONAL
+            r.emcy.wait_for(0x8131)           # after its boot-up (before: never sent)
+        else:                                 # in STOPPED no EMCY is sent
+            assert 0x8131 not in r.emcy.codes()
         travel_mm = (s.position_actual_m - x0) * 1e3
         assert travel_mm < 0.05**2 / (2 * 2.0) * 1e3 + 2.0, travel_mm  # ~0.6 mm ramp + reaction time
         assert abs(s.velocity_actual_m_s) < 1e-3

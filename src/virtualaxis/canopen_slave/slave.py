@@ -116,6 +116,8 @@ class CanopenSlave:
         self._comm_errors: dict[int, set[int]] = {}
         #: 0x603F holds the code of a communication EMCY (not an application fault's cause)
         self._error_code_from_comm = False
+        #: EMCYs raised while INITIALISING (a reset's reaction): (code, data), sent right after the boot-up
+        self._emcy_after_boot: list[tuple[int, bytes]] = []
         #: called (no arguments) whenever the COB-IDs this node listens to change (a frame router's cache)
         self.on_dispatch_change: Callable[[], None] | None = None
         self._hook_validate = getattr(app, "validate_write", None)
@@ -160,6 +162,9 @@ class CanopenSlave:
         self.send(HEARTBEAT_BASE + self.node_id, b"\x00")
         self.heartbeat.restart(now_s)
         self._set_state(NMT_STATE.PRE_OPERATIONAL)
+        pending, self._emcy_after_boot = self._emcy_after_boot, []
+        for code, data in pending:  # errors raised while the node initialised: sent once it can, after boot-up
+            self.emcy_producer.produce(code, self.od.entries[(0x1001, 0)].value, data, now_s)
 
     def poll(self, now_s: float) -> list[int]:
         """Handle queued frames and timers; returns the SYNC counters received since the last poll."""
@@ -322,6 +327,8 @@ class CanopenSlave:
                 self._error_code_from_comm = communication
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(code, register.value, data, self._now)
+        elif self.nmt_state == NMT_STATE.INITIALISING:  # raised by a reset (e.g. 0x6007 on Reset Communication)
+            self._emcy_after_boot.append((code, data))
 
     def _app_has_error(self) -> bool:
         """The application reports an error of its own (a drive in fault or with a warning)."""
@@ -476,6 +483,8 @@ class CanopenSlave:
         if index == 0x1010 or index == 0x1011:
             self.store.command(index, sub, value)
             return
+        if index == 0x1003:  # CiA 301: any value but 0 at sub 0 is refused 0x06090030, whatever the EDS limits
+            self.emcy_producer.validate_write(index, sub, value)
         self._check_limits(entry, value)
         if index == RESET_COUNTERS:
             if value != 1:
