@@ -597,3 +597,122 @@ def test_csp_at_the_default_max_motor_speed_brakes_after_the_limit_switch_before
         assert abs(v_max_um_s - 800_000) < 1_000  # the run was at the full default speed
     finally:
         r.close()
+
+
+def _halt_distance_um(r: Rig, mode: int, option: int) -> tuple[int, int]:
+    """Moving at 100 mm/s in ``mode`` (PV, PP or HM method 18), halt (controlword bit 8) with 0x605D =
+    ``option`` by SDO: (travel of the demand at the halt to rest [um], statusword at rest)."""
+    node = r.node
+    node.sdo[0x605D].raw = option
+    if mode == 3:
+        node.sdo[0x60FF].raw = 100_000
+    elif mode == 1:
+        node.sdo[0x607A].raw = 200_000
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+    else:
+        node.sdo[0x6098].raw = 18
+        node.sdo[0x6099][1].raw = 100_000  # search speed 100 mm/s
+        node.sdo[0x6040].raw = 0x1F
+    r.sync(300)
+    assert abs(node.sdo[0x606C].raw - 100_000) < 2_000
+    x0 = node.sdo[0x6064].raw + (node.sdo[0x60F4].raw if mode != 3 else 0)  # from the position demand
+    node.sdo[0x6040].raw = node.sdo[0x6040].raw | 0x100
+    r.sync(300)
+    assert abs(node.sdo[0x606C].raw) < 200
+    return node.sdo[0x6064].raw - x0, r.sw()
+
+
+@pytest.mark.parametrize("mode", [3, 1, 6])
+def test_halt_brakes_with_the_ramp_0x605d_names_in_every_profile_mode(mode):
+    """CiA 402 0x605D: 1 slow-down ramp (PV / PP 0x6084, HM the homing acceleration 0x609A), 2 quick-stop ramp
+    0x6085, 3 current limit. Found by a docs-only master: option 3 braked like 2, and homing braked with
+    0x609A whatever the option. The halted axis shows bit 10 and moves on when bit 8 clears (PV / PP)."""
+    travel = {}
+    for option in (1, 2, 3):
+        r = Rig()
+        try:
+            _start(r, mode, **{"0x6083": 5_000_000, "0x6084": 5_000_000, "0x6085": 10_000_000,
+                               "0x609A": 500_000, "0x6081": 100_000})
+            travel[option], sw = _halt_distance_um(r, mode, option)
+            assert sw & 0x6F == 0x27 and sw & 0x400, hex(sw)  # OPERATION ENABLED, halted: target reached
+            if mode != 6:  # released: the move goes on (homing was interrupted by the halt)
+                node = r.node
+                node.sdo[0x6040].raw = 0x0F
+                r.sync(100)
+                assert node.sdo[0x606C].raw > 50_000
+        finally:
+            r.close()
+    slow = 0.1**2 / (2 * (0.5 if mode == 6 else 5.0)) * 1e6
+    quick = 0.1**2 / (2 * 10.0) * 1e6
+    assert 0.9 * slow < travel[1] < 1.3 * slow + 200, travel
+    assert 0.9 * quick < travel[2] < 1.3 * quick + 200, travel
+    assert travel[3] < 0.9 * quick, travel  # the current limit brakes harder than 10 m/s^2 here
+
+
+def test_quick_stop_options_5_to_8_show_target_reached_once_halted():
+    """CiA 402 statusword bit 10: with quick stop option 5..8, set when the quick stop has finished and the
+    drive is halted (QUICK STOP ACTIVE), in every mode; 0 while it brakes. Found by a docs-only master: PP
+    and PV read 0x0217 at rest. PV's bit 12 (speed = 0) is also shown there."""
+    for mode in (1, 3, 8):
+        r = Rig()
+        try:
+            _start(r, mode, **{"0x605A": 6, "0x6085": 5_000_000, "0x6083": 5_000_000, "0x6081": 100_000})
+            node = r.node
+            x = node.sdo[0x6064].raw
+            if mode == 3:
+                node.sdo[0x60FF].raw = 100_000
+            elif mode == 1:
+                node.sdo[0x607A].raw = x + 200_000
+                node.sdo[0x6040].raw = 0x1F
+                node.sdo[0x6040].raw = 0x0F
+            for i in range(200):
+                if mode == 8:
+                    x += min(100, i + 1)
+                    _raw_rpdo2(r, 0x0F, x)
+                r.sync(1)
+            node.sdo[0x6040].raw = 0x0B  # quick stop
+            r.sync(1)
+            braking = r.sw()
+            assert braking & 0x6F == 0x07 and not braking & 0x400, hex(braking)
+            r.sync(200)
+            sw = r.sw()
+            assert sw & 0x6F == 0x07 and sw & 0x400, (mode, hex(sw))
+            assert bool(sw & 0x1000) == (mode == 3), (mode, hex(sw))  # PV: speed = 0; PP / CSP: no set-point
+        finally:
+            r.close()
+
+
+def test_csp_shutdown_sent_in_every_rpdo_ramps_down_with_0x6084_and_ignores_the_targets():
+    """A CSP master sends the shutdown controlword in its cyclic RPDO, i.e. again at every SYNC: the stop
+    runs once from the actual speed with 0x6084 (before: restarted at every RPDO, 4.2 mm instead of 2.5 mm
+    at 100 mm/s and 2 m/s^2), and bit 12 reads 0 while the targets are ignored."""
+    for cw in (0x06, 0x07):
+        r = Rig()
+        try:
+            _start(r, 8, **{"0x605B": 1, "0x605C": 1, "0x6084": 2_000_000})
+            node = r.node
+            x = node.sdo[0x6064].raw
+            for i in range(300):
+                x += min(100, i + 1)
+                _raw_rpdo2(r, 0x0F, x)
+                r.sync(1)
+            x0 = node.sdo[0x6064].raw
+            bits12 = []
+            for _ in range(60):
+                _raw_rpdo2(r, cw, x)  # the master holds its last target and repeats the controlword
+                r.sync(1)
+                sw = r.sw()
+                if sw & 0x6F == 0x27:
+                    bits12.append(sw & 0x1000)
+            for _ in range(1000):  # at standstill (|v| < 0.1 mm/s) and held: ready to switch on / switched on
+                _raw_rpdo2(r, cw, x)
+                r.sync(1)
+                if r.sw() & 0x6F != 0x27:
+                    break
+            travel_mm = (node.sdo[0x6064].raw - x0) * UNIT_M * 1e3
+            assert 2.2 < travel_mm < 3.0, travel_mm  # v^2/2a = 2.5 mm
+            assert bits12 and not any(bits12), bits12
+            assert r.sw() & 0x6F == (0x21 if cw == 0x06 else 0x23), hex(r.sw())
+        finally:
+            r.close()

@@ -675,6 +675,8 @@ class Drive:
             self._set_state(target)
         elif tr in (TRANSITION.T5, TRANSITION.T8):
             option = int(self._obj(0x605C if tr == TRANSITION.T5 else 0x605B))
+            if option == 1 and self._stop is not None and self._stop.then is target:
+                return  # the same command again (a master's RPDO repeats it every SYNC): the ramp runs on
             if option == 1 and self._power:
                 self._start_stop("slow", then=target)  # state changes once stopped
             else:
@@ -927,10 +929,6 @@ class Drive:
         in OPERATION ENABLED without a stop running."""
         if self._state == S.OPERATION_ENABLED and self._stop is None:
             self._mode_obj.controlword(self, old_cw, cw)
-
-    def _halt_decel(self) -> float:
-        option = int(self._obj(0x605D))
-        return float(self._obj(0x6085 if option >= 2 else 0x6084)) * self._u
 
     def _clamp_velocity(self, v: float) -> float:
         """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
@@ -1255,6 +1253,11 @@ class Drive:
             if bits & 0x8000:
                 sw &= ~0x3400
             sw |= bits & 0x7FFF
+        elif self._state is S.QUICK_STOP_ACTIVE:
+            # CiA 402 bit 10: set once the quick stop (options 5..8) has finished and the drive is halted, in
+            # every mode; bit 12 only where it tells the actual motion (PV / CSV "speed = 0")
+            sw = (sw & ~0x400) | (0x400 if self._stop is None else 0)
+            sw |= self._mode_obj.quick_stop_bits(self)
         elif ((self._state is S.FAULT or self._state is S.FAULT_REACTION_ACTIVE) and self._faults
               and self._faults[0].emcy_code == 0x8611):
             sw |= 0x2000  # following error (bit 13) from the timeout 0x6066 on: through the fault reaction, in FAULT

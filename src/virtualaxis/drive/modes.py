@@ -75,10 +75,13 @@ class OperatingMode:
 
     def __init__(self, gen: ProfileGenerator):
         self.gen = gen
+        #: halt on the current limit (0x605D = 3): None, "braking" (speed set-point 0) or "held" (at rest)
+        self.current_halt: str | None = None
 
     # ------------------------------------------------------------------ enter
     def reset(self, d: Drive, p_m: float) -> None:
         """The mode's own state at rest at ``p_m`` (before :meth:`enter`; the drive resets the generator)."""
+        self.current_halt = None
 
     def enter(self, d: Drive) -> None:
         """Take over from the actual motion: in position control, a moving axis decelerates with
@@ -126,6 +129,61 @@ class OperatingMode:
         pr = self.gen.profile
         self.gen.brake(max(pr.a_max, 1e-9), decel_m_s2)
 
+    # ------------------------------------------------------------------ halt (controlword bit 8)
+    def slow_down_m_s2(self, d: Drive) -> float:
+        """The mode's slow-down ramp, halt option 1 [m/s^2]: profile deceleration 0x6084."""
+        return float(d._obj(0x6084)) * d._u
+
+    def halt_decel_m_s2(self, d: Drive) -> float:
+        """Deceleration of a halt per 0x605D [m/s^2]: 1 the mode's slow-down ramp (:meth:`slow_down_m_s2`),
+        2 the quick-stop ramp 0x6085, 3 the current limit (``math.inf``: the speed set-point goes to 0 and the
+        speed controller brakes at the torque limit, as the quick stop's options 3 / 7)."""
+        option = int(d._obj(0x605D))
+        if option == 3:
+            return math.inf
+        if option == 2:
+            return float(d._obj(0x6085)) * d._u
+        return self.slow_down_m_s2(d)
+
+    def halt_on_current_limit(self, d: Drive) -> None:
+        """One cycle of a halt on the current limit in a position profile mode (PP, HM): speed set-point 0
+        until standstill, then the profile restarts at rest where the axis is (its target kept for the
+        release) and position control holds it."""
+        gen = self.gen
+        if self.current_halt is None:
+            self.current_halt = "braking"
+            d._set_sim_mode(CONTROL_MODE.VELOCITY)
+        if self.current_halt == "braking":
+            d.sim.set_velocity_setpoint(0.0)
+            d._demand_v = 0.0
+            if not rx.at_standstill(d):
+                return
+            p = d._axis.position_m - d._zero_m
+            target = gen.target_m
+            gen.reset(p)
+            gen.target_m = target
+            d._demand_m = p
+            d._last_vff = 0.0
+            d._set_sim_mode(CONTROL_MODE.POSITION)
+            self.current_halt = "held"
+        d._set_position(gen.profile.position_m, 0.0)
+
+    def release_current_halt(self, d: Drive) -> None:
+        """Halt released after a halt on the current limit: the profile takes over from the actual motion
+        (still braking: from the actual speed, bumpless) toward its target."""
+        if self.current_halt == "braking":
+            gen = self.gen
+            v_act = d._axis.velocity_m_s
+            p = d._axis.position_m - d._zero_m + d._lag_m(v_act)
+            target = gen.target_m
+            gen.profile.reset(p, v_act)
+            gen.jerk.reset(p, 1)
+            gen.target_m = target
+            d._demand_m = p
+            d._last_vff = v_act
+            d._set_sim_mode(CONTROL_MODE.POSITION)
+        self.current_halt = None
+
     # ------------------------------------------------------------------ objects
     def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
         """Mode-specific controlword bits (4, 5, 6, 8) in OPERATION ENABLED without a stop running."""
@@ -144,6 +202,11 @@ class OperatingMode:
         """Bits 12 / 13 (and 10 where the mode redefines it) in OPERATION ENABLED."""
         return 0
 
+    def quick_stop_bits(self, d: Drive) -> int:
+        """Bits 12 / 13 in QUICK STOP ACTIVE: none (the targets are ignored, no set-point is acknowledged)
+        except where a bit tells the actual motion."""
+        return 0
+
 
 class ProfilePosition(OperatingMode):
     """PP (1): trapezoid / jerk-limited profile to 0x607A with the set-point handshake (bits 4, 5, 6)."""
@@ -157,6 +220,7 @@ class ProfilePosition(OperatingMode):
         self.halting = False  # the halt's braking profile is planned (once, when bit 8 rises)
 
     def reset(self, d: Drive, p_m: float) -> None:
+        super().reset(d, p_m)
         self.ack = False
         self.pending_m = None
         self.halting = False
@@ -176,10 +240,16 @@ class ProfilePosition(OperatingMode):
         halt = bool(d._cw & 0x100)
         v, a, dec = self.limits(d)
         if halt:
+            decel = self.halt_decel_m_s2(d)
+            if math.isinf(decel) or self.current_halt is not None:
+                self.halt_on_current_limit(d)
+                return
             if not self.halting:  # planned once: re-planned every cycle it braked at about half of 0x6084
-                gen.brake(a, d._halt_decel())
+                gen.brake(a, decel)
                 self.halting = True
         else:
+            if self.current_halt is not None:
+                self.release_current_halt(d)
             self.halting = False
             gen.profile.set_target(gen.target_m, v, a, dec)
         p = self._profile_step(d)
@@ -252,6 +322,7 @@ class Homing(OperatingMode):
         self.run: hm.HomingRun | None = None
 
     def reset(self, d: Drive, p_m: float) -> None:
+        super().reset(d, p_m)
         self.run = None
 
     def in_progress(self) -> bool:
@@ -269,6 +340,10 @@ class Homing(OperatingMode):
         return max(float(d._obj(0x609A)) * d._u, 1e-6)
 
     def entry_decel_m_s2(self, d: Drive) -> float:
+        return self.accel_m_s2(d)
+
+    def slow_down_m_s2(self, d: Drive) -> float:
+        """Halt option 1 in homing: the homing acceleration 0x609A."""
         return self.accel_m_s2(d)
 
     def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
@@ -297,7 +372,15 @@ class Homing(OperatingMode):
             self.finish(d)
 
     def cycle(self, d: Drive) -> None:
-        self._phase_step(d, bool(d._cw & 0x100))
+        halt = bool(d._cw & 0x100)
+        if halt and (self.current_halt is not None
+                     or (self.in_progress() and math.isinf(self.halt_decel_m_s2(d)))):
+            self.run = None  # halted: homing interrupted
+            self.halt_on_current_limit(d)
+            return
+        if not halt and self.current_halt is not None:
+            self.release_current_halt(d)
+        self._phase_step(d, halt)
         self._profile_step(d)
 
     def _phase_step(self, d: Drive, halt: bool) -> None:
@@ -309,7 +392,7 @@ class Homing(OperatingMode):
             pr.set_target(pr.position_m if pr.velocity_m_s == 0 else pr.target_m, 1.0, acc, acc)
             return
         if halt:
-            self.gen.brake(acc, acc)
+            self.gen.brake(acc, self.halt_decel_m_s2(d))  # 0x605D: 1 homing acceleration, 2 quick-stop ramp
             self.run = None  # halted: interrupted
             return
         x_plant = d._axis.position_m
@@ -440,7 +523,8 @@ class CyclicPosition(OperatingMode):
         return d._tr_timer.update(cond, dt, pc.position_time_s)
 
     def status_bits(self, d: Drive) -> int:
-        return 0x1000 | (0x2000 if d._fe_exceeded else 0)  # bit 12: drive follows the command value
+        # bit 12: the drive follows the command value (not while a shutdown / disable-operation ramp runs)
+        return (0x1000 if d._stop is None else 0) | (0x2000 if d._fe_exceeded else 0)
 
 
 class ProfileVelocity(OperatingMode):
@@ -468,8 +552,14 @@ class ProfileVelocity(OperatingMode):
         target = d._velocity_limit(clamped)
         d._internal_limit = d._internal_limit or clamped != requested
         if d._cw & 0x100:
-            self.stop(d, d._halt_decel())
+            decel = self.halt_decel_m_s2(d)
+            if math.isinf(decel):
+                self.current_halt = "braking"  # speed set-point 0: the speed controller brakes at the limit
+            self.stop(d, decel)
             return
+        if self.current_halt is not None:  # released: the ramp goes on from the actual speed
+            self.vramp.velocity_m_s = d._axis.velocity_m_s
+            self.current_halt = None
         v = self.vramp.step(target, float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u)
         d._demand_v = v
         d.sim.set_velocity_setpoint(v)
@@ -487,6 +577,9 @@ class ProfileVelocity(OperatingMode):
 
     def status_bits(self, d: Drive) -> int:
         return 0x1000 if d._speed_zero_flag() else 0  # bit 12: speed = 0
+
+    def quick_stop_bits(self, d: Drive) -> int:
+        return 0x1000 if d._speed_zero_flag() else 0  # speed = 0 tells the actual motion in any state
 
 
 class CyclicVelocity(ProfileVelocity):
@@ -516,7 +609,10 @@ class CyclicVelocity(ProfileVelocity):
         return False
 
     def status_bits(self, d: Drive) -> int:
-        return 0x1000
+        return 0x1000 if d._stop is None else 0  # bit 12: follows the command value (not while stopping)
+
+    def quick_stop_bits(self, d: Drive) -> int:
+        return 0  # bit 12 is "follows the command value" here, not PV's "speed = 0"
 
 
 class ProfileTorque(OperatingMode):
@@ -574,7 +670,7 @@ class CyclicTorque(ProfileTorque):
         return False
 
     def status_bits(self, d: Drive) -> int:
-        return 0x1000
+        return 0x1000 if d._stop is None else 0  # bit 12: follows the command value (not while stopping)
 
 
 MODE_CLASSES: tuple[type[OperatingMode], ...] = (
