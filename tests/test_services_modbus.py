@@ -513,3 +513,49 @@ def test_pipelined_requests_on_one_connection_are_all_answered_in_order(server):
     assert answers[2][1] == bytes([0x83, 0x02])
     assert answers[3][1][:2] == bytes([3, 2]) and answers[4][1][:2] == bytes([3, 24])
     assert answers[1][1][2:4] == answers[0][1][2:4]  # ZSW1 by FC04 = by FC03 (same image)
+
+
+def test_fc23_refused_read_writes_nothing_fc06_echoes_and_writes_follow_the_position_unit():
+    """Found by a docs-only Modbus client (stop 27):
+    - FC23 whose read range is refused (unknown register, a hole) answered exception 02 but had applied its
+      write; a refused request must change nothing (docs/side-channels.md). A read-count error names the read
+      address in 40496 (was the write address).
+    - FC06 must answer with the echo of the request (Modbus application protocol 6.6): STW1 0x047E came back
+      as 0x000E, NSOLL_A 0x1000 on a disabled drive as 0x0000.
+    - With a position unit of 0.1 um (0x6092:1 = 10 x the lead in um), the um registers were written unscaled
+      (4000 um stored 4000 units = 400 um) and FE_TOLERANCE read units as um; NSOLL_A set 0x60FF ten times too
+      small."""
+    drive = make_drive()
+    srv = Server({1: drive})
+    try:
+        c = srv.client
+        kv = drive.read_object(0x2000, 0)
+        for read_number, count in ((40103, 1), (40120, 5)):
+            r = c.readwrite_registers(read_address=read_number - 40001, read_count=count,
+                                      write_address=40361 - 40001, values=[600], device_id=1)
+            assert srv.exc(r) == 2
+            assert drive.read_object(0x2000, 0) == kv  # nothing written
+        assert srv.raw(struct.pack(">BHHHHB", 23, 339, 126, 360, 1, 2) + b"\x02\x58") == bytes([0x97, 0x03])
+        assert srv.last_error()[:2] == (8, 339)  # the read's address
+        assert drive.read_object(0x2000, 0) == kv
+        # FC06 echo
+        for number, value in ((40100, 0x047E), (40101, 0x1000), (40361, 555)):
+            assert srv.raw(struct.pack(">BHH", 6, number - 40001, value)) == struct.pack(">BHH", 6, number - 40001,
+                                                                                          value)
+        # 0.1 um position unit
+        lead_um = drive.read_object(0x6092, 1)  # 1 unit = 1 um by default: the lead in um
+        drive.write_object(0x6092, 0x01, lead_um * 10)
+        assert drive.scaling.metres_per_unit == pytest.approx(1e-7)
+        for number, index in ((40365, 0x6065), (40368, 0x2006), (40371, 0x6067)):
+            assert not c.write_registers(number - 40001, [0, 4000], device_id=1).isError()
+            assert drive.read_object(index, 0) == 40_000, hex(index)  # 4000 um = 40000 units of 0.1 um
+            assert srv.read(number, 2) == [0, 4000]
+        assert not c.write_registers(40365 - 40001, [0xFFFF, 0xFFFF], device_id=1).isError()  # off
+        assert drive.read_object(0x6065, 0) == 0xFFFFFFFF and srv.read(40365, 2) == [0xFFFF, 0xFFFF]
+        ref_rpm = srv.read(40324)[0]
+        assert not c.write_register(40101 - 40001, 0x1000, device_id=1).isError()  # 25 % of the reference
+        link = srv.links[1]
+        expected_m_s = ref_rpm * 0.25 / link.rpm_per_m_s()
+        assert drive.read_object(0x60FF, 0) * 1e-7 == pytest.approx(expected_m_s, rel=1e-3)
+    finally:
+        srv.close()

@@ -519,13 +519,16 @@ def ForwardingContext(call: Callable, image=None):  # noqa: N802 - a class built
 
 
 def custom_pdus(call: Callable) -> list:
-    """Request classes: FC03/04/23 with any count (exception 03 when answering), 01 for every other code."""
+    """Request classes: FC03/04/23 with any count (exception 03 when answering), FC06 answered with the echo,
+    01 for every other code."""
     from pymodbus.pdu import ExceptionResponse, ModbusPDU
     from pymodbus.pdu.register_message import (
         ReadHoldingRegistersRequest,
         ReadInputRegistersRequest,
         ReadWriteMultipleRegistersRequest,
         WriteMultipleRegistersRequest,
+        WriteSingleRegisterRequest,
+        WriteSingleRegisterResponse,
     )
 
     async def refused(pdu, device_id: int, op: int, address: int):
@@ -560,8 +563,17 @@ def custom_pdus(call: Callable) -> list:
             ]
 
         async def datastore_update(self, context, device_id):
-            if not (1 <= self.read_count <= 125 and 1 <= self.write_count <= 121):
+            """Checked completely before the write is applied: the counts (the refused one's address in the
+            last-error registers), then the read range (an unknown register or a hole: exception 02 and
+            nothing written), then write, then read (the read sees the write)."""
+            if not 1 <= self.read_count <= 125:
+                return await refused(self, device_id, 2, self.read_address)
+            if not 1 <= self.write_count <= 121:
                 return await refused(self, device_id, 2, self.write_address)
+            checked = await context.async_getValues(device_id, self.function_code, self.read_address,
+                                                    self.read_count)
+            if not isinstance(checked, list):
+                return ExceptionResponse(self.function_code, checked)
             return await super().datastore_update(context, device_id)
 
     class WriteMultipleCounted(WriteMultipleRegistersRequest):
@@ -574,6 +586,20 @@ def custom_pdus(call: Callable) -> list:
             ):
                 return await refused(self, device_id, 2, self.address)
             return await super().datastore_update(context, device_id)
+
+    class WriteSingleEcho(WriteSingleRegisterRequest):
+        """FC06: the normal response echoes the request (Modbus application protocol 6.6; pymodbus answers
+        the register read back, which for a command word such as STW1 or a set-point is not what was
+        written)."""
+
+        async def datastore_update(self, context, device_id):
+            value = self.registers[0]
+            if not 0 <= value <= 0xFFFF:
+                return ExceptionResponse(self.function_code, _exc(3))
+            rc = await context.async_setValues(device_id, self.function_code, self.address, self.registers)
+            if rc:
+                return ExceptionResponse(self.function_code, rc)
+            return WriteSingleRegisterResponse(address=self.address, registers=[value])
 
     class Unsupported(ModbusPDU):
         function_code = 0
@@ -589,7 +615,8 @@ def custom_pdus(call: Callable) -> list:
         for fc in range(1, 128)
         if fc not in SUPPORTED_FUNCTIONS
     ]
-    return [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, WriteMultipleCounted, *others]
+    return [ReadHoldingAnyCount, ReadInputAnyCount, ReadWriteAnyCount, WriteMultipleCounted, WriteSingleEcho,
+            *others]
 
 
 def wait_port(host: str, port: int, timeout_s: float = 5.0) -> None:

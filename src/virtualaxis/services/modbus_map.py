@@ -208,7 +208,7 @@ def zsw1(v: View) -> int:
     s = v.s
     sw = s.statusword
     word = sw & 0x02FF  # bits 0-7 and 9 are the same bits as in 0x6041
-    window_m_s = v.obj(0x606D) * v.drive.settings.position_unit_m
+    window_m_s = v.obj(0x606D) * v.drive.scaling.metres_per_unit
     if abs(s.velocity_actual_m_s - s.velocity_demand_m_s) <= window_m_s:
         word |= 1 << 8
     if sw & 0x0400:
@@ -261,8 +261,11 @@ class ObjectWrite:
     sub: int
     factor: float | Callable[[AxisLink], float] = 1.0
     integer: bool = True
+    unscaled: int | None = None  # a register value written as it is (e.g. 0xFFFFFFFF "off")
 
     def object_value(self, link: AxisLink, value: int) -> float | int:
+        if value == self.unscaled:
+            return value
         f = self.factor(link) if callable(self.factor) else self.factor
         x = value * f
         return int(round(x)) if self.integer else float(x)
@@ -270,13 +273,13 @@ class ObjectWrite:
 
 def _pos_factor(scale_m: float) -> Callable[[AxisLink], float]:
     """Register in ``scale_m`` metres -> drive position units."""
-    return lambda link: scale_m / link.drive.settings.position_unit_m
+    return lambda link: scale_m / link.drive.scaling.metres_per_unit
 
 
 def _speed_setpoint_factor(link: AxisLink) -> float:
     """Normalised speed (0x4000 = reference speed) -> 0x60FF target velocity [position units/s]."""
     m_s_per_unit = link.reference_speed_rpm / 0x4000 / link.rpm_per_m_s()
-    return m_s_per_unit / link.drive.settings.position_unit_m
+    return m_s_per_unit / link.drive.scaling.metres_per_unit
 
 
 def _current_factor(link: AxisLink) -> float:
@@ -310,6 +313,12 @@ class Register:
     @property
     def writable(self) -> bool:
         return self.write is not None
+
+
+def _fe_tolerance_um(v: View) -> float:
+    """0x6065 in um, 0xFFFFFFFF (monitoring off) as it is."""
+    raw = v.obj(0x6065)
+    return raw if raw == 0xFFFFFFFF else raw * v.drive.scaling.metres_per_unit * 1e6
 
 
 def _write_stw1(link: AxisLink, value: int) -> None:
@@ -509,7 +518,7 @@ REGISTERS: tuple[Register, ...] = (
     _r(40364, "SPEED_TN", "u16", "0.1 ms", "speed controller integral time (0: P only)",
        lambda v: v.param("speed_tn_ms") * 10, ObjectWrite(0x2004, 0, 0.1, integer=False), "p1462 / 0x2004"),
     _r(40365, "FE_TOLERANCE", "u32", "1 um", "following error tolerance (0xFFFFFFFF: off)",
-       lambda v: v.obj(0x6065) * v.drive.settings.position_unit_m * 1e6, ObjectWrite(0x6065, 0, P(1e-6)),
+       _fe_tolerance_um, ObjectWrite(0x6065, 0, P(1e-6), unscaled=0xFFFFFFFF),
        "p2546 / 0x6065"),
     _r(40367, "FE_TIME", "u16", "1 ms", "following error time", lambda v: v.obj(0x6066), ObjectWrite(0x6066, 0),
        "0x6066"),
