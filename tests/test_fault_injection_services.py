@@ -301,7 +301,8 @@ def test_injection_refused_on_both_channels_without_allow_fault_injection(mosqui
             assert mb.u32(FI_ACTIVE) == 0 and mb.read(FI_DUTY, 5) == [0, 0, 1000, 0, 0]
             sub.wait(lambda: any(s["status"] == "online" for s in sub.of("status")))
             for ident, c in (("r1", {"action": "inject", "kind": "dc_link_undervoltage"}),
-                             ("r2", {"action": "clear"})):
+                             ("r2", {"action": "clear"}),
+                             ("r3", {"action": "inject", "kind": 99})):  # stop 27: was 0x06090030
                 cmd.publish(c | {"id": ident})
                 r = cmd.result(ident)
                 assert r["ok"] is False and r["abort_code"] == "0x08000022", r

@@ -150,8 +150,11 @@ def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
         ax.drive.inject_fault(0x4210, 42)
         sub.wait(lambda: any(f["event"] == "fault" for f in sub.of("faults")))
         sub.wait(lambda: ax.drive.state.cia402_state == "FAULT")  # fault reaction (braking) finished
+        ax.drive.inject_fault(0x3220, 7)  # a second fault: one reset clears both, one event each (stop 27: one)
+        sub.wait(lambda: sum(f["event"] == "fault" for f in sub.of("faults")) == 2)
         ax.drive.clear_fault()
-        sub.wait(lambda: any(f["event"] == "fault_cleared" for f in sub.of("faults")))
+        sub.wait(lambda: {f["emcy_code"] for f in sub.of("faults") if f["event"] == "fault_cleared"}
+                 == {"0x4210", "0x3220"})
     finally:
         svc.stop()
         ax.close()

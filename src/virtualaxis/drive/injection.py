@@ -201,7 +201,10 @@ class FaultInjector:
 
     def command(self, action: str, kind: str | int | None = None, **options: Any) -> None:
         """One entry point for side channels (Modbus, MQTT): ``action`` "inject" / "clear", ``kind`` a name or
-        number of :data:`KINDS`; options as :meth:`inject`. Refusals raise :class:`InjectionRefused`."""
+        number of :data:`KINDS`; options as :meth:`inject`. Refusals raise :class:`InjectionRefused`; without
+        ``allowed`` every command is refused 0x08000022 first, whatever its kind or action."""
+        if not self.allowed:
+            raise InjectionRefused(ABORT_DEVICE_STATE, "fault injection is off (serve --allow-fault-injection)")
         if isinstance(kind, int) and not isinstance(kind, bool):
             if kind not in KIND_NAMES:
                 raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind number {kind}")

@@ -598,11 +598,9 @@ class MqttService:
         self._observers: list[tuple[Drive, Callable]] = []
 
     def _observer(self, ch: AxisChannel) -> Callable:
-        def on_event(event: str, state) -> None:  # runs under the drive's lock: cheap and non-blocking only
-            ch.states.append(state)  # each transition gets its own state message (bounded: the newest 32)
-            if event not in ("fault", "fault_cleared"):
-                return
-            rec = state.faults[0] if state.faults else None
+        active: set[tuple[int, float]] = set()  # the faults not yet acknowledged at the last event
+
+        def record(event: str, state, rec) -> None:
             ch.events.append({
                 "event": event,
                 "time_s": round(state.time_s, 6),
@@ -615,6 +613,17 @@ class MqttService:
                 "text": rec.text if rec else "",
                 "injected": bool(rec.injected) if rec else False,
             })
+
+        def on_event(event: str, state) -> None:  # runs under the drive's lock: cheap and non-blocking only
+            ch.states.append(state)  # each transition gets its own state message (bounded: the newest 32)
+            if event == "fault":
+                record(event, state, state.faults[0] if state.faults else None)
+            elif event == "fault_cleared":  # one event per fault the reset acknowledged (oldest first)
+                cleared = [f for f in state.faults if f.acknowledged and (f.emcy_code, f.time_s) in active]
+                for rec in reversed(cleared) if cleared else [state.faults[0] if state.faults else None]:
+                    record(event, state, rec)
+                active.clear()  # (the state event before it already shows them acknowledged: kept until here)
+            active.update((f.emcy_code, f.time_s) for f in state.faults if not f.acknowledged)
 
         return on_event
 
