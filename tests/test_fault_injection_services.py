@@ -264,6 +264,16 @@ def test_mqtt_inject_result_fault_event_malformed_commands_and_serve_goes_on(mos
             r = cmd.result(ident)
             assert r["ok"] is False and r["abort_code"] == "0x06090030", r
             assert r["active"] == ["dc_link_undervoltage"], r
+        # a burst of 200 commands sent back to back: every one gets its result (ok, or "busy" beyond 16 in flight;
+        # stop 27, a docs-only client: of 200, 89-106 were answered, the rest never)
+        n = len(cmd.results())
+        for k in range(200):
+            cmd.sub.client.publish(cmd.prefix + "fault/set", json.dumps(
+                {"action": "clear", "kind": "encoder_loss", "id": f"b{k}"}), qos=1)
+        wanted = {f"b{k}" for k in range(200)}
+        sub.wait(lambda: wanted <= {r.get("id") for r in cmd.results()[n:]}, timeout=30)
+        burst = [r for r in cmd.results()[n:] if r.get("id") in wanted]
+        assert len(burst) == 200 and all(r["ok"] or "busy" in r["error"] for r in burst), burst[:3]
         # serve goes on serving: telemetry keeps coming, then a clear and an intermittent injection by number
         samples = sub.samples()
         sub.wait(lambda: sub.samples() >= samples + 20)

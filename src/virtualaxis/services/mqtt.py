@@ -819,7 +819,10 @@ class PubChannel:
     event_capacity: int
     events: deque = field(default_factory=deque)
     states: deque = field(default_factory=lambda: deque(maxlen=32))  # state fields of drive events
-    results: deque = field(default_factory=lambda: deque(maxlen=64))  # fault/result payloads to publish
+    # fault/result payloads to publish: one per fault/set message, none dropped (a bounded deque lost the answers
+    # of a burst of more than 64 commands: stop 27); each is answered at once, so the queue holds what the broker
+    # delivered faster than the results go out
+    results: deque = field(default_factory=deque)
     commands_in_flight: int = 0  # fault/set commands forwarded to serve, not answered yet
     current: dict | None = None  # the latest state fields serve forwarded
     events_dropped: int = 0
