@@ -141,6 +141,7 @@ def expected_registers(drive: Drive, ref_rpm: float) -> dict[int, list[int]]:
         40119: words(s16(s.mode), 1),
         40120: words(sw, 1),
         40121: words(s.error_code, 1),
+        40300: words(0, 1),  # power unit code number (SINAMICS r0200; the simulated one has none)
         40301: words(100, 1),  # version 0.1.0
         40321: words(u16(p("current_limit_a") * 10), 1),
         40324: words(u16(ref_rpm), 1),
@@ -179,7 +180,8 @@ def expected_registers(drive: Drive, ref_rpm: float) -> dict[int, list[int]]:
         40380: words(u32(drive.counters["faults_raised"]), 2),
         40382: words(u32(s.time_s * 1000), 2),
         40408: words(s.alarm_number, 1),
-        40409: words(len(s.faults), 1),
+        40409: words(0, 1),  # alarm code (SINAMICS 40409; no alarm in this move)
+        40419: words(len(s.faults), 1),
     }
     for i in range(8):
         f = s.faults[i] if i < len(s.faults) else None
@@ -227,8 +229,8 @@ def test_every_register_matches_the_drive_state_during_a_move(server):
     csp_ramp(drive, 0.05, 300)  # 50 mm/s, mid-move (accelerating into a constant speed)
     assert abs(drive.state.velocity_actual_m_s) > 0.01 and abs(drive.state.following_error_m) > 1e-6
     expected = expected_registers(drive, ref_rpm=seed_config().motor.rated_speed_rpm)
-    ranges = [(40100, 40102), (40110, 40121), (40301, 40301), (40321, 40321), (40324, 40324), (40340, 40383),
-              (40400, 40417), (40420, 40435)]
+    ranges = [(40100, 40102), (40110, 40121), (40300, 40301), (40321, 40321), (40324, 40324), (40340, 40383),
+              (40400, 40417), (40419, 40435)]
     got: dict[int, int] = {}
     for fc in (3, 4):
         for a, b in ranges:
@@ -557,5 +559,11 @@ def test_fc23_refused_read_writes_nothing_fc06_echoes_and_writes_follow_the_posi
         link = srv.links[1]
         expected_m_s = ref_rpm * 0.25 / link.rpm_per_m_s()
         assert drive.read_object(0x60FF, 0) * 1e-7 == pytest.approx(expected_m_s, rel=1e-3)
+        # the documented SINAMICS registers of siemens-conventions.md: 40300 power unit, 40408 / 40409 alarm
+        # number / code (40409 was the fault count, 40300 answered exception 02)
+        drive.set_warning(0x7320, True)
+        assert srv.read(40300) == [0] and srv.read(40408, 2) == [drive.state.alarm_number, 0x7320]
+        drive.set_warning(0x7320, False)
+        assert srv.read(40408, 2) == [0, 0] and srv.read(40419) == [len(drive.state.faults)]
     finally:
         srv.close()

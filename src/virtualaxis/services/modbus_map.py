@@ -315,6 +315,18 @@ class Register:
         return self.write is not None
 
 
+def _alarm_code(v: View) -> int:
+    """The EMCY code of the active alarm (40408): the warning's own code, 0x4310 for the motor-temperature
+    alarm A07910; 0 without an alarm."""
+    number = v.s.alarm_number
+    if not number:
+        return 0
+    for code, alarm in v.drive.warnings.items():
+        if alarm == number:
+            return code
+    return 0x4310 if number == 7910 else 0
+
+
 def _fe_tolerance_um(v: View) -> float:
     """0x6065 in um, 0xFFFFFFFF (monitoring off) as it is."""
     raw = v.obj(0x6065)
@@ -463,6 +475,8 @@ REGISTERS: tuple[Register, ...] = (
     _r(40121, "ERROR_CODE", "u16", "EMCY code", "error code 0x603F of the latest fault (0: none)",
        lambda v: v.s.error_code, None, "0x603F"),
     # ---- drive identification and reference values
+    _r(40300, "POWER_UNIT", "u16", "code", "power unit code number (0: the simulated power unit has no catalogue "
+       "code)", lambda v: 0, None, "r0200"),
     _r(40301, "FIRMWARE", "u16", "major x 10000 + minor x 100 + patch", "firmware (package) version",
        lambda v: _version_number(), None, "r0018"),
     _r(40321, "CURRENT_LIMIT", "u16", "0.1 A", "current limit", lambda v: v.param("current_limit_a") * 10,
@@ -548,12 +562,14 @@ REGISTERS: tuple[Register, ...] = (
     ),
     _r(40408, "ALARM_NUMBER", "u16", "A number", "active alarm number (e.g. 7910 motor temperature; 0: none)",
        lambda v: v.s.alarm_number, None, "r2122 / 0x2031"),
-    _r(40409, "FAULT_COUNT", "u16", "1", "entries in the fault buffer (0..8)", lambda v: len(v.s.faults), None, ""),
+    _r(40409, "ALARM_CODE", "u16", "EMCY code", "CiA 402 code of the active alarm of 40408 (0: none)", _alarm_code,
+       None, "r2124 / 0x2031"),
     *(
         _r(40410 + i, f"FAULT_CODE_{i}", "u16", "EMCY code", f"fault code [{i}] (CiA 402 EMCY code)",
            _fault_field(i, "code"), None, f"r0945[{i}]")
         for i in range(8)
     ),
+    _r(40419, "FAULT_COUNT", "u16", "1", "entries in the fault buffer (0..8)", lambda v: len(v.s.faults), None, ""),
     *(
         _r(40420 + 2 * i, f"FAULT_VALUE_{i}", "i32", "1", f"fault value [{i}]", _fault_field(i, "value"), None,
            f"r0949[{i}]")
