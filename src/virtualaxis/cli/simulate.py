@@ -96,6 +96,7 @@ def run(args) -> int:
     AxisSimulator(cfg, seed=args.seed).run_arrays(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
     wall0 = time.perf_counter()
     chunk = 10000
+    pos_limit = 10.0 * cfg.axis.stroke_m + 1.0  # [m] beyond this the run has diverged (see below)
     for name in prof.axes:
         path = paths[name]
         t_first = np.zeros(1)
@@ -113,10 +114,19 @@ def run(args) -> int:
                 p, v, acc = sample_profile(prof, t, dur)[name]
                 rows = sim.run_arrays(p, v, acc, np.zeros(b - a))
                 data = rows_to_columns(cfg, rows, extras=args.extras)
-                bad = ~np.isfinite(data.get("pos_meas", data["pos_cmd"]))
+                pos = data.get("pos_meas", data["pos_cmd"])
+                # diverged: a non-finite value in any column, or a table beyond every end stop (the stroke is at
+                # most 100 m and the end stops sit behind its ends: 10 strokes + 1 m away is no motion of an axis)
+                non_finite = np.zeros(len(pos), dtype=bool)
+                for col in data.values():
+                    non_finite |= ~np.isfinite(col)
+                bad = non_finite | (np.abs(pos) > pos_limit)
                 if bad.any():
-                    t_bad = float(t[np.flatnonzero(bad)[0]])
-                    raise CliError(f"axis {name}: the simulation diverged (non-finite position at t = {t_bad:g} s); "
+                    i_bad = int(np.flatnonzero(bad)[0])
+                    t_bad = float(t[i_bad])
+                    what = ("non-finite values" if non_finite[i_bad]
+                            else f"position {pos[i_bad]:.3g} m, beyond +-{pos_limit:g} m")
+                    raise CliError(f"axis {name}: the simulation diverged ({what} at t = {t_bad:g} s); "
                                    f"the config's gains or parameters do not give a stable axis: {args.config}")
                 w.write(data)
                 err = data["pos_meas"] - data["pos_cmd"]

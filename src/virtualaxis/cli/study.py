@@ -44,8 +44,8 @@ def _value_range(name: str, cfg) -> tuple[float, float, str]:
         return max(lo, 1e-3), hi, "1/min (control.kv_per_min's range)"
     if name == "support-stiffness":
         k = cfg.mechanics.support_axial_stiffness_n_per_m
-        hi = BOUNDS["mechanics.support_axial_stiffness_n_per_m"][1]
-        return 1e-6, (hi / k if k > 0 else 1e6), "x the nominal support stiffness"
+        lo, hi = BOUNDS["mechanics.support_axial_stiffness_n_per_m"]
+        return (lo / k if k > 0 else 1e-6), (hi / k if k > 0 else 1e6), "x the nominal support stiffness"
     vmax_mm_min = cfg.limits.max_velocity_m_s * 60e3  # feed-sweep, inverter: feeds [mm/min]
     return 1e-3, vmax_mm_min, "mm/min (up to limits.max_velocity_m_s)"
 

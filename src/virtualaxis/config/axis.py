@@ -39,8 +39,10 @@ from virtualaxis.config.bounds import (
     BOUNDS,
     DIMENSIONLESS,
     MAX_MECHANICAL_STEP_RATE_HZ,
+    ZERO_MEANS,
     convert_unit,
     format_bound,
+    in_bounds,
     units_for_key,
 )
 from virtualaxis.config.errors import ConfigError
@@ -465,12 +467,12 @@ def _coerce(file: str, key: str, raw: Any, f: dataclasses.Field, unit: str | Non
         raise ConfigError(file, key, f"must be >= 0 (got {val})")
     if check == "0..1" and not 0 <= val <= 1:
         raise ConfigError(file, key, f"must be between 0 and 1 (got {val})")
-    lo_hi = BOUNDS.get(key)
-    if lo_hi is not None and not lo_hi[0] <= val <= lo_hi[1]:
-        lo, hi = lo_hi
+    if not in_bounds(key, val):
+        lo, hi = BOUNDS[key]
+        zero = f" (or 0 = {ZERO_MEANS[key]})" if key in ZERO_MEANS else ""
         raise ConfigError(
             file, key, f"{val:g} is outside the plausible range {format_bound(lo)} .. {format_bound(hi)}"
-            f" {_unit_name(key)}".rstrip()
+            f" {_unit_name(key)}".rstrip() + zero
         )
     return val
 
@@ -541,8 +543,22 @@ def axis_config_from_dict(data: dict, file: str = "<dict>", sources: dict | None
     for k, v in extra.items():
         _refuse_non_finite(file, k, v)
     cfg = AxisConfig(**parts, sources=srcs, extra=extra, path=file)
-    _check_consistency(cfg)
+    given = {f"{sec}.{k}" for sec, vals in data.items() if isinstance(vals, dict) for k in vals}
+    _check_consistency(cfg, given)
     return cfg
+
+
+#: Keys that describe the particular motor and drive: no default stands in for them when the axis is driven by
+#: a pmsm (a default 4 pole pairs or 1 ohm would be a hidden wrong value); a force actuator does not use them.
+#: Every other key with a default may be omitted: its default and where it comes from are listed in
+#: docs/plant.md ("Defaults").
+PMSM_REQUIRED = (
+    "motor.pole_pairs", "motor.rs_ohm", "motor.ld_h", "motor.lq_h", "motor.rated_current_a",
+    "motor.rated_speed_rpm", "control.current_ti_s", "control.speed_ti_s",
+)
+#: Required for every axis: the loop cycles set every time step of the drive.
+ALWAYS_REQUIRED = ("control.current_cycle_s", "control.speed_cycle_s", "control.position_cycle_s")
+_KV_KEYS = ("kv_1000_per_min", "kv_per_min", "kv_per_s")
 
 
 def _refuse_non_finite(file: str, key: str, value: Any) -> None:
@@ -569,11 +585,26 @@ def _int_fits_float(value: int) -> bool:
     return True
 
 
-def _check_consistency(cfg: AxisConfig) -> None:
+def _positive_for(f: str, key: str, value: float, given: set, what: str) -> None:
+    """``key`` must be > 0 for ``what``: 'missing' when the file does not give it, else the 0 named."""
+    if value > 0:
+        return
+    if key not in given:
+        raise ConfigError(f, key, f"missing (required for {what})")
+    raise ConfigError(f, key, f"must be > 0 for {what} (got {value:g})")
+
+
+def _check_consistency(cfg: AxisConfig, given: set | None = None) -> None:
     f = cfg.path
     m, c, a = cfg.mechanics, cfg.control, cfg.actuator
-    if m.model in ("ball_screw", "two_mass") and not m.lead_m > 0:
-        raise ConfigError(f, "mechanics.lead_m", f"must be > 0 for a {m.model} axis (got {m.lead_m})")
+    if given is None:  # built from a complete dict: every key is given
+        given = {f"{sec}.{fl.name}" for sec, cls in _SECTIONS.items() for fl in fields(cls)}
+    for key in ALWAYS_REQUIRED + (PMSM_REQUIRED if a.kind == "pmsm" else ()):
+        if key not in given:
+            raise ConfigError(f, key, f"missing (required{' for a pmsm actuator' if key in PMSM_REQUIRED else ''}; "
+                                      "no default stands in for the motor's or the drive's own value)")
+    if m.model in ("ball_screw", "two_mass"):
+        _positive_for(f, "mechanics.lead_m", m.lead_m, given, f"a {m.model} axis")
     if m.model == "ball_screw":
         for key in (
             "screw_length_m",
@@ -584,8 +615,7 @@ def _check_consistency(cfg: AxisConfig) -> None:
             "motor_inertia_kg_m2",
             "nut_mass_kg",
         ):
-            if not getattr(m, key) > 0:
-                raise ConfigError(f, f"mechanics.{key}", "must be > 0 for a ball_screw axis")
+            _positive_for(f, f"mechanics.{key}", getattr(m, key), given, "a ball_screw axis")
         half = cfg.axis.stroke_m / 2
         if cfg.axis.nut_offset_m - half < 0 or cfg.axis.nut_offset_m + half > m.screw_length_m:
             raise ConfigError(
@@ -593,26 +623,35 @@ def _check_consistency(cfg: AxisConfig) -> None:
             )
     if m.model == "two_mass":
         for key in ("equivalent_torsional_stiffness_nm_per_rad", "motor_inertia_kg_m2"):
-            if not getattr(m, key) > 0:
-                raise ConfigError(f, f"mechanics.{key}", "must be > 0 for a two_mass axis")
+            _positive_for(f, f"mechanics.{key}", getattr(m, key), given, "a two_mass axis")
     if a.kind == "pmsm":
-        if not m.motor_inertia_kg_m2 > 0 and m.model != "rigid":
-            raise ConfigError(f, "mechanics.motor_inertia_kg_m2", "must be > 0 with a pmsm actuator")
-        if m.model == "rigid" and not m.lead_m > 0:
-            raise ConfigError(f, "mechanics.lead_m", "a rigid axis driven by a pmsm needs lead_m > 0")
+        if m.model != "rigid":
+            _positive_for(f, "mechanics.motor_inertia_kg_m2", m.motor_inertia_kg_m2, given, "a pmsm actuator")
+        if m.model == "rigid":
+            _positive_for(f, "mechanics.lead_m", m.lead_m, given, "a rigid axis driven by a pmsm")
         if not (cfg.motor.flux_wb > 0 or cfg.motor.torque_constant_nm_per_a > 0):
-            raise ConfigError(f, "motor.flux_wb", "give flux_wb or torque_constant_nm_per_a (> 0)")
-        if not c.speed_kp_nm_s_per_rad > 0:
-            raise ConfigError(f, "control.speed_kp_nm_s_per_rad", "must be > 0 with a pmsm actuator")
-        if not c.current_kp_v_per_a > 0:
-            raise ConfigError(f, "control.current_kp_v_per_a", "must be > 0 with a pmsm actuator")
+            gone = not ({"motor.flux_wb", "motor.torque_constant_nm_per_a"} & given)
+            raise ConfigError(f, "motor.flux_wb", ("missing: " if gone else "") +
+                              "give flux_wb or torque_constant_nm_per_a (> 0)")
+        _positive_for(f, "control.speed_kp_nm_s_per_rad", c.speed_kp_nm_s_per_rad, given, "a pmsm actuator")
+        _positive_for(f, "control.current_kp_v_per_a", c.current_kp_v_per_a, given, "a pmsm actuator")
     else:
-        if not c.velocity_kp_n_s_per_m > 0:
-            raise ConfigError(f, "control.velocity_kp_n_s_per_m", "must be > 0 with a force actuator")
-    kvs = [k for k in ("kv_1000_per_min", "kv_per_min", "kv_per_s") if getattr(c, k) > 0]
-    if len(kvs) != 1:
+        _positive_for(f, "control.velocity_kp_n_s_per_m", c.velocity_kp_n_s_per_m, given, "a force actuator")
+    kvs = [k for k in _KV_KEYS if getattr(c, k) > 0]
+    if len(kvs) > 1:
+        got = ", ".join(f"{k} = {getattr(c, k):g}" for k in kvs)
         raise ConfigError(
-            f, "control.kv_1000_per_min", f"give exactly one of kv_1000_per_min, kv_per_min, kv_per_s (got {kvs})"
+            f, f"control.{kvs[0]}", f"give exactly one of kv_1000_per_min, kv_per_min, kv_per_s (got {got})"
+        )
+    if not kvs:
+        zeros = [k for k in _KV_KEYS if f"control.{k}" in given]
+        if not zeros:
+            raise ConfigError(f, "control.kv_per_s", "missing (required): give the position-loop gain Kv as one of "
+                                                     "kv_1000_per_min, kv_per_min, kv_per_s")
+        lo, hi = BOUNDS[f"control.{zeros[0]}"]
+        raise ConfigError(
+            f, f"control.{zeros[0]}", f"must be > 0: a position-loop gain of 0 leaves the position loop open "
+            f"(plausible range {format_bound(lo)} .. {format_bound(hi)} {_unit_name(f'control.{zeros[0]}')})",
         )
     # loop cycles must nest: current | speed | position, integer ratios
     for inner, outer in (("current_cycle_s", "speed_cycle_s"), ("speed_cycle_s", "position_cycle_s")):
@@ -655,6 +694,8 @@ def _check_consistency(cfg: AxisConfig) -> None:
 def read_text_file(path: str | Path, what: str = "file", max_bytes: int = MAX_CONFIG_BYTES) -> str:
     """A small UTF-8 text file's text (a BOM is accepted). Raises :class:`ConfigError` naming the file (and
     the line of the first byte that is not UTF-8) for a missing, unreadable, oversized or non-UTF-8 file."""
+    if not str(path).strip():  # Path("") is "." and would read as "is a folder"
+        raise ConfigError(repr(str(path)), "", f"empty or blank path: give a {what}")
     p = Path(path)
     if p.exists() and not p.is_dir() and not p.is_file() and not p.is_char_device():
         # a FIFO or socket would block the read until someone writes to it
@@ -697,8 +738,8 @@ def max_table_speed_m_s(cfg: AxisConfig) -> float:
 
 def load_axis_config(path: str | Path) -> AxisConfig:
     """Read and validate an axis config file. Raises :class:`ConfigError` naming file and key."""
+    text = read_text_file(path, "config file")
     p = Path(path)
-    text = read_text_file(p, "config file")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -44,10 +44,17 @@ def integral_gain_per_sample(cycle_s: float, ti_s: float) -> float:
 
 @njit(cache=True, inline="always")
 def quantise(value: float, quantum: float) -> float:
-    """Floor to the sensor quantum (an encoder count); ``quantum`` <= 0 means ideal."""
+    """Floor to the sensor quantum (an encoder count); ``quantum`` <= 0 means ideal.
+
+    A value of 2^52 quanta or more (or not finite) is returned as it is: the quantum is below its float
+    resolution there, and ``math.floor`` of a compiled kernel returns an int64 that saturates, so a diverged
+    (NaN or huge) position would read as a finite +-2^63 quanta and hide the divergence."""
     if quantum <= 0.0:
         return value
-    return quantum * math.floor(value / quantum)
+    q = value / quantum
+    if not abs(q) < 4503599627370496.0:  # 2^52; False for NaN
+        return value
+    return quantum * math.floor(q)
 
 
 @njit(cache=True, inline="always")
