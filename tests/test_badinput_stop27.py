@@ -29,6 +29,7 @@ def _setup(tmp: Path) -> None:
     text = EDS.read_text()
     (tmp / "no6040.eds").write_text(_drop_object(text, 0x6040))
     (tmp / "no1005.eds").write_text(_drop_object(text, 0x1005))
+    (tmp / "no_device_info.eds").write_text(text.replace("[DeviceInfo]", "[DeviceInformation]"))
 
 
 def _drop_object(text: str, index: int) -> str:
@@ -61,6 +62,16 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                              "--latency-probe", "{T}/same.npz"], ["--latency-probe", "also the output of --json"]),
     ("serve-probe-not-npz", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--latency-probe",
                              "{T}/x.txt"], ["--latency-probe", "x.txt", ".npz"]),
+    # ---- G2 / G8: the served EDS has what the slave and the drive need (before: KeyError (4101, 0) after
+    # canopen's warning printed twice; an EDS without the Controlword was served, exit 0)
+    ("serve-eds-empty", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds", "{T}/empty.eds"],
+     ["empty.eds", "not an EDS"]),
+    ("serve-eds-no-device-info", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds",
+                                  "{T}/no_device_info.eds"], ["no_device_info.eds", "[DeviceInfo]"]),
+    ("serve-eds-no-1005", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds", "{T}/no1005.eds"],
+     ["no1005.eds", "0x1005:00", "COB-ID SYNC"]),
+    ("serve-eds-no-controlword", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds",
+                                  "{T}/no6040.eds"], ["no6040.eds", "0x6040:00", "controlword", "RPDO1"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]

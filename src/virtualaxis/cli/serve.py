@@ -237,16 +237,18 @@ def run(args) -> int:
 
 
 def _check_inputs(args, eds: Path) -> None:
-    """Everything that can be refused is refused before serving: the EDS (file, section, key), the --json
+    """Everything that can be refused is refused before serving: the EDS (file, section, key, the objects the
+    slave and the drive need), the --json
     output path (not a folder, its folder exists and takes a new file)."""
     import tempfile
 
-    from virtualaxis.canopen_slave.od import validate_eds
+    from virtualaxis.canopen_slave.od import check_served_eds
     from virtualaxis.cli.main import CliError
+    from virtualaxis.drive.objects import OBJECTS
 
     if not eds.is_file():
         raise CliError(f"{eds}: EDS file not found" if not eds.exists() else f"{eds}: EDS path is not a file")
-    validate_eds(eds)
+    check_served_eds(eds, tuple((o.index, o.sub, o.name) for o in OBJECTS))  # what the slave and the drive need
     if args.json:
         out = Path(args.json)
         if out.is_dir():
