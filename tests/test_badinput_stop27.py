@@ -72,6 +72,14 @@ CASES: list[tuple[str, list[str], list[str]]] = [
      ["no1005.eds", "0x1005:00", "COB-ID SYNC"]),
     ("serve-eds-no-controlword", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds",
                                   "{T}/no6040.eds"], ["no6040.eds", "0x6040:00", "controlword", "RPDO1"]),
+    # ---- G3: bus option values parsed and named (before: internal error 'required argument is not an
+    # integer' at bus.py:263; virtual:x,bitrate=abc served)
+    ("serve-can-hop-limit-not-int", [*SERVE, "--config", "{T}/c.toml", "--can",
+                                     "udp_multicast:239.74.163.99,hop_limit=abc"], ["hop_limit='abc'", "integer"]),
+    ("serve-can-port-out-of-range", [*SERVE, "--config", "{T}/c.toml", "--can",
+                                     "udp_multicast:239.74.163.99,hop_limit=0,port=99999"], ["port=99999", "1..65535"]),
+    ("serve-can-virtual-unknown-option", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27,bitrate=abc"],
+     ["'bitrate'", "virtual bus", "accepted"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]
