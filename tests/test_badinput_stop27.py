@@ -16,7 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 C0 = ROOT / "configs" / "seed000-hust.toml"
 C4 = ROOT / "configs" / "seed004-siemens.toml"
 EDS = ROOT / "eds" / "virtualaxis.eds"
+TRACES = ROOT / "tests" / "badinput" / "traces"
 SERVE = ["serve", "--status-interval", "0", "--duration", "1"]
+DIAG = ["diagnose", "--config", str(C4), "--out", "{T}/d", "--effects", "coulomb_friction", "--no-hybrid",
+        "--jobs", "1"]
 
 
 def _setup(tmp: Path) -> None:
@@ -30,6 +33,13 @@ def _setup(tmp: Path) -> None:
     (tmp / "no6040.eds").write_text(_drop_object(text, 0x6040))
     (tmp / "no1005.eds").write_text(_drop_object(text, 0x1005))
     (tmp / "no_device_info.eds").write_text(text.replace("[DeviceInfo]", "[DeviceInformation]"))
+    good = (TRACES / "good.csv").read_bytes()
+    for name, side in (("ctl_neg", "[controller]\nkv_per_min = -5\n"),
+                       ("ctl_quoted_str", '[controller]\n"control.kv_per_min" = "fast"\n'),
+                       ("ctl_nested_huge", "[controller.control]\nkv_per_min = 1e300\n"),
+                       ("ctl_twice", '[controller]\nkv_per_min = 40\n"control.kv_per_min" = 50\n')):
+        (tmp / f"{name}.csv").write_bytes(good)
+        (tmp / f"{name}.toml").write_text(side)
 
 
 def _drop_object(text: str, index: int) -> str:
@@ -80,6 +90,15 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                                      "udp_multicast:239.74.163.99,hop_limit=0,port=99999"], ["port=99999", "1..65535"]),
     ("serve-can-virtual-unknown-option", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27,bitrate=abc"],
      ["'bitrate'", "virtual bus", "accepted"]),
+    # ---- G13 / G14: a sidecar's [controller] values are checked and reported against the sidecar (before: the
+    # axis config file was named; quoted "control.*" keys were ignored with a warning, their values unchecked)
+    ("diag-sidecar-controller-negative", DIAG + ["{T}/ctl_neg.csv"],
+     ["ctl_neg.toml", "[controller] control.kv_per_min", ">= 0"]),
+    ("diag-sidecar-controller-quoted-key-string", DIAG + ["{T}/ctl_quoted_str.csv"],
+     ["ctl_quoted_str.toml", "control.kv_per_min", "must be a number"]),
+    ("diag-sidecar-controller-nested-huge", DIAG + ["{T}/ctl_nested_huge.csv"],
+     ["ctl_nested_huge.toml", "control.kv_per_min", "plausible range"]),
+    ("diag-sidecar-controller-key-twice", DIAG + ["{T}/ctl_twice.csv"], ["ctl_twice.toml", "given twice"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]
@@ -100,3 +119,14 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys, argv, want):
     for w in want:
         assert w.replace("{T}", str(tmp_path)) in lines[0], (w, lines[0])
     assert _snapshot(tmp_path) == before  # inputs unchanged, nothing written
+
+
+def test_unknown_sidecar_key_is_reported(tmp_path):
+    """G12: a top-level sidecar key the diagnosis does not read (``sample_rate_hz = 500``) was ignored silently;
+    now a warning of the trace (printed before the conclusion and kept in report.json)."""
+    from virtualaxis.diagnosis.trace import read_trace
+
+    (tmp_path / "t.csv").write_bytes((TRACES / "good.csv").read_bytes())
+    (tmp_path / "t.toml").write_text('sample_rate_hz = 500\nnotes = "x"\n')
+    tr = read_trace(tmp_path / "t.csv")
+    assert [w for w in tr.warnings if "t.toml" in w and "not used: sample_rate_hz (" in w], tr.warnings

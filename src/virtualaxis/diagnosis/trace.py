@@ -231,6 +231,10 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     return header, names, data, warnings
 
 
+#: the top-level keys of a sidecar the diagnosis reads (others are reported as not used)
+SIDECAR_KEYS = ("axis", "controller", "notes")
+
+
 def read_sidecar(csv_path: Path) -> dict:
     """The optional ``<name>.toml`` metadata beside a trace (axis, controller, notes)."""
     side = csv_path.with_suffix(".toml")
@@ -371,6 +375,10 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
             None,
             "axis",
         )
+    unused = [k for k in meta if k not in SIDECAR_KEYS]
+    if unused:
+        warnings.append(f"{p.with_suffix('.toml')}: sidecar key(s) not used: {', '.join(unused)} (the diagnosis "
+                        f"reads {', '.join(SIDECAR_KEYS)}; see docs/trace-format.md)")
     jitter = float(np.max(np.abs(dt - dt_med))) / dt_med
     if jitter > _JITTER_TOLERANCE:
         n = int(round((t[-1] - t[0]) / dt_med)) + 1
