@@ -17,6 +17,9 @@ C0 = ROOT / "configs" / "seed000-hust.toml"
 C4 = ROOT / "configs" / "seed004-siemens.toml"
 EDS = ROOT / "eds" / "virtualaxis.eds"
 TRACES = ROOT / "tests" / "badinput" / "traces"
+C2 = ROOT / "configs" / "seed002-usst.toml"
+IJ = ["identify-joints", "--config", str(C2), "--train-positions", "0.6,1.0", "--generations", "2", "--population",
+      "5", "--workers", "1", "--json", "{T}/ij.json"]
 SERVE = ["serve", "--status-interval", "0", "--duration", "1"]
 DIAG = ["diagnose", "--config", str(C4), "--out", "{T}/d", "--effects", "coulomb_friction", "--no-hybrid",
         "--jobs", "1"]
@@ -33,6 +36,12 @@ def _setup(tmp: Path) -> None:
     (tmp / "no6040.eds").write_text(_drop_object(text, 0x6040))
     (tmp / "no1005.eds").write_text(_drop_object(text, 0x1005))
     (tmp / "no_device_info.eds").write_text(text.replace("[DeviceInfo]", "[DeviceInformation]"))
+    modes = "position_m,order,freq_hz,amplitude_m_per_n\n" + "".join(
+        f"{pos},{k + 1},{f}," + "\n" for pos in (0.6, 1.0) for k, f in enumerate((24, 118, 540, 720)))
+    (tmp / "modes.csv").write_text(modes)
+    (tmp / "modes_off_screw.csv").write_text(modes + "9.6,1,24,\n")
+    (tmp / "frf_flat.csv").write_text("position_m,freq_hz,re,im\n" + "".join(
+        f"{pos},{5 + 0.5 * i},1e-7,-3e-10\n" for pos in (0.6, 1.0) for i in range(20)))
     good = (TRACES / "good.csv").read_bytes()
     for name, side in (("ctl_neg", "[controller]\nkv_per_min = -5\n"),
                        ("ctl_quoted_str", '[controller]\n"control.kv_per_min" = "fast"\n'),
@@ -99,6 +108,21 @@ CASES: list[tuple[str, list[str], list[str]]] = [
     ("diag-sidecar-controller-nested-huge", DIAG + ["{T}/ctl_nested_huge.csv"],
      ["ctl_nested_huge.toml", "control.kv_per_min", "plausible range"]),
     ("diag-sidecar-controller-key-twice", DIAG + ["{T}/ctl_twice.csv"], ["ctl_twice.toml", "given twice"]),
+    # ---- G10: side-channel options consistent (before: --telemetry-rate 5000 accepted without --mqtt, --machine ''
+    # replaced by the config's name)
+    ("serve-telemetry-rate-without-mqtt", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27",
+                                           "--telemetry-rate", "5000"], ["--telemetry-rate", "--mqtt"]),
+    ("serve-machine-empty", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--mqtt",
+                             "mqtt://127.0.0.1:1", "--machine", ""], ["--machine", "empty"]),
+    # ---- G9 / G12 / G16: identify-joints (before: the weight silently dropped; a row at 9.6 m on a 2.6 m screw
+    # silently ignored; 8 'note:' lines before the error)
+    ("ij-frequencies-only-and-weight", IJ + ["--modes", "{T}/modes.csv", "--frequencies-only", "--amplitude-weight",
+                                             "0.5"], ["--frequencies-only", "--amplitude-weight", "alternatives"]),
+    ("ij-modes-row-off-the-screw", IJ + ["--modes", "{T}/modes_off_screw.csv"],
+     ["modes_off_screw.csv", "9.6", "outside the screw"]),
+    ("ij-frf-without-peaks", IJ + ["--frf", "{T}/frf_flat.csv"], ["frf_flat.csv", "no natural frequency"]),
+    # ---- G12: conformance --only '' meant "all checks"
+    ("conformance-only-empty", ["conformance", "--can", "virtual:nobody", "--only", ""], ["--only", "empty"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]

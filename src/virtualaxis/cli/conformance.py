@@ -50,6 +50,9 @@ def run(args) -> int:
     from virtualaxis.cli.errors import CliError
     from virtualaxis.conformance import runner
 
+    if args.only is not None and any(not part.strip() for part in args.only.split(",")):
+        raise CliError(f"--only {args.only!r}: an empty list or item; give check ids, id prefixes or families "
+                       "(e.g. 301-SDO,limits), or leave the option out for all checks")
     checks = runner.select(args.only)
     if args.list:
         for c in checks:
