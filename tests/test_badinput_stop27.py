@@ -123,6 +123,13 @@ CASES: list[tuple[str, list[str], list[str]]] = [
     ("ij-frf-without-peaks", IJ + ["--frf", "{T}/frf_flat.csv"], ["frf_flat.csv", "no natural frequency"]),
     # ---- G12: conformance --only '' meant "all checks"
     ("conformance-only-empty", ["conformance", "--can", "virtual:nobody", "--only", ""], ["--only", "empty"]),
+    # ---- G11: simulate (before: ptp accel 1e9 / jerk 1e12 commanded 100 m/s^2 per position cycle against a 5 m/s^2
+    # limit, exit 0; a step of 0 um ran while other kinds refuse 0)
+    ("sim-ptp-acceleration-over-the-limit", ["simulate", "--config", str(C4), "--profile",
+                                            "ptp:distance_mm=100,feed_mm_min=6000,accel_m_s2=1e9,jerk_m_s3=1e12",
+                                            "--out", "{T}/t.csv"], ["peak acceleration", "max_acceleration_m_s2"]),
+    ("sim-step-zero", ["simulate", "--config", str(C4), "--profile", "step:distance_um=0", "--out", "{T}/t.csv"],
+     ["distance_um", "must not be 0"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]
