@@ -43,6 +43,7 @@ def _setup(tmp: Path) -> None:
     (tmp / "frf_flat.csv").write_text("position_m,freq_hz,re,im\n" + "".join(
         f"{pos},{5 + 0.5 * i},1e-7,-3e-10\n" for pos in (0.6, 1.0) for i in range(20)))
     good = (TRACES / "good.csv").read_bytes()
+    (tmp / "no_header.csv").write_bytes(good.split(b"\n", 1)[1])
     for name, side in (("ctl_neg", "[controller]\nkv_per_min = -5\n"),
                        ("ctl_quoted_str", '[controller]\n"control.kv_per_min" = "fast"\n'),
                        ("ctl_nested_huge", "[controller.control]\nkv_per_min = 1e300\n"),
@@ -130,6 +131,8 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                                             "--out", "{T}/t.csv"], ["peak acceleration", "max_acceleration_m_s2"]),
     ("sim-step-zero", ["simulate", "--config", str(C4), "--profile", "step:distance_um=0", "--out", "{T}/t.csv"],
      ["distance_um", "must not be 0"]),
+    # ---- G17: a trace without its header row (before: 'row 1: column 0: duplicate column name')
+    ("diag-trace-no-header", DIAG + ["{T}/no_header.csv"], ["no_header.csv", "row 1", "header row is missing"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]
@@ -161,3 +164,19 @@ def test_unknown_sidecar_key_is_reported(tmp_path):
     (tmp_path / "t.toml").write_text('sample_rate_hz = 500\nnotes = "x"\n')
     tr = read_trace(tmp_path / "t.csv")
     assert [w for w in tr.warnings if "t.toml" in w and "not used: sample_rate_hz (" in w], tr.warnings
+
+
+def test_cr_only_line_ends_keep_the_last_row(tmp_path):
+    """G17: CR-only line ends (old Mac style) were read, but the complete last row was dropped with a 'file looks
+    truncated' warning; now the trace reads as with LF line ends, no warning."""
+    import numpy as np
+
+    from virtualaxis.diagnosis.trace import read_trace
+
+    text = (TRACES / "good.csv").read_text()
+    assert text.endswith("\n")
+    (tmp_path / "cr.csv").write_text(text.replace("\n", "\r"), newline="")
+    ref = read_trace(TRACES / "good.csv")
+    cr = read_trace(tmp_path / "cr.csv")
+    assert cr.t.size == ref.t.size and np.array_equal(cr.pos_cmd, ref.pos_cmd)
+    assert not [w for w in cr.warnings if "truncated" in w], cr.warnings
