@@ -196,6 +196,79 @@ def validate_eds(eds_path: str | Path) -> None:
                 raise bad(section, key, text, f"outside the range of the data type ({rng[0]}..{rng[1]})")
 
 
+#: objects this slave's CiA 301 stack reads whatever its configuration (index, sub, what it is): without one
+#: the slave cannot start (0x1005, 0x1006, 0x1007, 0x1017, the PDO parameters) or every frame fails (0x1001,
+#: 0x1014, 0x1015); 0x1000 and 0x1018 are mandatory in CiA 301
+STACK_OBJECTS: tuple[tuple[int, int, str], ...] = (
+    (0x1000, 0, "device type"), (0x1001, 0, "error register"), (0x1005, 0, "COB-ID SYNC"),
+    (0x1006, 0, "communication cycle period"), (0x1007, 0, "synchronous window length"),
+    (0x1014, 0, "COB-ID EMCY"), (0x1015, 0, "inhibit time EMCY"), (0x1017, 0, "producer heartbeat time"),
+    (0x1018, 0, "identity object"), (0x1018, 1, "vendor-ID"),
+    *((0x1400 + n, s, f"RPDO{n + 1} communication parameter") for n in range(4) for s in (0, 1, 2)),
+    *((0x1600 + n, 0, f"RPDO{n + 1} mapping parameter") for n in range(4)),
+    *((0x1800 + n, s, f"TPDO{n + 1} communication parameter") for n in range(4) for s in (0, 1, 2)),
+    *((0x1A00 + n, 0, f"TPDO{n + 1} mapping parameter") for n in range(4)),
+)
+
+
+def check_served_eds(eds_path: str | Path, needs: tuple[tuple[int, int, str], ...] = ()) -> None:
+    """Before serving from an EDS: :func:`validate_eds`, then the EDS must have a ``[DeviceInfo]`` section
+    (mandatory in CiA 306), the objects of :data:`STACK_OBJECTS`, every object its default PDO mappings map,
+    and ``needs`` (the application's objects: index, sub, name). Raises :class:`InputError` naming the file and
+    what is missing (a missing object stopped the slave with a KeyError, or was served silently: an RPDO mapping
+    a missing 0x6040 Controlword)."""
+    import logging
+
+    path = Path(eds_path)
+    validate_eds(path)
+    parser = RawConfigParser(inline_comment_prefixes=(";",), strict=False)
+    parser.optionxform = str
+    with open(path, encoding="utf-8") as fh:
+        parser.read_file(fh)
+    if not parser.sections():
+        raise InputError(str(path), "no sections: not an EDS (an empty file?)")
+    if not parser.has_section("DeviceInfo"):
+        raise InputError(str(path), "no [DeviceInfo] section: not a complete EDS (mandatory in CiA 306)")
+    canopen_log = logging.getLogger("canopen")
+    level = canopen_log.level
+    canopen_log.setLevel(logging.ERROR)  # (its warnings about the file are ours to report, once)
+    try:
+        store = ObjectStore(path, 1)
+    finally:
+        canopen_log.setLevel(level)
+    names = {(i, s): n for i, s, n in (*STACK_OBJECTS, *needs)}
+    missing: dict[tuple[int, int], str] = {}
+    for index, sub, what in (*STACK_OBJECTS, *needs):
+        if (index, sub) not in store:
+            missing.setdefault((index, sub), what)
+    mapped_by: dict[tuple[int, int], list[str]] = {}
+    for base, kind in ((0x1600, "RPDO"), (0x1A00, "TPDO")):
+        for n in range(4):
+            if (base + n, 0) not in store:
+                continue
+            count = store.value(base + n, 0)
+            for sub in range(1, count + 1 if isinstance(count, int) else 1):
+                if (base + n, sub) not in store:
+                    missing.setdefault((base + n, sub), f"{kind}{n + 1} mapping entry; sub-index 0 says {count}")
+                    continue
+                mapping = store.value(base + n, sub)
+                if not isinstance(mapping, int) or not mapping:
+                    continue
+                key = (mapping >> 16, (mapping >> 8) & 0xFF)
+                if key[0] >= 0x1000 and key not in store:
+                    missing.setdefault(key, names.get(key, "an object"))
+                    mapped_by.setdefault(key, []).append(f"{kind}{n + 1}")
+    if missing:
+        grouped: dict[tuple[int, str], list[int]] = {}
+        for (index, sub), what in sorted(missing.items()):
+            if (index, sub) in mapped_by:
+                what += f"; mapped by {', '.join(mapped_by[(index, sub)])}"
+            grouped.setdefault((index, what), []).append(sub)
+        items = [f"0x{i:04X}:{'/'.join(f'{s:02X}' for s in subs)} ({what})" for (i, what), subs in grouped.items()]
+        more = f" and {len(items) - 8} more" if len(items) > 8 else ""
+        raise InputError(str(path), f"lacks object(s) the served drive needs: {', '.join(items[:8])}{more}")
+
+
 def _parse_float_limits(eds_path: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """canopen only parses integer limits; REAL32/REAL64 LowLimit/HighLimit are read here."""
     limits: dict[tuple[int, int], tuple[float | None, float | None]] = {}

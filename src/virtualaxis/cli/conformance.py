@@ -31,9 +31,10 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _out_path(opt: str, value: str | None, force: bool) -> Path | None:
+def _out_path(opt: str, value: str | None, force: bool, inputs: list) -> Path | None:
     """An output report path, checked before the bus is opened: its folder exists, and (cli.outputs) it is not a
-    folder, the folder is writable, the file is new unless ``--force``."""
+    folder nor an input (the EDS, also through a link), the folder is writable, the file is new unless
+    ``--force``."""
     if value is None:
         return None
     from virtualaxis.cli.errors import CliError
@@ -42,13 +43,16 @@ def _out_path(opt: str, value: str | None, force: bool) -> Path | None:
     parent = Path(value).parent if str(Path(value).parent) else Path(".")
     if not parent.exists():  # (a report beside the CI job's files: a missing folder is a typing mistake)
         raise CliError(f"{opt} {value}: folder {parent} does not exist")
-    return check_output_file(value, force, opt)
+    return check_output_file(value, force, opt, inputs=inputs)
 
 
 def run(args) -> int:
     from virtualaxis.cli.errors import CliError
     from virtualaxis.conformance import runner
 
+    if args.only is not None and any(not part.strip() for part in args.only.split(",")):
+        raise CliError(f"--only {args.only!r}: an empty list or item; give check ids, id prefixes or families "
+                       "(e.g. 301-SDO,limits), or leave the option out for all checks")
     checks = runner.select(args.only)
     if args.list:
         for c in checks:
@@ -63,8 +67,6 @@ def run(args) -> int:
         raise CliError(f"--units-per-mm must be 1e-06 .. 1e+09 (got {args.units_per_mm})")
     if not 0.001 <= args.sdo_timeout <= 60:
         raise CliError(f"--sdo-timeout must be 0.001..60 s (got {args.sdo_timeout})")
-    junit = _out_path("--junit", args.junit, args.force)
-    json_out = _out_path("--json", args.json, args.force)
     eds = args.eds
     if eds is not None:
         if not Path(eds).is_file():
@@ -72,6 +74,11 @@ def run(args) -> int:
         from virtualaxis.canopen_slave.od import validate_eds
 
         validate_eds(Path(eds))
+    from virtualaxis.resources import project_file
+
+    inputs = [eds or project_file("eds/virtualaxis.eds")]
+    junit = _out_path("--junit", args.junit, args.force, inputs)
+    json_out = _out_path("--json", args.json, args.force, inputs)
     import logging
 
     from virtualaxis.master import DEFAULT_EDS, connect

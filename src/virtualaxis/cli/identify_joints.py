@@ -98,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
                              ("--workers", args.workers, 1, 256), ("--seed", args.seed, 0, 2**63 - 1)):
         if val is not None and not lo <= val <= hi:
             raise CliError(f"{opt} must be {lo} .. {hi} (got {val})")
+    if args.frequencies_only and args.amplitude_weight is not None:
+        raise CliError("--frequencies-only and --amplitude-weight are alternatives (--frequencies-only is a weight "
+                       "of 0); give one of them")
     weight = ident.amplitude_weight if args.amplitude_weight is None else args.amplitude_weight
     if args.frequencies_only:
         weight = 0.0
@@ -114,15 +117,17 @@ def run(args: argparse.Namespace) -> int:
         if args.json and Path(args.json).resolve() == Path(args.write_config).resolve():
             raise CliError("--json and --write-config name the same file")
     measured = _load_measured(args, model)
+    for pos in measured.positions_m:  # (a row off the screw is no training position: it was dropped silently)
+        check_positions(model, [float(pos)], f"{source}: position_m")
     try:
         train = measured.select(train_pos, source)
         val = measured.select(val_pos, source) if val_pos else None
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    if not np.any(np.isfinite(train.frequencies_hz)):  # (before the gap notes: the error is the one line)
+        raise CliError(f"{source}: no natural frequency found at any training position")
     _report_gaps(train, model, source)
     use_amp = weight > 0
-    if not np.any(np.isfinite(train.frequencies_hz)):
-        raise CliError(f"{source}: no natural frequency found at any training position")
     if use_amp and not np.any(np.isfinite(train.amplitudes_m_per_n)):
         print("note: no amplitudes in the data; identifying from natural frequencies only", file=sys.stderr)
     generations = args.generations or ident.generations

@@ -57,6 +57,12 @@ def _claim(p: Path, option: str) -> None:
     _CLAIMED[key] = option
 
 
+def claim_output(path: str | Path, option: str) -> None:
+    """Record ``path`` as the output of ``option`` (for outputs checked by the command itself): another output
+    of the same command naming the same file is then refused by :func:`check_output_file`."""
+    _claim(Path(path), option)
+
+
 def _check_spelling(path: str | Path, option: str) -> None:
     """Paths the shell would have meant otherwise: an unexpanded ``~`` (quoted), an empty path."""
     s = str(path)

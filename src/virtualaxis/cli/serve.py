@@ -43,7 +43,7 @@ def register(sub) -> None:
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--status-interval", type=float, default=5.0, help="seconds between status lines (0: none)")
     p.add_argument("--json", default=None, help="write final statistics to this JSON file")
-    p.add_argument("--force", action="store_true", help="overwrite an existing --json file")
+    p.add_argument("--force", action="store_true", help="overwrite an existing --json / --latency-probe file")
     p.add_argument(
         "--bitrate",
         type=int,
@@ -68,7 +68,8 @@ def register(sub) -> None:
         "instead of sleeping; what cyclictest and real-time hosts do; needs the right to open the file)",
     )
     p.add_argument("--latency-probe", default=None, metavar="FILE",
-                   help="benchmarks: record SYNC receive / PDO send timestamps into FILE (.npz) at stop")
+                   help="benchmarks: record SYNC receive / PDO send timestamps into FILE (a NumPy archive; the name "
+                        "must end in .npz) at stop")
     from virtualaxis.services.serve_options import add_arguments as add_side_channel_arguments
 
     add_side_channel_arguments(p)  # --modbus, --mqtt, ... (virtualaxis.services)
@@ -92,10 +93,6 @@ def run(args) -> int:
     if not 0 <= args.status_interval < 1e9:
         raise CliError(f"--status-interval must be a finite number of seconds >= 0, 0 for none (got "
                        f"{args.status_interval})")
-    if args.latency_probe is not None:
-        from virtualaxis.cli.outputs import check_output_file
-
-        check_output_file(args.latency_probe, True, "--latency-probe")
     specs = [AxisSpec.parse(a) for a in args.axis]
     if args.config is not None or not specs:
         cfg_path = Path(args.config) if args.config else DEFAULT_CONFIG
@@ -108,6 +105,8 @@ def run(args) -> int:
     if len(set(names)) != len(names):  # status lines, JSON keys and MQTT topics are per axis name
         raise ConfigError("--axis", "name", f"axis names must be unique (got {names})")
     configs = [load_axis_config(s.config) for s in specs]
+    _check_outputs(args, [eds, *(s.config for s in specs), *([args.mqtt_credentials] if args.mqtt_credentials
+                                                             else [])])
     # ---- side channels (Modbus TCP, MQTT): options checked before the bus opens
     from virtualaxis.services.serve_options import prepare as prepare_side_channels
 
@@ -238,16 +237,18 @@ def run(args) -> int:
 
 
 def _check_inputs(args, eds: Path) -> None:
-    """Everything that can be refused is refused before serving: the EDS (file, section, key), the --json
+    """Everything that can be refused is refused before serving: the EDS (file, section, key, the objects the
+    slave and the drive need), the --json
     output path (not a folder, its folder exists and takes a new file)."""
     import tempfile
 
-    from virtualaxis.canopen_slave.od import validate_eds
+    from virtualaxis.canopen_slave.od import check_served_eds
     from virtualaxis.cli.main import CliError
+    from virtualaxis.drive.objects import OBJECTS
 
     if not eds.is_file():
         raise CliError(f"{eds}: EDS file not found" if not eds.exists() else f"{eds}: EDS path is not a file")
-    validate_eds(eds)
+    check_served_eds(eds, tuple((o.index, o.sub, o.name) for o in OBJECTS))  # what the slave and the drive need
     if args.json:
         out = Path(args.json)
         if out.is_dir():
@@ -257,13 +258,34 @@ def _check_inputs(args, eds: Path) -> None:
             raise CliError(f"--json {out}: folder {parent} does not exist")
         if out.exists() and not out.is_file():
             raise CliError(f"--json {out}: exists and is not a regular file")
-        if out.exists() and not args.force:
-            raise CliError(f"--json {out}: exists (use --force to overwrite it)")
         try:
             with tempfile.NamedTemporaryFile(dir=parent, prefix=f".{out.name}.", suffix=".tmp"):
                 pass
         except OSError as exc:
             raise CliError(f"--json {out}: cannot write in {parent} ({exc.strerror or exc})") from None
+
+
+def _check_outputs(args, inputs: list) -> None:
+    """The outputs (``--json``, ``--latency-probe``) against the inputs and each other, before the bus opens:
+    neither may be an input (the EDS, an axis config, the MQTT credentials; also through a symbolic or hard
+    link), even with ``--force``; the two must be distinct; an existing probe file needs ``--force`` like an
+    existing report; the probe is a NumPy ``.npz`` archive and its name says so."""
+    from virtualaxis.cli.main import CliError
+    from virtualaxis.cli.outputs import check_output_file, claim_output, same_file
+
+    if args.json:
+        for src in inputs:
+            if same_file(args.json, src):
+                raise CliError(f"--json {args.json}: is also an input ({src}); it would be overwritten by the "
+                               "report (--force does not allow that)")
+        if Path(args.json).exists() and not args.force:
+            raise CliError(f"--json {args.json}: exists (use --force to overwrite it)")
+        claim_output(args.json, "--json")
+    if args.latency_probe is not None:
+        check_output_file(args.latency_probe, args.force, "--latency-probe", inputs=inputs)
+        if Path(args.latency_probe).suffix.lower() != ".npz":
+            raise CliError(f"--latency-probe {args.latency_probe}: the probe is written as a NumPy .npz archive; "
+                           "give a file name ending in .npz")
 
 
 def _write_json(path: Path, summary: dict) -> None:

@@ -43,6 +43,7 @@ def load_traces(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str])
     traces = [read_trace(p, cfg.axis.name) for p in list(fit_paths) + list(holdout_paths)]
     for tr in traces:
         check_units(tr, cfg)
+    check_sidecar_controllers(cfg, traces)
     from virtualaxis.diagnosis.plausibility import check_plausibility  # bad-input checks (issue 18)
     notes.extend(check_plausibility(cfg, traces, list(fit_paths), list(holdout_paths or [])))
     dts = {round(tr.dt_s, 12) for tr in traces}
@@ -68,17 +69,59 @@ def load_traces(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str])
     return traces, fit_idx, hold_idx, notes
 
 
+def _sidecar_control(tr: Trace) -> tuple[dict, list[str]]:
+    """The sidecar's ``[controller]`` table as (``control.*`` values by key, keys that are not ``control.*`` keys).
+    A key may be written plain (``kv_per_min = 40``), dotted and quoted (``"control.kv_per_min" = 40``) or in a
+    ``[controller.control]`` table; one key twice, or a ``controller`` that is not a table, is refused naming the
+    sidecar."""
+    ctrl = tr.metadata.get("controller")
+    side = str(Path(tr.path).with_suffix(".toml"))
+    if ctrl is None:
+        return {}, []
+    if not isinstance(ctrl, dict):
+        raise InputError(side, f"controller: must be a table of control.* keys, [controller] (got {ctrl!r})")
+    items: list[tuple[str, str, object]] = []  # (control key, as written, value)
+    for k, v in ctrl.items():
+        if k == "control" and isinstance(v, dict):
+            items += [(kk, f"control.{kk}", vv) for kk, vv in v.items()]
+        elif k.startswith("control."):
+            items.append((k.removeprefix("control."), k, v))
+        else:
+            items.append((k, k, v))
+    known: dict = {}
+    unknown: list[str] = []
+    for key, written, value in items:
+        if key not in _CONTROL_KEYS:
+            unknown.append(written)
+        elif key in known:
+            raise InputError(side, f"[controller] {written}: control.{key} given twice")
+        else:
+            known[key] = value
+    return known, unknown
+
+
+def check_sidecar_controllers(cfg: AxisConfig, traces: list[Trace]) -> None:
+    """Each sidecar ``[controller]``'s ``control.*`` values are checked as the config's would be (type, range,
+    consistency), and an error names the sidecar, not the axis config."""
+    for tr in traces:
+        known, _ = _sidecar_control(tr)
+        if not known:
+            continue
+        try:
+            cfg.replace(control=known)
+        except ConfigError as exc:
+            key = f"{exc.key}: " if exc.key else ""
+            raise InputError(str(Path(tr.path).with_suffix(".toml")), f"[controller] {key}{exc.message}") from None
+
+
 def trace_overrides(tr: Trace) -> dict:
     """Config overrides from the sidecar: a ``[controller]`` table with ``control.*`` keys (the gains of a
-    controller that is not the config's)."""
-    ctrl = tr.metadata.get("controller")
-    if not isinstance(ctrl, dict):
-        return {}
-    known = {k: v for k, v in ctrl.items() if k in _CONTROL_KEYS}
-    unknown = [k for k in ctrl if k not in _CONTROL_KEYS]
+    controller that is not the config's; checked by :func:`check_sidecar_controllers`)."""
+    known, unknown = _sidecar_control(tr)
     if unknown:
-        tr.warnings.append(f"sidecar [controller] keys not used (not control.* config keys): {', '.join(unknown)}"
-                           "; the controller check compares the trace with the config's control law instead")
+        tr.warnings.append(f"sidecar [controller] keys not used (not keys of the config's [control] section): "
+                           f"{', '.join(unknown)}; the controller check compares the trace with the config's "
+                           "control law instead")
     if known:
         tr.warnings.append(f"sidecar [controller] overrides control.{', control.'.join(known)} for this trace")
     return {"control": known} if known else {}

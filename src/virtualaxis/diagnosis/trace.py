@@ -181,6 +181,9 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
             except (csv.Error, StopIteration) as exc:
                 raise _err(sp, f"not a readable CSV header ({exc})", 1) from None
             header = [h.strip() for h in header]
+            if header and not set(header) & set(KNOWN_COLUMNS) and all(_is_number(h) for h in header):
+                raise _err(sp, f"the first line holds numbers ({first.strip()[:60]}), not column names: the header "
+                               f"row is missing (expected names such as {', '.join(KNOWN_COLUMNS[:4])}, ...)", 1)
             if len(set(header)) != len(header):
                 dup = next(h for h in header if header.count(h) > 1)
                 raise _err(sp, "duplicate column name", 1, dup)
@@ -196,7 +199,8 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
                 if not lines:
                     break
                 nbytes = sum(len(x) for x in lines)
-                if not lines[-1].endswith("\n"):  # only a file's last line can lack its line end
+                if not lines[-1].endswith(("\n", "\r")):  # only a file's last line can lack its line end (CR-only
+                    # line ends, old Mac style, are line ends too: newline="" splits on them)
                     cut = lines.pop()
                     if cut.strip():
                         warnings.append(f"the last row (line {line_no + len(lines)}) has no line end: the file looks "
@@ -229,6 +233,18 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     if not data.shape[0]:
         raise _err(sp, "no data rows")
     return header, names, data, warnings
+
+
+#: the top-level keys of a sidecar the diagnosis reads (others are reported as not used)
+SIDECAR_KEYS = ("axis", "controller", "notes")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def read_sidecar(csv_path: Path) -> dict:
@@ -371,6 +387,10 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
             None,
             "axis",
         )
+    unused = [k for k in meta if k not in SIDECAR_KEYS]
+    if unused:
+        warnings.append(f"{p.with_suffix('.toml')}: sidecar key(s) not used: {', '.join(unused)} (the diagnosis "
+                        f"reads {', '.join(SIDECAR_KEYS)}; see docs/trace-format.md)")
     jitter = float(np.max(np.abs(dt - dt_med))) / dt_med
     if jitter > _JITTER_TOLERANCE:
         n = int(round((t[-1] - t[0]) / dt_med)) + 1

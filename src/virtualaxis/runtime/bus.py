@@ -144,14 +144,32 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         return msg, filtered
 
 
+#: options whose value python-can needs as an integer (name -> accepted range); any interface
+INT_OPTIONS: dict[str, tuple[int, int]] = {
+    "port": (1, 65535), "hop_limit": (0, 255), "bitrate": (1, 10_000_000), "data_bitrate": (1, 100_000_000),
+    "rx_queue_size": (0, 10_000_000),
+}
+#: boolean options (true / false / 1 / 0)
+BOOL_OPTIONS = frozenset({"fd", "preserve_timestamps"})
+#: the options each of the host-local buses takes; python-can's virtual and udp_multicast buses would silently
+#: ignore any other (other interfaces get theirs passed through: python-can checks them)
+BUS_OPTIONS: dict[str, tuple[str, ...]] = {
+    "virtual": ("rx_queue_size", "preserve_timestamps"),
+    "udp_multicast": ("port", "hop_limit", "fd"),
+}
+
+
 def parse_bus_spec(spec: str) -> tuple[str, str, dict]:
-    """``"iface:channel,k=v"`` -> (iface, channel, options); values are int where they look like ints."""
+    """``"iface:channel,k=v"`` -> (iface, channel, options); values are int where they look like ints. The
+    options of :data:`INT_OPTIONS` and :data:`BOOL_OPTIONS` must have such a value, and the virtual and
+    udp_multicast buses take only theirs (:data:`BUS_OPTIONS`): else :class:`BusOpenError` naming the option."""
     if not spec or ":" not in spec:
         raise BusOpenError(
             f"bus {spec!r}: expected INTERFACE:CHANNEL, e.g. socketcan:vcan0, virtual:demo, "
             f"udp_multicast:{DEFAULT_UDP_GROUP}"
         )
     interface, rest = spec.split(":", 1)
+    interface = interface.strip()
     parts = rest.split(",")
     channel = parts[0]
     options: dict = {}
@@ -159,11 +177,30 @@ def parse_bus_spec(spec: str) -> tuple[str, str, dict]:
         if "=" not in part:
             raise BusOpenError(f"bus {spec!r}: option {part!r} is not key=value")
         key, value = part.split("=", 1)
+        key, value = key.strip(), value.strip()
+        if key in options:
+            raise BusOpenError(f"bus {spec!r}: option {key!r} given twice")
+        accepted = BUS_OPTIONS.get(interface)
+        if accepted is not None and key not in accepted:
+            raise BusOpenError(f"bus {spec!r}: option {key!r} is not one the {interface} bus takes (accepted: "
+                               f"{', '.join(accepted)})")
+        if key in BOOL_OPTIONS:
+            if value.lower() not in ("true", "false", "1", "0"):
+                raise BusOpenError(f"bus {spec!r}: option {key}={value!r}: expected true, false, 1 or 0")
+            options[key] = value.lower() in ("true", "1")
+            continue
         try:
-            options[key.strip()] = int(value, 0)
+            options[key] = int(value, 0)
         except ValueError:
-            options[key.strip()] = value.strip()
-    return interface.strip(), channel.strip(), options
+            if key in INT_OPTIONS:
+                lo, hi = INT_OPTIONS[key]
+                raise BusOpenError(f"bus {spec!r}: option {key}={value!r}: expected an integer {lo}..{hi}") from None
+            options[key] = value
+            continue
+        if key in INT_OPTIONS and not INT_OPTIONS[key][0] <= options[key] <= INT_OPTIONS[key][1]:
+            lo, hi = INT_OPTIONS[key]
+            raise BusOpenError(f"bus {spec!r}: option {key}={value}: expected an integer {lo}..{hi}")
+    return interface, channel.strip(), options
 
 
 def open_bus(spec: str = DEFAULT_BUS, *, receive_own_messages: bool = False) -> can.BusABC:

@@ -13,6 +13,10 @@ from typing import Any
 # pymodbus / aiomqtt are imported only when a side channel is requested (every CLI command imports this module)
 
 
+#: --telemetry-rate [Hz], --telemetry-batch and --telemetry-buffer [samples] when not given
+TELEMETRY_DEFAULTS = {"rate": 100.0, "batch": 10, "buffer": 1000}
+
+
 def add_arguments(p) -> None:
     g = p.add_argument_group("side channels (docs/side-channels.md, docs/modbus-map.md)")
     g.add_argument(
@@ -32,12 +36,13 @@ def add_arguments(p) -> None:
         metavar="FILE",
         help="TOML file with username / password / ca_file / cert_file / key_file (or VIRTUALAXIS_MQTT_* variables)",
     )
-    g.add_argument("--telemetry-rate", type=float, default=100.0, metavar="HZ",
-                   help="telemetry sample rate, > 0 and at most 1000 (default 100)")
-    g.add_argument("--telemetry-batch", type=int, default=10, metavar="N", help="samples per telemetry message (10)")
-    g.add_argument(
-        "--telemetry-buffer", type=int, default=1000, metavar="N", help="samples kept per axis while the broker is away"
-    )
+    # (defaults applied in prepare(): None means "not given", which a telemetry option without --mqtt must be)
+    g.add_argument("--telemetry-rate", type=float, default=None, metavar="HZ",
+                   help=f"telemetry sample rate, > 0 and at most 1000 (default {TELEMETRY_DEFAULTS['rate']:g})")
+    g.add_argument("--telemetry-batch", type=int, default=None, metavar="N",
+                   help=f"samples per telemetry message ({TELEMETRY_DEFAULTS['batch']})")
+    g.add_argument("--telemetry-buffer", type=int, default=None, metavar="N",
+                   help=f"samples kept per axis while the broker is away ({TELEMETRY_DEFAULTS['buffer']})")
 
 
 @dataclass
@@ -127,17 +132,25 @@ def prepare(args, main_config) -> SideChannels:
         sc.modbus_writable = args.modbus_writable
     elif args.modbus_writable:
         raise ValueError("--modbus-writable needs --modbus")
+    telemetry = {"--telemetry-rate": getattr(args, "telemetry_rate", None),
+                 "--telemetry-batch": getattr(args, "telemetry_batch", None),
+                 "--telemetry-buffer": getattr(args, "telemetry_buffer", None)}
+    if args.machine is not None and not args.machine.strip():
+        raise ValueError("--machine: empty name; leave the option out for the config's name")
     if args.mqtt is not None:
         machine = args.machine or machine_name_from(main_config)
         st = parse_mqtt_url(args.mqtt, machine)
-        st.rate_hz = args.telemetry_rate
-        st.batch_size = args.telemetry_batch
-        st.buffer_samples = args.telemetry_buffer
+        rate, batch, buffer = telemetry.values()
+        st.rate_hz = TELEMETRY_DEFAULTS["rate"] if rate is None else rate
+        st.batch_size = TELEMETRY_DEFAULTS["batch"] if batch is None else batch
+        st.buffer_samples = TELEMETRY_DEFAULTS["buffer"] if buffer is None else buffer
         load_credentials(st, args.mqtt_credentials)
         st.validate()
         sc.mqtt = st
     elif args.mqtt_credentials or args.machine:
         raise ValueError("--machine / --mqtt-credentials need --mqtt")
+    elif given := [opt for opt, value in telemetry.items() if value is not None]:
+        raise ValueError(f"{' / '.join(given)} need(s) --mqtt (the telemetry is published over MQTT)")
     return sc
 
 

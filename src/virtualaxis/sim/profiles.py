@@ -196,6 +196,9 @@ def parse_profile(spec: str, cfg: AxisConfig | None = None, start_position_m: fl
         v = _kv(spec, body, ("distance_um",), {"at_s": 0.01})
         if not v["at_s"] >= 0:
             raise ProfileError(spec, f"parameter 'at_s' must be >= 0 (got {v['at_s']:g})")
+        if v["distance_um"] == 0:
+            raise ProfileError(spec, "parameter 'distance_um' must not be 0 (a step of 0 moves nothing; negative "
+                                     "steps are allowed)")
         d = v["distance_um"] * 1e-6
 
         def fn(t):
@@ -348,6 +351,9 @@ def check_limits(profile: Profile, cfg: AxisConfig, duration_s: float, cycle_s: 
                 raise ProfileError(profile.spec, f"axis {name}: non-finite {what} at t = "
                                                  f"{float(t[np.flatnonzero(bad)[0]]):g} s")
         vmax, amax = float(np.max(np.abs(v))), float(np.max(np.abs(a)))
+        if v.size > 1:  # what the drive is commanded per position cycle: a jerk phase shorter than one cycle is
+            # not seen in the sampled acceleration (ptp accel 1e9, jerk 1e12: 0.1 m/s within one 1 ms cycle)
+            amax = max(amax, float(np.max(np.abs(np.diff(v)))) / cycle_s)
         pmin, pmax = float(np.min(p)), float(np.max(p))
         if vmax > lim.max_velocity_m_s * (1 + 1e-9):
             raise ProfileError(profile.spec, f"axis {name}: peak velocity {vmax:.4g} m/s exceeds "
