@@ -379,8 +379,8 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     elif switch:
         chk.overrides = {"control": {**_to_config(cfg, gid), **retime}}
         chk.note = (f"the config's controller leaves {_share(un_cfg)} of {ch} unexplained, a law "
-                    f"identified from the trace {_share(un_id)}: identified gains used for this trace "
-                    f"({_describe(cfg, gid)})")
+                    f"identified from the trace {_share(un_id)}: identified gains proposed for this trace "
+                    f"({_describe(cfg, gid)}; the closed-loop check decides)")
     elif retimed:
         chk.overrides = {"control": retime}
         chk.note = (f"the config's gains explain {ch} {un_cfg / max(un_cfg_other, 1e-300):.3g} x better with the speed "

@@ -137,6 +137,10 @@ CLOSED_LOOP_RATIO = 0.7
 #: config's on the independent reference's clean two-mass axis, whose controller is the config's; a P/P cascade
 #: where the config says P/PI, with a withheld Coulomb friction dominating the force channel: 0.34)
 CLOSED_LOOP_BEST_CHANNEL = 0.4
+#: the fit traces' identified laws are one controller only when each gain agrees within this factor across them
+#: (chosen: the identification's jackknife scatter on the bench traces is a few per cent; an independent model's
+#: 2 ms position-feedback delay gave Kv 49.5 .. 156 1/s on four traces, stop 27: a delay, not a controller)
+CONTROLLER_AGREEMENT = 1.5
 
 
 def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData], simulate: SimulateFn,
@@ -170,6 +174,17 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
     cand = [k for k in own if checks[k].used == "identified"]
     cand_fit = [k for k in cand if k in fit_idx] or cand
     judgement: dict = {}
+    disagree = _disagreeing_gain([checks[k].overrides["control"] for k in cand_fit])
+    if disagree:  # not one controller: what makes the config's law look wrong is not a control law
+        for k in own:
+            chk = checks[k]
+            if chk.used == "identified" or k in cand:
+                chk.used = "config"
+                chk.overrides = {}
+                chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: the fit traces' "
+                            f"identified laws disagree ({disagree}), so they are not one controller")
+        judgement = {"used": False, "disagree": disagree}
+        cand_fit = []
     if cand_fit:
         control = _median_overrides([checks[k].overrides["control"] for k in cand_fit])
         targets = [k for k in range(len(tds)) if not tds[k].overrides.get("control")]
@@ -202,7 +217,7 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
             if use:
                 chk.used = "identified"
                 chk.overrides = {"control": control}
-                chk.note = (chk.note + "; " if chk.note else "") + f"used: {why}"
+                chk.note = (chk.note + "; " if chk.note else "") + f"identified controller used: {why}"
             elif chk.used == "identified" or k in cand:
                 chk.used = "config"
                 chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: {why} (needs <= "
@@ -278,6 +293,22 @@ def check_feedforward_form(cfg: AxisConfig, tds: list[TraceData], simulate: Simu
 def _merge_control(overrides: dict, control: dict) -> dict:
     """``overrides`` with ``control`` keys added to (not replacing) its ``control`` section."""
     return {**overrides, "control": {**overrides.get("control", {}), **control}}
+
+
+def _disagreeing_gain(ovs: list[dict]) -> str:
+    """The first ``control.*`` key on which several traces' identified laws disagree beyond
+    :data:`CONTROLLER_AGREEMENT` (or mix 0 and non-0, e.g. P and PI), as "key lo .. hi"; "" when they agree or
+    fewer than two are given."""
+    if len(ovs) < 2:
+        return ""
+    for key in sorted(set().union(*ovs)):
+        vals = [float(o[key]) for o in ovs if key in o]
+        if len(vals) < 2:
+            continue
+        lo, hi = min(vals), max(vals)
+        if (lo == 0.0) != (hi == 0.0) or (lo > 0.0 and hi / lo > CONTROLLER_AGREEMENT):
+            return f"{key} {lo:.3g} .. {hi:.3g}"
+    return ""
 
 
 def _median_overrides(ovs: list[dict]) -> dict:
