@@ -295,10 +295,9 @@ def _merge_control(overrides: dict, control: dict) -> dict:
     return {**overrides, "control": {**overrides.get("control", {}), **control}}
 
 
-def _disagreeing_gain(ovs: list[dict]) -> str:
-    """The first ``control.*`` key on which several traces' identified laws disagree beyond
-    :data:`CONTROLLER_AGREEMENT` (or mix 0 and non-0, e.g. P and PI), as "key lo .. hi"; "" when they agree or
-    fewer than two are given."""
+def _disagreeing_gain(ovs: list[dict], factor: float = CONTROLLER_AGREEMENT) -> str:
+    """The first ``control.*`` key on which several traces' identified laws disagree beyond ``factor`` (or mix 0
+    and non-0, e.g. P and PI), as "key lo .. hi"; "" when they agree or fewer than two are given."""
     if len(ovs) < 2:
         return ""
     for key in sorted(set().union(*ovs)):
@@ -349,14 +348,9 @@ def with_identified_controller(cfg: AxisConfig, checks: list[dict], report: dict
     keys = sorted(set(ov[0]))
     if any(sorted(o) != keys for o in ov):
         return cfg
-    merged = {}
-    for k in keys:
-        vals = np.array([float(o[k]) for o in ov])
-        if (vals == 0).any() and not (vals == 0).all():
-            return cfg  # P and PI speed loops mixed
-        if vals.min() > 0 and vals.max() / vals.min() > 1.1:
-            return cfg
-        merged[k] = float(np.median(vals))
+    if _disagreeing_gain(ov, 1.1):  # P and PI speed loops mixed, or gains more than 10 % apart
+        return cfg
+    merged = {k: float(np.median([float(o[k]) for o in ov])) for k in keys}
     report["calibrated_controller"] = merged
     return cfg.replace(control=merged)
 
