@@ -140,7 +140,11 @@ class Cia402Application:
             if self._batch is not None:
                 self._batch.append((index, sub, value))
                 return
-            self.drive.write_object(index, sub, value, checked=True)
+            try:
+                self.drive.write_object(index, sub, value, checked=True)
+            except ObjectAccessError as exc:  # stored, but what it carried was refused (e.g. a set-point)
+                self.flush()
+                raise SdoAbort(exc.code, str(exc)) from None
             self.flush()
 
     def before_read(self, index: int, sub: int) -> None:

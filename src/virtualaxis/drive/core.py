@@ -138,6 +138,11 @@ MOTOR_AMBIENT_C = 20.0
 SOFT_LIMIT_INSIDE_SWITCH_M = 0.001
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
+#: warning EMCY of a set-point that cannot be planned (CiA 301 0x6320 parameter error; see refuse_setpoint)
+SETPOINT_REFUSED_EMCY = 0x6320
+#: the current limit sent to the plant for a torque / current limit 0x6072 / 0x6073 of 0 [A or N]: the plant's
+#: "no limit" is 0, a zero limit is zero torque (chosen: 1e-9, no torque a measurement can resolve)
+ZERO_CURRENT_LIMIT = 1e-9
 
 
 #: option codes and other objects with a narrower range than their data type: key -> (min, max)
@@ -220,6 +225,7 @@ class Drive:
         half, inset = cfg.axis.stroke_m / 2, self.settings.limit_switch_inset_m
         #: plant positions where the negative / positive limit switch and the home switch act [m]
         self._switch_at_m = (-half + inset, half - inset, self.settings.home_switch_position_m)
+        self._end_stops_m = end_stops(cfg)[:2]  # plant positions of the hard end stops [m]
         self.sim = AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=discrete)
         # compile the kernel now (a cold numba cache takes seconds), not in the first SYNC of a running bus
         AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=self.sim.dm).advance(1)
@@ -243,7 +249,9 @@ class Drive:
             "cycles": 0,
             "fault_resets_refused": 0,
             "cycle_exceptions": 0,
+            "setpoints_refused": 0,
         }
+        self._refused_setpoint: str | None = None  # why the set-point of the write in progress was refused
         self._cycle_hooks: list[Callable[[Drive], None]] = []
         self._warnings: dict[int, int] = {}  # active warnings (set_warning): EMCY code -> alarm number
         self._reset_all()
@@ -352,6 +360,17 @@ class Drive:
         half = self.cfg.axis.stroke_m / 2 - self.settings.limit_switch_inset_m - 1e-3
         half = max(half, 0.0)
         return min(max(x_plant_m, -half), half)
+
+    def travel_room_m(self, direction: float) -> tuple[float, float]:
+        """Room ahead of the axis in ``direction`` (its sign) [m]: (to the hardware limit switch, <= 0 once on
+        or past it; to the hard end stop). A stop plans within it (:mod:`~virtualaxis.drive.reactions`)."""
+        with self._lock:
+            x = self._axis.position_m
+            neg, pos, _ = self._switch_at_m
+            lo, hi = self._end_stops_m
+            if direction >= 0.0:
+                return pos - x, hi - x
+            return x - neg, x - lo
 
     def _lead_m(self) -> float:
         """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
@@ -507,7 +526,11 @@ class Drive:
             self._store(key, value)
             if key[0] in _MONITOR_PARAMETER_INDICES:
                 self._params_dirty = True
+            self._refused_setpoint = None
             self._react(key, value)
+            if self._refused_setpoint is not None:  # stored and reacted to; the set-point it carried was not
+                reason, self._refused_setpoint = self._refused_setpoint, None
+                raise ObjectAccessError(ABORT_DEVICE_STATE, reason)
 
     def write_objects(self, items: list[tuple[int, int, int | float]], *, checked: bool = False) -> None:
         """Write several objects as ONE event (an RPDO): every value is stored first, then the reactions run
@@ -528,6 +551,7 @@ class Drive:
                 keyed.sort(key=_reaction_rank)
             for key, value in keyed:
                 self._react(key, value)
+            self._refused_setpoint = None  # (an RPDO has no answer: a refused set-point sent its EMCY)
 
     def load_objects(self, values: dict[tuple[int, int], int | float]) -> None:
         """Take parameter values (e.g. the slave's OD after boot: EDS defaults or restored values) without
@@ -627,13 +651,17 @@ class Drive:
             speed_ti_s=float(o[(0x2004, 0)]) / 1000.0,
             speed_limit_m_s=self._max_speed_m_s(),
         )
+        rated_nm = float(o[(0x6076, 0)]) / 1000.0
         if self.cfg.actuator.kind == "pmsm":
             rated_a = float(o[(0x6075, 0)]) / 1000.0
             lim_current = float(o[(0x6073, 0)]) / 1000.0 * rated_a
             kt = self.sim.torque_constant_nm_per_a
-            rated_nm = float(o[(0x6076, 0)]) / 1000.0
             lim_torque_as_current = float(o[(0x6072, 0)]) / 1000.0 * rated_nm / kt if kt > 0 else lim_current
-            self.sim.set_loop_gains(current_limit=max(0.0, min(lim_current, lim_torque_as_current)))
+            limit = min(lim_current, lim_torque_as_current)
+        else:  # force actuator: 0x6072 per mille of the rated force 0x6076 [N]
+            limit = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
+        # a limit of 0 is zero torque: the plant reads 0 as "no limit", so it gets the smallest positive one
+        self.sim.set_loop_gains(current_limit=max(limit, ZERO_CURRENT_LIMIT))
 
     # ================================================================================ state machine
     def _set_state(self, new: Cia402State) -> None:
@@ -657,9 +685,10 @@ class Drive:
         tr = _TRANSITIONS[(self._state._value_, cw & 0xF)]
         if tr == TRANSITION.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
             tr = TRANSITION.ILLEGAL
-        if tr == TRANSITION.ILLEGAL and cw != old_cw:
-            self.counters["illegal_controlword"] += 1
-            self._store((0x2110, 1), clamp_to_dtype(self.counters["illegal_controlword"], "u32"))
+        if tr == TRANSITION.ILLEGAL:  # ignored (the state stays), counted once per new controlword value
+            if cw != old_cw:
+                self.counters["illegal_controlword"] += 1
+                self._store((0x2110, 1), clamp_to_dtype(self.counters["illegal_controlword"], "u32"))
         elif tr not in (TRANSITION.HOLD, TRANSITION.IGNORED):
             self._do_transition(tr)
         self._mode_controlword(old_cw, cw)
@@ -1428,6 +1457,27 @@ class Drive:
         snap = self.state
         for cb in list(self._observers):
             cb(event, snap)
+
+    def refuse_setpoint(self, reason: str) -> None:
+        """A set-point that cannot be planned (see docs/drive.md): not taken (PP: not acknowledged, the axis
+        stays where its profile is), counted (``counters["setpoints_refused"]``), warning EMCY
+        :data:`SETPOINT_REFUSED_EMCY` (again for every refused set-point) with statusword bit 7 until a
+        set-point is accepted; a single write that carried it (SDO, Modbus, MQTT) is refused with ``reason``
+        (SDO abort 0x08000022)."""
+        with self._lock:
+            n = self.counters["setpoints_refused"] = self.counters["setpoints_refused"] + 1
+            self._refused_setpoint = reason
+            if SETPOINT_REFUSED_EMCY not in self._warnings:
+                self.set_warning(SETPOINT_REFUSED_EMCY, True)
+            elif self.emcy_sink is not None:
+                info = fault_info(SETPOINT_REFUSED_EMCY)
+                self.emcy_sink(SETPOINT_REFUSED_EMCY, info.register_bits, struct.pack("<I", n & 0xFFFFFFFF) + b"\x00")
+
+    def accept_setpoint(self) -> None:
+        """A set-point was taken: the warning of a refused one (if any) is cleared."""
+        with self._lock:
+            if SETPOINT_REFUSED_EMCY in self._warnings:
+                self.set_warning(SETPOINT_REFUSED_EMCY, False)
 
     def set_controlword(self, cw: int) -> None:
         self.write_object(0x6040, 0, cw)

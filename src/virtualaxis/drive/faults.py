@@ -34,6 +34,8 @@ FAULT_TABLE: dict[int, FaultInfo] = {
         FaultInfo(0x4310, 7011, "motor over-temperature", 0x08, True),
         FaultInfo(0x7305, 31100, "position sensor (encoder 1) signal fault", 0x80, False, "coast"),
         FaultInfo(0x7320, 31110, "position sensor error", 0x80, False, "coast"),
+        FaultInfo(0x6320, 7470, "set-point refused: cannot be planned with the present profile objects", 0x80,
+                  False),
         FaultInfo(0x8110, 8700, "CAN overrun (objects lost)", 0x10, False),
         FaultInfo(0x8130, 8700, "life guard / heartbeat error", 0x10, False),
         FaultInfo(0x8140, 8700, "recovered from bus off", 0x10, False),

@@ -26,7 +26,13 @@ from typing import TYPE_CHECKING
 
 from virtualaxis.drive import homing as hm
 from virtualaxis.drive import reactions as rx
-from virtualaxis.drive.profiles import JerkFilter, LinearInterpolator, PositionProfile, VelocityRamp
+from virtualaxis.drive.profiles import (
+    MAX_JERK_FILTER_CYCLES,
+    JerkFilter,
+    LinearInterpolator,
+    PositionProfile,
+    VelocityRamp,
+)
 from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
@@ -260,15 +266,43 @@ class ProfilePosition(OperatingMode):
             if not d._cw & 0x10:
                 self.ack = False
 
+    @staticmethod
+    def jerk_cycles(d: Drive) -> int:
+        """Length of the jerk filter a set-point gets now [drive cycles]: T_j = 0x6083 / 0x60A4 with 0x6086 = 3,
+        else 1 (may exceed :data:`MAX_JERK_FILTER_CYCLES`: such a set-point cannot be planned)."""
+        o = d.objects
+        jerk = float(o[(0x60A4, 1)])
+        if int(o[(0x6086, 0)]) != 3 or jerk <= 0:
+            return 1
+        cycles = float(o[(0x6083, 0)]) / jerk / d.cycle_s
+        return MAX_JERK_FILTER_CYCLES + 1 if cycles > MAX_JERK_FILTER_CYCLES else max(1, int(round(cycles)))
+
+    def plannable(self, d: Drive) -> bool:
+        """Whether a set-point can be planned with the present profile objects; if not, it is refused
+        (:meth:`Drive.refuse_setpoint`: warning EMCY, SDO abort) and the axis stays where the profile is."""
+        n = self.jerk_cycles(d)
+        if n <= MAX_JERK_FILTER_CYCLES:
+            return True
+        acc, jerk = int(d.objects[(0x6083, 0)]), int(d.objects[(0x60A4, 1)])
+        d.refuse_setpoint(
+            f"set-point not planned: jerk time T_j = 0x6083 / 0x60A4 = {acc} / {jerk} = {acc / jerk:g} s is longer "
+            f"than {MAX_JERK_FILTER_CYCLES} drive cycles ({MAX_JERK_FILTER_CYCLES * d.cycle_s:g} s)")
+        return False
+
     def start_move(self, d: Drive) -> None:
-        """A new set-point takes effect: the jerk filter length from 0x6086 / 0x60A4 (only when at rest)."""
-        o, gen = d.objects, self.gen
+        """A new set-point takes effect: the jerk filter length from 0x6086 / 0x60A4 (only when at rest). One
+        that cannot be planned (the profile objects changed since it was accepted) is refused: the profile
+        stops where it is."""
+        gen = self.gen
         pr = gen.profile
-        jerk_on = int(o[(0x6086, 0)]) == 3 and float(o[(0x60A4, 1)]) > 0
-        if jerk_on and gen.jerk.settled(pr.position_m) and pr.done:
-            t_j = float(o[(0x6083, 0)]) / float(o[(0x60A4, 1)])
-            gen.jerk.reset(pr.position_m, max(1, int(round(t_j / d.cycle_s))))
-        elif not jerk_on and gen.jerk.n != 1 and gen.jerk.settled(pr.position_m):
+        n = self.jerk_cycles(d)
+        if n > MAX_JERK_FILTER_CYCLES:
+            self.plannable(d)
+            gen.target_m = pr.position_m if pr.done else gen.target_m
+            return
+        if n > 1 and gen.jerk.settled(pr.position_m) and pr.done:
+            gen.jerk.reset(pr.position_m, n)
+        elif n == 1 and gen.jerk.n != 1 and gen.jerk.settled(pr.position_m):
             gen.jerk.reset(pr.position_m, 1)
 
     def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
@@ -278,8 +312,9 @@ class ProfilePosition(OperatingMode):
                 value = int(d._obj(0x607A))
                 base = self.pending_m if self.pending_m is not None else self.gen.target_m
                 target = base + value * d._u if cw & 0x40 else value * d._u
-                target_l = d._check_limit(target, value)
+                target_l = d._check_limit(target, value) if self.plannable(d) else None
                 if target_l is not None:
+                    d.accept_setpoint()
                     if cw & 0x20 or self.gen.settled():
                         self.gen.target_m = target_l
                         self.pending_m = None

@@ -17,6 +17,10 @@ from __future__ import annotations
 import math
 from collections import deque
 
+#: longest jerk filter [drive cycles] (chosen: 2^14, 16.4 s at a 1 ms cycle; its window is this many floats,
+#: allocated once per set-point): a longer T_j = 0x6083 / 0x60A4 is refused, not planned
+MAX_JERK_FILTER_CYCLES = 1 << 14
+
 
 class PositionProfile:
     """Online trapezoid: state (position, velocity), target, v_max, a_max, d_max."""
@@ -76,19 +80,31 @@ class PositionProfile:
 
 
 class JerkFilter:
-    """Moving average of the position over ``n`` cycles (n = 1: pass-through)."""
+    """Moving average of the position over ``n`` cycles (n = 1: pass-through), at most
+    :data:`MAX_JERK_FILTER_CYCLES`. Every call costs O(1); :meth:`reset` allocates ``n`` values."""
 
     def __init__(self) -> None:
         self._buf: deque[float] = deque()
         self._sum = 0.0
         self.n = 1
+        self._last = 0.0  # the newest input
+        self._run = 1  # how many of the newest inputs equal it (capped at n)
 
     def reset(self, position_m: float, n: int) -> None:
-        self.n = max(1, int(n))
+        n = int(n)
+        if n > MAX_JERK_FILTER_CYCLES:
+            raise ValueError(f"jerk filter of {n} cycles is longer than {MAX_JERK_FILTER_CYCLES}")
+        self.n = max(1, n)
         self._buf = deque([position_m] * self.n)
         self._sum = position_m * self.n
+        self._last, self._run = position_m, self.n
 
     def step(self, position_m: float) -> float:
+        if position_m == self._last:
+            if self._run < self.n:
+                self._run += 1
+        else:
+            self._last, self._run = position_m, 1
         if self.n == 1:
             self._buf[0] = position_m
             return position_m
@@ -97,7 +113,8 @@ class JerkFilter:
         return self._sum / self.n
 
     def settled(self, position_m: float) -> bool:
-        return all(x == position_m for x in self._buf)
+        """Every value in the window equals ``position_m``."""
+        return self._run >= self.n and self._last == position_m
 
 
 class VelocityRamp:

@@ -17,6 +17,12 @@ Once the ramp is at zero the drive waits for standstill (|v| below 0x606F), hold
 :data:`HOLD_S` (SINAMICS p1228 pulse suppression delay) and only then changes the state (switch on disabled,
 fault, ...). If the axis is not at standstill within :func:`brake_bound_s` of the start, braking has failed:
 fault 0x8400 (F07900) is raised and the pulses are switched off.
+
+Whatever 0x6084 / 0x6085 hold, a stop is bounded in time and distance (:func:`bounded_decel_m_s2`): the ramp
+takes at most :data:`MAX_STOP_RAMP_S` and ends before the limit switch ahead (once past it, before the end
+stop), steeper than configured where needed; the ramp is monitored (:func:`ramp_not_followed`), and an axis
+that does not follow it falls back to the current-limit stop, which has :data:`CURRENT_STOP_BOUND_S` before
+'braking failed'.
 """
 
 from __future__ import annotations
@@ -44,6 +50,18 @@ BRAKE_FACTOR = 1.5
 BRAKE_MARGIN_S = 0.5
 #: a current-limit stop is given this long [s] (the achievable deceleration is not known in advance)
 CURRENT_STOP_BOUND_S = 3.0
+#: longest stop ramp [s]: a ramp 0x6084 / 0x6085 slower than this from the actual speed is steepened to it
+#: (chosen: 10 s; SINAMICS allows OFF1 / OFF3 ramps up to 600 s, but a machine-tool axis whose stop takes
+#: longer than seconds is not under control)
+MAX_STOP_RAMP_S = 10.0
+#: a ramp is planned to end within this share of the room ahead (to the limit switch, once past it to the end
+#: stop): steeper than 0x6084 / 0x6085 where they would not (chosen: 0.8, room for the speed loop's lag)
+STOP_ROOM_SHARE = 0.8
+#: ramp monitoring: the actual speed may exceed the ramp by this share of the start speed (plus the standstill
+#: threshold) for at most :data:`RAMP_MONITOR_S` before the stop falls back to the current limit (chosen:
+#: 10 % and 20 ms, several speed-loop settling times of the bench axes)
+RAMP_TOLERANCE_SHARE = 0.1
+RAMP_MONITOR_S = 0.02
 
 #: 0x605E fault reaction option -> stop kind (negative: manufacturer-specific; this drive: quick stop)
 FAULT_OPTION_KIND = {0: "coast", 1: "slow", 2: "quick", 3: "current", 4: "current"}
@@ -85,25 +103,48 @@ class StopRamp:
     hold_s: float = HOLD_S  # hold at standstill before the state change [s]
     vramp: VelocityRamp = field(default_factory=lambda: VelocityRamp(1e-3))  # the OFF1/OFF3 speed ramp
 
+    ramp_exceeded_s: float = 0.0  # how long the actual speed has been beyond the monitored ramp [s]
+    room_to_switch_m: float = 0.0  # room to the limit switch ahead at the start (<= 0: on or past it) [m]
+
     @classmethod
     def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
         ax = drive._axis
         v0 = ax.velocity_m_s
         p0 = ax.position_m - drive._zero_m + drive._lag_m(v0)  # bumpless: the speed set-point = actual speed
         decel_obj = 0x6084 if kind == "slow" else 0x6085
-        decel = max(float(drive._obj(decel_obj)) * drive._u, 1e-6)
+        decel = float(drive._obj(decel_obj)) * drive._u
+        if kind in ("slow", "quick"):
+            decel, kind = bounded_decel_m_s2(drive, v0, decel, kind)
+        decel = max(decel, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
         drive._set_sim_mode(CONTROL_MODE.VELOCITY)
         drive._hm.run = None
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
                    vramp=VelocityRamp(drive.cycle_s))
         ramp.vramp.velocity_m_s = v0
+        ramp.room_to_switch_m = drive.travel_room_m(v0)[0]
         if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
             ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
             if velocity_control:
                 drive._set_sim_mode(CONTROL_MODE.POSITION)
                 ramp.velocity_control = False
         return ramp
+
+
+def bounded_decel_m_s2(drive: Drive, v0_m_s: float, decel_m_s2: float, kind: str) -> tuple[float, str]:
+    """The deceleration of a ramp stop from ``v0_m_s`` [m/s^2] and its kind: the configured ``decel_m_s2``,
+    steepened so that the ramp takes at most :data:`MAX_STOP_RAMP_S` and ends within :data:`STOP_ROOM_SHARE`
+    of the room ahead (before the limit switch; once past it, before the end stop). No room left: the
+    current-limit stop."""
+    v = abs(v0_m_s)
+    if v == 0.0:
+        return decel_m_s2, kind
+    to_switch_m, to_end_m = drive.travel_room_m(v0_m_s)
+    room_m = to_switch_m if to_switch_m > 0.0 else to_end_m
+    if room_m <= 0.0:
+        return decel_m_s2, "current"
+    needed = max(v / MAX_STOP_RAMP_S, v * v / (2.0 * STOP_ROOM_SHARE * room_m))
+    return max(decel_m_s2, needed), kind
 
 
 def standstill_threshold_m_s(drive: Drive) -> float:
@@ -133,6 +174,11 @@ def run_stop(drive: Drive) -> None:
         drive._demand_v = v
         drive.sim.set_velocity_setpoint(v)
         ramp_done = v == 0.0
+        if ramp_not_followed(drive, s, v, threshold):  # monitored ramp: fall back to the current limit
+            s.kind = "current"
+            s.bound_s = s.t_s + CURRENT_STOP_BOUND_S
+            drive.sim.set_velocity_setpoint(0.0)
+            drive._demand_v = 0.0
     if ramp_done and s.stopped_s < 0.0 and abs(ax.velocity_m_s) < threshold:
         s.stopped_s = s.t_s
         if s.velocity_control:  # hold the position where the axis came to rest
@@ -149,6 +195,24 @@ def run_stop(drive: Drive) -> None:
     if s.t_s - s.stopped_s < s.hold_s - 1e-12:
         return
     finish_stop(drive, s)
+
+
+def ramp_not_followed(drive: Drive, s: StopRamp, v_ramp_m_s: float, threshold_m_s: float) -> bool:
+    """Ramp monitoring of a ramp stop: the actual speed above the ramp by more than the tolerance for
+    :data:`RAMP_MONITOR_S`, or the axis still moving onto the limit switch ahead (the ramp was planned to
+    end before it) or into the end stop."""
+    v_act = drive._axis.velocity_m_s
+    if abs(v_act) > abs(v_ramp_m_s) + RAMP_TOLERANCE_SHARE * abs(s.v0_m_s) + threshold_m_s:
+        s.ramp_exceeded_s += drive.cycle_s
+    else:
+        s.ramp_exceeded_s = 0.0
+    if s.ramp_exceeded_s >= RAMP_MONITOR_S - 1e-12:
+        return True
+    if abs(v_act) < threshold_m_s:
+        return False
+    to_switch_m, to_end_m = drive.travel_room_m(v_act)
+    started_before_switch = s.room_to_switch_m > 0.0
+    return (to_switch_m <= 0.0 and started_before_switch) or to_end_m <= 0.0
 
 
 def braking_failed(drive: Drive, s: StopRamp) -> None:

@@ -1,0 +1,245 @@
+"""Legal object values never make the axis unsafe, through a real ``canopen`` master: a torque / current limit
+of 0 is zero torque, a stop is bounded in time and distance whatever 0x6084 / 0x6085 hold (monitored ramp,
+fallback to the current limit, braking-failed fault), a jerk-limited set-point that cannot be planned is
+refused (SDO abort, EMCY) instead of stalling the drive, and an illegal controlword repeated is ignored and
+counted. The headline cases run against ``virtualaxis serve`` in another process (udp_multicast, hop_limit 0);
+the rest on the in-process ``virtual`` bus (tests/test_drive_rig.py)."""
+
+from __future__ import annotations
+
+import time
+
+import canopen
+import pytest
+from served_drive import served
+from test_drive_rig import Rig
+
+from virtualaxis.drive.core import DEFAULT_EDS
+from virtualaxis.master import connect
+
+NODE = 1
+UNIT_M = 1e-6
+
+
+def _master(spec: str) -> tuple[canopen.Network, canopen.BaseNode402]:
+    net = connect(spec)
+    node = canopen.BaseNode402(NODE, str(DEFAULT_EDS))
+    node.sdo.RESPONSE_TIMEOUT = 2.0
+    net.add_node(node)
+    return net, node
+
+
+def _enable(node: canopen.BaseNode402) -> None:
+    for cw, expect in ((0x06, 0x21), (0x07, 0x23), (0x0F, 0x27)):
+        node.sdo[0x6040].raw = cw
+        end = time.monotonic() + 2
+        while node.sdo[0x6041].raw & 0x6F != expect:
+            assert time.monotonic() < end, hex(node.sdo[0x6041].raw)
+            time.sleep(0.005)
+
+
+def _wait(predicate, timeout_s: float = 5.0):
+    end = time.monotonic() + timeout_s
+    while not (value := predicate()):
+        assert time.monotonic() < end, "condition not reached in time"
+        time.sleep(0.01)
+    return value
+
+
+def _emcy_codes(node: canopen.BaseNode402) -> list[int]:
+    return [e.code for e in node.emcy.log]
+
+
+@pytest.fixture(scope="module")
+def served_node():
+    """One ``virtualaxis serve`` process for the cross-process tests of this module, and a master for it."""
+    with served("--duration", "300") as s:
+        net, node = _master(s.spec)
+        try:
+            yield net, node
+        finally:
+            net.disconnect()
+    assert s.returncode == 0, s.stderr[-2000:]
+
+
+def _reset_node(node: canopen.BaseNode402) -> None:
+    """NMT reset node (objects back to their defaults, the axis at rest where it stands), then OPERATIONAL."""
+    node.nmt.state = "RESET"
+    node.nmt.wait_for_bootup(10)
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.05)
+
+
+def test_served_illegal_controlword_repeated_is_ignored_and_counted(served_node):
+    """0x6040 = 0x0F twice in SWITCH ON DISABLED (no transition there) by SDO, then twice by RPDO: no SDO
+    abort, no internal error (0x2100:25), counted once in 0x2110:1, statusword 0x0250; a shutdown still works."""
+    net, node = served_node
+    _reset_node(node)
+    internal0 = node.sdo[0x2100][25].raw
+    for _ in range(2):
+        node.sdo[0x6040].raw = 0x0F
+    for _ in range(2):
+        net.send_message(0x200 + NODE, (0x0F).to_bytes(2, "little"))
+        time.sleep(0.05)
+    assert node.sdo[0x6041].raw == 0x0250
+    assert node.sdo[0x2110][1].raw == 1
+    assert node.sdo[0x2100][25].raw == internal0
+    node.sdo[0x6040].raw = 0x06
+    _wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x21)
+
+
+def test_served_jerk_set_point_that_cannot_be_planned_is_refused(served_node):
+    """PP with 0x6086 = 3 and 0x60A4 = 10 (T_j = 1 m/s^2 / 10 um/s^3 = 1e5 s): the new set-point by SDO is
+    refused with abort 0x08000022 at once, by RPDO with EMCY 0x6320; neither is acknowledged (bit 12), the drive
+    keeps answering, and with a jerk it can plan (T_j = 10 ms) the next set-point moves the axis."""
+    net, node = served_node
+    _reset_node(node)
+    node.sdo[0x6060].raw = 1
+    node.sdo[0x6086].raw = 3
+    node.sdo[0x60A4][1].raw = 10
+    _enable(node)
+    x0 = node.sdo[0x6064].raw
+    node.sdo[0x607A].raw = x0 + 10_000
+    t0 = time.monotonic()
+    with pytest.raises(canopen.SdoAbortedError) as exc:
+        node.sdo[0x6040].raw = 0x1F
+    assert exc.value.code == 0x08000022
+    assert time.monotonic() - t0 < 2.0
+    node.sdo[0x6040].raw = 0x0F
+    n_emcy = len(node.emcy.log)
+    target = (x0 + 20_000).to_bytes(4, "little", signed=True)
+    net.send_message(0x300 + NODE, bytes([0x1F, 0x00]) + target)
+    _wait(lambda: 0x6320 in _emcy_codes(node)[n_emcy:])
+    assert not node.sdo[0x6041].raw & 0x1000  # not acknowledged
+    net.send_message(0x300 + NODE, bytes([0x0F, 0x00]) + target)
+    node.sdo[0x60A4][1].raw = 100_000_000
+    node.sdo[0x6040].raw = 0x1F
+    _wait(lambda: abs(node.sdo[0x6064].raw - (x0 + 20_000)) < 50)
+
+
+def test_served_quick_stop_with_the_smallest_deceleration_ends_before_the_limit_switch(served_node):
+    """PV at 197 mm/s toward the + limit switch with 0x6085 = 1 (1 um/s^2), quick stop (0x605A = 2): the axis is
+    at rest in SWITCH ON DISABLED within seconds, before the limit switch (the ramp as configured would take
+    2e5 s)."""
+    net, node = served_node
+    _reset_node(node)
+    node.sdo[0x6060].raw = 3
+    node.sdo[0x6083].raw = 2_000_000
+    node.sdo[0x6085].raw = 1
+    node.sdo[0x605A].raw = 2
+    if node.sdo[0x6064].raw > 100_000:  # room for the run: back toward the middle first
+        _enable(node)
+        node.sdo[0x60FF].raw = -197_000
+        _wait(lambda: node.sdo[0x6064].raw < 0, timeout_s=10.0)
+        node.sdo[0x6040].raw = 0x06
+        _wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x21, timeout_s=12.0)
+    node.sdo[0x60FF].raw = 197_000
+    _enable(node)
+    _wait(lambda: abs(node.sdo[0x606C].raw - 197_000) < 5_000)
+    node.sdo[0x6040].raw = 0x02
+    _wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x40, timeout_s=12.0)
+    assert abs(node.sdo[0x606C].raw) < 1_000
+    assert not node.sdo[0x60FD].raw & 0x3  # stopped before the limit switch
+
+
+def test_served_torque_limit_zero_is_zero_torque(served_node):
+    """PV at -50 mm/s against 0x2011 = 40 kN (beyond rated current to hold it), then 0x6072 = 0: the motor
+    current 0x6078 is zero (it held the speed at 5.7 x rated current with the limit 0)."""
+    net, node = served_node
+    _reset_node(node)
+    node.sdo[0x6060].raw = 3
+    node.sdo[0x6083].raw = 2_000_000
+    node.sdo[0x60FF].raw = -50_000
+    _enable(node)
+    _wait(lambda: abs(node.sdo[0x606C].raw + 50_000) < 2_000)
+    node.sdo[0x2011].raw = 40_000.0
+    time.sleep(0.2)
+    assert abs(node.sdo[0x6078].raw) > 1000  # holds the speed: more than rated current
+    node.sdo[0x6072].raw = 0
+    time.sleep(0.05)
+    currents = [node.sdo[0x6078].raw for _ in range(10)]
+    node.sdo[0x2011].raw = 0.0
+    assert max(abs(c) for c in currents) <= 1, currents  # per mille of rated current
+
+
+def _start_pv(r: Rig, speed_units_s: int, **objects: int) -> None:
+    node = r.node
+    node.sdo[0x6083].raw = 2_000_000
+    for index, value in objects.items():
+        node.sdo[int(index, 16)].raw = value
+    node.sdo[0x6060].raw = 3
+    node.nmt.state = "OPERATIONAL"
+    r.enable()
+    node.sdo[0x60FF].raw = speed_units_s
+    r.sync(400)
+
+
+@pytest.mark.parametrize("limit", ["0x6072", "0x6073"])
+def test_a_torque_or_current_limit_of_zero_is_zero_torque(limit):
+    """PV at 50 mm/s against 40 kN (5.7 x rated current to hold it), then the limit set to 0: no current, the
+    force pushes the axis back (it no longer holds the speed)."""
+    r = Rig()
+    try:
+        node = r.node
+        _start_pv(r, 50_000)
+        node.sdo[0x2011].raw = -40_000.0
+        r.sync(200)
+        assert abs(node.sdo[0x6078].raw) > 1000
+        node.sdo[int(limit, 16)].raw = 0
+        peak = 0.0
+        for _ in range(20):
+            r.sync(5)
+            peak = max(peak, abs(r.drive.state.current_a))
+        assert peak < 1e-3, peak  # [A]
+        assert node.sdo[0x606C].raw < 40_000  # the force, not the motor, sets the motion now
+    finally:
+        r.close()
+
+
+def test_slow_stop_ramp_is_bounded_in_time_and_ends_before_the_limit_switch():
+    """0x6084 = 1 (1 um/s^2) and shutdown with 0x605B = 1 at 197 mm/s, 0.2 m before the + switch: the ramp is
+    steepened to end before the switch (<= 0.8 x the room), the drive is in READY TO SWITCH ON within the ramp's
+    bound; torque within 0x6072."""
+    r = Rig()
+    try:
+        node = r.node
+        _start_pv(r, 197_000, **{"0x6084": 1_000_000, "0x605B": 1})
+        node.sdo[0x6084].raw = 1
+        x0 = r.drive.state.table_position_m
+        switch_m = r.drive.cfg.axis.stroke_m / 2 - r.drive.settings.limit_switch_inset_m
+        node.sdo[0x6040].raw = 0x06
+        torque_limit_nm = node.sdo[0x6072].raw / 1000 * node.sdo[0x6076].raw / 1000
+        peak_nm = 0.0
+        cycles = 0
+        while cycles < 6000 and r.sw() & 0x6F != 0x21:
+            r.sync(1)
+            cycles += 1
+            peak_nm = max(peak_nm, abs(r.drive.state.torque_nm))
+        s = r.drive.state
+        assert s.cia402_state == "READY TO SWITCH ON", (cycles, s.cia402_state)
+        assert s.table_position_m < switch_m
+        assert s.table_position_m - x0 < 0.8 * (switch_m - x0) + 0.005
+        assert peak_nm <= torque_limit_nm * 1.001
+    finally:
+        r.close()
+
+
+def test_a_stop_the_axis_does_not_follow_falls_back_to_the_current_limit_then_braking_failed():
+    """Quick stop 0x605A = 2 with 0x6085 = 1 mm/s^2 at 100 mm/s while 0x2011 = 80 kN pushes the axis on (more than the motor's
+    3 x rated torque holds): the monitored ramp falls back to the current limit within 20 ms, the braking-failed
+    fault 0x8400 follows within its bound (3 s), the pulses go off - not FAULT REACTION ACTIVE for ever."""
+    r = Rig()
+    try:
+        node = r.node
+        _start_pv(r, 100_000, **{"0x605A": 2, "0x6085": 1_000})
+        node.sdo[0x2011].raw = 80_000.0
+        node.sdo[0x6040].raw = 0x02
+        n = 0
+        while r.drive.state.cia402_state != "FAULT" and n < 4000:
+            r.sync(10)
+            n += 10
+        assert r.drive.state.cia402_state == "FAULT", r.drive.state.cia402_state
+        assert 0x8400 in r.emcy.codes() or 0x8401 in r.emcy.codes()
+        assert n <= 3200, n
+    finally:
+        r.close()
