@@ -214,32 +214,45 @@ def test_slow_stop_ramp_is_bounded_in_time_and_ends_before_the_limit_switch():
         while cycles < 6000 and r.sw() & 0x6F != 0x21:
             r.sync(1)
             cycles += 1
-            peak_nm = max(peak_nm, abs(r.drive.state.torque_nm))
+            peak_nm = max(peak_nm, abs(r.drive.state.current_a) * r.drive.cfg.motor.kt_nm_per_a)
         s = r.drive.state
         assert s.cia402_state == "READY TO SWITCH ON", (cycles, s.cia402_state)
         assert s.table_position_m < switch_m
         assert s.table_position_m - x0 < 0.8 * (switch_m - x0) + 0.005
-        assert peak_nm <= torque_limit_nm * 1.001
+        assert peak_nm <= torque_limit_nm * 1.02
     finally:
         r.close()
 
 
-def test_a_stop_the_axis_does_not_follow_falls_back_to_the_current_limit_then_braking_failed():
-    """Quick stop 0x605A = 2 with 0x6085 = 1 mm/s^2 at 100 mm/s while 0x2011 = 80 kN pushes the axis on (more than the motor's
-    3 x rated torque holds): the monitored ramp falls back to the current limit within 20 ms, the braking-failed
-    fault 0x8400 follows within its bound (3 s), the pulses go off - not FAULT REACTION ACTIVE for ever."""
-    r = Rig()
+def test_a_stop_ramp_the_axis_cannot_follow_falls_back_to_the_current_limit_before_the_end_stop():
+    """0x6072 = 300 (0.3 x rated torque: ~1.6 m/s^2 on the seed axis), 0x6085 = 1 (1 um/s^2), quick stop at
+    197 mm/s 5 mm before the + limit switch: the ramp, steepened to end before the switch (~4.9 m/s^2), is not
+    followed; within 20 ms the stop brakes at the torque limit and the axis is at rest before the end stop,
+    in SWITCH ON DISABLED, the torque within 0x6072 throughout."""
+    from test_drive_rig import seed_config
+
+    from virtualaxis.sim.simulator import end_stops
+
+    cfg = seed_config()
+    switch_m = cfg.axis.stroke_m / 2 - 0.002
+    r = Rig({1: (cfg, switch_m - 0.15)})
     try:
         node = r.node
-        _start_pv(r, 100_000, **{"0x605A": 2, "0x6085": 1_000})
-        node.sdo[0x2011].raw = 80_000.0
+        _start_pv(r, 0, **{"0x605A": 2, "0x6085": 1, "0x6072": 300})
+        node.sdo[0x60FF].raw = 197_000
+        while r.drive.state.table_position_m < switch_m - 0.005:
+            r.sync(1)
         node.sdo[0x6040].raw = 0x02
-        n = 0
-        while r.drive.state.cia402_state != "FAULT" and n < 4000:
-            r.sync(10)
-            n += 10
-        assert r.drive.state.cia402_state == "FAULT", r.drive.state.cia402_state
-        assert 0x8400 in r.emcy.codes() or 0x8401 in r.emcy.codes()
-        assert n <= 3200, n
+        limit_nm = 0.3 * node.sdo[0x6076].raw / 1000
+        peak_nm, peak_x, cycles = 0.0, 0.0, 0
+        while r.drive.state.cia402_state != "SWITCH ON DISABLED" and cycles < 2000:
+            r.sync(1)
+            cycles += 1
+            s = r.drive.state
+            peak_nm = max(peak_nm, abs(s.current_a) * cfg.motor.kt_nm_per_a)  # from the current: 0x6077 shows <= 0x6072
+            peak_x = max(peak_x, s.table_position_m)
+        assert r.drive.state.cia402_state == "SWITCH ON DISABLED", (cycles, r.drive.state.cia402_state)
+        assert peak_x < end_stops(cfg)[1], peak_x
+        assert peak_nm <= limit_nm * 1.02, (peak_nm, limit_nm)  # (the current loop overshoots for a cycle)
     finally:
         r.close()
