@@ -372,6 +372,16 @@ class Drive:
                 return pos - x, hi - x
             return x - neg, x - lo
 
+    def _power_unit_limit(self) -> float:
+        """The largest current the power unit gives [A] (a force actuator: force [N]): the config's
+        ``control.current_limit_a`` (else 3 x rated current; a force actuator's ``actuator.force_limit_n``, else
+        none), whatever 0x6072 / 0x6073 / 0x6075 / 0x6076 hold."""
+        cfg = self.cfg
+        if cfg.actuator.kind == "force":
+            return cfg.actuator.force_limit_n if cfg.actuator.force_limit_n > 0 else math.inf
+        c = cfg.control
+        return c.current_limit_a if c.current_limit_a > 0 else 3.0 * cfg.motor.rated_current_a
+
     def _lead_m(self) -> float:
         """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
         return self.cfg.mechanics.lead_m if self.cfg.mechanics.lead_m > 0 else 0.01
@@ -660,6 +670,7 @@ class Drive:
             limit = min(lim_current, lim_torque_as_current)
         else:  # force actuator: 0x6072 per mille of the rated force 0x6076 [N]
             limit = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
+        limit = min(limit, self._power_unit_limit())  # 0x6075 / 0x6076 are writable: never beyond the hardware
         # a limit of 0 is zero torque: the plant reads 0 as "no limit", so it gets the smallest positive one
         self.sim.set_loop_gains(current_limit=max(limit, ZERO_CURRENT_LIMIT))
 
