@@ -256,3 +256,32 @@ def test_a_stop_ramp_the_axis_cannot_follow_falls_back_to_the_current_limit_befo
         assert peak_nm <= limit_nm * 1.02, (peak_nm, limit_nm)  # (the current loop overshoots for a cycle)
     finally:
         r.close()
+
+
+def test_modbus_current_limit_register_zero_is_zero_torque():
+    """Register 40321 (current limit, 0.1 A, 0x6073) written 0 by a pymodbus client while PV holds 50 mm/s
+    against 40 kN: the motor current (40355 = 0x6078, per mille) goes to zero."""
+    from test_services_modbus import Server, make_drive
+
+    drive = make_drive()
+    server = Server({1: drive})
+    try:
+        for index, value in ((0x6083, 2_000_000), (0x6060, 3)):
+            drive.write_object(index, 0, value)
+        for cw in (6, 7, 0xF):
+            drive.set_controlword(cw)
+        drive.write_object(0x60FF, 0, 50_000)
+        drive.step(300)
+        drive.write_object(0x2011, 0, -40_000.0)
+        drive.step(200)
+        assert abs(server.read(40355)[0] - 0x10000 * (server.read(40355)[0] >> 15)) > 1000
+        assert not server.client.write_register(40321 - 40001, 0, device_id=1).isError()
+        drive.step(5)  # (the current loop brings the current down within a few cycles)
+        peak_a = 0.0
+        for _ in range(50):
+            drive.step(1)
+            peak_a = max(peak_a, abs(drive.state.current_a))
+        assert server.read(40355)[0] in (0, 0xFFFF, 1)  # 0 per mille (+-1 rounding)
+        assert peak_a < 1e-3, peak_a
+    finally:
+        server.close()

@@ -624,7 +624,7 @@ class Drive:
             self._mode_obj.on_target_velocity(self)
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
-        elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6080):
+        elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
             self._apply_gains()
         elif index == 0x2010:
             if value == 0:
