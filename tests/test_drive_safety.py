@@ -143,8 +143,8 @@ def test_served_quick_stop_with_the_smallest_deceleration_ends_before_the_limit_
 
 
 def test_served_torque_limit_zero_is_zero_torque(served_node):
-    """PV at -50 mm/s against 0x2011 = 40 kN (beyond rated current to hold it), then 0x6072 = 0: the motor
-    current 0x6078 is zero (it held the speed at 5.7 x rated current with the limit 0)."""
+    """PV at -50 mm/s against 0x2011 = 10 kN (1.4 x rated current to hold it), then 0x6072 = 0: the motor
+    current 0x6078 is zero (a limit of 0 was "no limit": it held the speed at 1.4 x rated current)."""
     net, node = served_node
     _reset_node(node)
     node.sdo[0x6060].raw = 3
@@ -152,7 +152,7 @@ def test_served_torque_limit_zero_is_zero_torque(served_node):
     node.sdo[0x60FF].raw = -50_000
     _enable(node)
     _wait(lambda: abs(node.sdo[0x606C].raw + 50_000) < 2_000)
-    node.sdo[0x2011].raw = 40_000.0
+    node.sdo[0x2011].raw = 10_000.0
     time.sleep(0.2)
     assert abs(node.sdo[0x6078].raw) > 1000  # holds the speed: more than rated current
     node.sdo[0x6072].raw = 0
@@ -176,14 +176,14 @@ def _start_pv(r: Rig, speed_units_s: int, **objects: int) -> None:
 
 @pytest.mark.parametrize(("limit", "value"), [("0x6072", 0), ("0x6073", 0), ("0x6075", 1), ("0x6076", 1)])
 def test_a_torque_or_current_limit_of_zero_is_zero_torque(limit, value):
-    """PV at 50 mm/s against 40 kN (beyond rated current to hold it), then the torque or current limit set to 0,
+    """PV at 50 mm/s against 10 kN (1.4 x rated current to hold it), then the torque or current limit set to 0,
     or the rated current / torque they are per mille of set to 1 mA / 1 mN m (limits of a few mA): no current
     beyond those, the force pushes the axis back (it no longer holds the speed)."""
     r = Rig()
     try:
         node = r.node
         _start_pv(r, 50_000)
-        node.sdo[0x2011].raw = -40_000.0
+        node.sdo[0x2011].raw = -10_000.0
         r.sync(200)
         assert abs(node.sdo[0x6078].raw) > 1000
         node.sdo[int(limit, 16)].raw = value
@@ -262,7 +262,7 @@ def test_a_stop_ramp_the_axis_cannot_follow_falls_back_to_the_current_limit_befo
 
 def test_modbus_current_limit_register_zero_is_zero_torque():
     """Register 40321 (current limit, 0.1 A, 0x6073) written 0 by a pymodbus client while PV holds 50 mm/s
-    against 40 kN: the motor current (40355 = 0x6078, per mille) goes to zero."""
+    against 10 kN: the motor current (40355 = 0x6078, per mille) goes to zero (it stayed at 1.4 x rated)."""
     from test_services_modbus import Server, make_drive
 
     drive = make_drive()
@@ -274,7 +274,7 @@ def test_modbus_current_limit_register_zero_is_zero_torque():
             drive.set_controlword(cw)
         drive.write_object(0x60FF, 0, 50_000)
         drive.step(300)
-        drive.write_object(0x2011, 0, -40_000.0)
+        drive.write_object(0x2011, 0, -10_000.0)
         drive.step(200)
         assert abs(server.read(40355)[0] - 0x10000 * (server.read(40355)[0] >> 15)) > 1000
         assert not server.client.write_register(40321 - 40001, 0, device_id=1).isError()
