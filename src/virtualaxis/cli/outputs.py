@@ -153,7 +153,11 @@ def same_file(a: str | Path, b: str | Path) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
+        pass
+    try:
         return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):  # a loop of symbolic links, a name too long: not the same as a usable path
+        return False
 
 
 @_os_errors_named
