@@ -64,11 +64,10 @@ def _effect_names(text: str | None) -> list[str] | None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from virtualaxis.cli.common import check_jobs
     from virtualaxis.cli.main import CliError
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
-
-    from virtualaxis.cli.common import check_jobs
 
     args.jobs = check_jobs(args.jobs)
     names = _effect_names(args.effects)
