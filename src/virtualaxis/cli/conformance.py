@@ -97,7 +97,10 @@ def run(args) -> int:
             ctx.read(0x1000)
         except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here
             raise CliError(f"node {args.node_id} does not answer on {args.can} (SDO read 0x1000: {exc})") from None
-        results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
+        try:
+            results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
+        except runner.RunStopped as exc:  # the node's SDO server is broken: an error of the run, no report
+            raise CliError(f"{exc} on {args.can} ({time.monotonic() - t0:.1f} s); no report written") from None
     finally:
         net.disconnect()
     s = runner.summary(results)
