@@ -194,3 +194,26 @@ def test_second_ctrl_c_during_diagnose_ends_it(tmp_path):
              and "Z" not in Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0]]
     assert not alive, f"workers still running: {alive}"
     assert not out.exists() or not any(out.rglob("*"))
+
+
+def _file_size_limit(nbytes: int):
+    import resource
+
+    def apply() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+
+    return apply
+
+
+@pytest.mark.parametrize("out", ["t.csv", "t.npz"])
+def test_output_that_cannot_be_written_whole_is_named_and_removed(tmp_path, out):
+    """A file system that refuses the rest of a write (here a file size limit: EFBIG, as ENOSPC on a full disk):
+    one line naming the output, exit 2, the old content kept, no temporary file left."""
+    (tmp_path / out).write_bytes(b"old")
+    res = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "simulate", "--config", str(C4), "--profile",
+                          "sine:stroke_mm=10,feed_mm_min=1000", "--duration", "5", "--out", out, "--force"],
+                         capture_output=True, text=True, env=_env(), cwd=tmp_path, timeout=180,
+                         preexec_fn=_file_size_limit(100_000))
+    _one_error(res, out, "cannot write")
+    assert (tmp_path / out).read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out]

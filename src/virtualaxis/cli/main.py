@@ -22,7 +22,7 @@ import sys
 import threading
 import traceback
 
-from virtualaxis.cli.errors import CliError
+from virtualaxis.cli.errors import CliError, StdoutError
 from virtualaxis.config.errors import ConfigError, InputError
 
 # module names in virtualaxis.cli; a command whose optional dependency is missing is skipped
@@ -128,12 +128,8 @@ def _short(path: str, keep: int = 120) -> str:
     return path if len(path) <= keep else f"{path[:keep // 2]}...{path[-keep // 2:]}"
 
 
-class _StdoutError(OSError):
-    """Standard output could not be written (``> /dev/full``, a full disk, a closed terminal)."""
-
-
 class _GuardedStdout:
-    """``sys.stdout`` while a command runs: a failed write or flush becomes :class:`_StdoutError` naming
+    """``sys.stdout`` while a command runs: a failed write or flush becomes :class:`StdoutError` naming
     standard output (an ``OSError`` from print() names no file). A broken pipe (``| head``) stays as it is."""
 
     def __init__(self, stream):
@@ -145,7 +141,7 @@ class _GuardedStdout:
         except BrokenPipeError:
             raise
         except OSError as exc:
-            raise _StdoutError(exc.errno, exc.strerror or str(exc)) from None
+            raise StdoutError(exc.errno, exc.strerror or str(exc)) from None
 
     def write(self, text: str) -> int:
         return self._guard(self._stream.write, text)
@@ -212,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: '{args.command}': an input is nested too deeply to read (tables or arrays inside each "
               "other thousands of levels deep)", file=sys.stderr)
         return 2
-    except _StdoutError as exc:
+    except StdoutError as exc:
         _discard_stdout()
         print(f"error: standard output: cannot write ({exc.strerror})", file=sys.stderr)
         return 2
