@@ -191,11 +191,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except _Terminated as exc:
-        _default_signals()
+        if argv is None:  # (the process's own command line: it ends now; a caller of main([...]) keeps its handlers)
+            _default_signals()
         print(f"terminated ({signal.Signals(exc.signum).name}); incomplete outputs removed", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
-        _default_signals()
+        if argv is None:
+            _default_signals()
         print("interrupted; incomplete outputs removed", file=sys.stderr)
         return 130
     except MemoryError:
@@ -209,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
               "other thousands of levels deep)", file=sys.stderr)
         return 2
     except StdoutError as exc:
-        _discard_stdout()
+        if argv is None:
+            _discard_stdout()
         print(f"error: standard output: cannot write ({exc.strerror})", file=sys.stderr)
         return 2
     except OSError as exc:  # a file system refused (no space, no permission, a name too long, ...)
