@@ -70,7 +70,9 @@ def run(args) -> int:
     eds = args.eds
     if eds is not None:
         if not Path(eds).is_file():
-            raise CliError(f"--eds {eds}: file not found")
+            kind = ("file not found" if not Path(eds).exists() else "is a folder, not an EDS file"
+                    if Path(eds).is_dir() else "not a regular file (a device, pipe or socket)")
+            raise CliError(f"--eds {eds}: {kind}")
         from virtualaxis.canopen_slave.od import validate_eds
 
         validate_eds(Path(eds))
