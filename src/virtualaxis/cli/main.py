@@ -231,8 +231,7 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout = real_stdout
         if threading.current_thread() is threading.main_thread():
             for sig, handler in old_handlers.items():
-                if signal.getsignal(sig) is _on_terminate:
-                    signal.signal(sig, handler)
+                signal.signal(sig, handler)
 
 
 def _one_line(exc: BaseException) -> str:
