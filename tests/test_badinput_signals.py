@@ -1,5 +1,6 @@
-"""SIGINT / SIGTERM during ``simulate`` (issue 18): the process exits 130 / 143 with one line, the final path
-holds nothing (or its old content), and no temporary file is left. A subprocess, since signals are the point."""
+"""SIGINT / SIGTERM / SIGHUP / SIGQUIT during ``simulate``: the process exits 130 / 143 / 129 / 131 with one
+line, the final path holds nothing (or its old content), and no temporary file is left. A subprocess, since
+signals are the point."""
 
 from __future__ import annotations
 
@@ -42,7 +43,9 @@ def _run_and_signal(tmp_path: Path, sig: int, out: Path) -> subprocess.Completed
 
 
 @pytest.mark.timeout(180)
-@pytest.mark.parametrize("sig,code,word", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+@pytest.mark.parametrize("sig,code,word", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted"),
+                                            (signal.SIGHUP, 129, "terminated (SIGHUP)"),
+                                            (signal.SIGQUIT, 131, "terminated (SIGQUIT)")])
 def test_signal_leaves_no_truncated_output(tmp_path, sig, code, word):
     out = tmp_path / "trace.csv"
     out.write_text("t,pos_cmd\nold content\n")

@@ -84,7 +84,7 @@ def test_serve_side_channel_errors_are_one_line(tmp_path):
     cases = [
         (["--modbus", "127.0.0.1:abc"], "--modbus '127.0.0.1:abc': port 'abc' is not a number"),
         (["--mqtt", "mqtt://127.0.0.1:1", "--mqtt-credentials", str(tmp_path / "none.toml")],
-         f"--mqtt-credentials {tmp_path / 'none.toml'}: No such file"),
+         f"--mqtt-credentials {tmp_path / 'none.toml'}: credentials file not found"),
         (["--modbus", "999.1.1.1:5020"], "--modbus 999.1.1.1:5020: cannot resolve"),
         (["--modbus", "192.0.2.1:5020"], "--modbus 192.0.2.1:5020: cannot listen (Cannot assign requested address)"),
         (["--mqtt", "mqtt://127.0.0.1:1/path"], "has no path"),

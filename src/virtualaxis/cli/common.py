@@ -48,3 +48,61 @@ def parse_float_list(text: str, name: str, hint: str = "", what: str = "value") 
             raise CliError(f"{name}: duplicate {what} {item!r} (given twice)")
         vals.append(v)
     return vals
+
+
+#: memory one worker process of a fit pool may take [bytes]: measured 415 MiB for the main process and 850 MiB
+#: for main + 2 workers (``diagnose --jobs 2`` of a 120 000-row trace, docs/bad-input.md), ~220 MiB per worker
+WORKER_MEMORY_BYTES = 256 * 2**20
+#: worker processes per usable CPU at most (more only share the CPUs and cost memory)
+WORKERS_PER_CPU = 2
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask; ``os.cpu_count()`` where there is none)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def available_memory_bytes() -> int | None:
+    """``MemAvailable`` of /proc/meminfo [bytes]; None where it cannot be read."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def max_workers() -> tuple[int, str]:
+    """The most worker processes this machine runs sensibly, and why: :data:`WORKERS_PER_CPU` per usable CPU,
+    and no more than the available memory holds at :data:`WORKER_MEMORY_BYTES` each (at least 1)."""
+    cpus = usable_cpus()
+    limit = WORKERS_PER_CPU * cpus
+    why = f"{cpus} usable CPU(s), {WORKERS_PER_CPU} workers per CPU"
+    mem = available_memory_bytes()
+    if mem is not None:
+        by_mem = max(1, mem // WORKER_MEMORY_BYTES)
+        why += f"; {mem / 2**30:.1f} GiB of memory available, ~{WORKER_MEMORY_BYTES >> 20} MiB per worker"
+        limit = min(limit, by_mem)
+    return max(1, limit), why
+
+
+def check_jobs(value: int | None, option: str = "--jobs", default: int = 2) -> int:
+    """A worker-pool size option checked before any work: 1 .. :func:`max_workers`. Left out (None): ``default``,
+    lowered to what the machine runs."""
+    from virtualaxis.cli.errors import CliError
+
+    limit, why = max_workers()
+    if value is None:
+        return min(default, limit)
+    if value < 1:
+        raise CliError(f"{option} must be >= 1 (got {value})")
+    if value > limit:
+        raise CliError(f"{option} {value}: at most {limit} worker processes on this machine ({why})")
+    return value

@@ -70,7 +70,9 @@ def run(args) -> int:
     eds = args.eds
     if eds is not None:
         if not Path(eds).is_file():
-            raise CliError(f"--eds {eds}: file not found")
+            kind = ("file not found" if not Path(eds).exists() else "is a folder, not an EDS file"
+                    if Path(eds).is_dir() else "not a regular file (a device, pipe or socket)")
+            raise CliError(f"--eds {eds}: {kind}")
         from virtualaxis.canopen_slave.od import validate_eds
 
         validate_eds(Path(eds))
@@ -97,7 +99,10 @@ def run(args) -> int:
             ctx.read(0x1000)
         except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here
             raise CliError(f"node {args.node_id} does not answer on {args.can} (SDO read 0x1000: {exc})") from None
-        results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
+        try:
+            results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
+        except runner.RunStopped as exc:  # the node's SDO server is broken: an error of the run, no report
+            raise CliError(f"{exc} on {args.can} ({time.monotonic() - t0:.1f} s); no report written") from None
     finally:
         net.disconnect()
     s = runner.summary(results)

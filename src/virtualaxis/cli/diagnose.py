@@ -27,7 +27,8 @@ def register(subparsers) -> None:
     p.add_argument("--holdout", nargs="+", default=[], metavar="TRACE.csv",
                    help="held-out traces (default: split by condition, fit on the slowest and fastest)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--jobs", type=int, default=2, help="local worker processes for candidate fits (default 2)")
+    p.add_argument("--jobs", type=int, default=None, help="local worker processes for candidate fits (default 2; "
+                   "at most 2 per CPU and what the available memory holds)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                    help="run candidate fits on a running Dask cluster (needs dask[distributed])")
     p.add_argument("--effects", default=None, help="comma-separated subset of the effect library")
@@ -63,12 +64,12 @@ def _effect_names(text: str | None) -> list[str] | None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from virtualaxis.cli.common import check_jobs
     from virtualaxis.cli.main import CliError
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
 
-    if not 1 <= args.jobs <= 256:
-        raise CliError(f"--jobs must be 1 .. 256 (got {args.jobs})")
+    args.jobs = check_jobs(args.jobs)
     names = _effect_names(args.effects)
     if args.scheduler is not None:
         import re

@@ -4,3 +4,7 @@
 
 class CliError(Exception):
     """A user-facing error with a one-line message."""
+
+
+class StdoutError(OSError):
+    """Standard output could not be written (``> /dev/full``, a full disk, a closed terminal)."""

@@ -12,6 +12,8 @@ as an error. See docs/fault-injection.md.
 
 from __future__ import annotations
 
+import struct
+
 from virtualaxis.drive.injection import (
     KIND_NAMES,
     KINDS,
@@ -49,7 +51,7 @@ def run(args) -> int:
     import canopen
 
     from virtualaxis.cli.errors import CliError
-    from virtualaxis.master import DEFAULT_EDS, connect
+    from virtualaxis.master import DEFAULT_EDS, SdoTransferOverrun, connect, install_bounded_sdo
     from virtualaxis.runtime import BusOpenError
 
     if not args.action:
@@ -72,6 +74,7 @@ def run(args) -> int:
         raise CliError(str(exc)) from None
     try:
         node = canopen.RemoteNode(args.node_id, DEFAULT_EDS)
+        install_bounded_sdo(node)  # short frames and transfers that never end are errors, not hangs or crashes
         node.sdo.RESPONSE_TIMEOUT = args.timeout
         net.add_node(node)
         sdo = node.sdo
@@ -101,7 +104,13 @@ def run(args) -> int:
             hint = " (serve the drive with --allow-fault-injection)" if exc.code == 0x08000022 else ""
             raise CliError(f"node {args.node_id} refused: SDO abort 0x{exc.code:08X} {exc}{hint}") from None
         except canopen.SdoCommunicationError as exc:
-            raise CliError(f"node {args.node_id} does not answer on {args.can}: {exc}") from None
+            what = "does not answer" if "No SDO response" in str(exc) else "gives no valid SDO answer"
+            raise CliError(f"node {args.node_id} {what} on {args.can}: {exc}") from None
+        except SdoTransferOverrun as exc:
+            raise CliError(f"node {args.node_id} on {args.can}: {exc}") from None
+        except (struct.error, ValueError, IndexError) as exc:  # an answer too short for the object's type
+            raise CliError(f"node {args.node_id} on {args.can}: an SDO answer that does not decode as the "
+                           f"object's type ({exc})") from None
     finally:
         net.disconnect()
     return 0

@@ -20,7 +20,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--cases", default=None, help="comma-separated case names (default: all, or the quick set)")
     p.add_argument("--quick", action="store_true", help="short traces (10 mm stroke) and a handful of cases")
-    p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--jobs", type=int, default=None, help="worker processes (default 2; at most 2 per CPU and what "
+                   "the available memory holds)")
     p.add_argument("--list", action="store_true", help="list the cases and exit")
     p.add_argument("--suite", choices=("reference", "own", "both"), default="reference",
                    help="reference: cases made by the independent reference axis (virtualaxis.refaxis, the "
@@ -82,10 +83,12 @@ def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.seed < 0 or (args.jobs is not None and args.jobs < 1):  # bad input (issue 18)
-        from virtualaxis.cli.errors import CliError
+    from virtualaxis.cli.common import check_jobs
+    from virtualaxis.cli.errors import CliError
 
-        raise CliError(f"--seed must be >= 0 and --jobs >= 1 (got --seed {args.seed}, --jobs {args.jobs})")
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0 (got --seed {args.seed})")
+    args.jobs = check_jobs(args.jobs)
     from tqdm import tqdm
 
     from virtualaxis.diagnosis.bench import QUICK_CASES, all_cases, run_bench

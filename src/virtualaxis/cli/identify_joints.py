@@ -95,9 +95,15 @@ def run(args: argparse.Namespace) -> int:
     check_positions(model, train_pos + val_pos, "position")
     for opt, val, lo, hi in (("--generations", args.generations, 1, 100_000),
                              ("--population", args.population, 1, 1000),
-                             ("--workers", args.workers, 1, 256), ("--seed", args.seed, 0, 2**63 - 1)):
+                             ("--seed", args.seed, 0, 2**63 - 1)):
         if val is not None and not lo <= val <= hi:
             raise CliError(f"{opt} must be {lo} .. {hi} (got {val})")
+    from virtualaxis.cli.common import check_jobs
+
+    if args.workers is not None:
+        check_jobs(args.workers, "--workers")
+    else:  # (the config's value: bounded like the option)
+        check_jobs(int(ident.workers), f"{args.config}: rcsa.identification.workers")
     if args.frequencies_only and args.amplitude_weight is not None:
         raise CliError("--frequencies-only and --amplitude-weight are alternatives (--frequencies-only is a weight "
                        "of 0); give one of them")

@@ -6,8 +6,10 @@ whose ``func(args) -> int`` runs it. Expected user errors (``ConfigError``, ``In
 
 Last resort: any other exception is printed as one ``internal error: ...`` line with exit status 1 (the
 traceback only with ``--debug`` or ``VIRTUALAXIS_DEBUG=1``); such a line is a bug to report, each user
-mistake has its own check. SIGTERM is handled like SIGINT (``KeyboardInterrupt``), so that outputs being
-written are removed instead of left truncated; the exit status is 130 (SIGINT) or 143 (SIGTERM).
+mistake has its own check. SIGTERM, SIGHUP and the other terminating signals Python can catch are handled like
+SIGINT (``KeyboardInterrupt``), so that outputs being written are removed instead of left truncated; the exit
+status is 130 (SIGINT) or 128 + the signal's number (143 for SIGTERM, 129 for SIGHUP). An OS error that reaches
+this level (no space left, no permission, a name too long) is one ``error:`` line naming the file, exit 2.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import sys
 import threading
 import traceback
 
-from virtualaxis.cli.errors import CliError
+from virtualaxis.cli.errors import CliError, StdoutError
 from virtualaxis.config.errors import ConfigError, InputError
 
 # module names in virtualaxis.cli; a command whose optional dependency is missing is skipped
@@ -73,11 +75,94 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _Terminated(KeyboardInterrupt):
-    """SIGTERM, raised like SIGINT so that the same clean-up runs."""
+    """A terminating signal (SIGTERM, SIGHUP, ...), raised like SIGINT so that the same clean-up runs."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
 
 
-def _on_sigterm(signum, frame) -> None:
-    raise _Terminated()
+def _on_terminate(signum, frame) -> None:
+    raise _Terminated(signum)
+
+
+#: signals whose default action ends the process and which Python can catch: each ends a command like SIGINT
+#: (incomplete outputs removed, exit status 128 + the signal's number). A signal the caller set to "ignore"
+#: (``nohup`` ignores SIGHUP) or handles itself stays so. SIGPIPE and SIGXFSZ are ignored by Python itself (a write then
+#: fails with an OS error, which is reported).
+TERMINATING_SIGNALS = tuple(
+    getattr(signal, name) for name in ("SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU",
+                                       "SIGVTALRM", "SIGPROF", "SIGPWR", "SIGIO", "SIGSTKFLT")
+    if hasattr(signal, name))
+
+
+def _install_signal_handlers() -> dict[int, object]:
+    """Terminating signals raise :class:`_Terminated`; returns the previous handlers."""
+    old: dict[int, object] = {}
+    for sig in TERMINATING_SIGNALS:
+        if signal.getsignal(sig) != signal.SIG_DFL:  # ignored (nohup) or handled by the caller: left alone
+            continue
+        old[sig] = signal.signal(sig, _on_terminate)
+    return old
+
+
+def _default_signals() -> None:
+    """After an interrupt has been handled: a second Ctrl-C (or signal) ends the process at once instead of
+    interrupting the clean-up or waiting for anything."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGINT, *TERMINATING_SIGNALS):
+        if signal.getsignal(sig) not in (signal.SIG_IGN, None):
+            signal.signal(sig, signal.SIG_DFL)
+
+
+def _os_error_line(exc: OSError) -> str:
+    """An OS error about a file or stream, as one line naming it: ``<path>: <what the system says>``."""
+    names = [_short(os.fsdecode(n)) for n in (exc.filename, exc.filename2) if isinstance(n, (str, bytes))]
+    what = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+    return f"{' -> '.join(names)}: {what}" if names else what
+
+
+def _short(path: str, keep: int = 120) -> str:
+    """A path for an error line: at most ``keep`` characters (a 4096-character name is cut in the middle)."""
+    return path if len(path) <= keep else f"{path[:keep // 2]}...{path[-keep // 2:]}"
+
+
+class _GuardedStdout:
+    """``sys.stdout`` while a command runs: a failed write or flush becomes :class:`StdoutError` naming
+    standard output (an ``OSError`` from print() names no file). A broken pipe (``| head``) stays as it is."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _guard(self, fn, *args):
+        try:
+            return fn(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutError(exc.errno, exc.strerror or str(exc)) from None
+
+    def write(self, text: str) -> int:
+        return self._guard(self._stream.write, text)
+
+    def flush(self) -> None:
+        self._guard(self._stream.flush)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def _discard_stdout() -> None:
+    """After standard output failed: send what is still buffered to /dev/null, so that the interpreter's own
+    flush at exit does not fail again (a Python warning and status 120)."""
+    try:
+        fd = sys.__stdout__.fileno() if sys.__stdout__ is not None else 1
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, fd)
+        os.close(null)
+    except (OSError, ValueError):
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -90,21 +175,29 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get("VIRTUALAXIS_DEBUG", "") not in ("", "0")
-    old_term = None
+    old_handlers: dict[int, object] = {}
     if threading.current_thread() is threading.main_thread():
-        old_term = signal.signal(signal.SIGTERM, _on_sigterm)
+        old_handlers = _install_signal_handlers()
     from virtualaxis.cli.outputs import reset_claims
 
     reset_claims()
+    real_stdout = sys.stdout
+    sys.stdout = _GuardedStdout(real_stdout)
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # now, not at exit (where a failure is only a warning)
+        return status
     except (ConfigError, InputError, CliError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
-    except _Terminated:
-        print("terminated (SIGTERM); incomplete outputs removed", file=sys.stderr)
-        return 143
+    except _Terminated as exc:
+        if argv is None:  # (the process's own command line: it ends now; a caller of main([...]) keeps its handlers)
+            _default_signals()
+        print(f"terminated ({signal.Signals(exc.signum).name}); incomplete outputs removed", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
+        if argv is None:
+            _default_signals()
         print("interrupted; incomplete outputs removed", file=sys.stderr)
         return 130
     except MemoryError:
@@ -113,6 +206,18 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except BrokenPipeError:
         return 1
+    except RecursionError:  # a file nested deeper than any reader recurses (TOML, JSON): input, not a bug
+        print(f"error: '{args.command}': an input is nested too deeply to read (tables or arrays inside each "
+              "other thousands of levels deep)", file=sys.stderr)
+        return 2
+    except StdoutError as exc:
+        if argv is None:
+            _discard_stdout()
+        print(f"error: standard output: cannot write ({exc.strerror})", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a file system refused (no space, no permission, a name too long, ...)
+        print(f"error: {_os_error_line(exc)}", file=sys.stderr)
+        return 2
     except Exception as exc:  # the last resort; every expected mistake has its own check
         if debug:
             traceback.print_exc()
@@ -122,8 +227,11 @@ def main(argv: list[str] | None = None) -> int:
               "with --debug for the traceback)", file=sys.stderr)
         return 1
     finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        if isinstance(sys.stdout, _GuardedStdout):
+            sys.stdout = real_stdout
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
 
 
 def _one_line(exc: BaseException) -> str:

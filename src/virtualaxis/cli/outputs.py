@@ -18,7 +18,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from virtualaxis.cli.errors import CliError
+from virtualaxis.cli.errors import CliError, StdoutError
 
 #: virtual file systems no output may go to
 _FORBIDDEN_ROOTS = ("/proc", "/sys", "/dev")
@@ -153,7 +153,11 @@ def same_file(a: str | Path, b: str | Path) -> bool:
     try:
         return os.path.samefile(a, b)
     except OSError:
+        pass
+    try:
         return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):  # a loop of symbolic links, a name too long: not the same as a usable path
+        return False
 
 
 @_os_errors_named
@@ -229,6 +233,12 @@ def atomic_path(final: str | Path) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
+    except StdoutError:
+        tmp.unlink(missing_ok=True)
+        raise
+    except OSError as exc:  # no space left, a file size limit, an I/O error: named, the old content kept
+        tmp.unlink(missing_ok=True)
+        raise CliError(f"{final}: cannot write ({exc.strerror or exc}); nothing written") from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -255,6 +265,10 @@ def staged_dir(out: str | Path) -> Iterator[Path]:
                 dest = out / f.relative_to(stage)
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 os.replace(f, dest)
+    except StdoutError:
+        raise
+    except OSError as exc:  # no space left, a file size limit, an I/O error: named
+        raise CliError(f"{out}: cannot write ({exc.strerror or exc})") from None
     finally:
         shutil.rmtree(stage, ignore_errors=True)
 

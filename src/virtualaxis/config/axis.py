@@ -30,11 +30,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
-
 from virtualaxis.config.bounds import (
     BOUNDS,
     DIMENSIONLESS,
@@ -46,6 +41,7 @@ from virtualaxis.config.bounds import (
     units_for_key,
 )
 from virtualaxis.config.errors import ConfigError
+from virtualaxis.config.tomlfile import TomlError, parse_toml
 
 #: a config file larger than this is not a config (``/dev/zero``, a trace given as --config) [bytes]
 MAX_CONFIG_BYTES = 4 << 20
@@ -691,24 +687,29 @@ def _check_consistency(cfg: AxisConfig, given: set | None = None) -> None:
         raise ConfigError(f, "backlash.enabled", "a rigid axis has no nut contact for backlash")
 
 
+def _short(path: str, keep: int = 120) -> str:
+    """A path for an error line: at most ``keep`` characters (a 4096-character name is cut in the middle)."""
+    return path if len(path) <= keep else f"{path[:keep // 2]}...{path[-keep // 2:]}"
+
+
 def read_text_file(path: str | Path, what: str = "file", max_bytes: int = MAX_CONFIG_BYTES) -> str:
     """A small UTF-8 text file's text (a BOM is accepted). Raises :class:`ConfigError` naming the file (and
     the line of the first byte that is not UTF-8) for a missing, unreadable, oversized or non-UTF-8 file."""
     if not str(path).strip():  # Path("") is "." and would read as "is a folder"
         raise ConfigError(repr(str(path)), "", f"empty or blank path: give a {what}")
     p = Path(path)
-    if p.exists() and not p.is_dir() and not p.is_file() and not p.is_char_device():
-        # a FIFO or socket would block the read until someone writes to it
-        raise ConfigError(str(p), "", f"not a regular file (a pipe or socket); give a {what}")
     try:
+        if p.exists() and not p.is_dir() and not p.is_file() and not p.is_char_device():
+            # a FIFO or socket would block the read until someone writes to it
+            raise ConfigError(str(p), "", f"not a regular file (a pipe or socket); give a {what}")
         with p.open("rb") as fh:
             blob = fh.read(max_bytes + 1)
     except FileNotFoundError:
         raise ConfigError(str(p), "", f"{what} not found") from None
     except IsADirectoryError:
         raise ConfigError(str(p), "", f"is a folder, not a {what}") from None
-    except OSError as exc:
-        raise ConfigError(str(p), "", f"cannot read ({exc.strerror or exc})") from None
+    except OSError as exc:  # no permission, a name too long, a loop of symbolic links, ...
+        raise ConfigError(_short(str(p)), "", f"cannot read ({exc.strerror or exc})") from None
     if len(blob) > max_bytes:
         raise ConfigError(str(p), "", f"larger than {max_bytes >> 20} MiB: not a {what}")
     try:
@@ -741,7 +742,7 @@ def load_axis_config(path: str | Path) -> AxisConfig:
     text = read_text_file(path, "config file")
     p = Path(path)
     try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(str(p), "", f"not valid TOML: {exc}") from None
+        data = parse_toml(text)
+    except TomlError as exc:
+        raise ConfigError(str(p), "", str(exc)) from None
     return axis_config_from_dict(data, str(p))

@@ -19,6 +19,8 @@ from typing import Any
 
 import canopen
 
+from virtualaxis.master import SdoTransferOverrun, install_bounded_sdo
+
 
 class Fail(Exception):
     """The node did not behave as the clause requires."""
@@ -113,6 +115,7 @@ class Context:
         self.node_id = node_id
         self.eds = eds
         self.node = canopen.BaseNode402(node_id, eds)
+        self.sdo_client = install_bounded_sdo(self.node)  # transfers that never end are cut, short frames named
         self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
         network.add_node(self.node)
         self.od = self.node.object_dictionary
@@ -317,16 +320,61 @@ def boot(ctx: Context, *, timeout: float = 3.0) -> None:
     time.sleep(0.05)
 
 
+#: SDO exchanges without a valid answer (timeouts, malformed frames) after which a run stops: a working node
+#: leaves none or one or two unanswered on a loaded host; this many means its SDO server has stopped working
+MAX_UNANSWERED_SDO = 20
+
+
+#: transfers the node began (answered the initiate) and then left without an answer, after which a run stops
+#: (one is retried: a lost frame; the same again is a server that stops in the middle of its transfers)
+MAX_STALLED_SDO = 2
+
+
+class RunStopped(Exception):  # noqa: N818 - the name says what happened
+    """The run cannot go on: the node's SDO server is broken (a transfer that never ends, or
+    :data:`MAX_UNANSWERED_SDO` exchanges left unanswered). An error of the run, not a result of a check; the
+    results so far are in :attr:`results`."""
+
+    def __init__(self, message: str, results: list[Result]):
+        super().__init__(message)
+        self.results = results
+
+
+def _run_stopped(ctx: Context, chk: Check, results: list[Result]) -> RunStopped | None:
+    client = ctx.sdo_client
+    if client.overrun:
+        why = client.overrun
+    elif client.stalled >= MAX_STALLED_SDO:
+        why = (f"{client.stalled} SDO transfers begun by the node and left unfinished (no answer within "
+               f"{ctx.sdo_timeout_s:g} s; the last: {client.last_failure}): the node's SDO server does not finish "
+               "its transfers")
+    elif client.unanswered >= MAX_UNANSWERED_SDO:
+        why = (f"{client.unanswered} SDO exchanges without a valid answer within {ctx.sdo_timeout_s:g} s (the last: "
+               f"{client.last_failure}): the node's SDO server has stopped working")
+    else:
+        return None
+    return RunStopped(f"node {ctx.node_id}: {why}; the run stopped in {chk.id} after {len(results)} check(s)",
+                      results)
+
+
 def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result], None] | None = None) -> list[Result]:
-    """Run ``checks`` in order; a check's exception other than Fail/Skip is a failure naming it."""
+    """Run ``checks`` in order; a check's exception other than Fail/Skip is a failure naming it. A node whose
+    SDO server is broken ends the run with :class:`RunStopped` (bounded by the SDO timeout: one transfer lasts
+    at most ``master.TRANSFER_TIMEOUTS`` timeouts, :data:`MAX_STALLED_SDO` transfers left unfinished or
+    :data:`MAX_UNANSWERED_SDO` timeouts end the run)."""
     results: list[Result] = []
     for chk in checks:
+        stopped = _run_stopped(ctx, chk, results)  # (also after the clean-up of the check before)
+        if stopped is not None:
+            raise stopped
         ctx.trace = []
         ctx.retries = []
         t0 = time.monotonic()
         try:
             got = chk.fn(ctx)
             status, detail = "pass", got or "as expected"
+        except SdoTransferOverrun:
+            status, detail = "fail", "the node's SDO server does not finish its transfers"
         except Fail as exc:
             status, detail = "fail", str(exc)
         except Skip as exc:
@@ -339,6 +387,9 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
             status, detail = "fail", f"{type(exc).__name__}: {exc}"
         finally:
             ctx.stop_sync()
+        stopped = _run_stopped(ctx, chk, results)
+        if stopped is not None:
+            raise stopped
         res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-12:]),
                      time.monotonic() - t0, list(ctx.retries))
         results.append(res)

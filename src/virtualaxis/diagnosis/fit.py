@@ -18,6 +18,8 @@ until none pays. Nothing accepted -> "no significant effect".
 from __future__ import annotations
 
 import math
+import os
+import signal
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -605,7 +607,11 @@ class Runner:
         elif self.jobs > 1:
             import multiprocessing as mp
 
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=mp.get_context("fork"))
+            ctx = mp.get_context("fork")
+            self._worker_pids = ctx.Array("q", self.jobs)  # filled by each worker as it starts
+            self._started = ctx.Value("i", 0)
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=ctx, initializer=_worker_init,
+                                             initargs=(self._worker_pids, self._started))
 
     def map(self, jobs: list[FitJob], progress: Callable[[CandidateResult], None] | None = None):
         results: list[CandidateResult] = []
@@ -637,8 +643,54 @@ class Runner:
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
+            self._pool = None
         if self._client is not None:
             self._client.close()
+            self._client = None
+
+    def abort(self) -> None:
+        """End the pool at once (an interrupt, an error): queued fits are dropped and running ones killed, so that
+        nothing waits for a fit that takes minutes (workers ignore SIGINT: the main process decides)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            me = os.getpid()
+            with self._started.get_lock():
+                pids = list(self._worker_pids[: self._started.value])
+            for pid in pids:
+                if _parent_of(pid) == me:  # (still our worker, not a process that reused its number)
+                    try:
+                        os.kill(pid, signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
+            self._pool = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+
+def _worker_init(pids, started) -> None:
+    """In each pool worker: SIGINT ignored (a Ctrl-C reaches the whole process group; the main process ends the
+    pool), the terminating signals the CLI turns into exceptions back to their default action, and the worker's
+    process id recorded for :meth:`Runner.abort`."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for name in ("SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM", "SIGXCPU", "SIGVTALRM", "SIGPROF",
+                 "SIGPWR", "SIGIO", "SIGSTKFLT"):
+        sig = getattr(signal, name, None)
+        if sig is not None and callable(signal.getsignal(sig)):
+            signal.signal(sig, signal.SIG_DFL)
+    with started.get_lock():
+        if started.value < len(pids):
+            pids[started.value] = os.getpid()
+            started.value += 1
+
+
+def _parent_of(pid: int) -> int | None:
+    """The parent process id of ``pid`` (Linux /proc), None if it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as fh:
+            return int(fh.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 # ------------------------------------------------------------------------------------------- selection

@@ -441,6 +441,9 @@ def run_diagnosis(
     try:
         sel = select_effects(cfg, tds, fit_idx, hold_idx, simulate, runner, settings, effect_names, progress,
                              hint_fn=_hints(cfg, tds))
+    except BaseException:  # an interrupt or error: running fits are killed, not waited for
+        runner.abort()
+        raise
     finally:
         runner.close()
     timing["fitting_s"] = sel.seconds_fitting

@@ -11,19 +11,15 @@ from __future__ import annotations
 
 import csv
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from virtualaxis.config.errors import InputError, first_non_utf8_line
+from virtualaxis.config.axis import read_text_file
+from virtualaxis.config.errors import ConfigError, InputError, first_non_utf8_line
+from virtualaxis.config.tomlfile import TomlError, parse_toml
 from virtualaxis.sim.trace_io import read_trace_npz
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 POSITION_COLUMNS = ("pos_meas", "pos_fb", "motor_pos")
 OPTIONAL_COLUMNS = ("vel_meas", "torque_meas", "current_q", "force_drive", "force_ext")
@@ -257,11 +253,13 @@ def read_sidecar(csv_path: Path) -> dict:
     if not side.is_file():
         raise _err(str(side), "sidecar metadata is not a regular file (a device, pipe or socket)")
     try:
-        return _check_sidecar(side, tomllib.loads(side.read_text(encoding="utf-8-sig")))
-    except UnicodeDecodeError as exc:
-        raise _err(str(side), f"sidecar metadata is not UTF-8 text (byte offset {exc.start})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise _err(str(side), f"sidecar metadata is not valid TOML: {exc}") from None
+        text = read_text_file(side, "sidecar metadata file")
+    except ConfigError as exc:
+        raise _err(str(side), f"sidecar metadata: {exc.message}") from None
+    try:
+        return _check_sidecar(side, parse_toml(text))
+    except TomlError as exc:
+        raise _err(str(side), f"sidecar metadata is {exc}") from None
     except OSError as exc:
         raise _err(str(side), f"cannot read sidecar metadata ({exc.strerror})") from None
 
@@ -332,13 +330,10 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     p = Path(path)
     sp = str(p)
     if p.suffix.lower() == ".npz":  # NPZ: sim.trace_io
-        header, raw = read_trace_npz(p)
+        # sizes checked from the archive's directory and the .npy headers before anything is decompressed
+        header, data = read_trace_npz(p, max_rows=MAX_TRACE_SAMPLES, columns=KNOWN_COLUMNS)
         names = [h for h in header if h in KNOWN_COLUMNS]
-        data = raw[:, [header.index(h) for h in names]]
         warnings: list[str] = []
-        if data.shape[0] > MAX_TRACE_SAMPLES:
-            raise _err(sp, f"{data.shape[0]:,} samples; the diagnosis reads at most {MAX_TRACE_SAMPLES:,} samples per "
-                           "trace (bounded memory and fit time): cut the trace into segments or decimate it")
     else:
         header, names, data, warnings = _parse_csv(p)
     for col in ("t", "pos_cmd"):

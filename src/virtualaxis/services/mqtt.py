@@ -156,17 +156,16 @@ def load_credentials(settings: MqttSettings, path: str | None, env: dict | None 
 
 def _credentials_file(settings: MqttSettings, p: Path) -> None:
     """The keys of a --mqtt-credentials TOML file into ``settings``."""
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib
+    from virtualaxis.config.axis import read_text_file
+    from virtualaxis.config.errors import ConfigError
+    from virtualaxis.config.tomlfile import TomlError, parse_toml
 
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as exc:
-        raise MqttSettingsError(f"--mqtt-credentials {p}: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MqttSettingsError(f"--mqtt-credentials {p}: not valid TOML ({exc})") from None
+    try:  # (size-capped, UTF-8 checked, a FIFO refused instead of read for ever)
+        data = parse_toml(read_text_file(p, "credentials file"))
+    except ConfigError as exc:
+        raise MqttSettingsError(f"--mqtt-credentials {exc}") from None
+    except TomlError as exc:
+        raise MqttSettingsError(f"--mqtt-credentials {p}: {exc}") from None
     allowed = {"username", "password", "ca_file", "cert_file", "key_file"}
     for key, value in data.items():
         if key not in allowed:

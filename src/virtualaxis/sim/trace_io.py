@@ -23,7 +23,10 @@ from __future__ import annotations
 
 import math
 import queue
+import stat
 import threading
+import zipfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import BinaryIO
 
@@ -310,39 +313,130 @@ def write_trace_csv(path: str | Path, data: dict[str, np.ndarray], columns: list
     return Path(path)
 
 
-def read_trace_npz(path: str | Path) -> tuple[list[str], np.ndarray]:
+#: members of an NPZ trace at most (a trace has a few dozen columns)
+NPZ_MAX_MEMBERS = 1024
+#: bytes of one NPZ member's .npy header at most (NumPy's own default limit)
+NPZ_MAX_HEADER_BYTES = 10_000
+
+
+def _npy_header(zf, info, where: str, column: str) -> tuple[tuple[int, ...], np.dtype, int]:
+    """Shape, dtype and header length of one ``.npy`` member, read from its header only (nothing is
+    decompressed beyond the header): what the member would take in memory is known before it is read."""
+    from virtualaxis.config.errors import InputError
+
+    fmt = np.lib.format
+    try:
+        with zf.open(info) as fh:
+            version = fmt.read_magic(fh)
+            if version == (1, 0):
+                shape, _, dtype = fmt.read_array_header_1_0(fh, max_header_size=NPZ_MAX_HEADER_BYTES)
+            elif version in ((2, 0), (3, 0)):
+                shape, _, dtype = fmt.read_array_header_2_0(fh, max_header_size=NPZ_MAX_HEADER_BYTES)
+            else:
+                raise ValueError(f"unknown .npy format version {version}")
+            header_len = fh.tell()
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
+        raise InputError(where, f"not a readable .npy array ({' '.join(str(exc).split())})", None, column) from None
+    return tuple(int(n) for n in shape), dtype, header_len
+
+
+def read_trace_npz(path: str | Path, *, max_rows: int | None = None,
+                   columns: Iterable[str] | None = None) -> tuple[list[str], np.ndarray]:
     """Header and ``(rows, cols)`` float data of an NPZ trace written by :class:`TraceWriter`.
+
+    Every size is checked before anything is decompressed: the zip directory (members, their declared
+    sizes), then each member's ``.npy`` header (shape and dtype: numbers only, one dimension, at most
+    ``max_rows`` values), and the declared size must match what the header announces; only then are the
+    arrays read (only those in ``columns`` when given: the data's columns are then the header's names that
+    are in ``columns``, in the header's order; the header lists all). A small file that would
+    decompress to gigabytes is refused by its figures, unread.
 
     Raises :class:`~virtualaxis.config.errors.InputError` (a ``ValueError``) naming the file and column.
     """
     from virtualaxis.config.errors import InputError
 
     p = Path(path)
+    sp = str(p)
     try:
-        z = np.load(p, allow_pickle=False)
+        st = p.stat()
+        if stat.S_ISDIR(st.st_mode):
+            raise InputError(sp, "is a folder, not a trace file")
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(sp, "not a regular file (a device, pipe or socket); give a trace file")
+        with p.open("rb") as fh:
+            magic = fh.read(6)
+        if magic == b"\x93NUMPY":
+            raise InputError(sp, "not an NPZ archive (a single .npy array)")
+        zf = zipfile.ZipFile(p)
     except FileNotFoundError:
-        raise InputError(str(p), "file not found") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(str(p), f"not a readable NPZ trace ({exc})") from None
-    if not isinstance(z, np.lib.npyio.NpzFile):
-        raise InputError(str(p), "not an NPZ archive (a single .npy array)")
-    with z:
-        header = [str(c) for c in z[NPZ_COLUMNS_KEY]] if NPZ_COLUMNS_KEY in z.files else list(z.files)
-        cols = []
+        raise InputError(sp, "file not found") from None
+    except (zipfile.BadZipFile, EOFError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(sp, "not an NPZ archive (not a zip file): a trace named .npz must be written by "
+                             "virtualaxis simulate or numpy.savez") from None
+    except OSError as exc:
+        raise InputError(sp, f"cannot read ({exc.strerror or exc})") from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > NPZ_MAX_MEMBERS:
+            raise InputError(sp, f"{len(infos)} members; an NPZ trace has at most {NPZ_MAX_MEMBERS} columns")
+        members = {}
+        for info in infos:
+            name = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
+            if name in members:
+                raise InputError(sp, "the archive holds this member twice", None, name)
+            members[name] = info
+        if NPZ_COLUMNS_KEY in members:
+            info = members[NPZ_COLUMNS_KEY]
+            shape, dtype, hlen = _npy_header(zf, info, sp, NPZ_COLUMNS_KEY)
+            n = int(np.prod(shape)) if shape else 1
+            if dtype.kind != "U" or len(shape) != 1 or n > NPZ_MAX_MEMBERS or dtype.itemsize > 4 * 256:
+                raise InputError(sp, f"{NPZ_COLUMNS_KEY} must be a list of at most {NPZ_MAX_MEMBERS} column names "
+                                     f"(got {dtype} of shape {shape})", None, NPZ_COLUMNS_KEY)
+            header = [str(c) for c in _read_member(zf, info, sp, NPZ_COLUMNS_KEY)]
+        else:
+            header = list(members)
+        wanted = set(header) if columns is None else set(columns)
+        plan = []
+        rows = None
         for c in header:
-            if c not in z.files:
-                raise InputError(str(p), f"listed in {NPZ_COLUMNS_KEY} but no such array", None, c)
-            try:
-                cols.append(np.asarray(z[c], dtype=float).ravel())
-            except (TypeError, ValueError) as exc:
-                raise InputError(str(p), f"not numeric ({exc})", None, c) from None
-    if not cols:
-        raise InputError(str(p), "no columns")
-    n = len(cols[0])
-    for c, v in zip(header, cols, strict=True):
-        if len(v) != n:
-            raise InputError(str(p), f"has {len(v)} values, column {header[0]} has {n}", None, c)
-    return header, np.column_stack(cols)
+            if c not in members:
+                raise InputError(sp, f"listed in {NPZ_COLUMNS_KEY} but no such array", None, c)
+            info = members[c]
+            shape, dtype, hlen = _npy_header(zf, info, sp, c)
+            if dtype.kind not in "biuf" or dtype.hasobject or dtype.fields:
+                raise InputError(sp, f"not numeric (dtype {dtype})", None, c)
+            if len([d for d in shape if d != 1]) > 1:
+                raise InputError(sp, f"an array of shape {shape}; a trace column has one dimension", None, c)
+            n = int(np.prod(shape)) if shape else 1
+            if max_rows is not None and n > max_rows:
+                raise InputError(sp, f"{n:,} samples; at most {max_rows:,} samples per trace are read (bounded "
+                                     "memory and fit time): cut the trace into segments or decimate it", None, c)
+            if info.file_size != hlen + n * dtype.itemsize:
+                raise InputError(sp, f"the archive declares {info.file_size:,} bytes for this member, its .npy "
+                                     f"header announces {hlen + n * dtype.itemsize:,}: a damaged archive", None, c)
+            if rows is not None and n != rows:
+                raise InputError(sp, f"has {n} values, column {header[0]} has {rows}", None, c)
+            rows = n
+            if c in wanted:
+                plan.append((c, info))
+        if not header:
+            raise InputError(sp, "no columns")
+        cols = [np.asarray(_read_member(zf, info, sp, c), dtype=float).ravel() for c, info in plan]
+    data = np.column_stack(cols) if cols else np.empty((rows or 0, 0))
+    return header, data
+
+
+def _read_member(zf, info, where: str, column: str) -> np.ndarray:
+    """One member's array, after :func:`_npy_header` has checked its size."""
+    from virtualaxis.config.errors import InputError
+
+    try:
+        with zf.open(info) as fh:
+            return np.lib.format.read_array(fh, allow_pickle=False, max_header_size=NPZ_MAX_HEADER_BYTES)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, RuntimeError) as exc:
+        raise InputError(where, f"not a readable .npy array ({' '.join(str(exc).split())})", None, column) from None
 
 
 def read_trace_csv(path: str | Path) -> dict[str, np.ndarray]:
