@@ -402,8 +402,6 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
 
 #: PDU length of the requests that have a fixed one (function code, address, count / value) [bytes]
 FIXED_PDU_BYTES = {3: 5, 4: 5, 6: 5}
-#: largest MBAP length field (unit id + a PDU of at most 253 bytes)
-MAX_MBAP_LENGTH = 254
 #: requests of one connection decoded and not yet answered beyond which the connection is not read (TCP flow
 #: control holds the client back), and below which it is read again
 PIPELINE_PAUSE, PIPELINE_RESUME = 1024, 256
@@ -422,9 +420,10 @@ def pipelining_server_class(server_class):
     answered one after the other; a request pymodbus cannot decode or that has no function code of the map is
     answered in its place: exception 01 for a function code the map does not serve (0x00, 0x80..0xFF and every
     other code), 03 for a request of a served function whose PDU is too short or too long. A frame of another
-    protocol (protocol id not 0) is skipped; a length field no Modbus frame has (< 2 or > 254) leaves nothing
-    to frame by, and the bytes received are dropped. If pymodbus' handler is not the one this was written
-    for (3.16), its own is used."""
+    protocol (protocol id not 0) is skipped; a length field below 2 (no function code) leaves nothing to frame
+    by, and the bytes received are dropped. A request longer than Modbus allows (a PDU of more than 253 bytes)
+    is still framed by its length and answered (exception 03 from its count or length). If pymodbus' handler is
+    not the one this was written for (3.16), its own is used."""
     import asyncio
     import logging
     from collections import deque
@@ -467,7 +466,8 @@ def pipelining_server_class(server_class):
         def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
             # every byte is taken: the transport empties its receive buffer whenever an answer is sent (it
             # expects one request, then the answer), which lost the start of a request that had arrived in
-            # part; the incomplete frame at the end is kept here instead (at most one, < 261 bytes)
+            # part; the incomplete frame at the end is kept here instead (at most one: < 64 KiB, the length
+            # field's range)
             used = len(data)
             if self._partial:
                 data, self._partial = self._partial + data, b""
@@ -475,8 +475,8 @@ def pipelining_server_class(server_class):
             decode = self.framer.decoder.decode
             while n - total >= 7:
                 tid, pid, length, unit = struct.unpack_from(">HHHB", data, total)
-                if not 2 <= length <= MAX_MBAP_LENGTH:
-                    return used  # no frame boundary to go by: what was received is dropped
+                if length < 2:
+                    return used  # no function code, no frame boundary to go by: what was received is dropped
                 end = total + 6 + length
                 if end > n:
                     break  # the rest of this frame has not arrived yet
