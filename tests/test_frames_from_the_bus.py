@@ -99,10 +99,14 @@ def _sdo_read(bus: can.BusABC, node: int, index: int, sub: int = 0, timeout_s: f
     raise AssertionError(f"no SDO answer from node {node}")
 
 
-@pytest.mark.parametrize("bitrate", ["1000000", "0"])
-def test_every_malformed_datagram_is_counted_and_dropped_and_serve_keeps_serving(tmp_path, bitrate):
+@pytest.mark.parametrize("options", [["--bitrate", "1000000"], ["--bitrate", "0"], ["--latency-probe", "probe.npz"]],
+                         ids=["bitrate", "no-bitrate", "receive-thread"])
+def test_every_malformed_datagram_is_counted_and_dropped_and_serve_keeps_serving(tmp_path, options):
+    """With the bit-rate emulation, without it, and with a receive thread (--latency-probe: python-can's
+    Notifier reads the bus instead of the runtime's loop)."""
     out = tmp_path / "serve.json"
-    with served("--bitrate", bitrate, "--json", str(out)) as srv:
+    options = [str(tmp_path / o) if o.endswith(".npz") else o for o in options]
+    with served(*options, "--json", str(out)) as srv:
         master = can.Bus(**srv.bus_kwargs())
         raw = _sender(srv.group, srv.port)
         try:
