@@ -44,6 +44,17 @@ class MalformedFrame(can.CanOperationError):
 
 def frame_problem(msg: can.Message) -> str | None:
     """Why ``msg`` cannot be a classical CAN frame received from the bus, None when it is one."""
+    ident, dlc, stamp = msg.arbitration_id, msg.dlc, msg.timestamp
+    if (msg.is_extended_id is False and msg.is_remote_frame is False and msg.is_error_frame is False
+            and msg.is_fd is False and msg.bitrate_switch is False and msg.error_state_indicator is False
+            and type(ident) is int and 0 <= ident < 0x800 and type(dlc) is int and 0 <= dlc <= MAX_DLC
+            and type(msg.data) is bytearray and len(msg.data) == dlc and type(stamp) is float
+            and 0.0 <= stamp < math.inf):
+        return None  # (the common case, a standard data frame, in one test)
+    return _problem(msg)
+
+
+def _problem(msg: can.Message) -> str | None:
     ident = msg.arbitration_id
     if type(ident) is not int:
         return f"identifier {ident!r} is not an integer"
@@ -90,9 +101,9 @@ def decode_datagram(datagram: bytes, timestamp_s: float | None = None) -> tuple[
         raise MalformedFrame(f"datagram is not msgpack ({type(exc).__name__})") from None
     if not isinstance(fields, dict):
         raise MalformedFrame(f"datagram holds a {type(fields).__name__}, not a map of frame fields")
-    unknown = [k for k in fields if k not in DATAGRAM_FIELDS]
-    if unknown:
-        raise MalformedFrame(f"unknown frame field {str(unknown[0])[:40]!r}")
+    if not fields.keys() <= DATAGRAM_FIELDS:
+        unknown = next(k for k in fields if k not in DATAGRAM_FIELDS)
+        raise MalformedFrame(f"unknown frame field {str(unknown)[:40]!r}")
     data = fields.get("data")
     if data is not None and not isinstance(data, (bytes, bytearray)):
         raise MalformedFrame(f"data of type {type(data).__name__}, not bytes")
