@@ -176,3 +176,31 @@ def test_bus_load_never_exceeds_the_bit_rate(tmp_path):
     assert 0 < bus["peak_load_percent"] <= 100.0, bus
     assert bus["load_percent"] <= 100.0 and bus["mean_load_percent"] <= 100.0, bus
     assert bus["frames_beyond_capacity"] > 0, bus
+
+
+def test_a_slave_fed_by_its_own_notifier_counts_malformed_datagrams_as_malformed():
+    """The CiA 301 stack on its own (docs/canopen-slave-api.md: ``slave.listener()`` in a python-can Notifier)
+    on a udp_multicast bus: a malformed datagram is a malformed frame (0x2100:1), not an internal error."""
+    from served_drive import private_group
+
+    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.drive.core import DEFAULT_EDS
+    from virtualaxis.runtime.bus import open_bus
+
+    group, port = private_group()
+    bus = open_bus(f"udp_multicast:{group},port={port}")
+    slave = CanopenSlave(bus, 5, DEFAULT_EDS)
+    notifier = can.Notifier(bus, [slave.listener()], timeout=0.01)
+    raw = _sender(group, port)
+    try:
+        for name in ("id 3.5", "not msgpack", "CAN FD frame", "dlc 8, 2 data bytes"):
+            raw.send(MALFORMED[name])
+        end = time.monotonic() + 5.0
+        while slave.counters["malformed_frames"] < 4 and time.monotonic() < end:
+            time.sleep(0.01)
+        assert slave.counters["malformed_frames"] == 4
+        assert slave.counters["internal_errors"] == 0
+    finally:
+        raw.close()
+        notifier.stop()
+        bus.shutdown()
