@@ -204,3 +204,47 @@ def test_a_slave_fed_by_its_own_notifier_counts_malformed_datagrams_as_malformed
         raw.close()
         notifier.stop()
         bus.shutdown()
+
+
+@pytest.mark.parametrize("bitrate", [0, 1_000_000])
+def test_frames_of_an_in_process_bus_are_checked_by_the_runtime(bitrate):
+    """python-can's ``virtual`` bus hands over Message objects as their sender made them (``virtualaxis demo``,
+    tests): the runtime checks them itself, counts the malformed ones and routes the rest; the bit-rate
+    emulation gives them no bus time."""
+    from test_drive_rig import seed_config, seed_discrete
+
+    from virtualaxis.runtime import AxisNode, Runtime, open_bus
+    from virtualaxis.runtime.bitrate import BitRateBus
+
+    channel = f"frames-{bitrate}-{time.perf_counter_ns()}"
+    bus = open_bus(f"virtual:{channel}")
+    if bitrate:
+        bus = BitRateBus(bus, bitrate)
+    sender = can.Bus(interface="virtual", channel=channel)
+    ax = AxisNode(bus, 1, seed_config(), discrete=seed_discrete())
+    rt = Runtime(bus, [ax], lockstep=True, read_in_loop=False)
+    bad = [can.Message(arbitration_id=3.5, is_extended_id=False, data=b"\x01"),
+           can.Message(arbitration_id=0.0, is_extended_id=False, data=b"\x01\x01"),
+           can.Message(arbitration_id=0x601, is_extended_id=False, data=b"\x40", dlc=8),
+           can.Message(arbitration_id=0x900, is_extended_id=False, data=b""),
+           can.Message(arbitration_id=0x601, is_extended_id=False, data=bytes(8), is_fd=True)]
+    try:
+        rt.open()
+        for msg in bad:
+            sender.send(msg)
+        sender.send(can.Message(arbitration_id=0x601, is_extended_id=False,
+                                data=bytes((0x40, 0x00, 0x10, 0, 0, 0, 0, 0))))
+        end = time.monotonic() + 5.0
+        while rt.stats.frames_received < len(bad) + 1 and time.monotonic() < end:
+            time.sleep(0.01)
+        rt.poll_once()
+        st = rt.stats
+        assert st.frames_malformed == len(bad) and st.frames_routed == 1, st
+        assert ax.slave.counters["malformed_frames"] == len(bad)
+        assert ax.slave.counters["sdo_requests"] == 1 and ax.slave.nmt_state.name == "PRE_OPERATIONAL"
+        if bitrate:
+            assert bus.stats()["frames_received"] == 1  # only the SDO request took bus time
+    finally:
+        rt.stop()
+        sender.shutdown()
+        bus.shutdown()
