@@ -75,7 +75,9 @@ class _SlaveListener(can.Listener):
         self._slave.receive(msg)
 
     def on_error(self, exc: Exception) -> None:  # python-can calls this on a receive error; keep running
-        self._slave.counters["internal_errors"] += 1
+        from virtualaxis.runtime.frames import MalformedFrame  # (at call time: runtime imports this module)
+
+        self._slave.counters["malformed_frames" if isinstance(exc, MalformedFrame) else "internal_errors"] += 1
 
 
 def _superseded(due: list, following: list) -> bool:

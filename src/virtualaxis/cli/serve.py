@@ -94,10 +94,13 @@ def run(args) -> int:
         raise CliError(f"--status-interval must be a finite number of seconds >= 0, 0 for none (got "
                        f"{args.status_interval})")
     specs = [AxisSpec.parse(a) for a in args.axis]
+    where = [f"--axis {a!r}" for a in args.axis]  # what names each axis, for the error lines
     if args.config is not None or not specs:
         cfg_path = Path(args.config) if args.config else DEFAULT_CONFIG
         main_cfg = load_axis_config(cfg_path)
         specs.insert(0, AxisSpec(main_cfg.axis.name, args.node_id, cfg_path))
+        where.insert(0, f"{cfg_path}: axis.name")
+    _check_axis_names([s.name for s in specs], where, mqtt=args.mqtt is not None)
     ids = [s.node_id for s in specs]
     if len(set(ids)) != len(ids):
         raise ConfigError("--axis", "node id", f"node ids must be unique (got {ids})")
@@ -234,6 +237,25 @@ def run(args) -> int:
         print(f"error: {what} (drives faulted with 0x6100; tracebacks above)", file=sys.stderr, flush=True)
         return 1
     return 0
+
+
+def _check_axis_names(names: list[str], where: list[str], *, mqtt: bool) -> None:
+    """Axis names are printed in the ``ready:`` and status lines and are JSON keys: no control character (a
+    newline would start a line of its own); with ``--mqtt`` each is a topic level: letters, digits, '_', '-',
+    '.' only (no '/', no wildcard '+' / '#'). A name that breaks a rule is refused naming where it comes from."""
+    from virtualaxis.cli.main import CliError
+
+    for name, source in zip(names, where, strict=True):
+        if not name.isprintable():
+            raise CliError(f"{source}: axis name {name!r} contains a control character (names appear in the "
+                           "status lines and the JSON report)")
+        if mqtt:
+            from virtualaxis.services.mqtt import topic_name_problem
+
+            problem = topic_name_problem(name)
+            if problem is not None:
+                raise CliError(f"{source}: axis name {problem} (--mqtt publishes under "
+                               "virtualaxis/<machine>/<axis>/)")
 
 
 def _check_inputs(args, eds: Path) -> None:

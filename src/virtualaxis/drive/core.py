@@ -462,6 +462,12 @@ class Drive:
             self._axis = self.sim.state
             self._reset_all()
 
+    @property
+    def lock(self) -> threading.RLock:
+        """The drive's (re-entrant) lock: while it is held no drive cycle runs and no object changes, so
+        several reads give the values of one instant (a Modbus register image)."""
+        return self._lock
+
     def read_object(self, index: int, sub: int = 0) -> int | float:
         with self._lock:
             key = ALIASES.get((index, sub), (index, sub))

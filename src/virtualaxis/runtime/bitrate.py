@@ -16,7 +16,14 @@ so that a master that would overload a real bus sees the delays and the overload
   (``stuffing="computed"``, the default: the CRC-15 is computed and every run of 5 equal bits from SOF to the
   CRC gets one stuff bit) or the worst case (``stuffing="worst"``: one per 4 bits after the first).
 - Frames received from other nodes take bus time too: they push the idle time of the timeline and count in
-  the bus load.
+  the bus load. A frame that is not a classical CAN frame (:func:`~virtualaxis.runtime.frames.frame_problem`)
+  never was on the wire: it takes no bus time (the runtime counts it as malformed).
+- Bus load: every frame (sent or received) occupies an interval of the wire as long as its bits; intervals
+  never overlap (a received frame that ended, by its timestamp, while the wire was still busy is placed right
+  after), so no window holds more bits than the bit rate carries: the load is at most 100 %. Frames that
+  other nodes deliver faster than the bit rate could carry them (a host-local bus has no wire) queue up on
+  the wire; those that would end more than :data:`LOAD_WINDOW_S` in the future are counted in
+  ``frames_beyond_capacity`` instead.
 - :meth:`stats`: bus load in percent of the bit rate over the last second and since the start, its peak
   (per 1 s window), frames and bits sent and received, the queueing delay of this node's frames (mean / max)
   and frames refused because the transmit queue was full (:data:`TX_QUEUE_LIMIT`; ``send`` then raises
@@ -32,6 +39,8 @@ import time
 from collections import deque
 
 import can
+
+from virtualaxis.runtime.frames import frame_problem
 
 #: frames waiting for the bus beyond which ``send`` refuses (a controller's transmit buffer) [frames]
 TX_QUEUE_LIMIT = 1024
@@ -160,9 +169,15 @@ class BitRateBus(can.BusABC):
         self._ready: list[tuple[int, int, float, can.Message, int]] = []
         self._seq = 0
         self._idle_s = time.perf_counter()   # the bus timeline: when the last frame (any node) ended
-        self._window: deque[tuple[float, int]] = deque()  # (end of frame, bits) inside LOAD_WINDOW_S
-        self._window_bits = 0
+        #: frames on the wire (load accounting): (start, end, bits), non-overlapping, in order; the last
+        #: LOAD_WINDOW_S and any still ahead of the present
+        self._window: deque[tuple[float, float, int]] = deque()
         self._t0 = time.perf_counter()
+        self._wire_end_s = self._t0  # end of the last frame on the wire
+        self._wire_bits = 0  # bits of every frame put on the wire
+        self.frames_beyond_capacity = 0
+        #: the wrapped bus checks every frame it delivers (runtime.frames); else they are checked here
+        self.checks_frames = bool(getattr(inner, "checks_frames", False))
         self.frames_tx = self.frames_rx = self.bits_tx = self.bits_rx = 0
         self.tx_refused = 0
         self.queue_max = 0
@@ -201,6 +216,8 @@ class BitRateBus(can.BusABC):
         timestamp (timeline, load). Placed at the moment it is handled instead, the frames that wait in the
         socket while this process is stalled made a backlog the wire never had: with the default 1 Mbit/s, two
         CSP axes at 1 ms SYNC (25 % load) then queued their TPDOs for seconds after a 1 s stall of ``serve``."""
+        if not self.checks_frames and frame_problem(msg) is not None:
+            return  # (no frame on the wire; the runtime counts it as malformed)
         bits = frame_bits(msg, self.stuffing)
         now = time.perf_counter()
         end = now
@@ -214,7 +231,7 @@ class BitRateBus(can.BusABC):
             self.bits_rx += bits
             if end > self._idle_s:  # (a frame that ended before the bus fell idle only counts for the load)
                 self._idle_s = end
-            self._account(end, bits)
+            self._account(end, bits, now)
 
     def fileno(self) -> int:
         return self.inner.fileno()
@@ -246,19 +263,34 @@ class BitRateBus(can.BusABC):
         super().shutdown()
 
     # ------------------------------------------------------------------ the wire
-    def _account(self, end_s: float, bits: int) -> None:
+    def _account(self, end_s: float, bits: int, now: float) -> None:
+        """A frame of ``bits`` that ended at ``end_s`` on the wire (load): placed after the previous frame if
+        they would overlap (see the module doc); under the lock."""
+        duration = bits / self.bitrate
+        end = max(end_s, self._wire_end_s + duration, self._t0 + duration)
+        if end > now + LOAD_WINDOW_S:
+            self.frames_beyond_capacity += 1
+            return
+        self._wire_end_s = end
+        self._wire_bits += bits
         window = self._window
-        window.append((end_s, bits))
-        self._window_bits += bits
-        horizon = end_s - LOAD_WINDOW_S
+        window.append((end - duration, end, bits))
+        horizon = now - LOAD_WINDOW_S
         while window and window[0][0] < horizon:
-            self._window_bits -= window.popleft()[1]
-        if end_s - self._peak_checked_s >= 0.1:   # peak of the 1 s load, sampled every 0.1 s
-            self._peak_checked_s = end_s
-            if end_s - self._t0 >= LOAD_WINDOW_S:
-                load = self._window_bits / (self.bitrate * LOAD_WINDOW_S)
+            window.popleft()
+        if now - self._peak_checked_s >= 0.1:   # peak of the 1 s load, sampled every 0.1 s
+            self._peak_checked_s = now
+            if now - self._t0 >= LOAD_WINDOW_S:
+                load = self._load_at(now)
                 if load > self.peak_load:
                     self.peak_load = load
+
+    def _load_at(self, now: float) -> float:
+        """Fraction of the last :data:`LOAD_WINDOW_S` before ``now`` (since the start, if shorter) the wire
+        was busy: the frames that lie wholly inside it; under the lock."""
+        since = max(now - LOAD_WINDOW_S, self._t0)
+        bits = sum(b for start, end, b in self._window if start >= since and end <= now)
+        return bits / (self.bitrate * max(now - since, 1e-3))
 
     def _transmitter(self) -> None:
         lock = self._lock
@@ -294,33 +326,35 @@ class BitRateBus(can.BusABC):
                 self.delay_sum_s += delay
                 if delay > self.delay_max_s:
                     self.delay_max_s = delay
-                self._account(end, bits)
+                self._account(end, bits, perf())
 
     # ------------------------------------------------------------------ report
     def load(self) -> float:
-        """Bus load over the last second [fraction of the bit rate; > 1 means more than the bus can carry]."""
+        """Bus load over the last second [fraction of the bit rate, at most 1]."""
         now = time.perf_counter()
         with self._lock:
-            bits = sum(b for t, b in self._window if t >= now - LOAD_WINDOW_S)
-        return bits / (self.bitrate * min(LOAD_WINDOW_S, max(now - self._t0, 1e-3)))
+            return self._load_at(now)
 
     def stats(self) -> dict:
         """Bus load [%], frames, bits and this node's queueing delays [ms] (JSON-ready)."""
-        elapsed = max(time.perf_counter() - self._t0, 1e-9)
-        load = self.load()
+        now = time.perf_counter()
+        elapsed = max(now - self._t0, 1e-3)
         with self._lock:
+            load = self._load_at(now)
+            wire_bits = self._wire_bits - sum(b for _start, end, b in self._window if end > now)
             return {
                 "bitrate_bit_s": self.bitrate,
                 "stuffing": self.stuffing,
                 "load_percent": round(100.0 * load, 2),
                 "peak_load_percent": round(100.0 * max(self.peak_load, load), 2),
-                "mean_load_percent": round(100.0 * (self.bits_tx + self.bits_rx) / (self.bitrate * elapsed), 2),
+                "mean_load_percent": round(100.0 * wire_bits / (self.bitrate * elapsed), 2),
                 "frames_sent": self.frames_tx,
                 "frames_received": self.frames_rx,
                 "bits_sent": self.bits_tx,
                 "bits_received": self.bits_rx,
                 "tx_queue_max": self.queue_max,
                 "tx_refused": self.tx_refused,
+                "frames_beyond_capacity": self.frames_beyond_capacity,
                 "tx_delay_mean_ms": round(1e3 * self.delay_sum_s / self.frames_tx, 4) if self.frames_tx else 0.0,
                 "tx_delay_max_ms": round(1e3 * self.delay_max_s, 4),
             }

@@ -24,6 +24,8 @@ from typing import Any
 import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 
+from virtualaxis.runtime.frames import MalformedFrame, decode_datagram
+
 try:
     import msgpack
 except ImportError:  # (python-can's udp_multicast refuses to open without it)
@@ -68,6 +70,8 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"
         self.own_frames_dropped = 0
         self.malformed_dropped = 0
+        #: every frame this bus delivers is a checked classical CAN frame (runtime.frames)
+        self.checks_frames = True
         sock = getattr(getattr(self, "_multicast", None), "_socket", None)
         if sock is not None:
             try:
@@ -95,15 +99,18 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         """Every frame waiting in the socket (at most ``limit``), without blocking: one non-blocking
         ``recvmsg`` per datagram and no ``select`` (python-can's ``recv`` does one of each per frame), own
         frames dropped before a Message is built. Decoded as python-can's udp_multicast does (msgpack, the
-        kernel's receive timestamp); a datagram that does not decode is counted in :attr:`malformed_dropped`
-        and reported to ``on_error`` (as a receive thread's listener would be told), the rest still read.
+        kernel's receive timestamp); a datagram that is not a classical CAN frame
+        (:func:`~virtualaxis.runtime.frames.decode_datagram`: undecodable, a CAN FD frame, a non-integer or
+        out-of-range identifier, a DLC that does not match the data, ...) is counted in :attr:`malformed_dropped`
+        and reported to ``on_error`` as :class:`~virtualaxis.runtime.frames.MalformedFrame` (as a receive
+        thread's listener would be told), the rest still read.
 
         An own frame is recognised in the raw datagram, before decoding, by the packed ``"channel"`` key
         followed by this bus's packed tag (a msgpack decode costs more than the whole rest of a frame's
         reception). Those 18+ bytes cannot come from a classic frame's data (at most 8 bytes, between fixed
-        keys); only a CAN FD payload could hold them, and CAN FD frames are dropped here anyway."""
+        keys); only a CAN FD payload could hold them, and CAN FD frames are malformed here anyway."""
         out: list[can.Message] = []
-        sock, tag, unpackb, marker = self._sock, self.own_tag, msgpack.unpackb, self._own_marker
+        sock, tag, marker = self._sock, self.own_tag, self._own_marker
         flags = socket.MSG_DONTWAIT
         for _ in range(limit):
             try:
@@ -114,20 +121,18 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
                 self.own_frames_dropped += 1
                 continue
             try:
-                fields = unpackb(data, raw=False)
-                if fields.get("channel") == tag:  # (a packing that differs from python-can's: still dropped)
-                    self.own_frames_dropped += 1
-                    continue
+                stamp = None
                 if anc:
                     sec, nsec = self._ts_struct.unpack(anc[0][2])
-                    fields["timestamp"] = sec + nsec * 1e-9
-                msg = can.Message(check=True, **fields)
-            except Exception as exc:  # noqa: BLE001 - a foreign datagram: counted, not fatal
+                    stamp = sec + nsec * 1e-9
+                msg, channel = decode_datagram(data, stamp)
+            except MalformedFrame as exc:  # a foreign datagram: counted, reported, not fatal
                 self.malformed_dropped += 1
                 if on_error is not None:
-                    on_error(can.CanOperationError(f"could not unpack received message: {exc}"))
+                    on_error(exc)
                 continue
-            if msg.is_fd:  # CAN FD is off on this bus (as python-can's recv drops it)
+            if channel == tag:  # (a packing that differs from python-can's: still dropped)
+                self.own_frames_dropped += 1
                 continue
             out.append(msg)
         return out
@@ -137,11 +142,22 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
         super().send(msg, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        msg, filtered = super()._recv_internal(timeout)
-        if msg is not None and msg.channel == self.own_tag:
+        """python-can's reception (socket, kernel timestamp), decoded and checked as :meth:`drain` does: a
+        malformed datagram raises :class:`~virtualaxis.runtime.frames.MalformedFrame` (counted in
+        :attr:`malformed_dropped`; a ``can.Notifier`` hands it to its listeners' ``on_error``)."""
+        result = self._multicast.recv(timeout)
+        if not result:
+            return None, False
+        data, _addr, stamp = result
+        try:
+            msg, channel = decode_datagram(data, stamp)
+        except MalformedFrame:
+            self.malformed_dropped += 1
+            raise
+        if channel == self.own_tag:
             self.own_frames_dropped += 1
             return None, False
-        return msg, filtered
+        return msg, False
 
 
 #: options whose value python-can needs as an integer (name -> accepted range); any interface

@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 import can
 
 from virtualaxis.runtime.axes import AxisNode
+from virtualaxis.runtime.frames import MalformedFrame, frame_problem
 
 log = logging.getLogger("virtualaxis.runtime")
 #: EMCY / fault code of an exception in the drive cycle (CiA 301: 0x6100 internal software)
@@ -115,6 +116,13 @@ class RuntimeStats:
     drive_exceptions: int = 0  # exceptions caught from drive cycles (all axes); each faults its drive
     last_exception: str = ""  # "axis X: ValueError: ..." of the latest one
     thread_error: str = ""  # traceback of an exception that stopped the runtime thread ("" = never)
+    # every frame taken from the bus: received = routed + unrouted + error_frames + malformed
+    frames_received: int = 0  # frames (and datagrams) taken from the bus
+    frames_routed: int = 0  # handed to the axes that listen to their COB-ID
+    frames_unrouted: int = 0  # well-formed, for no axis (other COB-IDs, 29-bit identifiers): dropped
+    error_frames: int = 0  # CAN error frames: dropped
+    frames_malformed: int = 0  # no classical CAN frame (runtime.frames): dropped, in every axis' 0x2100:1
+    last_malformed: str = ""  # why the latest malformed frame was dropped
     started_s: float = field(default_factory=time.perf_counter)
 
     def as_dict(self) -> dict:
@@ -132,6 +140,12 @@ class RuntimeStats:
             "drive_exceptions": self.drive_exceptions,
             "last_exception": self.last_exception,
             "thread_error": self.thread_error,
+            "frames_received": self.frames_received,
+            "frames_routed": self.frames_routed,
+            "frames_unrouted": self.frames_unrouted,
+            "error_frames": self.error_frames,
+            "frames_malformed": self.frames_malformed,
+            "last_malformed": self.last_malformed,
         }
 
 
@@ -145,17 +159,27 @@ def _receive_fd(bus: can.BusABC) -> int:
 
 
 class _Router(can.Listener):
-    """One listener for every axis of the bus: a frame goes only to the slaves that listen to its COB-ID
-    (cached per COB-ID, the cache dropped whenever a slave's COB-IDs change) and wakes the loop only then.
-    Frames for no axis are counted in ``unrouted`` and dropped (a node's controller filters them too)."""
+    """One listener for every axis of the bus: every frame taken from the bus is counted in ``stats``
+    (:class:`RuntimeStats`) and either handed to the slaves that listen to its COB-ID (cached per COB-ID, the
+    cache dropped whenever a slave's COB-IDs change; the loop woken only then) or dropped: a malformed frame
+    (:func:`~virtualaxis.runtime.frames.frame_problem`, also counted in every axis' 0x2100 malformed frames),
+    an error frame, a 29-bit frame or a frame for no axis (a node's controller filters them too).
+    ``checked``: the bus has checked its frames already (``checks_frames``)."""
 
-    def __init__(self, slaves: list, event: threading.Event):
+    def __init__(self, slaves: list, event: threading.Event, stats: RuntimeStats | None = None,
+                 checked: bool = False):
         self.slaves = slaves
         self.event = event
+        self.stats = stats if stats is not None else RuntimeStats()
+        self.checked = checked
         self.routes: dict[int, tuple] = {}
-        self.unrouted = 0
         for slave in slaves:
             slave.on_dispatch_change = self.routes.clear
+
+    @property
+    def unrouted(self) -> int:
+        """Well-formed frames for no axis (error frames and 29-bit frames included)."""
+        return self.stats.frames_unrouted + self.stats.error_frames
 
     def on_message_received(self, msg: can.Message) -> None:
         """A frame from a receive thread: to its slaves, then the loop woken."""
@@ -165,8 +189,18 @@ class _Router(can.Listener):
     def route(self, msg: can.Message) -> bool:
         """A frame to the slaves that listen to its COB-ID (the loop reading the bus itself: no wake-up);
         True when some slave took it."""
-        if msg.is_extended_id or msg.is_error_frame:
-            self.unrouted += 1
+        stats = self.stats
+        stats.frames_received += 1
+        if not self.checked:
+            problem = frame_problem(msg)
+            if problem is not None:
+                self.malformed(problem)
+                return False
+        if msg.is_error_frame:
+            stats.error_frames += 1
+            return False
+        if msg.is_extended_id:
+            stats.frames_unrouted += 1
             return False
         cob = msg.arbitration_id
         targets = self.routes.get(cob)
@@ -174,13 +208,29 @@ class _Router(can.Listener):
             targets = tuple(s for s in self.slaves if s.listens_to(cob))
             self.routes[cob] = targets
         if not targets:
-            self.unrouted += 1
+            stats.frames_unrouted += 1
             return False
+        stats.frames_routed += 1
         for slave in targets:
             slave.receive(msg)
         return True
 
+    def malformed(self, reason: str) -> None:
+        """A frame from the bus that is no classical CAN frame: counted (the runtime's and every axis'
+        0x2100 malformed frames) and dropped."""
+        stats = self.stats
+        stats.frames_malformed += 1
+        stats.last_malformed = reason[:200]
+        for slave in self.slaves:
+            slave.counters["malformed_frames"] += 1
+
     def on_error(self, exc: Exception) -> None:
+        """A receive error: a malformed frame the bus refused to decode (:class:`MalformedFrame`: counted as a
+        frame received and malformed), else an error of the bus itself (every axis' internal errors)."""
+        if isinstance(exc, MalformedFrame):
+            self.stats.frames_received += 1
+            self.malformed(str(exc))
+            return
         for slave in self.slaves:
             slave.counters["internal_errors"] += 1
 
@@ -246,7 +296,8 @@ class Runtime:
         if self._opened:
             return
         self._opened = True
-        self.router = _Router([ax.slave for ax in self.axes], self._wake)
+        self.router = _Router([ax.slave for ax in self.axes], self._wake, self.stats,
+                              checked=bool(getattr(self.bus, "checks_frames", False)))
         self._fd = _receive_fd(self.bus) if self.read_in_loop else -1
         if self._fd >= 0:
             self._bus_drain = getattr(self.bus, "drain", None)
@@ -431,7 +482,7 @@ class Runtime:
                 if msg is None:
                     return
                 route(msg)
-        except (can.CanError, OSError, ValueError) as exc:  # a receive error: counted, the loop goes on
+        except Exception as exc:  # noqa: BLE001 - a receive error: counted, the loop goes on
             router.on_error(exc)
 
     def _frames_waiting(self) -> bool:

@@ -44,7 +44,8 @@ DEFAULT_ADDRESS = ("127.0.0.1", 5020)
 GATEWAY_NO_RESPONSE = 0x0B
 
 # pipe protocol (server process -> serve): ">IBBBHH" request id, op (0 read, 1 write, 2 count error,
-# 3 unsupported function), unit, function code, address, count, then the write values (">H" each).
+# 3 unsupported function, 4 request of a wrong length), unit, function code, address, count, then the write
+# values (">H" each).
 # Reply: ">I" request id, then b"\x00" + words (">H" each) or b"\x01" + exception code. Several requests may be
 # in flight (one per client connection); serve answers them in arrival order.
 _REQ = struct.Struct(">IBBBHH")
@@ -97,12 +98,12 @@ class RegisterAccess:
         self.writable = writable
 
     def handle(
-        self, op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int], views: dict | None = None
+        self, op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int]
     ) -> bytes:
-        """One access. ``views``: unit -> snapshot shared by the accesses answered together (reads of one batch
-        see one drive state; a write empties it)."""
+        """One access. Each read sees one drive instant (the drive's lock held while it reads its registers)."""
         from virtualaxis.services.modbus_map import (
             REASON_BAD_COUNT,
+            REASON_BAD_LENGTH,
             REASON_UNSUPPORTED_FUNCTION,
             REASON_WRITES_DISABLED,
             RegisterError,
@@ -120,20 +121,16 @@ class RegisterAccess:
                 raise RegisterError(REASON_UNSUPPORTED_FUNCTION, f"function {fc} not supported", address=address)
             if op == 2:
                 raise RegisterError(REASON_BAD_COUNT, f"count {count} out of range", address=address)
+            if op == 4:
+                raise RegisterError(REASON_BAD_LENGTH, f"function {fc}: request of a wrong length", address=address)
             if op == 0:
                 if not 1 <= count <= 125:
                     raise RegisterError(REASON_BAD_COUNT, f"count {count} out of 1..125", address=address)
-                view = None
-                if views is not None:
-                    view = views.get(unit)
-                    if view is None:
-                        view = views[unit] = View(link)
-                words = read_block(link, address, count, view)
+                with link.drive.lock:  # one read, one drive instant (state and objects)
+                    words = read_block(link, address, count, View(link))
                 return b"\x00" + struct.pack(f">{len(words)}H", *words)
             if not self.writable:
                 raise RegisterError(REASON_WRITES_DISABLED, "writes are disabled", address=address)
-            if views is not None:
-                views.clear()
             write_block(link, address, list(values))
             return b"\x00"
         except RegisterError as exc:
@@ -220,8 +217,8 @@ class ModbusService:
         return self
 
     def _serve_bridge(self) -> None:
-        """Answer forwarded accesses; the ones waiting together are answered in one go (one drive snapshot per
-        unit for their reads), so a burst of clients costs the drive's process one wake-up, not one each."""
+        """Answer forwarded accesses; the ones waiting together are answered in one go (each read one drive
+        instant), so a burst of clients costs the drive's process one wake-up, not one each."""
         conn, handle = self._conn, self.access.handle
         unpack = _REQ.unpack_from
         size = _REQ.size
@@ -232,14 +229,13 @@ class ModbusService:
                     batch.append(conn.recv_bytes())
             except (EOFError, OSError):
                 return
-            views: dict = {}
             replies = []
             touched: set[int] = set()
             for msg in batch:
                 rid, op, unit, fc, address, count = unpack(msg)
                 values = struct.unpack_from(f">{(len(msg) - size) // 2}H", msg, size) if len(msg) > size else ()
                 try:
-                    reply = handle(op, unit, fc, address, count, values, views)
+                    reply = handle(op, unit, fc, address, count, values)
                 except Exception:  # noqa: BLE001 - never a dead bridge: device failure, as pymodbus does
                     reply = bytes((1, 0x04))
                 replies.append(struct.pack(">I", rid) + reply)
@@ -404,52 +400,116 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
             pass
 
 
+#: PDU length of the requests that have a fixed one (function code, address, count / value) [bytes]
+FIXED_PDU_BYTES = {3: 5, 4: 5, 6: 5}
+#: requests of one connection decoded and not yet answered beyond which the connection is not read (TCP flow
+#: control holds the client back), and below which it is read again
+PIPELINE_PAUSE, PIPELINE_RESUME = 1024, 256
+
+
 def pipelining_server_class(server_class):
     """``server_class`` (pymodbus' ModbusTcpServer) whose connections answer every request a client sends
-    without waiting for the answers (pipelining, which the Modbus TCP implementation guide allows), in order.
+    without waiting for the answers (pipelining, which the Modbus TCP implementation guide allows), in order,
+    however many arrive at once.
 
-    pymodbus' own request handler decodes one frame per arrival of bytes and keeps one pending request per
-    connection (``last_pdu``), which the next request overwrites while the first one's (asynchronous) datastore
-    access runs: of several requests in flight only one was answered. Here every complete frame of an arrival is
-    decoded, each request is queued with its address, and a connection's requests are handled one after the
-    other. If pymodbus' handler is not the one this was written for (3.16), its own is used."""
+    pymodbus' own request handler decodes one frame per arrival of bytes, keeps one pending request per
+    connection (``last_pdu``, which the next request overwrites while the first one's asynchronous datastore
+    access runs) and drops a receive buffer longer than one frame (264 bytes: the 23rd request of one TCP
+    segment and all before it went unanswered). Here the connection frames the byte stream itself (MBAP
+    header: transaction id, protocol id, length, unit id): every complete request is queued in order and
+    answered one after the other; a request pymodbus cannot decode or that has no function code of the map is
+    answered in its place: exception 01 for a function code the map does not serve (0x00, 0x80..0xFF and every
+    other code), 03 for a request of a served function whose PDU is too short or too long. A frame of another
+    protocol (protocol id not 0) is skipped; a length field below 2 (no function code) leaves nothing to frame
+    by, and the bytes received are dropped. A request longer than Modbus allows (a PDU of more than 253 bytes)
+    is still framed by its length and answered (exception 03 from its count or length). If pymodbus' handler is
+    not the one this was written for (3.16), its own is used."""
     import asyncio
     import logging
     from collections import deque
 
     try:
         from pymodbus.exceptions import NoSuchIdException
-        from pymodbus.pdu import ExceptionResponse
+        from pymodbus.pdu import ExceptionResponse, ModbusPDU
         from pymodbus.server.requesthandler import ServerRequestHandler
     except ImportError:  # another pymodbus: its own handler
         return server_class
-    if not all(hasattr(ServerRequestHandler, name) for name in ("callback_data", "handle_request", "server_send")):
+    if not all(hasattr(ServerRequestHandler, name) for name in ("callback_data", "handle_request", "server_send",
+                                                                "handle_later")):
         return server_class
+
+    class Refusal(ModbusPDU):
+        """A request answered with an exception without decoding it: recorded in the unit's last-error
+        registers (forwarded as ``op``: 3 an unsupported function, 4 a request of a wrong length) and answered
+        with the code the map gives."""
+
+        def __init__(self, function_code: int, op: int, dev_id: int, transaction_id: int):
+            super().__init__(dev_id=dev_id, transaction_id=transaction_id)
+            self.function_code = function_code
+            self.op = op
+
+        async def datastore_update(self, context, device_id):
+            reply = await context.call(self.op, device_id, self.function_code, 0, 0)
+            return ExceptionResponse(self.function_code, _exc(reply[1] if reply[0] else 0x04))
 
     class OrderedRequestHandler(ServerRequestHandler):
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             self._requests: deque = deque()  # (pdu, addr) decoded, not yet answered
             self._one_at_a_time = asyncio.Lock()
+            self._paused = False
+            self._partial = b""  # the start of a frame whose rest has not arrived
+            # the transport drops a receive buffer longer than this: one socket read of pipelined requests
+            # (asyncio reads up to 256 KiB at a time) must stay whole
+            self.max_buffer_size = 1 << 20
 
         def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
-            # pymodbus' transport hands over the whole receive buffer once per arrival and its handler decodes
-            # one frame of it (the rest waited for the client's next bytes): every complete frame here
-            total = 0
-            while total < len(data):
-                used = super().callback_data(data[total:], addr)  # one frame -> last_pdu, handle_request due
-                if self.last_pdu is not None:
-                    self._requests.append((self.last_pdu, self.last_addr))
-                if used <= 0:
-                    break
-                total += used
-            return total
+            # every byte is taken: the transport empties its receive buffer whenever an answer is sent (it
+            # expects one request, then the answer), which lost the start of a request that had arrived in
+            # part; the incomplete frame at the end is kept here instead (at most one: < 64 KiB, the length
+            # field's range)
+            used = len(data)
+            if self._partial:
+                data, self._partial = self._partial + data, b""
+            total, n = 0, len(data)
+            decode = self.framer.decoder.decode
+            while n - total >= 7:
+                tid, pid, length, unit = struct.unpack_from(">HHHB", data, total)
+                if length < 2:
+                    return used  # no function code, no frame boundary to go by: what was received is dropped
+                end = total + 6 + length
+                if end > n:
+                    break  # the rest of this frame has not arrived yet
+                pdu_bytes = data[total + 7 : end]
+                total = end
+                if pid != 0:
+                    continue  # not a Modbus frame
+                fc = pdu_bytes[0]
+                if fc not in SUPPORTED_FUNCTIONS:
+                    request = Refusal(fc, 3, unit, tid)
+                else:
+                    fixed = FIXED_PDU_BYTES.get(fc)
+                    request = decode(pdu_bytes) if fixed is None or len(pdu_bytes) == fixed else None
+                    if request is None:
+                        request = Refusal(fc, 4, unit, tid)
+                    else:
+                        request.dev_id, request.transaction_id = unit, tid
+                self._requests.append((request, addr))
+                self.loop.call_soon(self.handle_later)
+            self._partial = data[total:]
+            if len(self._requests) > PIPELINE_PAUSE and not self._paused and self.transport is not None:
+                self._paused = True
+                self.transport.pause_reading()
+            return used
 
         async def handle_request(self) -> None:
             async with self._one_at_a_time:
                 if not self._requests:
                     return
                 pdu, addr = self._requests.popleft()
+                if self._paused and len(self._requests) < PIPELINE_RESUME and self.transport is not None:
+                    self._paused = False
+                    self.transport.resume_reading()
                 try:
                     response = await pdu.datastore_update(self.server.context, pdu.dev_id)
                 except NoSuchIdException:

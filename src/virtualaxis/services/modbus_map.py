@@ -52,6 +52,7 @@ REASON_PARTIAL_PAIR = 6  # 03: a write covers only one half of a 32-bit register
 REASON_UNKNOWN_REGISTER = 7  # 02: unknown register or a range that crosses a hole
 REASON_BAD_COUNT = 8  # 03: register count out of range for the function
 REASON_UNSUPPORTED_FUNCTION = 9  # 01: function code not supported
+REASON_BAD_LENGTH = 10  # 03: the request's PDU is too short or too long for its function
 
 REASONS: dict[int, tuple[int, str]] = {
     REASON_NONE: (0, "no error since start"),
@@ -64,6 +65,7 @@ REASONS: dict[int, tuple[int, str]] = {
     REASON_UNKNOWN_REGISTER: (2, "unknown register, or the range crosses a hole in the map"),
     REASON_BAD_COUNT: (3, "register count out of range (FC03/04: 1..125, FC16: 1..123, FC23: 1..125 / 1..121)"),
     REASON_UNSUPPORTED_FUNCTION: (1, "function code not supported (only 03, 04, 06, 16, 23)"),
+    REASON_BAD_LENGTH: (3, "request too short or too long for its function code"),
 }
 
 
@@ -100,6 +102,7 @@ CIA402_STATE_CODES = {
 }
 
 STW1_TO_CONTROLWORD_MASK = 0x008F  # bits 0-3 (ON/OFF1, OFF2, OFF3, enable operation) and 7 (acknowledge)
+STW1_CONTROL_BY_PLC = 0x0400  # bit 10: the PLC (this Modbus writer) takes control; 0: the write's bits are ignored
 
 
 def saturate(value: float, dtype: str) -> int:
@@ -334,8 +337,12 @@ def _fe_tolerance_um(v: View) -> float:
 
 
 def _write_stw1(link: AxisLink, value: int) -> None:
-    """STW1: bits 0-3 and 7 go to the CiA 402 controlword 0x6040. Bit 7 acknowledges faults on every write
-    that has it set (a rising edge is made if the controlword already had bit 7)."""
+    """STW1 with bit 10 "control by PLC" set: bits 0-3 and 7 go to the CiA 402 controlword 0x6040. Bit 7
+    acknowledges faults on every write that has it set (a rising edge is made if the controlword already had
+    bit 7). Bit 10 = 0: the writer does not take control (SINAMICS r0054.10); the write changes nothing (a
+    CANopen master that drives the axis keeps it)."""
+    if not value & STW1_CONTROL_BY_PLC:
+        return
     drive = link.drive
     cw = value & STW1_TO_CONTROLWORD_MASK
     if cw & 0x80 and drive.state.controlword & 0x80:
@@ -344,7 +351,8 @@ def _write_stw1(link: AxisLink, value: int) -> None:
 
 
 def _check_stw1(link: AxisLink, value: int) -> None:
-    link.drive.check_object_write(0x6040, 0, value & STW1_TO_CONTROLWORD_MASK)
+    if value & STW1_CONTROL_BY_PLC:
+        link.drive.check_object_write(0x6040, 0, value & STW1_TO_CONTROLWORD_MASK)
 
 
 def _write_reference_speed(link: AxisLink, value: int) -> None:
@@ -447,8 +455,9 @@ def _r(number, name, dtype, scaling, meaning, read, write=None, source=""):
 
 REGISTERS: tuple[Register, ...] = (
     # ---- process data: control (40100 ...)
-    _r(40100, "STW1", "bits", "bits", "control word 1: bits 0-3 and 7 -> CiA 402 controlword 0x6040 "
-       "(0 ON/OFF1, 1 OFF2, 2 OFF3, 3 enable operation, 7 acknowledge fault); reads 0x6040",
+    _r(40100, "STW1", "bits", "bits", "control word 1: with bit 10 (control by PLC) set, bits 0-3 and 7 -> "
+       "CiA 402 controlword 0x6040 (0 ON/OFF1, 1 OFF2, 2 OFF3, 3 enable operation, 7 acknowledge fault); bit 10 "
+       "= 0: the write is ignored; reads 0x6040",
        lambda v: v.s.controlword, _write_stw1, "r0054 / 0x6040"),
     _r(40101, "NSOLL_A", "i16", "0x4000 = 100 % of the reference speed (40324)",
        "speed set-point: reads the drive's speed demand; writes target velocity 0x60FF (PV / CSV modes)",
@@ -777,9 +786,12 @@ def render_markdown() -> str:
         "- Writes are checked exactly like an SDO download of the drive object named in the *source* column "
         "and apply live to the running drive. A multi-register write is checked completely before anything is "
         "applied: a refused request changes nothing.",
-        "- STW1 (40100): bits 0-3 and 7 are written to the CiA 402 controlword 0x6040; the other bits are "
-        "ignored. Every write with bit 7 set acknowledges faults (rising edge; a fault whose cause persists "
-        "stays, as on the drive). `0x047E` = ready (shutdown), `0x047F` = run (switch on + enable operation).",
+        "- STW1 (40100): as on a SINAMICS drive, bit 10 (control by PLC) says whether the writer takes control. "
+        "Bit 10 = 1: bits 0-3 and 7 are written to the CiA 402 controlword 0x6040; the other bits are ignored. "
+        "Bit 10 = 0: the write is answered normally and changes nothing (a CANopen master that drives the axis "
+        "keeps it; a Modbus writer cannot switch the axis off by writing 0). Every write with bits 10 and 7 set "
+        "acknowledges faults (rising edge; a fault whose cause persists stays, as on the drive). `0x047E` = "
+        "ready (shutdown), `0x047F` = run (switch on + enable operation), `0x0400` = off (OFF1).",
         "- The speed normalisation of 40101 / 40111 uses the reference speed 40324 (default: the motor's rated "
         "speed); for a linear motor one revolution is 10 mm of travel.",
         "- Fault injection 40600-40609 is the CANopen channel 0x5FF0..0x5FF6 (docs/fault-injection.md) on Modbus: "
@@ -794,11 +806,12 @@ def render_markdown() -> str:
         "",
         "| exception | when | 40499 reason |",
         "|---|---|---|",
-        "| 01 illegal function | a function code other than 03, 04, 06, 16, 23 | 9 |",
+        "| 01 illegal function | a function code other than 03, 04, 06, 16, 23 (0x00 and 0x80..0xFF too) | 9 |",
         "| 02 illegal data address | a register that is not in the map, or a range that crosses a hole | 7 |",
         "| 03 illegal data value | count out of range (FC03/04 1..125, FC16 1..123, FC23 read 1..125 / write "
         "1..121), a value outside the register's range, a write covering half of a 32-bit value, a value the "
-        "drive refuses (SDO abort 0x06090030/31/32; an unknown fault kind number) | 8, 5, 6, 4 |",
+        "drive refuses (SDO abort 0x06090030/31/32; an unknown fault kind number), a request too short or too "
+        "long for its function code | 8, 5, 6, 4, 10 |",
         "| 04 server device failure | a write while writes are disabled, a write to a read-only register, a "
         "write the drive refuses in its present state (SDO abort 0x08000022; fault injection not allowed) | 1, 2, 3 |",
         "",

@@ -104,7 +104,7 @@ class MqttSettings:
                 f"--telemetry-buffer: {self.buffer_samples} samples must hold at least one batch "
                 f"(--telemetry-batch {self.batch_size})"
             )
-        if not re.fullmatch(r"[A-Za-z0-9_.\-]+", self.machine):
+        if not TOPIC_NAME.fullmatch(self.machine):
             raise MqttSettingsError(f"--machine {self.machine!r}: use letters, digits, '_', '-', '.'")
 
 
@@ -185,8 +185,35 @@ FAULT_COMMANDS_IN_FLIGHT = 16  # per axis: commands forwarded to serve and not a
 ABORT_DEVICE_STATE = 0x08000022  # (drive.injection's codes; this module must not import the drive)
 
 
+#: magnitude range of a fault command: the i32 of 0x5FF4 (CANopen) and 40603-40604 (Modbus)
+MAGNITUDE_MIN, MAGNITUDE_MAX = -(2**31), 2**31 - 1
+#: what an axis or machine name in a topic may hold (no topic level separator, no wildcard, no control character)
+TOPIC_NAME = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
+def topic_name_problem(name: str) -> str | None:
+    """Why ``name`` cannot be a level of a topic of this service (None: it can)."""
+    if TOPIC_NAME.fullmatch(name):
+        return None
+    return f"{name!r} is not usable in an MQTT topic: use letters, digits, '_', '-', '.'"
+
+
 def _reject_constant(name: str):
     raise ValueError(f"{name} is not a JSON number")
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object whose keys are all different (json.loads keeps the last of a repeated key silently)."""
+    out: dict = {}
+    for key, value in pairs:
+        if key in out:
+            raise _DuplicateKey(key)
+        out[key] = value
+    return out
 
 
 def _is_number(x) -> bool:
@@ -214,7 +241,9 @@ def parse_fault_command(payload: bytes | bytearray | str | None) -> tuple[dict |
     except UnicodeDecodeError:
         return refuse("payload is not UTF-8 text")
     try:
-        data = json.loads(text, parse_constant=_reject_constant)
+        data = json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        return refuse(f"duplicate key {str(exc.args[0])[:60]!r} (each key at most once)")
     except RecursionError:
         return refuse("payload is not JSON (nested too deeply)")
     except ValueError as exc:
@@ -266,6 +295,9 @@ def parse_fault_command(payload: bytes | bytearray | str | None) -> tuple[dict |
             return refuse(f"{key}: number out of range")
         if value != value or value in (float("inf"), float("-inf")):
             return refuse(f"{key}: must be finite")
+        if key == "magnitude" and not MAGNITUDE_MIN <= value <= MAGNITUDE_MAX:
+            return refuse(f"magnitude: must be {MAGNITUDE_MIN}..{MAGNITUDE_MAX} (the range of 0x5FF4 on CANopen "
+                          f"and 40603-40604 on Modbus; got {value:g})")
         options[key] = value
     return ident | {"action": action, "kind": kind, "options": options}, None
 
@@ -583,8 +615,9 @@ class MqttService:
         self.gate = gate  # CycleGate or None: samples taken in the gap after a SYNC's PDOs (cycle_gate.py)
         self.channels: list[AxisChannel] = []
         for i, (name, node_id, drive, nmt, *injector) in enumerate(axes):
-            if not re.fullmatch(r"[A-Za-z0-9_.\-]+", name):
-                raise MqttSettingsError(f"axis name {name!r} is not usable in an MQTT topic")
+            problem = topic_name_problem(name)
+            if problem is not None:
+                raise MqttSettingsError(f"axis name {problem}")
             self.channels.append(AxisChannel(self, i, name, node_id, drive, nmt, *injector[:1]))
         self.ring: TelemetryRing | None = None
         self._shm = None

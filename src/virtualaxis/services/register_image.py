@@ -49,9 +49,11 @@ _READERS = tuple((r.read, r.dtype) for r in _ORDERED)
 
 
 def build_image(link: AxisLink) -> bytes:
-    """The image of one axis (``IMAGE.size`` bytes, big-endian words): one drive snapshot for all registers."""
-    view = View(link)
-    return IMAGE.pack(*[saturate(read(view), dtype) for read, dtype in _READERS])
+    """The image of one axis (``IMAGE.size`` bytes, big-endian words): one drive instant for all registers
+    (the drive's lock held: no cycle runs between the state and the objects the registers read)."""
+    with link.drive.lock:
+        view = View(link)
+        return IMAGE.pack(*[saturate(read(view), dtype) for read, dtype in _READERS])
 
 
 class ImagePublisher:
