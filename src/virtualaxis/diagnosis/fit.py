@@ -990,27 +990,53 @@ def _best_pair(scored: list[dict], best: dict | None, common: dict, runner: Runn
         return None
     found = None
     for r in runner.map(jobs):
-        if r.error or not r.values:
-            continue
-        d = _judge(r, 0.0, **ctx)
-        parts = fx.split_joint(r.values)
-        errs = fx.split_joint(r.stderr)
-        why = [f"{e}: {w}" for e, v in parts.items()
-               for w in fx.implausible(e, cur, v, errs.get(e, {}), [k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
-                                                                     if k.startswith(e + fx.JOINT_SEP)])]
-        why += [f"{e} changes the model by only {100 * fx.relative_change(e, cur, v):.1f} %"
-                for e, v in parts.items() if fx.relative_change(e, cur, v) < fx.MIN_RELATIVE_CHANGE]
-        d["score"]["implausible"] = d["score"].get("implausible", []) + why
-        d["pays"] = d["pays"] and not why
-        if best is not None:
-            left_single = 1.0 - best["score"]["gain"]
-            left_pair = 1.0 - d["score"]["gain"]
-            d["score"]["gain_over_single"] = 1.0 - left_pair / max(left_single, 1e-300)
-            d["pays"] = (d["pays"] and left_pair <= (1.0 - settings.min_gain) * left_single
-                         and d["score"]["ic_delta"] < best["score"]["ic_delta"])
-        if d["pays"] and (found is None or d["score"]["ic_delta"] < found["score"]["ic_delta"]):
+        d = _judge_pair(r, best, ctx, settings)
+        if d is not None and d["pays"] and (found is None or d["score"]["ic_delta"] < found["score"]["ic_delta"]):
             found = d
+    if found is None:
+        return None
+    # a part that reduces to a nested, simpler effect (viscous asymmetry whose two directions agree is viscous
+    # friction): the pair with the simpler one, refitted, is preferred when it pays its way too
+    r = found["result"]
+    parts, errs = fx.split_joint(r.values), fx.split_joint(r.stderr)
+    reduced = {e: fx.reduce_nested(e, v, errs.get(e, {})) for e, v in parts.items()}
+    if any(x is not None and x[0] != e for e, x in reduced.items()):
+        start = {}
+        for e, v in parts.items():
+            name, vals = (e, v) if reduced[e] is None or reduced[e][0] == e else reduced[e]
+            start.update({f"{name}{fx.JOINT_SEP}{k}": x for k, x in vals.items()})
+        names = "+".join(dict.fromkeys(k.partition(fx.JOINT_SEP)[0] for k in start))
+        simple = _judge_pair(runner.map([FitJob(names, stage="refine", start=start, **common)])[0], best, ctx, settings)
+        if simple is not None and simple["pays"]:
+            simple["parsimony"] = f"preferred over {r.effect}: its nested part's fitted values agree within their " \
+                                  "uncertainty"
+            simple["result"].n_sims += r.n_sims
+            found = simple
     return found
+
+
+def _judge_pair(r: CandidateResult, best: dict | None, ctx: dict, settings: FitSettings) -> dict | None:
+    """Judge a jointly fitted pair (see :func:`_best_pair`); None for a failed fit."""
+    cur = ctx["cur"]
+    if r.error or not r.values:
+        return None
+    d = _judge(r, 0.0, **ctx)
+    parts = fx.split_joint(r.values)
+    errs = fx.split_joint(r.stderr)
+    why = [f"{e}: {w}" for e, v in parts.items()
+           for w in fx.implausible(e, cur, v, errs.get(e, {}), [k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
+                                                                 if k.startswith(e + fx.JOINT_SEP)])]
+    why += [f"{e} changes the model by only {100 * fx.relative_change(e, cur, v):.1f} %"
+            for e, v in parts.items() if fx.relative_change(e, cur, v) < fx.MIN_RELATIVE_CHANGE]
+    d["score"]["implausible"] = d["score"].get("implausible", []) + why
+    d["pays"] = d["pays"] and not why
+    if best is not None:
+        left_single = 1.0 - best["score"]["gain"]
+        left_pair = 1.0 - d["score"]["gain"]
+        d["score"]["gain_over_single"] = 1.0 - left_pair / max(left_single, 1e-300)
+        d["pays"] = (d["pays"] and left_pair <= (1.0 - settings.min_gain) * left_single
+                     and d["score"]["ic_delta"] < best["score"]["ic_delta"])
+    return d
 
 
 def _pair_steps(cur: AxisConfig, pair: dict, scored: list[dict]) -> tuple[list[Step], list[list[dict]]]:
