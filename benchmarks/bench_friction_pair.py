@@ -32,16 +32,18 @@ CASES: dict[str, dict] = {
     "coulomb": {"table_mass_kg": 100.0, "coulomb_n": 20.0, "viscous_n_s_per_m": 0.0},
     "viscous": {"table_mass_kg": 100.0, "coulomb_n": 0.0, "viscous_n_s_per_m": 200.0},
 }
-STROKE_M = 0.05
+STROKE_M = 0.1
 
 
 def commands() -> tuple[list, list]:
-    """Fit: sines with peak speed 25 and 150 mm/s, a move at 150 mm/s; held out: sines at 50 and 100 mm/s, a move
-    at 100 mm/s (commands of the reference's own generator)."""
-    fit = [("sine_F1500", K.sine(1500, STROKE_M, 1)), ("sine_F9000", K.sine(9000, STROKE_M, 2)),
-           ("ptp_fast", K.point_to_point(-0.4 * STROKE_M, 0.4 * STROKE_M, 0.15, 1.5, 40.0))]
-    hold = [("sine_F3000", K.sine(3000, STROKE_M, 1)), ("sine_F6000", K.sine(6000, STROKE_M, 2)),
-            ("ptp_mid", K.point_to_point(0.3 * STROKE_M, -0.4 * STROKE_M, 0.1, 1.0, 30.0))]
+    """A positioning axis' moves: fit on moves at 50 and 150 mm/s and a sine with peak speed 150 mm/s; held out: a
+    move at 100 mm/s and a sine at 75 mm/s (commands of the reference's own generator, 1 kHz)."""
+    s = STROKE_M
+    fit = [("ptp_slow", K.point_to_point(-0.4 * s, 0.4 * s, 0.05, 1.0, 20.0)),
+           ("ptp_fast", K.point_to_point(-0.4 * s, 0.4 * s, 0.15, 1.5, 40.0)),
+           ("sine_F9000", K.sine(9000, s, 1))]
+    hold = [("ptp_mid", K.point_to_point(0.3 * s, -0.4 * s, 0.1, 1.0, 30.0)),
+            ("sine_F4500", K.sine(4500, s, 1))]
     return fit, hold
 
 
