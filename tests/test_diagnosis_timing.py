@@ -94,3 +94,26 @@ def test_a_clean_trace_of_a_delayed_controller_stated_in_the_config_shows_no_eff
     assert not [e["name"] for e in rep["effects"] if e["accepted"]], rep["conclusion"]
     cal = (tmp_path / "d" / "calibrated.toml").read_text()
     assert "output_delay_s" in cal
+
+
+def test_the_gain_a_sensor_can_resolve():
+    """``Weights.resolution`` is what the sensor resolves, sqrt(noise^2 + quantum^2 / 12); a model change is judged
+    by the rms it removes in those units: a 20 nm grid with 40 nm white noise (a linear scale) -> 40.4 nm; a residual
+    of 30 nm rms cut to 10 nm removes 28 nm (< 1: not resolved), one of 300 nm cut to 100 nm removes 283 nm (7x)."""
+    from virtualaxis.diagnosis.data import Weights, weighted_ssr
+    from virtualaxis.diagnosis.fit import MIN_RESOLVED_REMOVAL
+
+    rng = np.random.default_rng(0)
+    n = 20000
+    noise = rng.normal(0.0, 40e-9, n)
+    q = 2e-8
+    measured = np.round(noise / q) * q + 1e-6 * np.sin(np.arange(n) / 500)  # white noise on a grid + a smooth gap
+    w = Weights.from_residuals([{"pos_meas": measured}], {"pos_meas": q})
+    assert w.resolution["pos_meas"] == pytest.approx(np.hypot(40e-9, q / np.sqrt(12)), rel=0.15)
+    counts = {"pos_meas": n}
+    for before_rms, after_rms, resolved in ((30e-9, 10e-9, False), (300e-9, 100e-9, True)):
+        b = weighted_ssr([{"pos_meas": np.full(n, before_rms)}], w)
+        a = weighted_ssr([{"pos_meas": np.full(n, after_rms)}], w)
+        ratio = w.resolved_removal(b, a, counts)["pos_meas"]
+        assert ratio == pytest.approx(np.sqrt(before_rms**2 - after_rms**2) / w.resolution["pos_meas"], rel=1e-9)
+        assert (ratio >= MIN_RESOLVED_REMOVAL) == resolved
