@@ -87,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
             bars.append(tqdm(desc="diagnose", unit="fit", leave=False))
         bar = bars[0]
         if msg.startswith("round"):
-            n = int(msg.split(": ")[1].split()[1])
-            bar.total = (bar.total or 0) + n
+            words = msg.split(": ")[1].split()
+            bar.total = (bar.total or 0) + (int(words[1]) if len(words) > 1 and words[1].isdigit() else 0)
             bar.set_description(msg.split(":")[0])
             bar.refresh()
         else:

@@ -238,6 +238,11 @@ class ControlParams:
         0.0, check=">=0", doc="first-order low-pass on that speed estimate, w_f[k] = w_f[k-1] + (1 - exp(-T/tau)) "
         "(w[k] - w_f[k-1]); 0 = none [s]",
     )
+    output_delay_s: float = _p(
+        0.0, check=">=0", doc="computation delay of the speed loop's output: the output computed from the samples "
+        "taken at t_k is applied at t_k + output_delay_s; 0 = at once, speed_cycle_s = the common digital timing "
+        "'sample at k, compute, apply at k+1'; a whole number of speed cycles, at most 2 [s]",
+    )
 
     @property
     def kv_1_per_s(self) -> float:
@@ -553,6 +558,9 @@ PMSM_REQUIRED = (
     "motor.rated_speed_rpm", "control.current_ti_s", "control.speed_ti_s",
 )
 #: Required for every axis: the loop cycles set every time step of the drive.
+#: the speed loop's output may be applied at most this many speed cycles after its samples
+MAX_OUTPUT_DELAY_CYCLES = 2
+
 ALWAYS_REQUIRED = ("control.current_cycle_s", "control.speed_cycle_s", "control.position_cycle_s")
 _KV_KEYS = ("kv_1000_per_min", "kv_per_min", "kv_per_s")
 
@@ -657,6 +665,12 @@ def _check_consistency(cfg: AxisConfig, given: set | None = None) -> None:
             raise ConfigError(
                 f, f"control.{outer}", f"must be an integer multiple of control.{inner} ({to} / {ti} = {ratio:g})"
             )
+    cycles = c.output_delay_s / c.speed_cycle_s
+    if abs(cycles - round(cycles)) > 1e-6 or round(cycles) > MAX_OUTPUT_DELAY_CYCLES:
+        raise ConfigError(
+            f, "control.output_delay_s", f"must be 0 .. {MAX_OUTPUT_DELAY_CYCLES} whole speed cycles "
+            f"(control.speed_cycle_s = {c.speed_cycle_s:g} s; got {c.output_delay_s:g} s = {cycles:.4g} cycles)",
+        )
     sim = cfg.simulation
     rate = sim.mechanical_substeps / c.current_cycle_s
     if rate > MAX_MECHANICAL_STEP_RATE_HZ:

@@ -126,6 +126,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "control.current_limit_a": (1e-2, 1e5),  # seeds 15 .. 50 A
     "control.speed_limit_rpm": (1.0, 1e5),  # seeds 3000 .. 7000 1/min
     "control.speed_filter_time_constant_s": (0.0, 1.0),  # 0 (none) .. 1 s (far beyond any usable speed loop)
+    "control.output_delay_s": (0.0, 0.2),  # 0 .. two of the slowest speed cycles
     # [sensors]
     "sensors.motor_encoder_counts_per_rev": (16, 1 << 40),  # a 4-line incremental encoder .. 40 bits; seeds 2^17..2^22
     "sensors.linear_scale_resolution_m": (1e-12, 0.01),  # interferometers 1 pm .. 10 mm magnetic tape; seeds 10..100 nm

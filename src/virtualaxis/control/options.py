@@ -10,6 +10,8 @@ parameter vector (called by :func:`virtualaxis.sim.simulator.build_parameters`).
   command derivative (``derivative``) or, as a CiA 402 CSP drive receiving one set-point per position cycle does,
   from the set-point differences (``setpoint_difference``: v_ff[k] = (x[k] - x[k-1]) / T_pos, a_ff[k] =
   (v_ff[k] - v_ff[k-1]) / T_pos, held for the cycle).
+* ``control.output_delay_s``: the speed loop's computation delay, whole speed cycles from its samples to applying
+  its output (``speed_cycle_s``: sample at k, compute, apply at k+1).
 * ``sensors.dead_time_scope``: whether ``sensors.dead_time_s`` delays only the position loop's feedback or the
   feedback sensor's reading everywhere (speed loop, recorded channel).
 """
@@ -62,3 +64,4 @@ def fill_option_parameters(pr: np.ndarray, cfg: AxisConfig) -> None:
     pr[L.P_SPD_FILT] = speed_filter_gain(c.speed_cycle_s, c.speed_filter_time_constant_s)
     pr[L.P_FF_SETPOINT] = 1.0 if c.velocity_ff_form == "setpoint_difference" else 0.0
     pr[L.P_TPOS] = c.position_cycle_s
+    pr[L.P_OUT_DELAY] = float(round(c.output_delay_s / c.speed_cycle_s))

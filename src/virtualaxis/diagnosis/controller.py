@@ -154,6 +154,21 @@ def _smoothed(sig: _Signals, n: int) -> _Signals:
     return _Signals(u=f(sig.u), e=f(sig.e), vc=f(sig.vc), w=f(sig.w), w_end=f(sig.w_end), ac=f(sig.ac), dt=sig.dt)
 
 
+def _sampled_signals(cfg: AxisConfig, u: np.ndarray, e: np.ndarray, vc: np.ndarray, ac: np.ndarray, w: np.ndarray,
+                     dt: float) -> _Signals:
+    """The law's signals for a speed loop sampled at the trace's rate, with the config's timing: row k holds the
+    output applied during [t_k-1, t_k), computed from the samples at t_k-1-d (d = ``control.output_delay_s`` in
+    samples) with the speed estimate ``control.speed_estimator`` at that sample (one-sample difference
+    w[k-2-d] = (x_k-1-d - x_k-2-d) / T, or the two-sample difference, the mean of w[k-2-d] and w[k-3-d])."""
+    c = cfg.control
+    delay = int(round(c.output_delay_s / dt)) if c.speed_cycle_s >= 0.99 * dt else 0
+    lag = 1 + delay
+    two = c.speed_estimator == "two_sample_difference"
+    k = np.arange(lag + 1 + (1 if two else 0), u.size)
+    wk = 0.5 * (w[k - 1 - lag] + w[k - 2 - lag]) if two else w[k - 1 - lag]
+    return _Signals(u=u[k], e=e[k - lag], vc=vc[k - lag], w=wk, w_end=wk, ac=ac[k - lag], dt=dt)
+
+
 def _law_columns(sig: _Signals, kv: float, kff: float) -> tuple[np.ndarray, np.ndarray]:
     """The columns the law multiplies by Kp and by Ki, given (Kv, Kff): r - w_end and sum(r - w) dt."""
     ref = kv * sig.e + kff * sig.vc
@@ -320,8 +335,7 @@ def check_controller(cfg: AxisConfig, name: str, t: np.ndarray, pos_cmd: np.ndar
     # two timings of the speed loop: much faster than the trace (its P term acts on the speed at the end of
     # the sample), or sampled at the trace's rate (output k answers the speed over the sample before k-1)
     fast = _smoothed(_Signals(u=u[1:], e=g * e[:-1], vc=g * vc[:-1], w=w, w_end=w_end, ac=g * ac[:-1], dt=dt), nsm)
-    sampled = _smoothed(_Signals(u=u[2:], e=g * e[1:-1], vc=g * vc[1:-1], w=w[:-1], w_end=w[:-1], ac=g * ac[1:-1],
-                                 dt=dt), nsm)
+    sampled = _smoothed(_sampled_signals(cfg, u, g * e, g * vc, g * ac, w, dt), nsm)
     finite = all(np.isfinite(x).all() for x in (fast.u, fast.e, fast.vc, fast.w))
     if not finite or float(np.var(fast.u)) == 0.0:
         return None
@@ -398,9 +412,12 @@ def _retimed(cfg: AxisConfig, timing: str, dt: float) -> dict[str, float]:
     current-loop multiple closest to 125 us (a common drive speed-loop cycle; the trace cannot tell which)."""
     c = cfg.control
     if timing == "sampled":
-        return {"speed_cycle_s": c.position_cycle_s if abs(c.position_cycle_s - dt) <= 0.01 * dt else dt}
-    n = max(1, round(125e-6 / c.current_cycle_s))
-    return {"speed_cycle_s": n * c.current_cycle_s}
+        out = {"speed_cycle_s": c.position_cycle_s if abs(c.position_cycle_s - dt) <= 0.01 * dt else dt}
+    else:
+        out = {"speed_cycle_s": max(1, round(125e-6 / c.current_cycle_s)) * c.current_cycle_s}
+    if c.output_delay_s > 0:  # the same number of speed cycles from sample to output
+        out["output_delay_s"] = round(c.output_delay_s / c.speed_cycle_s) * out["speed_cycle_s"]
+    return out
 
 
 def _share(x: float) -> str:

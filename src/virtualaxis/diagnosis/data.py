@@ -176,6 +176,7 @@ class Weights:
     n_eff_fraction: dict[str, float]  # n_eff / n per channel
     quantum: dict[str, float] = field(default_factory=dict)  # grid step of quantised channels
     chaos: dict[str, float] = field(default_factory=dict)  # non-reproducible part per channel (model's own)
+    resolution: dict[str, float] = field(default_factory=dict)  # what the sensor resolves: sqrt(noise^2 + q^2/12)
 
     @classmethod
     def from_residuals(cls, res_list: list[dict[str, np.ndarray]],
@@ -183,7 +184,7 @@ class Weights:
         """``quanta``: the grid step of quantised measured channels (see :func:`quantum`); ``chaos``: the
         rms the model's own prediction changes by under an unmeasurably small change of its command (see
         :func:`chaos_floor`)."""
-        sigma, frac = {}, {}
+        sigma, frac, resolution = {}, {}, {}
         quanta = dict(quanta or {})
         chaos = dict(chaos or {})
         chans = sorted({c for r in res_list for c in r})
@@ -193,10 +194,25 @@ class Weights:
             rms = float(np.sqrt(np.mean(x**2)))
             noise = float(np.median([noise_floor(r) for r in rs]))
             sigma[ch] = max(noise, 0.1 * rms, quanta.get(ch, 0.0) / math.sqrt(12.0), chaos.get(ch, 0.0), 1e-300)
+            resolution[ch] = math.hypot(noise, quanta.get(ch, 0.0) / math.sqrt(12.0))
             taus = [correlation_time(r) for r in rs]
             frac[ch] = float(1.0 / max(np.mean(taus), 1.0))
         return cls(sigma, frac, {c: q for c, q in quanta.items() if c in sigma},
-                   {c: x for c, x in chaos.items() if c in sigma})
+                   {c: x for c, x in chaos.items() if c in sigma}, resolution)
+
+    def resolved_removal(self, before: dict[str, float], after: dict[str, float], counts: dict[str, int]
+                         ) -> dict[str, float]:
+        """Per channel, the rms a model change removes from the residual (weighted sums of squares ``before`` ->
+        ``after`` over ``counts`` samples) in units of what the sensor resolves (:attr:`resolution`); channels
+        without a resolution are left out."""
+        out: dict[str, float] = {}
+        for ch, b in before.items():
+            res = self.resolution.get(ch, 0.0)
+            if res <= 0 or ch not in after or not counts.get(ch):
+                continue
+            removed_ms = max(b - after[ch], 0.0) * self.sigma[ch] ** 2 / counts[ch]
+            out[ch] = math.sqrt(removed_ms) / res
+        return out
 
 
 CHAOS_PERTURBATION_M = 1e-12  # white perturbation of the command for the chaos floor [m], far below any scale

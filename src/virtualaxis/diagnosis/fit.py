@@ -17,6 +17,7 @@ until none pays. Nothing accepted -> "no significant effect".
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -741,7 +742,12 @@ def score(cand: CandidateResult, before_fit: dict, before_hold: dict, counts_fit
 
 def _n_free(effect: str, cfg: AxisConfig) -> int:
     """Number of fitted (not discrete) parameters of an effect: what the information criterion counts."""
-    return len([p for p in fx.EFFECTS[effect].params(cfg) if not fx.is_discrete(p.name)])
+    return len([p for p in fx.effect_of(effect).params(cfg) if not fx.is_discrete(p.name)])
+
+
+#: a candidate must remove from the held-out residual, in some channel, an rms of at least this many times what
+#: the sensor resolves there (sqrt(noise^2 + quantum^2 / 12), ``Weights.resolution``)
+MIN_RESOLVED_REMOVAL = 1.0
 
 
 def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fit: dict, before_hold: dict,
@@ -755,7 +761,15 @@ def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fi
     s["worst_channel_gain"] = worst
     change = fx.relative_change(r.effect, cur, r.values) if r.values else 0.0
     s["relative_change"] = change if math.isfinite(change) else None  # None: the effect was absent (JSON-safe)
-    explains = (change >= fx.MIN_RELATIVE_CHANGE and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
+    # what the candidate removes, in units of what the sensors resolve: a gain below one sensor resolution in
+    # every channel is a fit to quantisation and noise, however large a share of a small residual it is
+    hold = bool(before_hold)
+    removal = w.resolved_removal(before_hold if hold else before_fit, (r.holdout_ssr if hold else r.fit_ssr) or {},
+                                 counts_hold if hold else counts_fit)
+    s["removed_over_resolution"] = removal
+    resolved = not removal or max(removal.values()) >= MIN_RESOLVED_REMOVAL
+    s["resolved"] = resolved
+    explains = (resolved and change >= fx.MIN_RELATIVE_CHANGE and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain
                 and s["gain_of_nominal"] >= settings.min_gain_total and worst >= settings.max_channel_loss
                 and sig_ok and not r.error)
     why_not = fx.implausible(r.effect, cur, r.values, r.stderr, r.at_bound) if r.values and not r.error else []
@@ -763,7 +777,7 @@ def _judge(r: CandidateResult, screen_gain: float, *, cur: AxisConfig, before_fi
     pays = explains and not why_not
     # everything but the share of the nominal gap: a further effect whose own fit, with the earlier ones held at
     # values it biased, is too small; the joint refit decides (select_effects)
-    small = (not pays and not why_not and not r.error and sig_ok and change >= fx.MIN_RELATIVE_CHANGE
+    small = (not pays and not why_not and not r.error and sig_ok and resolved and change >= fx.MIN_RELATIVE_CHANGE
              and s["ic_delta"] < 0 and s["gain"] >= settings.min_gain and worst >= settings.max_channel_loss
              and s["gain_of_nominal"] < settings.min_gain_total)
     return {"result": r, "score": s, "pays": pays, "explains": explains, "signature_ok": sig_ok,
@@ -877,10 +891,20 @@ def select_effects(
                     d["parsimony"] = (f"preferred over {r.effect}: its fitted values agree within their "
                                       "uncertainty, the nested effect explains the same")
                     scored.insert(0, d)
-        rounds.append(scored)
         best = scored[0] if scored and scored[0]["pays"] else None
         joint_steps: list[Step] | None = None
-        if best is None and accepted and settings.joint_refit:
+        pair = _best_pair(scored, best, common, runner, ctx, settings)
+        if pair is not None:
+            n_sims += pair["result"].n_sims
+            pair_steps, pair_rounds = _pair_steps(cur, pair, scored)
+            best = pair_rounds[0][0]
+            joint_steps = accepted + pair_steps
+            names = {s.effect for s in pair_steps}
+            rounds.append(pair_rounds[0] + [d for d in scored if d["result"].effect not in names])
+            rounds.append(pair_rounds[1])
+        else:
+            rounds.append(scored)
+        if best is None and accepted and settings.joint_refit and pair is None:
             # a further effect judged with the earlier ones refitted together with it: forward selection holds
             # them at values fitted without it (Coulomb friction 22.8 N absorbing a withheld viscous friction on
             # the reference's rigid axis, truth 20 N + 200 N s/m; viscous alone on top explained 1.9 % of the
@@ -919,6 +943,7 @@ def select_effects(
             for d in scored:
                 sc = d["score"]
                 if (not d.get("explains") and not sc.get("implausible") and not d["result"].error
+                        and sc.get("resolved", True)
                         and d.get("signature_ok", True) and sc.get("ic_delta", math.inf) < 0
                         and sc.get("gain", 0.0) >= settings.min_gain
                         and sc.get("gain_of_nominal", 0.0) >= settings.min_gain_total
@@ -944,7 +969,8 @@ def select_effects(
         else:
             cur = fx.EFFECTS[r.effect].apply(cur, r.values)
             accepted.append(Step(r.effect, r.values, r.stderr, cur, r.fit_metrics, r.holdout_metrics))
-        remaining = [n for n in remaining if n != r.effect and not _conflicts(n, r.effect)]
+        taken = {r.effect} | ({s.effect for s in joint_steps} if joint_steps is not None else set())
+        remaining = [n for n in remaining if n not in taken and not any(_conflicts(n, t) for t in taken)]
         if len(accepted) >= 2 and settings.joint_refit:
             # refit all accepted effects together after each acceptance (effects that trade off leave the first
             # one biased when it is held fixed), then try removing each (backward step)
@@ -976,6 +1002,113 @@ def select_effects(
                 names = {d["effect"] for d in dropped}
                 remaining = [n for n in remaining if n not in names]  # not tried again
     return Selection(rounds, accepted, skipped, cur, time.perf_counter() - t0, n_sims, joint, w, removed, mismatch)
+
+
+#: candidates of a round (the best held out) whose pairs are fitted jointly as one candidate
+PAIR_TOP = 3
+
+
+def _shares_parameters(a: str, b: str, cfg: AxisConfig) -> bool:
+    """True when two effects set a parameter of the same name (viscous friction inside viscous asymmetry)."""
+    return bool({p.name for p in fx.EFFECTS[a].params(cfg)} & {p.name for p in fx.EFFECTS[b].params(cfg)})
+
+
+def _best_pair(scored: list[dict], best: dict | None, common: dict, runner: Runner, ctx: dict,
+               settings: FitSettings) -> dict | None:
+    """Two effects fitted jointly as one candidate, when that pays its way and beats the best single effect.
+
+    Forward selection adds one effect at a time: the first one fitted alone absorbs what a second mechanism of
+    a similar signature does (Coulomb friction fitted alone on an axis with Coulomb and viscous friction takes
+    the viscous force at the traces' speeds: 1.8x the Coulomb value), and the second, judged on top of that
+    biased first, then explains too little. So the :data:`PAIR_TOP` refined candidates that explain most held
+    out are also fitted in pairs (from their single values). A pair wins when it pays its way like a single
+    candidate, each of its effects is plausible and changes the model (judged on its part of the joint values),
+    and it leaves at most ``1 - min_gain`` of the held-out energy the best paying single candidate leaves with
+    a lower information criterion (the second effect pays its way on top)."""
+    cur = ctx["cur"]
+    fitted = [d for d in scored if d["result"].stage == "refine" and not d["result"].error and d["result"].values
+              and d["score"].get("gain", 0.0) > 0 and d["score"].get("judged_on") != "screening"]
+    fitted.sort(key=lambda d: -d["score"]["gain"])
+    top = fitted[:PAIR_TOP]
+    jobs = []
+    for i, a in enumerate(top):
+        for b in top[i + 1:]:
+            ea, eb = a["result"].effect, b["result"].effect
+            if _conflicts(ea, eb) or _shares_parameters(ea, eb, cur):
+                continue
+            start = {f"{e}{fx.JOINT_SEP}{k}": v for e, d in ((ea, a), (eb, b)) for k, v in d["result"].values.items()}
+            jobs.append(FitJob(f"{ea}+{eb}", stage="refine", start=start, **common))
+    if not jobs:
+        return None
+    found = None
+    for r in runner.map(jobs):
+        d = _judge_pair(r, best, ctx, settings)
+        if d is not None and d["pays"] and (found is None or d["score"]["ic_delta"] < found["score"]["ic_delta"]):
+            found = d
+    if found is None:
+        return None
+    # a part that reduces to a nested, simpler effect (viscous asymmetry whose two directions agree is viscous
+    # friction): the pair with the simpler one, refitted, is preferred when it pays its way too
+    r = found["result"]
+    parts, errs = fx.split_joint(r.values), fx.split_joint(r.stderr)
+    reduced = {e: fx.reduce_nested(e, v, errs.get(e, {})) for e, v in parts.items()}
+    if any(x is not None and x[0] != e for e, x in reduced.items()):
+        start = {}
+        for e, v in parts.items():
+            name, vals = (e, v) if reduced[e] is None or reduced[e][0] == e else reduced[e]
+            start.update({f"{name}{fx.JOINT_SEP}{k}": x for k, x in vals.items()})
+        names = "+".join(dict.fromkeys(k.partition(fx.JOINT_SEP)[0] for k in start))
+        simple = _judge_pair(runner.map([FitJob(names, stage="refine", start=start, **common)])[0], best, ctx, settings)
+        if simple is not None and simple["pays"]:
+            simple["parsimony"] = f"preferred over {r.effect}: its nested part's fitted values agree within their " \
+                                  "uncertainty"
+            simple["result"].n_sims += r.n_sims
+            found = simple
+    return found
+
+
+def _judge_pair(r: CandidateResult, best: dict | None, ctx: dict, settings: FitSettings) -> dict | None:
+    """Judge a jointly fitted pair (see :func:`_best_pair`); None for a failed fit."""
+    cur = ctx["cur"]
+    if r.error or not r.values:
+        return None
+    d = _judge(r, 0.0, **ctx)
+    parts = fx.split_joint(r.values)
+    errs = fx.split_joint(r.stderr)
+    why = [f"{e}: {w}" for e, v in parts.items()
+           for w in fx.implausible(e, cur, v, errs.get(e, {}), [k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
+                                                                 if k.startswith(e + fx.JOINT_SEP)])]
+    why += [f"{e} changes the model by only {100 * fx.relative_change(e, cur, v):.1f} %"
+            for e, v in parts.items() if fx.relative_change(e, cur, v) < fx.MIN_RELATIVE_CHANGE]
+    d["score"]["implausible"] = d["score"].get("implausible", []) + why
+    d["pays"] = d["pays"] and not why
+    if best is not None:
+        left_single = 1.0 - best["score"]["gain"]
+        left_pair = 1.0 - d["score"]["gain"]
+        d["score"]["gain_over_single"] = 1.0 - left_pair / max(left_single, 1e-300)
+        d["pays"] = (d["pays"] and left_pair <= (1.0 - settings.min_gain) * left_single
+                     and d["score"]["ic_delta"] < best["score"]["ic_delta"])
+    return d
+
+
+def _pair_steps(cur: AxisConfig, pair: dict, scored: list[dict]) -> tuple[list[Step], list[list[dict]]]:
+    """The two steps of an accepted pair and one round entry per effect (the report lists each effect with its
+    part of the joint values and the pair's figures; ``fitted_alone``: its own single fit of the round)."""
+    r = pair["result"]
+    alone = {d["result"].effect: {"values": d["result"].values, "heldout_gain": d["score"].get("gain")}
+             for d in scored}
+    values, errs = fx.split_joint(r.values), fx.split_joint(r.stderr)
+    steps, rounds = [], []
+    c = cur
+    for e, v in values.items():
+        c = fx.EFFECTS[e].apply(c, v)
+        steps.append(Step(e, v, errs.get(e, {}), c, r.fit_metrics, r.holdout_metrics))
+        part = dataclasses.replace(r, effect=e, values=v, stderr=errs.get(e, {}),
+                                   at_bound=[k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
+                                             if k.startswith(e + fx.JOINT_SEP)])
+        rounds.append([{**pair, "result": part, "pays": True, "fitted_alone": alone.get(e),
+                        "pair": f"accepted with {', '.join(x for x in values if x != e)}: {r.effect} fitted jointly"}])
+    return steps, rounds
 
 
 def _rebuild(cfg: AxisConfig, steps: list[Step]) -> list[Step]:

@@ -13,6 +13,7 @@ import numpy as np
 from virtualaxis.config import AxisConfig, ControlParams
 from virtualaxis.config.errors import ConfigError, InputError
 from virtualaxis.diagnosis import effects as fx
+from virtualaxis.diagnosis import friction_law
 from virtualaxis.diagnosis.alignment import apply_post, find_alignment, find_start_transient
 from virtualaxis.diagnosis.contour import contour_report
 from virtualaxis.diagnosis.controller import check_controller
@@ -611,6 +612,10 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "accepted on its held-out gain. Record a fit trace that excites it (a mode: a rapid move with short "
                 "jerk phases, or a sine sweep through its band; a Stribeck velocity: slow reversals) to pin it "
                 "down"]
+    # the binned force vs speed per direction with the calibrated friction law over it
+    fvs = friction_law.force_vs_speed(sel.final_cfg, tds, accepted_names)
+    if fvs and fvs.get("note"):
+        notes = notes + [fvs["note"]]
     final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
     final_hold = cumulative[-1]["heldout_after"] if cumulative else base_hold
     n_eff = _n_eff(sel, [base_res[i] for i in (hold_idx or fit_idx)])
@@ -648,6 +653,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
         "cumulative": cumulative,
         "model_form_mismatch": mismatch,
         "removed_by_backward_step": sel.removed,
+        "force_vs_speed": fvs,
         "final": {"fit": final_fit, "heldout": final_hold,
                   "verdict": channel_verdict(_rmse(base_hold or base_fit), _rmse(final_hold or final_fit), n_eff),
                   "heldout_rmse_ratio": {ch: base_hold[ch]["rmse"] / max(final_hold[ch]["rmse"], 1e-300)
@@ -660,4 +666,9 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
 def write_outputs(report: dict, out_dir: str | Path) -> dict[str, Path]:
     from virtualaxis.diagnosis.report import write_report
 
-    return write_report(report, Path(out_dir))
+    paths = write_report(report, Path(out_dir))
+    if report.get("force_vs_speed"):  # the plot of report.json["force_vs_speed"]
+        png = Path(out_dir) / "force_vs_speed.png"
+        png.write_bytes(friction_law.plot_png(report["force_vs_speed"]))
+        paths["force_vs_speed"] = png
+    return paths

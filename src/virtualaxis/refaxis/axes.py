@@ -81,6 +81,7 @@ TWO_MASS: dict[str, float] = {
     "force_quantum_n": 0.0,
     "dead_time_s": 0.0,
     "speed_estimator_samples": 1.0,
+    "output_delay_cycles": 0.0,
     "stroke_m": 0.5,
     "full_closed": 0.0,
 }
@@ -114,6 +115,7 @@ RIGID_PP: dict[str, float] = {
     "force_quantum_n": 0.05,
     "dead_time_s": 0.0,
     "speed_estimator_samples": 1.0,
+    "output_delay_cycles": 0.0,
     "stroke_m": 0.4,
     "full_closed": 0.0,
 }
@@ -188,6 +190,7 @@ def kernel_params(structure: str, phys: dict) -> dict:
         "est_samples": phys["speed_estimator_samples"],
         "ctrl_on": 1.0,
         "t_pos_s": phys["position_cycle_s"],
+        "out_delay_cycles": phys["output_delay_cycles"],
     }
     if mr > 0:
         wr = 2 * math.pi * phys["resonance_hz"]
@@ -314,6 +317,8 @@ def config_toml(structure: str, phys: dict, name: str, header: str) -> str:
         add(f"current_limit_a = {_v(phys['effort_limit'] / kt, 'drive: 3 x rated torque')}")
         add(f"speed_limit_rpm = {_v(3000.0, 'drive: rated speed')}")
         add('position_feedback = "linear_scale"' if full else 'position_feedback = "motor_encoder"')
+        if phys["output_delay_cycles"]:
+            add("output_delay_s = " + _v(phys["output_delay_cycles"] * phys["speed_cycle_s"], "drive timing"))
         add("\n[sensors]")
         add(f"motor_encoder_counts_per_rev = {_v(int(phys['encoder_counts']), 'motor catalogue: 20-bit encoder')}")
         add(f"linear_scale_resolution_m = {_v(phys['scale_quantum_m'], 'linear scale data sheet: 20 nm')}")
@@ -360,6 +365,12 @@ def config_toml(structure: str, phys: dict, name: str, header: str) -> str:
         add(f"kv_per_s = {_v(phys['kv_per_s'], 'controller: P position gain')}")
         add(f"velocity_ff_factor = {_v(0.0, 'controller: no feed-forward')}")
         add('position_feedback = "linear_scale"')
+        if phys["speed_estimator_samples"] == 2:
+            add('speed_estimator = "two_sample_difference"')
+        if phys["output_delay_cycles"]:
+            add("output_delay_s = " + _v(phys["output_delay_cycles"] * phys["speed_cycle_s"],
+                                         "controller: output applied one cycle after its samples"
+                                         if phys["output_delay_cycles"] == 1 else "controller timing"))
         add("\n[sensors]")
         add(f"motor_encoder_counts_per_rev = {_v(0, 'no rotary encoder')}")
         add(f"linear_scale_resolution_m = {_v(phys['scale_quantum_m'], 'scale data sheet: 0.1 um')}")

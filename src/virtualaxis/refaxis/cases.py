@@ -314,3 +314,28 @@ def make_case(name: str, out_dir: Path, seed: int = 0, quick: bool = False) -> C
         truth["start_velocity_per_trace_m_s"] = start_speeds
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
     return CaseFiles(name=name, config_path=cfg_path, fit=fit_paths, holdout=hold_paths, truth=truth)
+
+
+def write_axis_case(out_dir: Path, structure: str, truth: dict, config: dict, fit: list[tuple[str, np.ndarray]],
+                    holdout: list[tuple[str, np.ndarray]], seed: int = 0, name: str = "axis") -> CaseFiles:
+    """Write an axis outside the case list: ``config.toml`` from the physical parameters ``config`` (the nominal a
+    user states) and ``fit_<stem>.csv`` / ``heldout_<stem>.csv`` simulated with ``truth`` (both: overrides on the
+    structure's nominal parameters, ``axes.NOMINAL``) on the (stem, 1 kHz position) commands. ``truth.json`` lists
+    the truth's physical parameters."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    truth_phys = {**A.NOMINAL[structure], **truth}
+    config_phys = {**A.NOMINAL[structure], **config}
+    cfg_path = out_dir / "config.toml"
+    cfg_path.write_text(A.config_toml(structure, config_phys, name, f"Reference axis {name} (virtualaxis.refaxis)"),
+                        encoding="utf-8")
+    paths: dict[str, list[Path]] = {"fit": [], "heldout": []}
+    for kind, cmds in (("fit", fit), ("heldout", holdout)):
+        for stem, x in cmds:
+            cols = simulate(structure, truth_phys, x, noise_seed(name, seed, kind, stem))
+            path = out_dir / f"{kind}_{stem}.csv"
+            _write_csv(path, cols)
+            paths[kind].append(path)
+    record = {"structure": structure, "truth": truth_phys, "config": config_phys, "seed": seed}
+    (out_dir / "truth.json").write_text(json.dumps(record, indent=2), encoding="utf-8")
+    return CaseFiles(name=name, config_path=cfg_path, fit=paths["fit"], holdout=paths["heldout"], truth=record)

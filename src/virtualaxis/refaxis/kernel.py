@@ -76,6 +76,7 @@ PARAM_NAMES = (
     "ctrl_on",  # 1: closed loop; 0: effort = u_add only (open-loop tests)
     "t_pos_s",  # position-loop cycle [s]
     "fb_scale",  # two_mass only: 1 = position loop on the linear scale (full closed loop), 0 = motor encoder
+    "out_delay_cycles",  # speed-loop output applied this many speed cycles after its sample (0, 1, 2)
 )
 P_STRUCTURE = 0
 P_R_M_PER_RAD = 1
@@ -127,6 +128,7 @@ P_EST_SAMPLES = 46
 P_CTRL_ON = 47
 P_T_POS_S = 48
 P_FB_SCALE = 49
+P_OUT_DELAY_CYCLES = 50
 N_PARAMS = len(PARAM_NAMES)
 for _i, _name in enumerate(PARAM_NAMES):  # the constants above must follow the names' order
     assert globals()["P_" + _name.upper()] == _i, _name
@@ -137,7 +139,8 @@ C_THETA = 1  # true motor angle [rad]
 C_FB = 2  # position feedback the position loop used at t_k [m] (delayed, quantised, noisy)
 C_THETA_MEAS = 3  # motor encoder angle the drive read at t_k [rad] (delayed, quantised)
 C_U_ACT = 4  # actuator effort at t_k (torque N m / force N) after the lag
-C_U_CMD = 5  # effort command computed at t_k (held during [t_k, t_k+1) for the rigid 1 kHz loop)
+C_U_CMD = 5  # effort command applied from t_k (held during [t_k, t_k+1) for the rigid 1 kHz loop): computed at
+#             t_k, or at the sample out_delay_cycles speed cycles earlier
 C_V_TABLE = 6  # true table velocity [m/s]
 C_DTEMP = 7  # screw temperature rise [K]
 C_F_SPRING = 8  # axial spring force [N]
@@ -357,6 +360,9 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
     integ = integ_init
     u_act = u_init
     u_cmd = u_init
+    u_app = u_init  # the effort the actuator is commanded (u_cmd delayed by out_delay_cycles)
+    n_delay = int(p[P_OUT_DELAY_CYCLES])
+    held = np.full(3, u_init)  # held[i]: the command computed i + 1 speed cycles ago
     dtemp = p[P_DTEMP0_K]
     g_th = p[P_RTH_K_PER_W]
     tau_th = p[P_TAU_TH_S]
@@ -437,16 +443,24 @@ def run_axis(p, x_cmd, u_add, f_ext, enc_noise, fb_noise, s_init, z_init, integ_
                     integ = integ_new
             else:
                 u_cmd = u_add[k]
+            if n_delay > 0:
+                # computed from this sample, applied n_delay speed cycles later
+                u_app = held[n_delay - 1]
+                for i in range(n_delay - 1, 0, -1):
+                    held[i] = held[i - 1]
+                held[0] = u_cmd
+            else:
+                u_app = u_cmd
             if j == 0:
-                out[k, C_U_CMD] = u_cmd
+                out[k, C_U_CMD] = u_app
             # ---- plant over one speed cycle ----------------------------------------------------------
             for _i in range(n_sub):
                 if tau > 0.0:
-                    u_mean = u_cmd + (u_act - u_cmd) * avg_lag
-                    u_act = u_cmd + (u_act - u_cmd) * e_lag
+                    u_mean = u_app + (u_act - u_app) * avg_lag
+                    u_act = u_app + (u_act - u_app) * e_lag
                 else:
-                    u_mean = u_cmd
-                    u_act = u_cmd
+                    u_mean = u_app
+                    u_act = u_app
                 fbr = bristle_force(p, s[3], z)
                 v_old = s[3]
                 mech_step(p, s, u_mean, fbr, f_ext[k], dtemp, h)

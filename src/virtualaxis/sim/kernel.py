@@ -113,6 +113,7 @@ from virtualaxis.sim.layout import (
     P_NSPD,
     P_NSUB,
     P_NUT_OFF,
+    P_OUT_DELAY,
     P_PP,
     P_PSI,
     P_QENC,
@@ -158,6 +159,8 @@ from virtualaxis.sim.layout import (
     S_IQ,
     S_IQ_REF,
     S_MODE,
+    S_OUT_HELD1,
+    S_OUT_HELD2,
     S_POS_FB,
     S_RING,
     S_RIPPLE,
@@ -731,6 +734,9 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     dly_speed = dly_sensor and (force_act or fb_motor)
     ff_setpoint = pr[P_FF_SETPOINT] != 0.0
     tpos = pr[P_TPOS]
+    # control.output_delay_s: the speed loop's output is applied out_delay speed cycles after its samples
+    out_delay = int(pr[P_OUT_DELAY])
+    out_held1, out_held2 = st[S_OUT_HELD1], st[S_OUT_HELD2]
     stop_lo, stop_hi, stop_k, stop_c = pr[P_STOP_LO], pr[P_STOP_HI], pr[P_STOP_K], pr[P_STOP_C]
     stop_travel, stop_kh = pr[P_STOP_TRAVEL], pr[P_STOP_KH]
     for j in range(ncyc):
@@ -893,6 +899,15 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
                 else:
                     iq_ref = 0.0
                     int_w = 0.0
+                if out_delay > 0:
+                    # computed from this sample, applied one (two) speed cycle(s) later
+                    computed = iq_ref
+                    if out_delay == 1:
+                        iq_ref = out_held1
+                    else:
+                        iq_ref = out_held2
+                        out_held2 = out_held1
+                    out_held1 = computed
             kspd += 1
             if kspd == nspd:
                 kspd = 0
@@ -991,6 +1006,7 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     st[S_IQ_REF], st[S_F_ACT], st[S_TORQUE] = iq_ref, f_act, torque_act
     st[S_THETA_PREV], st[S_W_MEAS] = theta_prev, w_meas
     st[S_THETA_PREV2] = theta_prev2
+    st[S_OUT_HELD1], st[S_OUT_HELD2] = out_held1, out_held2
     st[S_VSAT] = vsat
     st[S_T] = t_now
     st[S_RING] = ri

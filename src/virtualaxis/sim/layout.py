@@ -86,7 +86,8 @@ P_NDEAD0 = 80  # feedback-sensor dead time: whole current cycles floor(D / T_cur
 P_DEAD_FRAC = 81  # ... and the fraction of a cycle beyond them (the reading is interpolated linearly)
 P_STOP_TRAVEL = 82  # end-stop buffer travel [m]: the buffer (P_STOP_K, P_STOP_C) is compressed this far ...
 P_STOP_KH = 83  # ... then the rigid stop behind it takes over with this stiffness [N/m]
-N_PARAMS = 84
+P_OUT_DELAY = 84  # speed-loop output applied this many speed cycles after its samples (0, 1, 2)
+N_PARAMS = 85
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0
@@ -127,6 +128,8 @@ S_RIPPLE = 34  # accumulated within-period i_q variance x time (svpwm)
 S_THETA_PREV2 = 35  # speed-loop coordinate two speed samples back (two-sample speed estimate)
 S_VFF_PREV = 36  # speed feed-forward of the previous position-loop sample [m/s] (set-point difference form)
 S_FF_VALID = 37  # 1: the previous position-loop sample was a set-point in position control (a difference exists)
+S_OUT_HELD1 = 38  # speed-loop output computed one speed cycle ago (applied now with a one-cycle output delay)
+S_OUT_HELD2 = 39  # ... two speed cycles ago
 Z0 = 40  # mechanical state z = [q, q'] starts here
 
 RING_SIZE = 4096

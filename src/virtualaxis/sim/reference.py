@@ -211,6 +211,7 @@ class ReferenceAxis:
         ud_app = uq_app = ud_next = uq_next = 0.0
         int_d = int_q = int_w = 0.0
         iq_ref = 0.0
+        held = [0.0] * int(round(c.output_delay_s / c.speed_cycle_s))
         theta_prev = theta_prev2 = None
         w_filtered = 0.0
         two_sample = c.speed_estimator == "two_sample_difference"
@@ -270,7 +271,8 @@ class ReferenceAxis:
                         tref = max(-lim, min(lim, tref))
                         if (tref > 0) == (ew > 0) and c.speed_ti_s > 0:
                             int_w -= ew * hc * nspd / c.speed_ti_s
-                    iq_ref = tref / self.kt
+                    held.append(tref / self.kt)  # applied output_delay_s after its samples
+                    iq_ref = held.pop(0)
                 ud_app, uq_app = ud_next, uq_next
                 idd, iqq = y[2 * n], y[2 * n + 1]
                 wm = self.mvec @ y[n:2 * n]

@@ -1,0 +1,194 @@
+"""Force against speed, per direction: the measured drive force beyond inertia, binned over the measured speed,
+with the calibrated model's friction law over it (``report.json["force_vs_speed"]``).
+
+A friction effect fitted alone absorbs whatever else depends on speed: Coulomb friction fitted on an axis with
+Coulomb and viscous friction takes the viscous force at the traces' speeds (1.8x the Coulomb value on a lab axis
+whose viscous force at top speed is about its Coulomb force). The binned data show it: a straight line through
+them per direction has an intercept (Coulomb) and a slope (viscous); a law that is flat where the data rise, or
+rises where they are flat, is the sum of two mechanisms. :func:`force_vs_speed` returns the bins, the law at the
+bin centres, the line through the bins and a note when the law misses a clear intercept or slope.
+
+The force beyond inertia is ``F_drive - m a + F_ext`` (``m`` the calibrated moving mass, reflected motor inertia
+included on a screw axis; ``a`` from the measured position, smoothed over :data:`SMOOTH_S`); samples within
+:data:`REVERSAL_S` of a reversal and slower than :data:`MIN_SPEED_SHARE` of the top speed are left out (pre-sliding,
+stick-slip).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from virtualaxis.config import AxisConfig
+from virtualaxis.diagnosis.data import TraceData
+
+#: speed and acceleration are taken from the measured position smoothed over this window [s]
+SMOOTH_S = 0.01
+#: samples slower than this share of the top measured speed are left out (stiction, pre-sliding)
+MIN_SPEED_SHARE = 0.05
+#: samples within this time of a reversal are left out [s]
+REVERSAL_S = 0.05
+#: speed bins per direction
+N_BINS = 10
+#: a line term (intercept or slope x top speed) the law misses by more than this share of the binned force, and by
+#: more than 3 standard errors, is reported
+MISSED_SHARE = 0.25
+
+
+def _effective_mass_kg(cfg: AxisConfig) -> float:
+    m = cfg.mechanics.table_mass_kg
+    lead = cfg.mechanics.lead_m
+    if cfg.actuator.kind != "force" and lead > 0:
+        r = lead / (2 * math.pi)
+        m += (cfg.mechanics.motor_inertia_kg_m2 + cfg.mechanics.coupling_inertia_kg_m2
+              + cfg.mechanics.screw_end_inertia_kg_m2) / r**2
+    return m
+
+
+def _drive_force(cfg: AxisConfig, td: TraceData) -> np.ndarray | None:
+    meas = td.measured
+    if "force_drive" in meas:
+        return meas["force_drive"]
+    lead = cfg.mechanics.lead_m
+    if lead <= 0:
+        return None
+    if "torque_meas" in meas:
+        return meas["torque_meas"] * 2 * math.pi / lead
+    if "current_q" in meas:
+        return meas["current_q"] * cfg.motor.kt_nm_per_a * 2 * math.pi / lead
+    return None
+
+
+def friction_law_n(cfg: AxisConfig, v: np.ndarray) -> np.ndarray:
+    """The config's sliding friction force at speeds ``v`` [N] (Coulomb, Stribeck, viscous; per direction)."""
+    f = cfg.friction
+    if not f.enabled:
+        return np.zeros_like(v)
+    pos = v >= 0
+    fc = np.where(pos, f.coulomb_n, f.coulomb_negative_n if f.coulomb_negative_n >= 0 else f.coulomb_n)
+    fvn = f.viscous_negative_n_s_per_m if f.viscous_negative_n_s_per_m >= 0 else f.viscous_n_s_per_m
+    fv = np.where(pos, f.viscous_n_s_per_m, fvn)
+    vs = max(f.stribeck_velocity_m_s, 1e-9)
+    st = f.stribeck_n * np.exp(-np.abs(v / vs) ** f.stribeck_exponent)
+    return np.sign(v) * (fc + st) + fv * v
+
+
+def _line(v: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares line y = a + b v: (a, b) and their standard errors."""
+    a = np.column_stack([np.ones_like(v), v]) * np.sqrt(w)[:, None]
+    coef, *_ = np.linalg.lstsq(a, y * np.sqrt(w), rcond=None)
+    res = y * np.sqrt(w) - a @ coef
+    dof = max(len(v) - 2, 1)
+    cov = np.linalg.pinv(a.T @ a) * float(res @ res) / dof
+    return coef, np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str] | None = None) -> dict | None:
+    """The binned force beyond inertia per direction and the friction law of ``cfg`` (the calibrated model) over
+    it; None when the traces have no drive force or no measured position. ``accepted``: the accepted effects (the
+    note names them)."""
+    vs, fs = [], []
+    m = _effective_mass_kg(cfg)
+    for td in traces:
+        force = _drive_force(cfg, td)
+        pos = td.measured.get("pos_meas", td.measured.get("pos_fb"))
+        if force is None or pos is None or td.t.size < 50:
+            continue
+        dt = float(td.t[1] - td.t[0])
+        n = max(1, int(round(SMOOTH_S / dt)))
+        k = np.ones(n) / n
+        x = np.convolve(pos, k, mode="same")
+        v = np.gradient(x, dt)
+        a = np.gradient(np.convolve(v, k, mode="same"), dt)
+        f_ext = td.force_ext if td.force_ext is not None else 0.0
+        y = np.convolve(force, k, mode="same") - m * a + f_ext
+        sgn = np.sign(v)
+        rev = np.zeros(v.size, dtype=bool)
+        flips = np.flatnonzero(np.diff(sgn) != 0)
+        half = int(round(REVERSAL_S / dt))
+        for i in flips:
+            rev[max(0, i - half):i + half + 1] = True
+        keep = ~rev
+        keep[:n] = keep[-n:] = False
+        vs.append(v[keep])
+        fs.append(y[keep])
+    if not vs:
+        return None
+    v, y = np.concatenate(vs), np.concatenate(fs)
+    vmax = float(np.max(np.abs(v))) if v.size else 0.0
+    if vmax <= 0:
+        return None
+    out: dict = {"mass_kg": m, "directions": {}}
+    notes: list[str] = []
+    for name, sel in (("positive", v >= MIN_SPEED_SHARE * vmax), ("negative", v <= -MIN_SPEED_SHARE * vmax)):
+        if sel.sum() < 4 * N_BINS:
+            continue
+        sp, fo = np.abs(v[sel]), y[sel] if name == "positive" else -y[sel]
+        edges = np.linspace(MIN_SPEED_SHARE * vmax, vmax, N_BINS + 1)
+        idx = np.clip(np.digitize(sp, edges) - 1, 0, N_BINS - 1)
+        bins = []
+        for b in range(N_BINS):
+            mask = idx == b
+            if mask.sum() < 5:
+                continue
+            vals = fo[mask]
+            bins.append({"speed_m_s": float(sp[mask].mean()), "force_n": float(vals.mean()),
+                         "stderr_n": float(vals.std(ddof=1) / math.sqrt(mask.sum())), "samples": int(mask.sum())})
+        if len(bins) < 3:
+            continue
+        bv = np.array([b["speed_m_s"] for b in bins])
+        bf = np.array([b["force_n"] for b in bins])
+        bw = np.array([1.0 / max(b["stderr_n"], 1e-9) ** 2 for b in bins])
+        sign = 1.0 if name == "positive" else -1.0
+        law = np.abs(friction_law_n(cfg, sign * bv))
+        (a0, b0), (sa, sb) = _line(bv, bf, bw)
+        (la, lb), _ = _line(bv, law, np.ones_like(bv))
+        d = {"bins": bins, "law_n": law.tolist(), "line": {"intercept_n": float(a0), "intercept_stderr_n": float(sa),
+             "slope_n_s_per_m": float(b0), "slope_stderr_n_s_per_m": float(sb)},
+             "law_line": {"intercept_n": float(la), "slope_n_s_per_m": float(lb)}}
+        out["directions"][name] = d
+        scale = max(float(np.abs(bf).mean()), 1e-9)
+        top = float(bv.max())
+        if abs(a0 - la) > MISSED_SHARE * scale and abs(a0 - la) > 3 * sa:
+            notes.append(f"{name} direction: the data's force at zero speed is {a0:.3g} N, the law's {la:.3g} N")
+        if abs(b0 - lb) * top > MISSED_SHARE * scale and abs(b0 - lb) > 3 * sb:
+            notes.append(f"{name} direction: the data's force rises by {b0 * top:.3g} N up to {top:.3g} m/s, the law's "
+                         f"by {lb * top:.3g} N")
+    if not out["directions"]:
+        return None
+    if notes:
+        what = ", ".join(accepted) if accepted else "the model"
+        out["note"] = (f"force vs speed: the friction law of {what} misses a mechanism the binned data show ("
+                       + "; ".join(notes) + "): an accepted value may be the sum of two mechanisms")
+    return out
+
+
+def plot_png(data: dict) -> bytes:
+    """Force vs speed per direction: the binned data (mean +- 2 standard errors) and the law over them."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    dirs = data["directions"]
+    fig, axes = plt.subplots(1, len(dirs), figsize=(5 * len(dirs), 3.5), squeeze=False)
+    for ax, (name, d) in zip(axes[0], dirs.items(), strict=True):
+        v = [b["speed_m_s"] for b in d["bins"]]
+        f = [b["force_n"] for b in d["bins"]]
+        e = [2 * b["stderr_n"] for b in d["bins"]]
+        ax.errorbar(v, f, yerr=e, fmt="o", label="measured, binned")
+        ax.plot(v, d["law_n"], "-", label="fitted law")
+        ax.set_title(f"{name} direction")
+        ax.set_xlabel("|speed| [m/s]")
+        ax.set_ylabel("force beyond inertia [N]")
+        ax.set_xlim(left=0)
+        ax.set_ylim(bottom=0)
+        ax.legend()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return buf.getvalue()

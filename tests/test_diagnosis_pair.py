@@ -1,0 +1,62 @@
+"""Two mechanisms where two are needed: Coulomb and viscous friction together, from a config with the mass and the
+controller and no friction, on traces of the independent reference axis (``virtualaxis.refaxis``, rigid P/P
+structure: force and position at the load, 1 kHz) at the scale of a lab positioning axis (100 kg, Coulomb 20 N,
+viscous 200 N s/m, moves to 150 mm/s). ``virtualaxis diagnose`` runs in a subprocess."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from virtualaxis.refaxis import cases as C
+from virtualaxis.refaxis import commands as K
+
+TRUTH = {"table_mass_kg": 100.0, "coulomb_n": 20.0, "coulomb_negative_n": 20.0, "viscous_n_s_per_m": 200.0,
+         "viscous_negative_n_s_per_m": 200.0}
+MASS_ONLY = {"table_mass_kg": 100.0, "coulomb_n": 0.0, "coulomb_negative_n": 0.0, "viscous_n_s_per_m": 0.0,
+             "viscous_negative_n_s_per_m": 0.0}
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("pair")
+    s = 0.06  # stroke [m]
+    fit = [("ptp_slow", K.point_to_point(-0.4 * s, 0.4 * s, 0.05, 1.0, 20.0, dwell_s=0.2)),
+           ("ptp_fast", K.point_to_point(-0.4 * s, 0.4 * s, 0.15, 1.5, 40.0, dwell_s=0.2))]
+    hold = [("ptp_mid", K.point_to_point(0.3 * s, -0.4 * s, 0.1, 1.0, 30.0, dwell_s=0.2))]
+    cf = C.write_axis_case(root, "rigid_pp", TRUTH, MASS_ONLY, fit, hold, seed=2, name="friction-pair")
+    out = root / "out"
+    p = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(cf.config_path),
+                        *map(str, cf.fit), "--holdout", *map(str, cf.holdout), "--out", str(out), "--no-hybrid"],
+                       capture_output=True, text=True, timeout=1800)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rep = json.loads((out / "report.json").read_text())
+    rep["_out"] = str(out)
+    return rep
+
+
+def _value(rep: dict, key: str) -> float | None:
+    for e in rep["effects"]:
+        if e["accepted"] and key in e["params"]:
+            return e["params"][key]["value"]
+    return None
+
+
+def test_coulomb_and_viscous_friction_are_both_named_within_15_percent(report):
+    assert _value(report, "coulomb_n") == pytest.approx(20.0, rel=0.15), report["conclusion"]
+    assert _value(report, "viscous_n_s_per_m") == pytest.approx(200.0, rel=0.15), report["conclusion"]
+
+
+def test_the_report_plots_force_against_speed_per_direction_with_the_fitted_law(report):
+    fvs = report["force_vs_speed"]
+    assert set(fvs["directions"]) == {"positive", "negative"}
+    for d in fvs["directions"].values():
+        assert len(d["bins"]) >= 5 and len(d["law_n"]) == len(d["bins"])
+        assert d["line"]["intercept_n"] == pytest.approx(20.0, rel=0.15)
+        assert d["line"]["slope_n_s_per_m"] == pytest.approx(200.0, rel=0.15)
+    assert "note" not in fvs  # the calibrated law has both mechanisms
+    assert (Path(report["_out"]) / "force_vs_speed.png").stat().st_size > 1000
