@@ -1,4 +1,4 @@
-"""SIGINT / SIGTERM during ``simulate`` (issue 18): the process exits 130 / 143 with one line, the final path
+"""SIGINT / SIGTERM during ``simulate``: the process exits 130 / 143 with one line, the final path
 holds nothing (or its old content), and no temporary file is left. A subprocess, since signals are the point."""
 
 from __future__ import annotations

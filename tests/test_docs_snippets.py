@@ -1,4 +1,4 @@
-"""Every fenced python block of README.md and docs/*.md runs as written (issue #15 item 8).
+"""Every fenced python block of README.md and docs/*.md runs as written.
 
 Fence info strings (the text after the opening three backticks):
 

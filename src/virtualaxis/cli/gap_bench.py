@@ -82,7 +82,7 @@ def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.seed < 0 or (args.jobs is not None and args.jobs < 1):  # bad input (issue 18)
+    if args.seed < 0 or (args.jobs is not None and args.jobs < 1):  # bad input
         from virtualaxis.cli.errors import CliError
 
         raise CliError(f"--seed must be >= 0 and --jobs >= 1 (got --seed {args.seed}, --jobs {args.jobs})")
