@@ -496,7 +496,6 @@ def test_a_broker_of_mqtt_3_1_1_only_is_served_in_3_1_1():
     assert levels[:2] == [5, 4], levels
 
 
-@pytest.mark.mqtt_broker
 def test_telemetry_at_1000_hz_is_sampled_at_1000_hz(mosquitto):  # noqa: F811
     """--telemetry-rate up to 1000 Hz (the documented maximum) is sampled at that rate, not in the next drive
     cycle's PDO gap (or its 2 ms time-out without a master). Sampled by serve's own count over 2 s (what
