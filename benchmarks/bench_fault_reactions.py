@@ -1,4 +1,4 @@
-"""Stopping behaviour of the CiA 402 drive (issue #15 items 1, 4, 7; #18 runaway), measured on the seed axis
+"""Stopping behaviour of the CiA 402 drive (reactions, limit switches, runaway), measured on the seed axis
 through the Drive API (no bus; the same cases run through a real master in tests/test_cia402_field.py).
 
     PYTHONPATH=src python3 benchmarks/bench_fault_reactions.py [--json out.json]

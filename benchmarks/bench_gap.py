@@ -1,7 +1,7 @@
 """The whole gap bench.
 
 ``--suite reference`` (default): the independent reference axis' cases (``virtualaxis.refaxis``, written apart
-from the diagnosed model; the acceptance figures of issue #14): right effect first, nothing accepted on clean
+from the diagnosed model; the bench's acceptance figures): right effect first, nothing accepted on clean
 cases, no accepted effect outside the truth, main parameter within 15 %, held-out RMSE shrink >= 60 % on the
 effect's channel; writes DIR/reference.json. ``--suite own``: our own simulator's cases (second column): top-1 /
 top-2, false positives, parameter recovery, held-out shrink; writes DIR/bench.json.

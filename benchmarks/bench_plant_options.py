@@ -1,4 +1,4 @@
-"""Cost of the drive / axis options of issue #14 (control/options.py) in the compiled kernel.
+"""Cost of the drive / axis options (control/options.py) in the compiled kernel.
 
     python benchmarks/bench_plant_options.py [--reps N] [--json out.json]
 

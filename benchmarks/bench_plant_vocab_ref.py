@@ -1,4 +1,4 @@
-"""The issue-#14 options against the independent reference axis (``virtualaxis.refaxis``, written apart from the
+"""The drive / axis options against the independent reference axis (``virtualaxis.refaxis``, written apart from the
 kernel): for a reference case whose withheld effect is one of the options, our simulator runs every trace of the
 case with the case's nominal config, and with the nominal config plus the option set to the case's TRUE value
 (nothing fitted), and prints the RMS residual per channel (measured - simulated).

@@ -1,6 +1,6 @@
 """Benchmark: three-position joint identification (seed 002 eqs. 25-26) and the FRF evaluation rate.
 
-Runs the issue 3 setting -- four modes, population 15 x 8 = 120, 200 generations, differential evolution
+Runs the reference setting -- four modes, population 15 x 8 = 120, 200 generations, differential evolution
 with ``workers=2, updating="deferred"`` -- on 'measured' FRFs generated from known joints plus noise at
 l = 0.6, 1.0, 1.6 m, and prints wall time, objective evaluations, FRF evaluations per second, the
 recovered stiffness errors and the held-out (0.8, 1.3, 1.9 m) natural-frequency errors. A serial

@@ -1,5 +1,5 @@
-"""Trace writing and the ``simulate`` command's real-time factor: old writer (``numpy.savetxt``, the writer
-before issue 17, kept here as the baseline) vs the compiled CSV formatter (in the simulating thread, and in a
+"""Trace writing and the ``simulate`` command's real-time factor: a baseline writer (``numpy.savetxt`` per
+chunk) vs the compiled CSV formatter (in the simulating thread, and in a
 writer thread of its own beside the next chunk's simulation, as ``simulate`` runs it now) vs NPZ, measured in
 the same run.
 
@@ -42,7 +42,7 @@ import numpy as np
 import virtualaxis.sim.trace_io as tio
 
 class OldTraceWriter:
-    """The writer before issue 17 (numpy.savetxt per chunk), verbatim apart from the name and the ignored
+    """The baseline writer (numpy.savetxt per chunk), verbatim apart from the name and the ignored
     threaded flag that simulate passes now."""
     def __init__(self, path, columns, *, threaded=False):
         self.path = Path(path)

@@ -1,4 +1,4 @@
-"""Bad-input corpus (issue 18): every case runs through the real CLI (``main([...])`` in-process) and must either
+"""Bad-input corpus: every case runs through the real CLI (``main([...])`` in-process) and must either
 exit 2 with ONE ``error:`` line naming what is wrong (file / row / column / key / option, and what was expected)
 or succeed with a checked result. Never a traceback, an ``internal error``, a hang (each case has a timeout) or
 a silently wrong result. The data files live in ``tests/badinput/`` (``make_corpus.py`` rebuilds them);
@@ -305,7 +305,7 @@ CASES += [
     ("diag-jobs-0", ["diagnose", "--config", str(C4), _tr("good.csv"), "--out", "{T}/d", "--jobs", "0"], ["--jobs"]),
 ]
 
-# ---- second audit (docs/bad-input.md "Second audit"): one representative case per defect class it found
+# ---- one representative case per defect class of docs/bad-input.md
 CASES += [
     # option errors argparse reports: one line, not a usage block
     ("opt-not-an-int", ["frf", "--config", str(C4), "--points", "1.5", "--out", "{T}/o"],

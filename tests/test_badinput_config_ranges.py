@@ -1,13 +1,13 @@
-"""Audit 27 (config ranges): near-zero physical values, 0 without a documented meaning, hidden defaults and vague
+"""Config ranges: near-zero physical values, 0 without a documented meaning, hidden defaults and vague
 messages. Each case writes a small config derived from configs/seed000-hust.toml into tmp_path and runs the CLI
-in-process: exit 2, one ``error:`` line naming the key, nothing written. Each case fails on the code before.
+in-process: exit 2, one ``error:`` line naming the key, nothing written.
 
-G1  near-zero values that crashed ``simulate`` (ZeroDivisionError, LinAlgError)
-G5  near-zero values of keys that must be positive, accepted silently (a table that never moves, a diverged run
-    hidden by the saturated quantiser)
-G6  0 of current_limit_a / encoder counts: a documented meaning, values near it refused naming that meaning
-G7  motor / drive keys without a default: required
-G15 messages: Kv of 0, a missing lead, ``--config ''``
+- near-zero values that would crash ``simulate`` (ZeroDivisionError, LinAlgError)
+- near-zero values of keys that must be positive (a table that never moves, a diverged run hidden by a
+  saturated quantiser)
+- 0 of current_limit_a / encoder counts: a documented meaning, values near it refused naming that meaning
+- motor / drive keys without a default: required
+- messages: Kv of 0, a missing lead, ``--config ''``
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ def simulate_argv(cfg: Path, tmp_path: Path) -> list[str]:
             "--out", str(tmp_path / "out.csv")]
 
 
-# ---------------------------------------------------------------- G1: crashed simulate
+# ---------------------------------------------------------------- near zero: simulate cannot run
 @pytest.mark.parametrize("key", ["mechanics.lead_m", "mechanics.screw_root_diameter_m", "mechanics.nut_mass_kg"])
 def test_g1_near_zero_values_refused_before_simulate(tmp_path, capsys, key):
     cfg = write_config(tmp_path, {key: "1e-300"})
@@ -84,7 +84,7 @@ def test_g1_near_zero_values_refused_before_simulate(tmp_path, capsys, key):
     assert "(or 0 = " in line  # the one meaning 0 has for these keys
 
 
-# ---------------------------------------------------------------- G5: silently accepted
+# ---------------------------------------------------------------- near zero: a run that says nothing
 @pytest.mark.parametrize("key", [
     "mechanics.lead_m",
     "mechanics.coupling_stiffness_nm_per_rad",
@@ -107,7 +107,7 @@ def test_g5_near_zero_positive_keys_refused(tmp_path, capsys, key):
 
 
 def test_g5_scale_resolution_near_zero_refused(tmp_path, capsys):
-    """1 nm is a real scale (the audit's 1e-9 case was fine); 1e-300 read every position as ~0."""
+    """1 nm is a real scale (1e-9 is fine); 1e-300 read every position as ~0."""
     cfg = write_config(tmp_path, {"sensors.linear_scale_resolution_m": "1e-300"})
     assert_refused(tmp_path, ["modal", "--config", str(cfg)], capsys,
                    "sensors.linear_scale_resolution_m: 1e-300 is outside the plausible range 1e-12 .. 0.01 m")
@@ -149,7 +149,7 @@ def test_g5_simulate_reports_a_saturated_position_as_diverged(tmp_path, capsys, 
     assert_refused(tmp_path, simulate_argv(cfg, tmp_path), capsys, "the simulation diverged", "beyond")
 
 
-# ---------------------------------------------------------------- G6: what 0 means
+# ---------------------------------------------------------------- what 0 means
 def test_g6_current_limit_near_zero_refused_and_zero_documented(tmp_path, capsys):
     from virtualaxis.config import load_axis_config
 
@@ -169,7 +169,7 @@ def test_g6_encoder_counts_near_zero_refused_and_zero_is_ideal(tmp_path, capsys)
     load_axis_config(write_config(tmp_path, {"sensors.motor_encoder_counts_per_rev": "0"}, "zero.toml"))
 
 
-# ---------------------------------------------------------------- G7: no hidden default for the motor and drive
+# ---------------------------------------------------------------- no hidden default for the motor and drive
 @pytest.mark.parametrize("key", ["motor.pole_pairs", "motor.rs_ohm", "motor.lq_h", "motor.rated_current_a",
                                  "control.position_cycle_s", "control.current_cycle_s", "control.speed_ti_s"])
 def test_g7_motor_and_drive_keys_required(tmp_path, capsys, key):
@@ -188,7 +188,7 @@ def test_g7_documented_defaults_may_be_omitted(tmp_path):
         assert key in doc
 
 
-# ---------------------------------------------------------------- G15: messages
+# ---------------------------------------------------------------- messages
 def test_g15_kv_zero_names_the_key_given(tmp_path, capsys):
     cfg = write_config(tmp_path, {"control.kv_per_s": "0"})
     line = assert_refused(tmp_path, ["modal", "--config", str(cfg)], capsys, "control.kv_per_s: must be > 0")

@@ -1,4 +1,4 @@
-"""A corpus of bad CAN frame sequences (issue #18) sent to `virtualaxis serve` in another process over
+"""A corpus of bad CAN frame sequences sent to `virtualaxis serve` in another process over
 udp_multicast (hop_limit 0): wrong DLCs, bad SDO command specifiers, toggle errors, block-transfer abuse,
 restricted and in-use COB-ID writes, malformed NMT/SYNC/RPDO frames, floods. Each case gets the answer a
 CiA 301 node gives (the SDO abort code, the EMCY, or silence for a frame a node ignores) within 0.3 s (never

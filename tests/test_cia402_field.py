@@ -407,7 +407,7 @@ def test_quick_stop_on_the_current_limit_and_coast(option, max_mm):
 
 
 def test_torque_actual_is_computed_from_the_currents_and_stays_within_0x6072():
-    """Found by an outside audit: in PT with the target beyond 0x6072, 0x6077 read 3008 per mille with 0x6072 =
+    """In PT with the target beyond 0x6072, 0x6077 read 3008 per mille with 0x6072 =
     3000 (the air-gap torque including cogging, and the current loop's overshoot of its limit). A drive shows
     the torque it computes from its measured currents, within its torque limit."""
     r = Rig()

@@ -1,4 +1,4 @@
-"""The speed feed-forward form a drive uses (issue #14): the command's derivative (our simulator's default) or the
+"""The speed feed-forward form a drive uses: the command's derivative (our simulator's default) or the
 difference of consecutive set-points held for the next position cycle (a CSP drive). Judged closed-loop on traces
 of the independent reference axis (``virtualaxis.refaxis``, which uses the set-point difference) and on traces of
 our own simulator (the derivative); no parameter is fitted, so the check cannot absorb a plant effect."""

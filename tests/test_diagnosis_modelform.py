@@ -1,4 +1,4 @@
-"""Model-form conventions the diagnosis had to get right for data our simulator did not make (issue #14): a settled
+"""Model-form conventions the diagnosis had to get right for data our simulator did not make: a settled
 start, a resonance that is a part of the weighed moving mass, physical bounds (viscous friction up to the drive's
 peak force at top speed) and a parameter within one standard error of a non-zero bound counting as at the bound."""
 

@@ -156,7 +156,7 @@ def test_missing_file():
 
 
 def test_streamed_reader_names_the_line_after_the_first_chunk(tmp_path):
-    """Issue 18: the reader parses 50 000-line chunks in C; a bad value deep in the file still gets its line."""
+    """The reader parses 50 000-line chunks in C; a bad value deep in the file still gets its line."""
     rows = _good_rows(120_000)
     p = _write(tmp_path / "long.csv", HEADER, rows)
     tr = read_trace(p)

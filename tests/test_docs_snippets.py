@@ -1,4 +1,4 @@
-"""Every fenced python block of README.md and docs/*.md runs as written (issue #15 item 8).
+"""Every fenced python block of README.md and docs/**/*.md runs as written.
 
 Fence info strings (the text after the opening three backticks):
 
@@ -7,6 +7,8 @@ Fence info strings (the text after the opening three backticks):
   another process. The snippet uses the documented bus string ``udp_multicast:239.74.163.2``; the test swaps
   it (everywhere in the snippet) for a private group and port, so that tests running at the same time do not
   hear each other.
+- ``python pytest: FILE`` — a test file of a tutorial: written as FILE into an empty folder and run there with
+  ``python -m pytest`` (the pytest plugin loaded as an installed package loads it); every test must pass.
 - ``python no-run: REASON`` — not run (an API summary with placeholders, a signature list); the reason is
   required.
 
@@ -59,7 +61,7 @@ class Snippet:
 
 def doc_files() -> list[Path]:
     root = Path(ROOT)
-    return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
+    return [root / "README.md", *sorted((root / "docs").rglob("*.md"))]
 
 
 def extract(path: Path) -> list[Snippet]:
@@ -107,6 +109,22 @@ def _run(snippet: Snippet, code: str) -> subprocess.CompletedProcess:
                             subprocess.CompletedProcess(exc.cmd, -1, out, err)))
 
 
+def run_pytest_snippet(snippet: Snippet, folder: Path, code: str | None = None,
+                       args: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    """Write a ``python pytest: FILE`` block (or ``code``) as FILE into ``folder`` and run pytest on it there."""
+    import importlib.metadata
+
+    name = snippet.attribute()[1]
+    assert name.endswith(".py") and "/" not in name, _report(snippet, f"pytest: wants a file name (got {name!r})")
+    (folder / name).write_text(snippet.code if code is None else code)
+    plugin = [] if "virtualaxis" in {ep.name for ep in importlib.metadata.entry_points(group="pytest11")} else [
+        "-p", "virtualaxis.testing"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(Path(ROOT) / "src"),
+                                                                    os.environ.get("PYTHONPATH", "")) if p))
+    return subprocess.run([sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider", *plugin, name,
+                           *args], capture_output=True, text=True, cwd=folder, env=env, timeout=300)
+
+
 def test_docs_have_python_snippets():
     assert len(PYTHON) >= 3, [s.id for s in PYTHON]  # the extraction works (a broken regex would skip all)
 
@@ -115,7 +133,7 @@ def test_docs_have_python_snippets():
     # a block that talks to a served drive is timing-sensitive (e.g. the SYNC-jitter frame log of canopen.md)
     pytest.param(s, id=s.id, marks=[pytest.mark.exclusive] if s.attribute()[0] == "serve" else [])
     for s in PYTHON])
-def test_python_snippet_runs_as_written(snippet: Snippet):
+def test_python_snippet_runs_as_written(snippet: Snippet, tmp_path: Path):
     key, value = snippet.attribute()
     if key == "no-run":
         assert value, _report(snippet, "is marked no-run without a reason (write `python no-run: WHY`)")
@@ -128,6 +146,10 @@ def test_python_snippet_runs_as_written(snippet: Snippet):
         assert proc.returncode == 0, _report(snippet, f"exited {proc.returncode} (drive served: serve {value})",
                                              proc)
         return
-    assert key == "", _report(snippet, f"has an unknown fence attribute {key!r} (use serve: or no-run:)")
+    if key == "pytest":
+        proc = run_pytest_snippet(snippet, tmp_path)
+        assert proc.returncode == 0, _report(snippet, f"pytest exited {proc.returncode}", proc)
+        return
+    assert key == "", _report(snippet, f"has an unknown fence attribute {key!r} (use serve:, pytest: or no-run:)")
     proc = _run(snippet, snippet.code)
     assert proc.returncode == 0, _report(snippet, f"exited {proc.returncode}", proc)

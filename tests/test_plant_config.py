@@ -92,7 +92,7 @@ def test_round_trip_to_toml(tmp_path):
 
 
 def test_every_numeric_parameter_has_a_bound_and_a_unit_table():
-    """Issue 18: plausibility bounds for every physical parameter; a key's unit table comes from its name."""
+    """Plausibility bounds for every physical parameter; a key's unit table comes from its name."""
     import dataclasses
 
     from virtualaxis.config.axis import _SECTIONS

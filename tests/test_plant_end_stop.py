@@ -1,6 +1,6 @@
-"""Issue #15 item 4, plant side: the hard end stops absorb an impact instead of throwing the axis back.
+"""Plant side of the limit switches: the hard end stops absorb an impact instead of throwing the axis back.
 
-Found by an outside audit: with a single stiff contact at the table, a disabled axis that coasted into the stop
+With a single stiff contact at the table, a disabled axis that coasted into the stop
 came back out at 97 % of its impact speed: the table stopped within a fraction of a millisecond, the rotor
 (1329 kg reflected on the seed 000 axis, five times the table) ran on, wound up the screw spring and threw
 the whole axis back. A machine's end stop has a damped buffer in front of the rigid stop; the plant now has one

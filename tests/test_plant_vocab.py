@@ -1,4 +1,4 @@
-"""Drive / axis options of issue #14 ("vocabulary real axes need"): each config key is bounded on load, its
+"""Drive / axis options (the vocabulary real axes need): each config key is bounded on load, its
 default reproduces the kernel's earlier behaviour, and its physics is checked against a reference not derived
 from the kernel (closed-form solutions, plain-numpy reimplementations)."""
 

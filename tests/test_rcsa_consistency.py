@@ -1,4 +1,4 @@
-"""Seed 002, issue 17: the printed k_m is inconsistent with the paper's own predicted modes; read as N m/rev
+"""Seed 002: the printed k_m is inconsistent with the paper's own predicted modes; read as N m/rev
 (k_m / 2 pi) it reproduces them, and the paper's single-position predictions out of sample. The reference numbers
 are the paper's predictions (Tables 4, 6-9), not ours."""
 

@@ -1,4 +1,4 @@
-"""Measured-FRF CSV import and mode-table import: formats and every bad-input case of issue 3."""
+"""Measured-FRF CSV import and mode-table import: formats and their bad-input cases."""
 
 from __future__ import annotations
 

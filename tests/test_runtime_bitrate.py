@@ -1,4 +1,4 @@
-"""CAN bit-rate emulation (issue #15 "Scale"): frame lengths against the literature's formula, frame times and
+"""CAN bit-rate emulation: frame lengths against the literature's formula, frame times and
 arbitration order on a python-can virtual bus, bus load and a transmit queue that overflows, and `serve`
 reporting the load of a master's traffic from another process."""
 

@@ -1,4 +1,4 @@
-"""The runtime never dies silently (issue #18): an exception escaping a drive cycle is caught, logged with
+"""The runtime never dies silently: an exception escaping a drive cycle is caught, logged with
 its traceback, counted, and the drive goes to FAULT with EMCY 0x6100 while its slave keeps answering SDO and
 NMT; a fault reset recovers it. `serve` exits non-zero and says so in its final JSON; its input errors
 (--json a folder / unwritable, a corrupt EDS) are one line before anything is served."""
@@ -18,7 +18,7 @@ from virtualaxis.drive.core import DEFAULT_EDS
 
 
 class _Boom:
-    """Makes one drive's cycle raise while ``armed`` (the kind of bug issue #18 found: a NaN reaching an
+    """Makes one drive's cycle raise while ``armed`` (the kind of bug meant: a NaN reaching an
     output); cannot be provoked through legal objects once those are validated, hence the patch."""
 
     def __init__(self, drive):

@@ -1,4 +1,4 @@
-"""Order of a SYNC answer with several axes on one bus (issue #15 "Scale").
+"""Order of a SYNC answer with several axes on one bus.
 
 The runtime answers a SYNC in two passes: every axis' synchronous TPDOs first (the values sampled at the SYNC
 instant), then every axis' synchronous RPDOs applied. Seen by a real ``canopen`` master: a TPDO that maps an

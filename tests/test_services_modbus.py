@@ -518,7 +518,7 @@ def test_pipelined_requests_on_one_connection_are_all_answered_in_order(server):
 
 
 def test_fc23_refused_read_writes_nothing_fc06_echoes_and_writes_follow_the_position_unit():
-    """Found by a docs-only Modbus client (stop 27):
+    """What a Modbus client that knows only the docs expects:
     - FC23 whose read range is refused (unknown register, a hole) answered exception 02 but had applied its
       write; a refused request must change nothing (docs/side-channels.md). A read-count error names the read
       address in 40496 (was the write address).

@@ -14,7 +14,8 @@ twice). In a test::
 
 Marker ``virtual_axis`` keywords (all optional): ``transport`` ``"virtual"`` (python-can ``virtual`` bus, drive in
 this process; default) or ``"udp"`` (``virtualaxis serve`` in a child process on ``udp_multicast``, hop_limit 0);
-``config`` (axis config TOML path; default the seed axis), ``node_id`` (an int or a tuple of ints: several axes
+``config`` (axis config TOML path, or a preset name of ``configs/`` such as ``"tuned-drive"``; default the seed
+axis as published, ``seed000-hust``), ``node_id`` (an int or a tuple of ints: several axes
 on one bus), ``lockstep`` (plant advances only on SYNC; default False; or ``pacing="lockstep"|"realtime"``),
 ``allow_fault_injection`` (default True),
 ``heartbeat_ms`` (0x1017 set on start, default 100). Command-line options ``--virtual-axis-transport`` and
@@ -141,6 +142,17 @@ def _private_udp_spec() -> tuple[str, dict]:
                                                    "hop_limit": 0}
 
 
+def preset_path(config: str | Path) -> Path:
+    """An axis config: a TOML path, or the name of a preset shipped in ``configs/`` (``"tuned-drive"``,
+    ``"seed000-hust"``, ...), found in the repository or the installed data files."""
+    path = Path(config)
+    if path.suffix or len(path.parts) > 1 or path.is_file():
+        return path
+    from virtualaxis.resources import project_file
+
+    return project_file(f"configs/{path.name}.toml")
+
+
 @contextlib.contextmanager
 def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None = None,
                        node_id: int | tuple[int, ...] = 1, lockstep: bool = False, allow_fault_injection: bool = True,
@@ -162,7 +174,7 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
         raise ValueError(f"virtual_axis: node_id must be 1..127, unique (got {node_id!r})")
     if transport not in ("virtual", "udp"):
         raise ValueError(f"virtual_axis: transport must be 'virtual' or 'udp' (got {transport!r})")
-    cfg_path = Path(config) if config is not None else Path(DEFAULT_CONFIG)
+    cfg_path = preset_path(config) if config is not None else Path(DEFAULT_CONFIG)
     if not cfg_path.is_file():
         raise ValueError(f"virtual_axis: config {cfg_path} not found")
     runtime = bus = proc = err_file = None

@@ -39,6 +39,7 @@ COMMANDS = (
     "gap_bench",
     "fault",
     "conformance",
+    "health",
 )
 
 

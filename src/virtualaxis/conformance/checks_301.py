@@ -371,7 +371,7 @@ def emcy_cob(ctx: Context) -> str:
     return f"0x1014 = 0x{v:08X}"
 
 
-# ============================================================================ SYNC timeout (issue #15 item 6)
+# ============================================================================ SYNC timeout
 @check("301-SYNC-1", "sync", "CiA 301 7.5.2.6 (0x1006) / 7.2.5 (SYNC consumer timeout 1.5 x period)",
        "0x1006 = 20 ms, SYNC every 20 ms for 0.8 s, then SYNC stopped",
        "no EMCY 0x8100 while SYNC runs (one after a gap of the master's own over 24 ms is excused); EMCY 0x8100 "

@@ -403,12 +403,12 @@ def following_error_fault(ctx: Context) -> str:
         ctx.disable()
 
 
-# ============================================================================ field behaviours (issue #15)
+# ============================================================================ field behaviours
 def _stop_bound(v: float, a: float, reaction_s: float, margin: float) -> float:
     return v * v / (2 * a) + abs(v) * reaction_s + margin
 
 
-@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085); issue #15 item 1",
+@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085)",
        "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2, 0x6085 = 10 m/s^2; "
        "0x6065 tightened to 1 unit while moving; the master "
        "keeps streaming", "the drive brakes from the ACTUAL speed: travel after the fault <= v^2/(2 a) + v * 20 ms "
@@ -476,7 +476,7 @@ def fault_reaction_from_motion(ctx: Context) -> str:
 
 
 @check("402-FLD-2", "rpdo", "CiA 301 7.2.2 (all PDO entries stored before the application reacts); CiA 402 12 "
-       "(new set-point); issue #15 item 2",
+       "(new set-point)",
        "PP, old 0x607A = actual + 5 mm by SDO; ONE RPDO1 [CW 0x1F, 0x607A = actual + 20 mm], then [0x0F, same] "
        "(- instead of + when the axis is on the + side of the travel's middle)",
        "the axis moves to actual + 20 mm (the target of the same PDO), not to the old target")
@@ -549,14 +549,14 @@ def _loss_of_control(ctx: Context, command: int) -> str:
         boot(ctx)
 
 
-@check("402-FLD-3", "loss", "CiA 402 (0x6007 abort connection option: NMT Stopped is a loss of control); "
-       "issue #15 item 3", "PV at 50 mm/s, 0x6007 = 1, NMT Stop; after 0.5 s NMT Start and read",
+@check("402-FLD-3", "loss", "CiA 402 (0x6007 abort connection option: NMT Stopped is a loss of control)",
+       "PV at 50 mm/s, 0x6007 = 1, NMT Stop; after 0.5 s NMT Start and read",
        "the axis stopped (travel <= v^2/2a + v * 0.1 s + 1 mm, at rest) and is in fault")
 def loss_nmt_stop(ctx: Context) -> str:
     return _loss_of_control(ctx, 0x02)
 
 
-@check("402-FLD-4", "loss", "CiA 402 (0x6007; NMT Reset Communication); issue #15 item 3",
+@check("402-FLD-4", "loss", "CiA 402 (0x6007; NMT Reset Communication)",
        "PV at 50 mm/s, 0x6007 = 1, NMT Reset Communication", "the axis stopped and is in fault")
 def loss_nmt_reset_comm(ctx: Context) -> str:
     return _loss_of_control(ctx, 0x82)
@@ -579,8 +579,8 @@ def _injection_offered(ctx: Context) -> None:
                    "--allow-fault-injection), so no limit switch can be forced")
 
 
-@check("402-FLD-5", "limits", "CiA 402 (0x60FD digital inputs; hardware limit switch stops in every mode); "
-       "issue #15 item 4", "in each supported mode of PP, PV, CSP, CSV, CST moving + at 30 mm/s: positive limit "
+@check("402-FLD-5", "limits", "CiA 402 (0x60FD digital inputs; hardware limit switch stops in every mode)",
+       "in each supported mode of PP, PV, CSP, CSV, CST moving + at 30 mm/s: positive limit "
        "switch forced through the fault-injection channel", "the axis stops (travel <= v^2/(2 0x6085) + v * 50 ms + "
        "1 mm, at rest), 0x60FD bit 1, fault or warning (SW bit 7 / 11)")
 def limit_switch_every_mode(ctx: Context) -> str:
@@ -800,8 +800,8 @@ def fault_reset_edge(ctx: Context) -> str:
 
 
 # ============================================================================ real hardware limit switches
-@check("402-FLD-6", "limits", "CiA 402 (0x60FD bit 1 positive limit switch; the drive stops in every mode); "
-       "issue #15 item 4", "0x607D max widened by 20 % (if finite); the axis driven onto the REAL + switch in PV "
+@check("402-FLD-6", "limits", "CiA 402 (0x60FD bit 1 positive limit switch; the drive stops in every mode)",
+       "0x607D max widened by 20 % (if finite); the axis driven onto the REAL + switch in PV "
        "(search), then from a few mm before it in PP, PT, CSP, CSV, CST (each supported one); then PV away",
        "0x60FD bit 1; the axis stops (travel past the switch <= v^2/(2 0x6085) + v * 50 ms + 1 mm, at rest), fault "
        "or warning (SW bit 3 / 7 / 11); the axis can move away from the switch")

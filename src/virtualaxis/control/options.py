@@ -1,5 +1,5 @@
 """Kernel parameters of the drive and axis options that real drives have and the first kernel did not
-(issue #14, "vocabulary real axes need"). Each option is a config key whose default reproduces the kernel's
+(the vocabulary real axes need). Each option is a config key whose default reproduces the kernel's
 behaviour before the option existed bit for bit; :func:`fill_option_parameters` writes them into the kernel's
 parameter vector (called by :func:`virtualaxis.sim.simulator.build_parameters`).
 

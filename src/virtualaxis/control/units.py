@@ -1,4 +1,4 @@
-"""Unit conversions of machine-tool control (SINUMERIK conventions, ../shared/docs/siemens-conventions.md)."""
+"""Unit conversions of machine-tool control (SINUMERIK conventions, docs/reference/siemens-conventions.md)."""
 
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ def load_traces(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str])
     for tr in traces:
         check_units(tr, cfg)
     check_sidecar_controllers(cfg, traces)
-    from virtualaxis.diagnosis.plausibility import check_plausibility  # bad-input checks (issue 18)
+    from virtualaxis.diagnosis.plausibility import check_plausibility  # bad-input checks
     notes.extend(check_plausibility(cfg, traces, list(fit_paths), list(holdout_paths or [])))
     dts = {round(tr.dt_s, 12) for tr in traces}
     if len(dts) > 1:
@@ -140,7 +140,7 @@ CLOSED_LOOP_RATIO = 0.7
 CLOSED_LOOP_BEST_CHANNEL = 0.4
 #: the fit traces' identified laws are one controller only when each gain agrees within this factor across them
 #: (chosen: the identification's jackknife scatter on the bench traces is a few per cent; an independent model's
-#: 2 ms position-feedback delay gave Kv 49.5 .. 156 1/s on four traces, stop 27: a delay, not a controller)
+#: 2 ms position-feedback delay gave Kv 49.5 .. 156 1/s on four traces: a delay, not a controller)
 CONTROLLER_AGREEMENT = 1.5
 
 

@@ -1,4 +1,4 @@
-"""Reading and validating measured traces (``../shared/docs/trace-format.md``).
+"""Reading and validating measured traces (``docs/reference/trace-format.md``).
 
 A trace is one CSV file with a header row, SI units. :func:`read_trace` returns a :class:`Trace` on a
 uniform time grid or raises :class:`~virtualaxis.config.errors.InputError` naming the file, the row
@@ -385,7 +385,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     unused = [k for k in meta if k not in SIDECAR_KEYS]
     if unused:
         warnings.append(f"{p.with_suffix('.toml')}: sidecar key(s) not used: {', '.join(unused)} (the diagnosis "
-                        f"reads {', '.join(SIDECAR_KEYS)}; see docs/trace-format.md)")
+                        f"reads {', '.join(SIDECAR_KEYS)}; see docs/reference/trace-format.md)")
     jitter = float(np.max(np.abs(dt - dt_med))) / dt_med
     if jitter > _JITTER_TOLERANCE:
         n = int(round((t[-1] - t[0]) / dt_med)) + 1

@@ -321,7 +321,7 @@ class Drive:
         following_error_tolerance_m`` is given) [m]: the steady lag at the fastest speed the defaults permit
         (0x607F limited by 0x6080) with the position-loop gain and the speed feed-forward share,
         v (1 - k_ff) / Kv, times :data:`FE_WINDOW_MARGIN`, plus the EDS default as a floor for the
-        acceleration transient; so that no speed the defaults allow faults (issue #15 item 5)."""
+        acceleration transient; so that no speed the defaults allow faults."""
         c, st = self.cfg.control, self.settings
         kv = max(c.kv_1_per_s, 1e-3)
         kff = c.velocity_ff_factor if c.velocity_ff_factor > 0 else 0.0
@@ -551,7 +551,7 @@ class Drive:
     def write_objects(self, items: list[tuple[int, int, int | float]], *, checked: bool = False) -> None:
         """Write several objects as ONE event (an RPDO): every value is stored first, then the reactions run
         (mode 0x6060 first, the controlword 0x6040 last), so a controlword with the new-set-point bit and
-        the target 0x607A in one RPDO start the move to the NEW target (issue #15 item 2)."""
+        the target 0x607A in one RPDO start the move to the NEW target."""
         with self._lock:
             keyed = []
             for index, sub, value in items:

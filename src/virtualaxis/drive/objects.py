@@ -54,11 +54,14 @@ MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 8: 0x80, 9: 0x100, 10: 0x200}
 
 OBJECTS: tuple[ObjectSpec, ...] = (
     # manufacturer objects (Siemens-style loop parameters, monitoring, faults, diagnostics)
-    _o(0x2000, 0, "position loop gain Kv [1000/min]", "f32", "rw", 3.0),
-    _o(0x2001, 0, "velocity feed-forward factor [1]", "f32", "rw", 1.0),
-    _o(0x2002, 0, "feed-forward mode (0 off, 1 speed, 2 speed + torque)", "u8", "rw", 1),
-    _o(0x2003, 0, "speed controller P gain [N m s/rad]", "f32", "rw", 0.0),
-    _o(0x2004, 0, "speed controller integral time Tn [ms]", "f32", "rw", 10.0),
+    # 0x2000..0x2004: the default axis' values (configs/seed000-hust.toml, the seed axis as published: speed
+    # feed-forward off); at boot the served axis config writes its own (configs/tuned-drive.toml: 0x2001 = 1.0,
+    # 0x2002 = 1)
+    _o(0x2000, 0, "position loop gain Kv [1000/min]", "f32", "rw", 5.538),
+    _o(0x2001, 0, "velocity feed-forward factor [1]", "f32", "rw", 0.0),
+    _o(0x2002, 0, "feed-forward mode (0 off, 1 speed, 2 speed + torque)", "u8", "rw", 0),
+    _o(0x2003, 0, "speed controller P gain [N m s/rad]", "f32", "rw", 6.9),
+    _o(0x2004, 0, "speed controller integral time Tn [ms]", "f32", "rw", 40.0),
     _o(0x2005, 0, "following error tolerance (= 0x6065)", "u32", "rw", 1000),
     _o(0x2006, 0, "standstill window", "u32", "rw", 200),
     _o(0x2007, 0, "standstill time [ms]", "u16", "rw", 200),

@@ -1,7 +1,7 @@
 """Diagnose the independent reference axis' cases and score the diagnosis against their truth.
 
 A case (``virtualaxis.refaxis.make_case``) is a nominal config in our schema, fit and held-out traces, and the
-truth: which effects were withheld and their main parameter values. Scoring (issue #14's acceptance figures):
+truth: which effects were withheld and their main parameter values. Scoring (the bench's acceptance figures):
 
 - right effect first: the first accepted effect is one of the withheld ones;
 - clean: nothing accepted;

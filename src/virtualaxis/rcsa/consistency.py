@@ -1,4 +1,4 @@
-"""Seed 002: which printed values are consistent with which printed results (issue 17).
+"""Seed 002: which printed values are consistent with which printed results.
 
 The paper's predicted natural frequencies (Tables 4, 6, 7, computed by the authors with their Table 3 and
 Table 5 joints and Table A parts) are results of *its* model; ours, with the same printed inputs, gives modes 3
@@ -216,7 +216,7 @@ def _fmt_err(e: np.ndarray) -> str:
 
 def markdown(rep: dict) -> str:
     """The issue-17 section of docs/rcsa-reproduction.md."""
-    md = [MD_BEGIN, "", "## Issue 17: which printed value is inconsistent with which printed result", "",
+    md = [MD_BEGIN, "", "## Which printed value is inconsistent with which printed result", "",
           "Undamped natural frequencies of our model against the paper's *predicted* ones (its own model's "
           "output with the same printed inputs). Errors in %, modes 1..4; — = no mode in the band (the paper's "
           "own — at l4).", ""]

@@ -198,7 +198,7 @@ def run(config: str, out: Path, figures: Path | None, generations: int, seed: in
     report: dict = {"config": config}
     # 1. prediction with the paper's parameters
     # the paper's joints as the config reads them: Table 3 from [rcsa.joints] (k_m printed 5.53e3 read as N m/rev,
-    # issue 17), Table 5 with the same reading of its k_m
+    # docs/rcsa-reproduction.md), Table 5 with the same reading of its k_m
     km_factor = model.joints.k_m / paper.TABLE3_MULTI_POSITION.k_m
     report["k_m_reading_factor"] = km_factor
     multi_rows = prediction_rows(model, model.joints, LABELS, "multi")
@@ -327,7 +327,7 @@ def _write(out: Path, report: dict, generations: int, seed: int) -> None:
         "## Tables 1 and 4: prediction with the paper's Table 3 joints at l1..l6",
         "",
         f"Joints of the config's [rcsa.joints]: Table 3 with k_m read as N m/rev (x {report['k_m_reading_factor']:.4f},"
-        " issue 17, section at the end); Table 5's k_m read the same way.",
+        " see the section at the end); Table 5's k_m read the same way.",
         "",
         "Paper predictions exist for l2, l4, l6 (Table 4) and l3, l5 (Tables 6, 7, multi-position rows).",
         "",

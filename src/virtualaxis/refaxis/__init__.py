@@ -1,4 +1,4 @@
-"""Reference axis written apart from the diagnosed model (issue 14, item 1).
+"""Reference axis written apart from the diagnosed model.
 
 Its own equations, integrator (RK4 + exact bristle and actuator-lag updates, 31.25 us), controller
 discretisation and sensor models; it imports nothing from ``virtualaxis.sim``, ``plant``, ``control`` or

@@ -63,7 +63,7 @@ def velocity(x: np.ndarray, t_s: float = 1e-3) -> np.ndarray:
 def force_pulses(n: int, amplitude_n: float, width_s: float, period_s: float, first_s: float,
                  t_s: float = 1e-3) -> np.ndarray:
     """Known external force on the table [N]: rectangular pulses of ``width_s`` every ``period_s`` from
-    ``first_s`` on, alternating in sign (a validation run with force pulses, like the lab axis of issue 14)."""
+    ``first_s`` on, alternating in sign (a validation run with force pulses, like a lab axis under pulse loads)."""
     t = np.arange(n) * t_s
     f = np.zeros(n)
     k = 0

@@ -64,7 +64,7 @@ class OwnFrameFilteringUdpBus(UdpMulticastBus):
             super().__init__(channel=channel, port=port, hop_limit=hop_limit, **kwargs)
         except BaseException:
             # a bus that never opened has nothing to shut down: without this, python-can's __del__ logs
-            # "OwnFrameFilteringUdpBus was not properly shut down" after the one error line (issue 18)
+            # "OwnFrameFilteringUdpBus was not properly shut down" after the one error line
             self._is_shutdown = True
             raise
         self.own_tag = f"va-{os.getpid()}-{next(_bus_ids)}"

@@ -6,7 +6,7 @@ descriptor stays open, the CPU idle governor uses no idle state whose exit laten
 bound of 0 idle CPUs poll instead of halting, which takes the wake-up from a halted CPU out of every frame's path.
 
 Measured on this project's 2-vCPU virtual machines (cpuidle driver ``haltpoll``, guest halt-polling off; 7 axes at
-1 ms SYNC, SCHED_FIFO; BENCHMARKS.md, issue #15): the SDO round trip halves (~95 -> ~45 us) and the runs without a
+1 ms SYNC, SCHED_FIFO; BENCHMARKS.md): the SDO round trip halves (~95 -> ~45 us) and the runs without a
 stall had the 7th axis' SYNC -> TPDO p99 at 200-285 us in both pacing modes; but the polling vCPUs use up the
 virtual machine's CPU share on its host: 10 of 47 runs with the bound had a stall of ~100 ms (of serve or of the
 master: the whole guest), none of ~70 runs without it (whose worst stalls were 5-40 ms). Use it on dedicated

@@ -37,6 +37,7 @@ connections without a DISCONNECT, so the broker publishes the last will.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import re
@@ -753,8 +754,8 @@ class MqttService:
         # (keeps the process' priority: a thread that takes the drive's lock must not be preempted holding it)
         period = 1.0 / self.settings.rate_hz
         # in the gap after a SYNC's PDOs while a sample may wait up to a communication cycle for it; at higher
-        # rates (a period under GATED_MIN_PERIOD_S) waiting for the next PDO burst missed every other cycle
-        # (405-449 of 1000 samples/s, stop 27): those run at their own phase
+        # rates (a period under GATED_MIN_PERIOD_S) waiting for the next PDO burst would miss every other cycle:
+        # those run at their own phase
         gate = self.gate if period >= GATED_MIN_PERIOD_S else None
         state_every = max(1, round(STATE_FORWARD_PERIOD_S / period))
         ring = self.ring
@@ -856,9 +857,9 @@ class PubChannel:
     event_capacity: int
     events: deque = field(default_factory=deque)
     states: deque = field(default_factory=lambda: deque(maxlen=32))  # state fields of drive events
-    # fault/result payloads to publish: one per fault/set message, none dropped (a bounded deque lost the answers
-    # of a burst of more than 64 commands: stop 27); each is answered at once, so the queue holds what the broker
-    # delivered faster than the results go out
+    # fault/result payloads to publish: one per fault/set message, none dropped (a bounded queue would lose the
+    # answers of a long burst); each is answered at once, so the queue holds what the broker delivered faster than
+    # the results go out
     results: deque = field(default_factory=deque)
     commands_in_flight: int = 0  # fault/set commands forwarded to serve, not answered yet
     current: dict | None = None  # the latest state fields serve forwarded
@@ -875,6 +876,7 @@ class PubChannel:
     sampler_late: int = 0
     auth_warned: bool = False  # the broker's refusal of the credentials was reported on stderr
     mqtt5: bool = True  # MQTT 5 (retain-as-published for fault/set); False after a 3.1.1 broker refused it
+    mqtt5_unanswered: bool = False  # 3.1.1 because an MQTT 5 CONNECT got no CONNACK (not a refusal)
 
     def counters(self) -> dict:
         return self.buffer.counters() | {
@@ -1120,6 +1122,7 @@ class Publisher:
             ch.connect_attempts += 1
             self.export(ch)
             v5 = ch.mqtt5
+            accepted = False  # CONNACK with success received
             try:
                 client = aiomqtt.Client(
                     st.host,
@@ -1136,6 +1139,7 @@ class Publisher:
                     clean_start=True if v5 else 3,
                 )
                 async with client:
+                    accepted = True
                     _no_delay(client)
                     ch.connects += 1
                     ch.connected = True
@@ -1153,7 +1157,22 @@ class Publisher:
                           flush=True)
                 if v5 and rc in (1, 132):
                     ch.mqtt5 = False  # an MQTT 3.1.1 broker ("unsupported protocol version"): again at once in 3.1.1
+                    ch.mqtt5_unanswered = False
                     continue
+                if v5 and not accepted and rc is None and "timed out" in str(exc).lower():
+                    # no CONNACK at all: some 3.1.1 brokers cannot parse an MQTT 5 CONNECT with a will (amqtt 0.12)
+                    ch.mqtt5 = False  # and say nothing; again at once in 3.1.1
+                    ch.mqtt5_unanswered = True
+                    # aiomqtt leaves the unanswered client's socket open: closed here, while the event loop
+                    # runs (collected after it has closed, paho prints 'Event loop is closed' tracebacks)
+                    with contextlib.suppress(aiomqtt.MqttError):
+                        await client.__aexit__(None, None, None)
+                    continue
+                if not v5 and ch.mqtt5_unanswered:
+                    if accepted or rc is not None:
+                        ch.mqtt5_unanswered = False  # answered in 3.1.1: a 3.1.1 broker
+                    else:
+                        ch.mqtt5 = True  # 3.1.1 went unanswered too: a broker away, not a 3.1.1 one
             except OSError as exc:
                 ch.last_error = str(exc)
             if ch.connected:

@@ -1,4 +1,4 @@
-"""Batch simulation: a whole command in, trace columns (``../shared/docs/trace-format.md``) out."""
+"""Batch simulation: a whole command in, trace columns (``docs/reference/trace-format.md``) out."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Writing traces in the measured-trace format (``../shared/docs/trace-format.md``): SI units, one column per signal.
+"""Writing traces in the measured-trace format (``docs/reference/trace-format.md``): SI units, one column per signal.
 
 The file name chooses the container:
 

@@ -1,4 +1,4 @@
-"""The second hostile-user audit of issue 18 (docs/bad-input.md, "Second audit"): ~460 bad inputs built from
+"""The bad-input corpus (docs/bad-input.md): ~460 bad inputs built from
 classes (every value class on a spread of config keys, misspelt keys, wrong TOML types, missing sections, every
 numeric CLI option with empty / nan / subnormal / huge values, list options, profile specs, move files, traces
 and sidecars, output paths, serve / conformance / fault against a bus where nothing answers), each run in a
@@ -9,7 +9,7 @@ Each result is classified: clear (exit 2, ONE line ``error: ...``), misleading (
 traceback (an internal error), hang (over the limit), accepted (exit 0: checked by hand: right or silently
 wrong); ``+leftover`` when a refused case left a file or folder behind (or changed an input).
 
-    python3 tests/badinput/audit.py [REGEX]        # A18_JOBS=3, A18_OUT=/tmp/audit18.json (+ .log per case)
+    python3 tests/badinput/corpus.py [REGEX]       # A18_JOBS=3, A18_OUT=/tmp/badinput-corpus.json (+ .log per case)
 
 Not part of the test suite (about 15 minutes on 2 vCPUs); tests/test_badinput_cli.py keeps one case per defect
 class it found.
@@ -433,7 +433,7 @@ case("diag-holdout-missing", DG + ["--holdout", "{T}/none.csv"], "err")
 
 # ---------------- output paths ---------------------------------------------------------------------------------
 S2 = ["simulate", "--config", str(C4), "--profile", "step:distance_um=10", "--duration", "0.02"]
-case("out-tilde", S2 + ["--out", "~/audit18-should-not-exist.csv"], "any")
+case("out-tilde", S2 + ["--out", "~/badinput-should-not-exist.csv"], "any")
 case("out-trailing-slash", S2 + ["--out", "{T}/t.csv/"], "err")
 case("out-long-name", S2 + ["--out", "{T}/" + "a" * 300 + ".csv"], "err")
 case("out-symlink-to-folder", S2 + ["--out", "{T}/lnk"], "err", {"@symlink:lnk": "{T}/sub", "@dir:sub": ""})
@@ -564,8 +564,8 @@ for n, a in {
 }.items():
     case(f"fault-{n}", FT + a, "err")
 
-# accepted (exit 0) results judged wrong by hand in the second audit (before its fixes): the input was wrong
-# and was taken silently; every other accepted case was judged correct (docs/bad-input.md)
+# accepted (exit 0) results judged wrong by hand: the input was wrong and must not be taken silently;
+# every other accepted case was judged correct (docs/bad-input.md)
 JUDGED_WRONG = (
     "cfg-mechanics.lead_m=tiny",
     "cfg-control.kv_per_min=tiny",
@@ -777,9 +777,9 @@ if __name__ == "__main__":
         todo = [c for c in todo if c[0] in want]
     print(f"{len(todo)} cases", file=sys.stderr)
     res = run_all(
-        todo, int(os.environ.get("A18_JOBS", "3")), str(os.environ.get("A18_OUT", "/tmp/audit18.json")) + ".log"
+        todo, int(os.environ.get("A18_JOBS", "3")), str(os.environ.get("A18_OUT", "/tmp/badinput-corpus.json")) + ".log"
     )
-    out = Path(os.environ.get("A18_OUT", "/tmp/audit18.json"))
+    out = Path(os.environ.get("A18_OUT", "/tmp/badinput-corpus.json"))
     out.write_text(json.dumps(res, indent=1))
     from collections import Counter
 

@@ -1,7 +1,7 @@
-"""Bad-input cases of the stop-27 audit (serve / conformance outputs and inputs, the served EDS, bus options,
+"""Bad input of the commands: serve / conformance outputs and inputs, the served EDS, bus options,
 side-channel options, identify-joints, simulate, diagnose sidecars and traces). Each case runs through the real
 CLI (``main([...])`` in-process) and must exit 2 with ONE ``error:`` line naming the file or option, leaving
-every file of its folder unchanged; see docs/bad-input.md ("Third audit")."""
+every file of its folder unchanged; see docs/bad-input.md."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def _snapshot(tmp: Path) -> dict[str, bytes | None]:
 
 
 CASES: list[tuple[str, list[str], list[str]]] = [
-    # ---- G4: serve / conformance outputs are checked like every other command's (cli/outputs.py)
+    # ---- serve / conformance outputs are checked like every other command's (cli/outputs.py)
     ("serve-json-is-config", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--json", "{T}/c.toml",
                               "--force"], ["--json", "c.toml", "also an input"]),
     ("serve-json-is-config-via-symlink", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--json",
@@ -82,7 +82,7 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                              "--latency-probe", "{T}/same.npz"], ["--latency-probe", "also the output of --json"]),
     ("serve-probe-not-npz", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--latency-probe",
                              "{T}/x.txt"], ["--latency-probe", "x.txt", ".npz"]),
-    # ---- G2 / G8: the served EDS has what the slave and the drive need (before: KeyError (4101, 0) after
+    # ---- the served EDS has what the slave and the drive need (before: KeyError (4101, 0) after
     # canopen's warning printed twice; an EDS without the Controlword was served, exit 0)
     ("serve-eds-empty", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds", "{T}/empty.eds"],
      ["empty.eds", "not an EDS"]),
@@ -92,7 +92,7 @@ CASES: list[tuple[str, list[str], list[str]]] = [
      ["no1005.eds", "0x1005:00", "COB-ID SYNC"]),
     ("serve-eds-no-controlword", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--eds",
                                   "{T}/no6040.eds"], ["no6040.eds", "0x6040:00", "controlword", "RPDO1"]),
-    # ---- G3: bus option values parsed and named (before: internal error 'required argument is not an
+    # ---- bus option values parsed and named (before: internal error 'required argument is not an
     # integer' at bus.py:263; virtual:x,bitrate=abc served)
     ("serve-can-hop-limit-not-int", [*SERVE, "--config", "{T}/c.toml", "--can",
                                      "udp_multicast:239.74.163.99,hop_limit=abc"], ["hop_limit='abc'", "integer"]),
@@ -100,7 +100,7 @@ CASES: list[tuple[str, list[str], list[str]]] = [
                                      "udp_multicast:239.74.163.99,hop_limit=0,port=99999"], ["port=99999", "1..65535"]),
     ("serve-can-virtual-unknown-option", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27,bitrate=abc"],
      ["'bitrate'", "virtual bus", "accepted"]),
-    # ---- G13 / G14: a sidecar's [controller] values are checked and reported against the sidecar (before: the
+    # ---- a sidecar's [controller] values are checked and reported against the sidecar (before: the
     # axis config file was named; quoted "control.*" keys were ignored with a warning, their values unchecked)
     ("diag-sidecar-controller-negative", DIAG + ["{T}/ctl_neg.csv"],
      ["ctl_neg.toml", "[controller] control.kv_per_min", ">= 0"]),
@@ -109,29 +109,29 @@ CASES: list[tuple[str, list[str], list[str]]] = [
     ("diag-sidecar-controller-nested-huge", DIAG + ["{T}/ctl_nested_huge.csv"],
      ["ctl_nested_huge.toml", "control.kv_per_min", "plausible range"]),
     ("diag-sidecar-controller-key-twice", DIAG + ["{T}/ctl_twice.csv"], ["ctl_twice.toml", "given twice"]),
-    # ---- G10: side-channel options consistent (before: --telemetry-rate 5000 accepted without --mqtt, --machine ''
+    # ---- side-channel options consistent (before: --telemetry-rate 5000 accepted without --mqtt, --machine ''
     # replaced by the config's name)
     ("serve-telemetry-rate-without-mqtt", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27",
                                            "--telemetry-rate", "5000"], ["--telemetry-rate", "--mqtt"]),
     ("serve-machine-empty", [*SERVE, "--config", "{T}/c.toml", "--can", "virtual:s27", "--mqtt",
                              "mqtt://127.0.0.1:1", "--machine", ""], ["--machine", "empty"]),
-    # ---- G9 / G12 / G16: identify-joints (before: the weight silently dropped; a row at 9.6 m on a 2.6 m screw
+    # ---- identify-joints (before: the weight silently dropped; a row at 9.6 m on a 2.6 m screw
     # silently ignored; 8 'note:' lines before the error)
     ("ij-frequencies-only-and-weight", IJ + ["--modes", "{T}/modes.csv", "--frequencies-only", "--amplitude-weight",
                                              "0.5"], ["--frequencies-only", "--amplitude-weight", "alternatives"]),
     ("ij-modes-row-off-the-screw", IJ + ["--modes", "{T}/modes_off_screw.csv"],
      ["modes_off_screw.csv", "9.6", "outside the screw"]),
     ("ij-frf-without-peaks", IJ + ["--frf", "{T}/frf_flat.csv"], ["frf_flat.csv", "no natural frequency"]),
-    # ---- G12: conformance --only '' meant "all checks"
+    # ---- conformance --only '' meant "all checks"
     ("conformance-only-empty", ["conformance", "--can", "virtual:nobody", "--only", ""], ["--only", "empty"]),
-    # ---- G11: simulate (before: ptp accel 1e9 / jerk 1e12 commanded 100 m/s^2 per position cycle against a 5 m/s^2
+    # ---- simulate (before: ptp accel 1e9 / jerk 1e12 commanded 100 m/s^2 per position cycle against a 5 m/s^2
     # limit, exit 0; a step of 0 um ran while other kinds refuse 0)
     ("sim-ptp-acceleration-over-the-limit", ["simulate", "--config", str(C4), "--profile",
                                             "ptp:distance_mm=100,feed_mm_min=6000,accel_m_s2=1e9,jerk_m_s3=1e12",
                                             "--out", "{T}/t.csv"], ["peak acceleration", "max_acceleration_m_s2"]),
     ("sim-step-zero", ["simulate", "--config", str(C4), "--profile", "step:distance_um=0", "--out", "{T}/t.csv"],
      ["distance_um", "must not be 0"]),
-    # ---- G17: a trace without its header row (before: 'row 1: column 0: duplicate column name')
+    # ---- a trace without its header row (before: 'row 1: column 0: duplicate column name')
     ("diag-trace-no-header", DIAG + ["{T}/no_header.csv"], ["no_header.csv", "row 1", "header row is missing"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
@@ -156,7 +156,7 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys, argv, want):
 
 
 def test_unknown_sidecar_key_is_reported(tmp_path):
-    """G12: a top-level sidecar key the diagnosis does not read (``sample_rate_hz = 500``) was ignored silently;
+    """a top-level sidecar key the diagnosis does not read (``sample_rate_hz = 500``) was ignored silently;
     now a warning of the trace (printed before the conclusion and kept in report.json)."""
     from virtualaxis.diagnosis.trace import read_trace
 
@@ -167,7 +167,7 @@ def test_unknown_sidecar_key_is_reported(tmp_path):
 
 
 def test_cr_only_line_ends_keep_the_last_row(tmp_path):
-    """G17: CR-only line ends (old Mac style) were read, but the complete last row was dropped with a 'file looks
+    """CR-only line ends (old Mac style) were read, but the complete last row was dropped with a 'file looks
     truncated' warning; now the trace reads as with LF line ends, no warning."""
     import numpy as np
 
