@@ -361,6 +361,11 @@ class Drive:
         half = max(half, 0.0)
         return min(max(x_plant_m, -half), half)
 
+    @property
+    def actual_velocity_m_s(self) -> float:
+        """The axis' actual velocity as of the last cycle [m/s] (no snapshot: cheap enough for every cycle)."""
+        return self._axis.velocity_m_s
+
     def travel_room_m(self, direction: float) -> tuple[float, float]:
         """Room ahead of the axis in ``direction`` (its sign) [m]: (to the hardware limit switch, <= 0 once on
         or past it; to the hard end stop). A stop plans within it (:mod:`~virtualaxis.drive.reactions`)."""

@@ -201,7 +201,7 @@ def ramp_not_followed(drive: Drive, s: StopRamp, v_ramp_m_s: float, threshold_m_
     """Ramp monitoring of a ramp stop: the actual speed above the ramp by more than the tolerance for
     :data:`RAMP_MONITOR_S`, or the axis still moving onto the limit switch ahead (the ramp was planned to
     end before it) or into the end stop."""
-    v_act = drive._axis.velocity_m_s
+    v_act = drive.actual_velocity_m_s
     if abs(v_act) > abs(v_ramp_m_s) + RAMP_TOLERANCE_SHARE * abs(s.v0_m_s) + threshold_m_s:
         s.ramp_exceeded_s += drive.cycle_s
     else:
