@@ -414,8 +414,8 @@ def pipelining_server_class(server_class):
 
     pymodbus' own request handler decodes one frame per arrival of bytes, keeps one pending request per
     connection (``last_pdu``, which the next request overwrites while the first one's asynchronous datastore
-    access runs) and drops a receive buffer longer than one frame (264 bytes: the 23rd request of one TCP
-    segment and all before it went unanswered). Here the connection frames the byte stream itself (MBAP
+    access runs) and drops a receive buffer longer than one frame (264 bytes: 23 requests of 12 bytes in one
+    TCP segment would all go unanswered). Here the connection frames the byte stream itself (MBAP
     header: transaction id, protocol id, length, unit id): every complete request is queued in order and
     answered one after the other; a request pymodbus cannot decode or that has no function code of the map is
     answered in its place: exception 01 for a function code the map does not serve (0x00, 0x80..0xFF and every
@@ -465,7 +465,7 @@ def pipelining_server_class(server_class):
 
         def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
             # every byte is taken: the transport empties its receive buffer whenever an answer is sent (it
-            # expects one request, then the answer), which lost the start of a request that had arrived in
+            # expects one request, then the answer) and would lose the start of a request that has arrived in
             # part; the incomplete frame at the end is kept here instead (at most one: < 64 KiB, the length
             # field's range)
             used = len(data)
