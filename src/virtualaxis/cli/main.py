@@ -37,6 +37,7 @@ COMMANDS = (
     "gap_bench",
     "fault",
     "conformance",
+    "fmu",
 )
 
 
