@@ -1,9 +1,11 @@
-"""The axis as an FMI co-simulation FMU: exported by ``virtualaxis fmu`` (a subprocess), loaded, checked and run by
-FMPy (an independent FMI host), compared with the simulator the ``simulate`` command runs on the same
-zero-order-held input."""
+"""The axis as an FMI co-simulation FMU: exported by ``virtualaxis fmu`` (a subprocess), checked by FMPy's
+model-description reader and validation, run by FMPy (an independent FMI host, in a child process:
+tests/fmu_host.py says why), compared with the simulator the ``simulate`` command runs on the same zero-order-held
+input."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import zipfile
@@ -12,7 +14,6 @@ from pathlib import Path
 import fmpy
 import numpy as np
 import pytest
-from fmpy.fmi2 import FMU2Slave
 from fmpy.validation import validate_fmu
 
 from virtualaxis.config import load_axis_config
@@ -21,6 +22,7 @@ from virtualaxis.sim.batch import simulate_command
 from virtualaxis.sim.simulator import AxisSimulator, ControlMode
 
 ROOT = Path(__file__).resolve().parents[1]
+HOST = Path(__file__).with_name("fmu_host.py")
 SEED000 = ROOT / "configs" / "seed000-hust.toml"
 #: a config with scale and current noise (the noise stream must be the simulator's)
 NOISY = ROOT / "configs" / "examples" / "gap-bench-ballscrew.toml"
@@ -29,8 +31,20 @@ RTOL = 1e-9
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run([sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())",
+                           *args], capture_output=True, text=True, timeout=300)
+
+
+def host(tmp_path: Path, job: str, **kwargs) -> dict:
+    """Run a job of tests/fmu_host.py (FMPy) in a child process; its arrays."""
+    spec = tmp_path / f"{job}.json"
+    out = tmp_path / f"{job}.npz"
+    plain = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in kwargs.items()}
+    spec.write_text(json.dumps({"job": job, "out": str(out), **plain}))
+    r = subprocess.run([sys.executable, str(HOST), str(spec)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    with np.load(out) as data:
+        return {k: data[k] for k in data.files}
 
 
 def export(tmp_path: Path, config: Path, interface: str, *extra: str) -> Path:
@@ -52,13 +66,10 @@ def close(name: str, got: np.ndarray, want: np.ndarray) -> None:
     assert err <= RTOL * scale, f"{name}: max difference {err:.3g} (peak {scale:.3g})"
 
 
-def run_fmu(fmu: Path, signals: dict[str, np.ndarray], t: np.ndarray, step_s: float, **kwargs) -> np.ndarray:
-    sig = np.zeros(len(t), dtype=[("time", float)] + [(k, float) for k in signals])
-    sig["time"] = t
-    for k, v in signals.items():
-        sig[k] = v
-    return fmpy.simulate_fmu(str(fmu), stop_time=float(t[-1]), step_size=step_s, output_interval=step_s,
-                             input=sig, **kwargs)
+def run_fmu(tmp_path: Path, fmu: Path, signals: dict[str, np.ndarray], t: np.ndarray, step_s: float,
+            **kwargs) -> dict:
+    return host(tmp_path, "simulate", fmu=str(fmu), time=t, step_s=step_s,
+                inputs={k: np.asarray(v, float).tolist() for k, v in signals.items()}, **kwargs)
 
 
 def test_position_interface_matches_the_simulator(tmp_path):
@@ -87,9 +98,9 @@ def test_position_interface_matches_the_simulator(tmp_path):
     vel = 0.02 * 2 * np.pi * 4 * np.cos(2 * np.pi * 4 * t)
     acc = -0.02 * (2 * np.pi * 4) ** 2 * np.sin(2 * np.pi * 4 * t)
     fext = np.where(t >= 0.1, 400.0, 0.0)
-    res = run_fmu(fmu, {"position_setpoint_m": pos, "velocity_feedforward_m_s": vel,
+    res = run_fmu(tmp_path, fmu, {"position_setpoint_m": pos, "velocity_feedforward_m_s": vel,
                         "acceleration_feedforward_m_s2": acc, "external_force_n": fext}, t, step_s)
-    assert len(res) == len(t)
+    assert len(res["time"]) == len(t)
 
     n = (len(t) - 1) * k + 1
     tc = np.arange(n) * cyc
@@ -148,7 +159,8 @@ def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, interface, se
         u = np.where(t < 0.08, 4.0, np.where(t < 0.16, -4.0, 0.5))
     fext = np.where(t >= 0.12, -200.0, 0.0)
     x0 = 0.01
-    res = run_fmu(fmu, {setpoint: u, "external_force_n": fext}, t, step_s, start_values={"initial_position_m": x0})
+    res = run_fmu(tmp_path, fmu, {setpoint: u, "external_force_n": fext}, t, step_s,
+                  start_values={"initial_position_m": x0})
     n = (len(t) - 1) * k + 1
     ref = reference_rows(NOISY, mode, held(u, k, n), held(fext, k, n), x0)
     rows = np.arange(len(t)) * k
@@ -172,27 +184,73 @@ def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_pat
     cmd = 0.002 + 0.01 * (1 - np.cos(2 * np.pi * 3 * tc))  # a move and back, through the reversal
     vff = 0.01 * 2 * np.pi * 3 * np.sin(2 * np.pi * 3 * tc)
 
-    md = fmpy.read_model_description(str(fmu))
-    vr = {v.name: v.valueReference for v in md.modelVariables}
-    slave = FMU2Slave(guid=md.guid, unzipDirectory=fmpy.extract(str(fmu)),
-                      modelIdentifier=md.coSimulation.modelIdentifier, instanceName="cosim")
-    slave.instantiate()
-    try:
-        slave.setupExperiment(startTime=0.0)
-        slave.enterInitializationMode()
-        slave.setReal([vr["initial_position_m"]], [float(cmd[0])])
-        slave.exitInitializationMode()
-        table, fb = np.zeros(n), np.zeros(n)
-        for i in range(n):
-            fb[i], table[i] = slave.getReal([vr["pos_fb"], vr["table_position_m"]])
-            speed = kv_1_per_s * (cmd[i] - fb[i]) + kff * vff[i]
-            slave.setReal([vr["velocity_setpoint_m_s"]], [speed])
-            slave.doStep(currentCommunicationPoint=float(tc[i]), communicationStepSize=cyc)
-        slave.terminate()
-    finally:
-        slave.freeInstance()
+    res = host(tmp_path, "cosim", fmu=str(fmu), cmd=cmd, vff=vff, kv_1_per_s=kv_1_per_s, kff=kff, cycle_s=cyc)
+    fb, table = res["pos_fb"], res["table_position_m"]
 
     ref = simulate_command(cfg, tc, cmd, extras=True, vel_cmd_m_s=vff, acc_cmd_m_s2=np.zeros(n))
     close("pos_fb", fb, ref["pos_fb"])
     close("table_position_m", table, ref["table_true"])
     assert np.max(np.abs(ref["following_error"])) > 1e-5
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--interface", "current"], "invalid choice: 'current'"),
+    (["--step", "0.0015"], "--step: 0.0015 s is not a whole number of position-loop cycles"),
+    (["--step", "nan"], "--step: must be a finite number > 0 s"),
+])
+def test_bad_export_options_get_one_error_line(tmp_path, args, says):
+    out = tmp_path / "axis.fmu"
+    r = cli("fmu", "--config", str(SEED000), "--out", str(out), *args)
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and says in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_bad_output_and_config_get_one_error_line(tmp_path):
+    r = cli("fmu", "--config", str(SEED000), "--out", str(tmp_path / "axis.zip"))
+    assert r.returncode == 2 and "--out:" in r.stderr and "ends in .fmu" in r.stderr, r.stderr
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SEED000.read_text().replace("lead_m = { value = 0.016", "lead_m = { value = -0.016"))
+    r = cli("fmu", "--config", str(bad), "--out", str(tmp_path / "axis.fmu"))
+    assert r.returncode == 2 and "mechanics.lead_m" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    (tmp_path / "axis.fmu").write_bytes(b"keep")
+    r = cli("fmu", "--config", str(SEED000), "--out", str(tmp_path / "axis.fmu"))
+    assert r.returncode == 2 and "exists" in r.stderr and (tmp_path / "axis.fmu").read_bytes() == b"keep"
+
+
+def test_without_pythonfmu_the_command_says_what_to_install(tmp_path):
+    code = ("import sys; sys.modules['pythonfmu'] = None; from virtualaxis.cli.main import main; "
+            f"sys.exit(main(['fmu', '--config', {str(SEED000)!r}, '--out', {str(tmp_path / 'a.fmu')!r}]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "pip install 'virtualaxis[fmu]'" in r.stderr, r.stderr
+
+
+def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
+    """At run time: a communication step that is not whole position cycles, a non-finite input and a parameter
+    the config refuses are errors reported to the importing tool, not a wrong or silent result; a valid
+    parameter change is simulated."""
+    fmu = export(tmp_path, SEED000, "position")
+    cases = [
+        {"step_s": 0.0015},
+        {"step_s": 0.001, "inputs": {"position_setpoint_m": float("nan")}},
+        {"step_s": 0.001, "parameters": {"mechanics.lead_m": -0.016}},
+        # a parameter the config accepts: the FMU runs the changed axis
+        {"step_s": 0.001, "steps": 60, "parameters": {"control.kv_per_s": 40.0, "position_setpoint_m": 0.0},
+         "inputs": {"position_setpoint_m": 1e-3}},
+    ]
+    res = host(tmp_path, "refusals", fmu=str(fmu), cases=cases)
+    assert str(res["failed0"]) == "doStep", res["log0"]
+    assert "0.0015 s is not a whole number of position-loop cycles" in str(res["log0"])
+    assert str(res["failed1"]) == "setReal", res["log1"]
+    assert "input position_setpoint_m must be finite (got nan)" in str(res["log1"]), res["log1"]
+    assert str(res["failed2"]) == "exitInitializationMode" and "mechanics.lead_m" in str(res["log2"]), res["log2"]
+    assert str(res["failed3"]) == "", res["log3"]
+    # the axis starts at rest at the set-point given at initialisation (0), the set-point 1 mm from the first step
+    fe = {}
+    for kv in (40.0, None):
+        cfg = load_axis_config(SEED000)
+        sim = AxisSimulator(cfg.replace(control={"kv_per_s": kv}) if kv else cfg, initial_position_m=0.0)
+        sim.enable(True)
+        zeros = np.zeros(60)
+        fe[kv] = sim.run_arrays(np.full(60, 1e-3), zeros, zeros, zeros)[:, L.O_FOLLOWING]
+    close("following_error", res["fe3"], fe[40.0])
+    assert np.max(np.abs(fe[None] - fe[40.0])) > 1e-6  # the parameter mattered

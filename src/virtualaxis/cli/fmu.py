@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 from virtualaxis.cli.common import add_config_argument
@@ -31,8 +30,11 @@ def run(args) -> int:
     from virtualaxis.config import load_axis_config
     from virtualaxis.fmu.export import build_fmu, check_step
 
-    if importlib.util.find_spec("pythonfmu") is None:
-        raise CliError("the fmu command needs pythonfmu, which is not installed: pip install 'virtualaxis[fmu]'")
+    try:
+        import pythonfmu  # noqa: F401 - the optional dependency of this command
+    except ImportError:
+        raise CliError("the fmu command needs pythonfmu, which is not installed: "
+                       "pip install 'virtualaxis[fmu]'") from None
     out = Path(args.out)
     if not args.out.strip():
         raise CliError("--out: empty path")

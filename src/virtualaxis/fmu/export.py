@@ -10,7 +10,7 @@ from pathlib import Path
 
 from virtualaxis.config import AxisConfig, load_axis_config
 from virtualaxis.config.errors import InputError
-from virtualaxis.fmu.virtualaxis_slave import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
+from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
 
 #: the FMU's inputs: what the importing tool drives (docs/fmu.md)
 INTERFACES = ("torque", "speed", "position")

@@ -10,18 +10,12 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from pathlib import Path
 
 import pythonfmu
 from pythonfmu.enums import Fmi2Causality, Fmi2Initial, Fmi2Status, Fmi2Variability
 
-#: the export settings written next to the config in the FMU's resources
-SETTINGS_FILE = "fmu.json"
-#: the axis config embedded in the FMU's resources
-CONFIG_FILE = "axis.toml"
-#: a communication step is a whole number of position-loop cycles to within this fraction of a cycle
-STEP_TOLERANCE_CYCLES = 1e-6
+from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
 
 #: inputs per interface: (name, unit, description); the first one is the set-point
 INTERFACE_INPUTS = {
@@ -62,11 +56,6 @@ TRACE_OUTPUTS = {
 #: trace columns of the drive's position loop: outputs of the position interface only (with the speed and torque
 #: interfaces the position loop is the importing tool's)
 POSITION_LOOP_COLUMNS = ("pos_cmd", "following_error")
-
-
-def model_identifier(axis_name: str, interface: str) -> str:
-    """A C identifier naming the FMU's model and binary: ``virtualaxis_<axis name>_<interface>``."""
-    return re.sub(r"[^A-Za-z0-9_]", "_", f"virtualaxis_{axis_name}_{interface}")
 
 
 def unit_of_key(key: str) -> str:
@@ -191,7 +180,10 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
 
     def _input_setter(self, name: str):
         def setter(value):
-            self.values[name] = float(value)
+            value = float(value)
+            if not math.isfinite(value):  # refused where it is given (the axis state stays valid)
+                raise ValueError(f"input {name} must be finite (got {value!r})")
+            self.values[name] = value
             self.row = None
         return setter
 
