@@ -115,8 +115,21 @@ def refusals(job: dict) -> dict:
     return out
 
 
+def smoke(job: dict) -> dict:
+    """Each FMU: FMPy's validation, then a short run on its default inputs (all outputs finite)."""
+    from fmpy.validation import validate_fmu
+
+    out = {}
+    for k, fmu in enumerate(job["fmus"]):
+        out[f"problems{k}"] = np.array("\n".join(validate_fmu(fmu)))
+        res = fmpy.simulate_fmu(fmu, stop_time=job["stop_s"])
+        out[f"finite{k}"] = np.array(all(np.all(np.isfinite(res[n])) for n in res.dtype.names))
+        out[f"rows{k}"] = np.array(len(res))
+    return out
+
+
 if __name__ == "__main__":
     with open(sys.argv[1], encoding="utf-8") as fh:
         job = json.load(fh)
-    result = {"simulate": simulate, "cosim": cosim, "refusals": refusals}[job["job"]](job)
+    result = {"simulate": simulate, "cosim": cosim, "refusals": refusals, "smoke": smoke}[job["job"]](job)
     np.savez(job["out"], **result)
