@@ -268,3 +268,24 @@ def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path):
     res = host(tmp_path, "smoke", fmus=fmus, stop_s=0.01)
     for k, cfg in enumerate(configs):
         assert str(res[f"problems{k}"]) == "" and bool(res[f"finite{k}"]) and int(res[f"rows{k}"]) == 11, cfg
+
+
+def test_preview_is_the_row_the_next_cycle_records_and_changes_nothing():
+    """AxisSimulator.preview(): the drive's sample now (noise included), without advancing the axis or the noise."""
+    cfg = load_axis_config(NOISY)
+    n = 300  # past one block of drawn-ahead noise (simulator.NOISE_BLOCK = 256)
+    pos = 0.002 * np.sin(np.arange(n + 1) * 0.05)
+    ref = AxisSimulator(cfg)
+    ref.enable(True)
+    zeros = np.zeros(n + 1)
+    want = ref.run_arrays(pos, zeros, zeros, zeros)
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    for j in range(n + 1):
+        sim.set_position_setpoint(float(pos[j]))
+        before = (sim.state, sim.time_s)
+        first = sim.preview().copy()
+        np.testing.assert_array_equal(sim.preview(), first)
+        assert (sim.state, sim.time_s) == before
+        np.testing.assert_array_equal(first, want[j])
+        sim.advance(1)
