@@ -110,6 +110,7 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
         self.units: dict[str, str] = {}
         self.sim = None
         self.row = None  # the drive's sample at the present instant (None: to be computed)
+        self.state_now = None  # the axis state at the present instant (None: to be read)
         self.t0_s = 0.0
         self.cycles = 0
         self.error = ""
@@ -198,7 +199,11 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
         return setter
 
     def _state_getter(self, field: str):
-        return lambda: getattr(self._simulator().state, field)
+        def getter():
+            if self.state_now is None:
+                self.state_now = self._simulator().state
+            return getattr(self.state_now, field)
+        return getter
 
     def _row_getter(self, index: int):
         def getter():
@@ -250,6 +255,7 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
             self.sim = sim
             self.cycles = 0
             self.row = None
+            self.state_now = None
         return self.sim
 
     def _apply_inputs(self) -> None:
@@ -294,6 +300,7 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
             sim.advance(n)
             self.cycles += n
             self.row = None
+            self.state_now = None
             return True
         except Exception as exc:  # e.g. a non-finite input: reported to the importing tool as an error
             return self._fail(f"{type(exc).__name__}: {exc}")
