@@ -1,8 +1,10 @@
 """FMPy as the FMI host of tests/test_fmu.py, in a child process: ``python tests/fmu_host.py JOB.json``.
 
-A process that has unloaded a pythonfmu 0.7 FMU's binary after reading its outputs and then starts a
-subprocess aborts at exit ("corrupted double-linked list", docs/fmu.md); pytest starts subprocesses, so the FMU
-runs here, and this process starts none. The job (JSON) names what to run; results go to ``job["out"]`` (.npz).
+A process that has unloaded a pythonfmu 0.7 FMU's binary after reading its outputs may abort at exit
+("corrupted double-linked list", mostly when it started a subprocess afterwards: docs/fmu.md). So the FMU runs
+here, this process starts no subprocess, and it keeps the FMU binaries loaded (FMPy's freeInstance frees the
+instance; the library stays until the process ends). The job (JSON) names what to run; results go to
+``job["out"]`` (.npz).
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ from fmpy.fmi2 import (
     fmi2CallbackFunctions,
     fmi2CallbackLoggerTYPE,
 )
+
+FMU2Slave.freeLibrary = lambda self: None  # keep the binaries loaded (see above)
 
 #: the callbacks of the instances made here (module level: ctypes callbacks must outlive the instances)
 CALLBACKS: list = []
