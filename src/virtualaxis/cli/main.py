@@ -40,6 +40,7 @@ COMMANDS = (
     "fault",
     "conformance",
     "health",
+    "fmu",
 )
 
 

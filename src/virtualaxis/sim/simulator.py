@@ -422,6 +422,30 @@ class AxisSimulator:
                    d.contact_vector, d.motor_angle_vector, self.ring, self.wat, self.wbt, self.wk, self.wc, self.ztmp,
                    self._pos1, self._vel1, self._acc1, self._aux1, self._fext1, noise, self._out1)
 
+    def preview(self) -> np.ndarray:
+        """The output row (``layout.O_*``) the next :meth:`advance` records at its first sampling instant: the
+        signals now, as the drive samples them, with the present set-points. Nothing advances: the kernel runs
+        that cycle on copies of the state (the sensor noise is the row the next cycle uses)."""
+        mode = self.st[L.S_MODE]
+        self._aux1[0] = self._torque_setpoint if mode == L.MODE_TORQUE else self._velocity_setpoint
+        if mode != L.MODE_POSITION:
+            self._pos1[0] = self._last[L.O_POS_FB]
+        if self._noisy:
+            if self._noise_next == NOISE_BLOCK:
+                self._rng.standard_normal(out=self._noise_block)
+                self._noise_next = 0
+            noise = self._noise_rows[self._noise_next]
+        else:
+            noise = self._noise1
+        st = self.st.copy()
+        ring = self.ring.copy()
+        out = np.zeros((1, L.N_OUT))
+        d = self.dm
+        self._step_kernel(st, self.pr, self._adt, self._bdt, d.table_k_row, d.table_c_row, d.table_g_row,
+                          d.contact_vector, d.motor_angle_vector, ring, self.wat, self.wbt, self.wk, self.wc,
+                          self.ztmp, self._pos1, self._vel1, self._acc1, self._aux1, self._fext1, noise, out)
+        return out[0]
+
     def _compiled_step_kernel(self):
         """The kernel's compiled entry point for the step API's own arrays (skips numba's per-call type
         dispatch, ~1 us); the dispatcher itself if numba does not offer it."""
