@@ -63,7 +63,7 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
     """``canopen``'s SDO client with the guards a master talking to an unknown node needs:
 
     - every server frame must be 8 bytes (CiA 301 SDO frames always are); a shorter one is an
-      ``SdoCommunicationError`` naming it (``canopen`` raised ``struct.error``);
+      ``SdoCommunicationError`` naming it (``canopen`` itself would raise ``struct.error``);
     - a transfer ends within ``transfer_timeout_s`` (default :data:`TRANSFER_TIMEOUTS` response timeouts, at
       least 1 s) and :data:`MAX_TRANSFER_FRAMES` frames; else it is aborted (0x05040000) and
       :class:`SdoTransferOverrun` raised, then and for every later request of this client (:attr:`overrun`);
