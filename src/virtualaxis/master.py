@@ -63,12 +63,13 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
     """``canopen``'s SDO client with the guards a master talking to an unknown node needs:
 
     - every server frame must be 8 bytes (CiA 301 SDO frames always are); a shorter one is an
-      ``SdoCommunicationError`` naming it (``canopen`` raised ``struct.error``);
+      ``SdoCommunicationError`` naming it (``canopen`` itself would raise ``struct.error``);
     - a transfer ends within ``transfer_timeout_s`` (default :data:`TRANSFER_TIMEOUTS` response timeouts, at
       least 1 s) and :data:`MAX_TRANSFER_FRAMES` frames; else it is aborted (0x05040000) and
       :class:`SdoTransferOverrun` raised, then and for every later request of this client (:attr:`overrun`);
     - :attr:`unanswered` counts the exchanges that ended without a valid answer (timeouts, malformed frames),
-      :attr:`stalled` those of them in the middle of a transfer the node had begun (segments stopped coming).
+      :attr:`unanswered_in_row` those since the last valid answer, :attr:`stalled` those in the middle of a
+      transfer the node had begun (segments stopped coming).
     """
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od, *, transfer_timeout_s: float | None = None):
@@ -76,6 +77,7 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
         self.transfer_timeout_s = transfer_timeout_s
         self.overrun: str | None = None
         self.unanswered = 0
+        self.unanswered_in_row = 0
         self.stalled = 0
         self.last_failure = ""
         self._t0 = time.monotonic()
@@ -123,10 +125,12 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
         if response[0] == 0x80:  # abort transfer
             raise canopen.SdoAbortedError(struct.unpack_from("<L", response, 4)[0])
         self._received += 1
+        self.unanswered_in_row = 0
         return response
 
     def _fail(self, text: str):
         self.unanswered += 1
+        self.unanswered_in_row += 1
         if self._received:  # the node began this transfer and stopped answering in its middle
             self.stalled += 1
             text = f"{text} after {self._received} frame(s) of the transfer"

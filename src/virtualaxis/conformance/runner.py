@@ -320,8 +320,8 @@ def boot(ctx: Context, *, timeout: float = 3.0) -> None:
     time.sleep(0.05)
 
 
-#: SDO exchanges without a valid answer (timeouts, malformed frames) after which a run stops: a working node
-#: leaves none or one or two unanswered on a loaded host; this many means its SDO server has stopped working
+#: SDO exchanges in a row without a valid answer (timeouts, malformed frames) after which a run stops: a working
+#: node on a loaded host leaves one or two unanswered between valid ones; this many means it has stopped answering
 MAX_UNANSWERED_SDO = 20
 
 
@@ -348,8 +348,9 @@ def _run_stopped(ctx: Context, chk: Check, results: list[Result]) -> RunStopped 
         why = (f"{client.stalled} SDO transfers begun by the node and left unfinished (no answer within "
                f"{ctx.sdo_timeout_s:g} s; the last: {client.last_failure}): the node's SDO server does not finish "
                "its transfers")
-    elif client.unanswered >= MAX_UNANSWERED_SDO:
-        why = (f"{client.unanswered} SDO exchanges without a valid answer within {ctx.sdo_timeout_s:g} s (the last: "
+    elif client.unanswered_in_row >= MAX_UNANSWERED_SDO:
+        why = (f"{client.unanswered_in_row} SDO exchanges in a row without a valid answer within "
+               f"{ctx.sdo_timeout_s:g} s (the last: "
                f"{client.last_failure}): the node's SDO server has stopped working")
     else:
         return None
@@ -361,7 +362,7 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
     """Run ``checks`` in order; a check's exception other than Fail/Skip is a failure naming it. A node whose
     SDO server is broken ends the run with :class:`RunStopped` (bounded by the SDO timeout: one transfer lasts
     at most ``master.TRANSFER_TIMEOUTS`` timeouts, :data:`MAX_STALLED_SDO` transfers left unfinished or
-    :data:`MAX_UNANSWERED_SDO` timeouts end the run)."""
+    :data:`MAX_UNANSWERED_SDO` timeouts in a row end the run)."""
     results: list[Result] = []
     for chk in checks:
         stopped = _run_stopped(ctx, chk, results)  # (also after the clean-up of the check before)
