@@ -60,9 +60,40 @@ def _effect_names(text: str | None) -> list[str] | None:
     return names
 
 
-def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+class StageProgress:
+    """Renders the diagnosis' :class:`~virtualaxis.diagnosis.progress.ProgressEvent` s on stderr: on a terminal
+    a bar per fitting stage (advancing per candidate); otherwise (a CI log, a pipe) one line per stage and
+    nothing per candidate."""
 
+    def __init__(self, stream=None) -> None:
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.bar = None
+
+    def __call__(self, ev) -> None:
+        if not self.tty:
+            if ev.kind == "start":
+                print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
+            return
+        from tqdm import tqdm
+
+        if ev.kind == "start":
+            self.close()
+            if ev.total:
+                self.bar = tqdm(total=ev.total, desc=ev.describe(), unit="fit", leave=False, file=self.stream)
+            else:
+                print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
+        elif self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix_str(ev.effect)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def run(args: argparse.Namespace) -> int:
     from virtualaxis.cli.main import CliError
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
@@ -79,21 +110,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_axis_config(args.config)
     inputs = [args.config, *args.traces, *args.holdout]
     check_output_dir(args.out, args.force, OUT_NAMES, inputs=inputs)
-    bars: list = []
-
-    def progress(msg: str) -> None:
-        if not bars:  # created at the first fit, after the inputs are checked
-            bars.append(tqdm(desc="diagnose", unit="fit", leave=False))
-        bar = bars[0]
-        if msg.startswith("round"):
-            n = int(msg.split(": ")[1].split()[1])
-            bar.total = (bar.total or 0) + n
-            bar.set_description(msg.split(":")[0])
-            bar.refresh()
-        else:
-            bar.update(1)
-            bar.set_postfix_str(msg.replace("fitted ", ""))
-
+    progress = StageProgress()
     try:
         report = run_diagnosis(cfg, args.traces, args.holdout, jobs=args.jobs, scheduler=args.scheduler,
                                settings=FitSettings(method=args.method), effect_names=names, progress=progress,
@@ -105,8 +122,7 @@ def run(args: argparse.Namespace) -> int:
     except ConnectionError as exc:
         raise CliError(str(exc)) from None
     finally:
-        for b in bars:
-            b.close()
+        progress.close()
     with staged_dir(args.out) as stage:
         staged = write_outputs(report, stage)
     paths = {k: Path(args.out) / Path(v).name for k, v in staged.items()}
