@@ -42,22 +42,31 @@ def pair_case(tmp_path_factory):
                      quick=True)
 
 
-@pytest.mark.skipif(shutil.which("script") is None, reason="needs script(1) for a pty")
-def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_case, tmp_path):
-    opts = ("--effects", "coulomb_friction,viscous_friction", "--no-hybrid", "--jobs", "1")
-    log_cmd = _diagnose_cmd(pair_case, tmp_path / "log", *opts)
-    tty_cmd = ["script", "-qec", shlex.join(_diagnose_cmd(pair_case, tmp_path / "tty", *opts)), "/dev/null"]
-    # both at once (each fits on one core)
-    log = subprocess.Popen(log_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True, env=_env())
-    tty = subprocess.Popen(tty_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                           text=True, env=_env())
-    log_out, log_err = log.communicate(timeout=600)
-    tty_out, _ = tty.communicate(timeout=600)
-    assert log.returncode == 0, log_err
-    assert tty.returncode == 0, tty_out
-    for d in ("log", "tty"):
-        rep = json.loads((tmp_path / d / "report.json").read_text())
+@pytest.fixture(scope="module")
+def pair_runs(pair_case, tmp_path_factory):
+    """``virtualaxis diagnose`` on the pair case twice at once (each on one core): in a log (no terminal) and on
+    a terminal (a pty through ``script -qec``). Mass error is a third candidate that is screened, not fitted."""
+    if shutil.which("script") is None:
+        pytest.skip("needs script(1) for a pty")
+    tmp = tmp_path_factory.mktemp("pair_runs")
+    opts = ("--effects", "coulomb_friction,viscous_friction,mass_error", "--no-hybrid", "--jobs", "1")
+    log = subprocess.Popen(_diagnose_cmd(pair_case, tmp / "log", *opts), stdin=subprocess.DEVNULL,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    tty = subprocess.Popen(["script", "-qec", shlex.join(_diagnose_cmd(pair_case, tmp / "tty", *opts)), "/dev/null"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                           env=_env())  # bytes: a bar's carriage returns kept as written
+    log_out, log_err = log.communicate(timeout=900)
+    tty_out = tty.communicate(timeout=900)[0].decode("utf-8", "replace")
+    return {"log": (log.returncode, log_out, log_err, tmp / "log"), "tty": (tty.returncode, tty_out, tmp / "tty")}
+
+
+def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_runs):
+    rc, log_out, log_err, log_dir = pair_runs["log"]
+    trc, tty_out, tty_dir = pair_runs["tty"]
+    assert rc == 0, log_err
+    assert trc == 0, tty_out
+    for d in (log_dir, tty_dir):
+        rep = json.loads((d / "report.json").read_text())
         assert rep["accepted"][:1] == ["coulomb_friction"] and "viscous_friction" in rep["accepted"], rep["accepted"]
         assert rep["joint_refit"], "both effects accepted: they are refitted jointly"
     assert "conclusion: coulomb_friction + viscous_friction" in log_out
@@ -65,14 +74,51 @@ def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_case
     # in a log: a line per stage, none per candidate, no carriage-return bar
     lines = log_err.splitlines()
     assert "\r" not in log_err
-    assert any(re.fullmatch(r"diagnose: round 1: screening 2 candidates", ln) for ln in lines), log_err
+    assert "diagnose: round 1: screening 3 candidates" in lines, log_err
     assert any(ln.startswith("diagnose: round 2: joint refit of coulomb_friction + viscous_friction")
                for ln in lines), log_err
     assert not any(re.search(r"\d+/\d+", ln) for ln in lines), log_err
-    stage_lines = [ln for ln in lines if ln.startswith("diagnose: ")]
-    assert len(stage_lines) <= 16, log_err
+    assert len([ln for ln in lines if ln.startswith("diagnose: ")]) <= 16, log_err
     # on a terminal: a bar that advances per candidate
-    assert "\r" in tty_out and re.search(r"screening 2 candidates: +100%", tty_out), tty_out
+    assert "\r" in tty_out and re.search(r"screening 3 candidates: +100%", tty_out), tty_out
+
+
+def test_the_report_reads_in_engineering_units_and_edits_only_the_fitted_values(pair_case, pair_runs):
+    rc, out, err, d = pair_runs["log"]
+    assert rc == 0, err
+    # headline: the config's value -> fitted +- standard error in the parameter's unit, the held-out position
+    # error change (the withheld total is 20 N + 200 N s/m)
+    nominal = load_axis_config(pair_case.config_path).friction
+    assert re.search(rf"^  coulomb_friction: coulomb_n {nominal.coulomb_n:.3g} -> (19|20|21)(\.\d+)? \+- [0-9.]+ N; "
+                     r"held-out position error -\d+ %$", out, re.M), out
+    assert re.search(rf"^  viscous_friction: viscous_n_s_per_m {nominal.viscous_n_s_per_m:.3g} -> \d+(\.\d+)? "
+                     r"\+- [0-9.]+ N s/m; held-out position error -\d+ %$", out, re.M), out
+    assert re.search(r"pos_meas \d[0-9.]* -> \d[0-9.]* [un]m", out), out  # RMSE in um / nm, not 1.48e-04
+    assert "e-0" not in out, out
+    rep = json.loads((d / "report.json").read_text())
+    # a candidate that was only screened shows no fitted values
+    mass = next(e for e in rep["effects"] if e["name"] == "mass_error")
+    assert mass["fitted"] is False and mass["params"] == {} and mass["heldout"]["gain"] is None, mass
+    assert mass["relative_change"] is None and "screened only" in mass["not_fitted"]
+    html = (d / "report.html").read_text()
+    row = re.search(r"<tr><td>\d+</td><td>mass_error</td>.*?</tr>", html).group(0)
+    assert "kg" not in row and "0.0 %" not in row and "new" not in row, row
+    # calibrated.toml: the input's text with only the fitted lines changed, and it loads to the fitted values
+    original = Path(pair_case.config_path).read_text().splitlines()
+    calibrated = (d / "calibrated.toml").read_text().splitlines()
+    assert len(calibrated) == len(original)
+    changed = [(a, b) for a, b in zip(original, calibrated, strict=True) if a != b]
+    assert {a.split("=")[0].strip() for a, _ in changed} == {"coulomb_n", "viscous_n_s_per_m"}, changed
+    assert all(b.endswith("}") and "gap diagnosis" in b for _, b in changed), changed
+    cal = load_axis_config(d / "calibrated.toml")
+    fitted = {e["name"]: e["params"] for e in rep["effects"] if e["accepted"]}
+    assert cal.friction.coulomb_n == pytest.approx(fitted["coulomb_friction"]["coulomb_n"]["value"], rel=1e-12)
+    assert cal.friction.viscous_n_s_per_m == pytest.approx(
+        fitted["viscous_friction"]["viscous_n_s_per_m"]["value"], rel=1e-12)
+    diff = rep["calibrated_diff"]
+    assert sum(1 for ln in diff if ln.startswith("+") and not ln.startswith("+++")) == 2, diff
+    # a trace written by `virtualaxis simulate` draws no warning about its columns
+    assert not [w for w in rep["warnings"] if "column" in w], rep["warnings"]
 
 
 def _shift(src: Path, dst: Path, offset_m: float) -> None:

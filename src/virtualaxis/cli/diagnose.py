@@ -4,12 +4,12 @@ it shrinks. Writes DIR/report.json, DIR/report.html and DIR/calibrated.toml."""
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
 from virtualaxis.cli.outputs import add_force_argument, check_output_dir, staged_dir
 from virtualaxis.config import load_axis_config
-from virtualaxis.diagnosis.verdict import describe
 
 #: files written into --out
 OUT_NAMES = ("report.json", "report.html", "calibrated.toml")
@@ -80,7 +80,10 @@ class StageProgress:
         if ev.kind == "start":
             self.close()
             if ev.total:
-                self.bar = tqdm(total=ev.total, desc=ev.describe(), unit="fit", leave=False, file=self.stream)
+                # a pty that reports no size (0 x 0: script, docker -t) would hide the bar: 80 x 24 then
+                cols, rows = shutil.get_terminal_size()
+                self.bar = tqdm(total=ev.total, desc=ev.describe(), unit="fit", leave=False, file=self.stream,
+                                ncols=cols, nrows=rows)
             else:
                 print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
         elif self.bar is not None:
@@ -97,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from virtualaxis.cli.main import CliError
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
+    from virtualaxis.diagnosis.report import verdict_text
 
     if not 1 <= args.jobs <= 256:
         raise CliError(f"--jobs must be 1 .. 256 (got {args.jobs})")
@@ -129,21 +133,21 @@ def run(args: argparse.Namespace) -> int:
     for w in report.get("warnings", []):  # repairs, plausibility findings, split notes: never silent
         print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)
     print(f"conclusion: {report['conclusion']}")
+    for line in (report["headline"] if report["accepted"] else []):
+        print(f"  {line}")
     for e in report["effects"]:
         if e["accepted"]:
-            ps = ", ".join(f"{k}={v['value']:.4g}"
-                           + (f" ± {v['stderr']:.2g}" if v["determined"] else " (not determined)")
-                           + f" {v['unit']}" for k, v in e["params"].items())
-            print(f"  accepted {e['name']}: {ps}; held-out residual energy -{100 * e['heldout']['gain']:.0f} %; "
-                  f"per channel: {describe(e['verdict'])}")
+            print(f"    {e['name']} held-out RMSE per channel: {verdict_text(e['verdict'])}")
     if report.get("model_form_mismatch"):
         print(f"  {report['model_form_mismatch']['description']}")
     v = report["final"]["verdict"]
-    print(f"  held-out RMSE nominal -> calibrated, per channel: {describe(v)}"
+    print(f"  held-out RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
           f"{'' if v['improves'] or not report['accepted'] else ' (NOT an improvement in every channel)'}")
+    if report.get("calibrated_changes"):
+        print(f"  calibrated.toml changes {', '.join(report['calibrated_changes'])} (report.json calibrated_diff)")
     hyb = report.get("hybrid")
     if hyb and hyb.get("model"):
         print(f"  learned residual model {hyb['model']} on top: "
-              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({describe(hyb['verdict'])})")
+              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({verdict_text(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0
