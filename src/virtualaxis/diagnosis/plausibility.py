@@ -350,6 +350,31 @@ def _channel_gap(ch: str, rms: float) -> str:
     return f"{ch} {rms:.4g} {unit} RMS".replace("  ", " ")
 
 
+#: the model's drive effort counts as saturated when it sits within this share of its limit ...
+SATURATION_LEVEL = 0.98
+#: ... for at least this share of the samples
+SATURATION_SHARE = 0.2
+
+
+def _saturation(cfg, td, pred: dict, n: int) -> str:
+    """Why the model cannot follow when its drive sits at its limit: the limit, its config key and how long."""
+    if cfg.actuator.kind == "force":
+        ch, limit, key, unit = "force_drive", cfg.actuator.force_limit_n, "actuator.force_limit_n", "N"
+    else:
+        ch, limit, unit = "current_q", cfg.control.current_limit_a or 3.0 * cfg.motor.rated_current_a, "A"
+        key = "control.current_limit_a" if cfg.control.current_limit_a else "control.current_limit_a (0: 3 x rated)"
+    x = pred.get(ch)
+    if x is None or not limit or limit <= 0:
+        return ""
+    share = float(np.mean(np.abs(np.asarray(x)[:n]) >= SATURATION_LEVEL * limit))
+    if share < SATURATION_SHARE:
+        return ""
+    meas = td.measured.get(ch)
+    peak = f", the measured {ch} peaks at {float(np.max(np.abs(meas))):.4g} {unit}" if meas is not None else ""
+    return (f"The model's drive sits at its limit {key} = {limit:.4g} {unit} for {100 * share:.0f} % of the "
+            f"trace{peak}: set it to the drive's real limit")
+
+
 def check_baseline(cfg, tds: list, preds: list[dict]) -> None:
     """Refuse to diagnose when the nominal model cannot follow the measured motion (see the module doc):
     raises InputError naming the config, the trace, the gap in engineering units and what to check."""
@@ -377,16 +402,21 @@ def check_baseline(cfg, tds: list, preds: list[dict]) -> None:
                               f"{float(np.min(cmd)):+.4g} .. {float(np.max(cmd)):+.4g} m: set axis.stroke_m to the "
                               "axis' real travel")
             else:
-                causes.append("check the config's units and sizes that set whether the axis can follow this "
+                sat = _saturation(cfg, td, pred, n)
+                if sat:
+                    causes.append(sat)
+                causes.append("Check the config's units and sizes that set whether the axis can follow this "
                               "command at all: axis.stroke_m, the masses ([mechanics]), the drive's force or "
                               "current limit ([actuator] / [control]) and the control gains ([control])")
             raise InputError(
                 cfg.path or "config",
                 f"{td.name}: the nominal model does not follow the measured motion, so no effect can be diagnosed: "
                 f"its {ch} misses the measurement by {_mm(gap)} RMS over a {_mm(move)} move, while the measured "
-                f"following error is {_mm(fe_meas)} RMS and the model's own {_mm(fe_model)} RMS (model position "
-                f"{reach[0]:+.4g} .. {reach[1]:+.4g} m)" + (f"; also {', '.join(others)}" if others else "")
-                + f". {'; '.join(causes)}")
+                f"following error is {_mm(fe_meas)} RMS and the model's own {_mm(fe_model)} RMS (the model's table "
+                + (f"stays at {reach[0]:+.4g} m" if reach[1] - reach[0] < 0.01 * max(move, 1e-12) else
+                   f"moves {reach[0]:+.4g} .. {reach[1]:+.4g} m, the command {float(np.min(cmd)):+.4g} .. "
+                   f"{float(np.max(cmd)):+.4g} m") + ")"
+                + (f"; also {', '.join(others)}" if others else "") + f". {'. '.join(causes)}")
 
 
 def check_plausibility(cfg, traces: list, fit_paths: list[str], holdout_paths: list[str]) -> list[str]:
