@@ -204,3 +204,33 @@ def test_traces_written_by_virtualaxis_simulate_draw_no_column_warnings(tmp_path
     assert not [ln for ln in r.stderr.splitlines() if ln.startswith("warning:") and "column" in ln], r.stderr
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert not [w for w in rep["warnings"] if "column" in w], rep["warnings"]
+
+
+def test_calibrated_text_keeps_the_layout_and_loads_to_the_fitted_values(tmp_path):
+    """The line edit behind calibrated.toml: a plain value keeps its comment, an inline table with a unit gets the
+    SI value, a key and a section the input lacks are added; the rest of the text is unchanged."""
+    from virtualaxis.diagnosis.calibrated import edit_config_text
+
+    text = (Path(__file__).resolve().parents[1] / "configs" / "examples" / "rigid-force-axis.toml").read_text()
+    text = re.sub(r"(?m)^coulomb_n = .*$", "coulomb_n = 25.0   # slow reversal test, both directions", text)
+    text = re.sub(r"(?m)^viscous_n_s_per_m = .*$", 'viscous_n_s_per_m = { value = 0.15, unit = "N s/mm" }', text)
+    assert "[effects]" not in text and "stribeck_n" not in text
+    src = tmp_path / "in.toml"
+    src.write_text(text)
+    base = load_axis_config(src)
+    assert base.friction.viscous_n_s_per_m == pytest.approx(150.0)
+    changes = {"friction.coulomb_n": 31.25, "friction.viscous_n_s_per_m": 210.5,
+               "friction.stribeck_n": 7.5, "effects.thermal_expansion_per_k": 1.15e-05}
+    out = edit_config_text(text, changes, {k: "gap diagnosis (test)" for k in changes})
+    a, b = text.splitlines(), out.splitlines()
+    changed = [ln for ln in b if ln not in a]
+    assert [ln for ln in a if ln not in b] == [ln for ln in a if ln.startswith(("coulomb_n ", "viscous_n_s_per_m "))]
+    assert "coulomb_n = { value = 31.25, source = \"gap diagnosis (test)\" }   # slow reversal test, both " \
+           "directions" in changed
+    assert len(changed) == 5, changed  # two edited, stribeck_n added, [effects] and its key added
+    cal_path = tmp_path / "cal.toml"
+    cal_path.write_text(out)
+    cal = load_axis_config(cal_path)
+    assert cal.friction.coulomb_n == 31.25 and cal.friction.viscous_n_s_per_m == 210.5
+    assert cal.friction.stribeck_n == 7.5 and cal.effects.thermal_expansion_per_k == 1.15e-05
+    assert cal.mechanics == base.mechanics and cal.control == base.control
