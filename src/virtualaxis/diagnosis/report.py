@@ -227,7 +227,7 @@ def mark_unfitted(report: dict) -> None:
         if fitted:
             continue
         e["not_fitted"] = (f"fit failed: {e['error']}" if e.get("error") else
-                           f"screened only: explained {100 * (e.get('screen_gain') or 0.0):.1f} % of the fit "
+                           f"screened only: explained {100 * (e.get('screen_gain') or 0.0):.2g} % of the fit "
                            "residual at its screening start, below the share that is refined")
         e["params"] = {}
         e["params_at_bound"] = []
