@@ -154,7 +154,7 @@ def _scale(ref: float, unit: str) -> tuple[float, str]:
 def _eng_pair(before: float | None, after: float | None, unit: str, stderr: float | None = None) -> str:
     """``17 -> 50.1 +- 0.15 um`` (``before`` None: ``50.1 +- 0.15 um``), all in the prefix of the larger value."""
     vals = [abs(v) for v in (before, after) if v is not None and math.isfinite(v)]
-    factor, u = _scale(max(vals) if vals else 0.0, unit)
+    factor, u = _scale(max(vals) if vals else 0.0, "" if unit in ("1", "-") else unit)
 
     def num(v: float | None) -> str:
         return "-" if v is None or not math.isfinite(v) else f"{v / factor:.3g}"
