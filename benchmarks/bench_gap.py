@@ -52,6 +52,9 @@ def main() -> None:
                     help="score the bench in --out again, without diagnosing (reference: every case scored there)")
     ap.add_argument("--suite", choices=("reference", "own"), default="reference")
     ap.add_argument("--table", action="store_true", help="reference: also print the per-case markdown table")
+    ap.add_argument("--door", choices=("cli", "library"), default="cli",
+                    help="cli (default): each case through 'virtualaxis diagnose' in a subprocess; library: "
+                    "the diagnosis called in this process")
     a = ap.parse_args()
     names = a.cases.split(",") if a.cases else None
     t0 = time.perf_counter()
@@ -73,7 +76,8 @@ def main() -> None:
         for ev in out["cases"]:
             progress(ev)
     else:
-        out = run_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs, progress=progress)
+        out = run_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs, progress=progress,
+                        door=a.door)
     s = out["summary"]
     print(f"\nmachine: {_cpu()}; wall time {time.perf_counter() - t0:.0f} s")
     print(f"effect cases {s['n_effect_cases']}, clean cases {s['n_clean_cases']}")
@@ -99,6 +103,9 @@ def reference(a, names, t0: float) -> None:
     from virtualaxis.gapbench.reference import run_reference_bench
 
     def progress(ev: dict) -> None:
+        if ev.get("failed"):
+            print(f"{ev['case']:42s} FAILED: virtualaxis diagnose exit {ev['exit_code']}: {ev['error']}", flush=True)
+            return
         rec = "; ".join(f"{k} {v['fitted']:.4g} ± {_se(v)} (true {v['true']:.4g}, {100 * v['rel_error']:.1f} %)"
                         for k, v in ev["param_recovery"].items())
         ceil = ev["truth_model_ceiling"]
@@ -117,7 +124,7 @@ def reference(a, names, t0: float) -> None:
             progress(ev)
     else:
         out = run_reference_bench(Path(a.out), seed=a.seed, case_names=names, quick=a.quick, jobs=a.jobs,
-                                  progress=progress)
+                                  progress=progress, door=a.door)
     s = out["summary"]
 
     def pct(x) -> str:
@@ -139,6 +146,10 @@ def reference(a, names, t0: float) -> None:
         print(f"  {st:12s} ({v['n_effect_cases']} + {v['n_clean_cases']} clean): first {pct(v['right_effect_first'])}, "
               f"clean {pct(v['clean_nothing_accepted'])}, none outside {pct(v['none_outside_truth'])}, "
               f"param within 15 % {pct(v['param_within_15pct'])}, shrink >= 60 % {pct(v['shrink_ge_60pct'])}")
+    if out.get("failed"):
+        print(f"not scored ({len(out['failed'])}): virtualaxis diagnose failed on "
+              + "; ".join(f"{f['case']} (exit {f['exit_code']}: {f['error']})" for f in out["failed"]))
+    print(f"door: {a.door} ({'virtualaxis diagnose in a subprocess per case' if a.door == 'cli' else 'in-process'})")
     if a.table:
         print(markdown_table(out["cases"]))
     print(f"wrote {Path(a.out) / 'reference.json'}")

@@ -44,3 +44,9 @@ def test_a_reference_case_is_diagnosed_and_scored_through_the_cli(tmp_path, caps
     assert out["summary"]["right_effect_first"] == 1.0
     assert (tmp_path / "rigid_pp__coulomb_friction" / "diagnosis" / "report.json").exists()
     assert "right effect first 100 %" in capsys.readouterr().out
+    # the case went through `virtualaxis diagnose` in a subprocess, as a user runs it (no terminal: a line per
+    # stage in its log)
+    assert case["door"]["door"] == "cli" and case["door"]["exit_code"] == 0
+    log = (tmp_path / "rigid_pp__coulomb_friction" / "diagnosis.log").read_text()
+    assert " diagnose --config " in log and "exit status 0" in log
+    assert "diagnose: round 1: screening" in log and "conclusion: coulomb_friction" in log

@@ -4,12 +4,12 @@ it shrinks. Writes DIR/report.json, DIR/report.html and DIR/calibrated.toml."""
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
 from virtualaxis.cli.outputs import add_force_argument, check_output_dir, staged_dir
 from virtualaxis.config import load_axis_config
-from virtualaxis.diagnosis.verdict import describe
 
 #: files written into --out
 OUT_NAMES = ("report.json", "report.html", "calibrated.toml")
@@ -61,13 +61,48 @@ def _effect_names(text: str | None) -> list[str] | None:
     return names
 
 
-def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+class StageProgress:
+    """Renders the diagnosis' :class:`~virtualaxis.diagnosis.progress.ProgressEvent` s on stderr: on a terminal
+    a bar per fitting stage (advancing per candidate); otherwise (a CI log, a pipe) one line per stage and
+    nothing per candidate."""
 
+    def __init__(self, stream=None) -> None:
+        self.stream = stream or sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.bar = None
+
+    def __call__(self, ev) -> None:
+        if not self.tty:
+            if ev.kind == "start":
+                print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
+            return
+        from tqdm import tqdm
+
+        if ev.kind == "start":
+            self.close()
+            if ev.total:
+                # a pty that reports no size (0 x 0: script, docker -t) would hide the bar: 80 x 24 then
+                cols, rows = shutil.get_terminal_size()
+                self.bar = tqdm(total=ev.total, desc=ev.describe(), unit="fit", leave=False, file=self.stream,
+                                ncols=cols, nrows=rows)
+            else:
+                print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
+        elif self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix_str(ev.effect)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def run(args: argparse.Namespace) -> int:
     from virtualaxis.cli.common import check_jobs
     from virtualaxis.cli.main import CliError
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
+    from virtualaxis.diagnosis.report import verdict_text
 
     args.jobs = check_jobs(args.jobs)
     names = _effect_names(args.effects)
@@ -80,21 +115,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_axis_config(args.config)
     inputs = [args.config, *args.traces, *args.holdout]
     check_output_dir(args.out, args.force, OUT_NAMES, inputs=inputs)
-    bars: list = []
-
-    def progress(msg: str) -> None:
-        if not bars:  # created at the first fit, after the inputs are checked
-            bars.append(tqdm(desc="diagnose", unit="fit", leave=False))
-        bar = bars[0]
-        if msg.startswith("round"):
-            words = msg.split(": ")[1].split()
-            bar.total = (bar.total or 0) + (int(words[1]) if len(words) > 1 and words[1].isdigit() else 0)
-            bar.set_description(msg.split(":")[0])
-            bar.refresh()
-        else:
-            bar.update(1)
-            bar.set_postfix_str(msg.replace("fitted ", ""))
-
+    progress = StageProgress()
     try:
         report = run_diagnosis(cfg, args.traces, args.holdout, jobs=args.jobs, scheduler=args.scheduler,
                                settings=FitSettings(method=args.method), effect_names=names, progress=progress,
@@ -106,29 +127,28 @@ def run(args: argparse.Namespace) -> int:
     except ConnectionError as exc:
         raise CliError(str(exc)) from None
     finally:
-        for b in bars:
-            b.close()
+        progress.close()
     with staged_dir(args.out) as stage:
         staged = write_outputs(report, stage)
     paths = {k: Path(args.out) / Path(v).name for k, v in staged.items()}
     for w in report.get("warnings", []):  # repairs, plausibility findings, split notes: never silent
         print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)
     print(f"conclusion: {report['conclusion']}")
+    for line in (report["headline"] if report["accepted"] else []):
+        print(f"  {line}")
     for e in report["effects"]:
         if e["accepted"]:
-            ps = ", ".join(f"{k}={v['value']:.4g}"
-                           + (f" ± {v['stderr']:.2g}" if v["determined"] else " (not determined)")
-                           + f" {v['unit']}" for k, v in e["params"].items())
-            print(f"  accepted {e['name']}: {ps}; held-out residual energy -{100 * e['heldout']['gain']:.0f} %; "
-                  f"per channel: {describe(e['verdict'])}")
+            print(f"    {e['name']} held-out RMSE per channel: {verdict_text(e['verdict'])}")
     if report.get("model_form_mismatch"):
         print(f"  {report['model_form_mismatch']['description']}")
     v = report["final"]["verdict"]
-    print(f"  held-out RMSE nominal -> calibrated, per channel: {describe(v)}"
+    print(f"  held-out RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
           f"{'' if v['improves'] or not report['accepted'] else ' (NOT an improvement in every channel)'}")
+    if report.get("calibrated_changes"):
+        print(f"  calibrated.toml changes {', '.join(report['calibrated_changes'])} (report.json calibrated_diff)")
     hyb = report.get("hybrid")
     if hyb and hyb.get("model"):
         print(f"  learned residual model {hyb['model']} on top: "
-              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({describe(hyb['verdict'])})")
+              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({verdict_text(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0

@@ -26,6 +26,9 @@ def register(subparsers) -> None:
     p.add_argument("--suite", choices=("reference", "own", "both"), default="reference",
                    help="reference: cases made by the independent reference axis (virtualaxis.refaxis, the "
                    "acceptance figures); own: cases made by our own simulator (second column); both")
+    p.add_argument("--door", choices=("cli", "library"), default="cli",
+                   help="cli (default): diagnose each case by running 'virtualaxis diagnose' on its files in a "
+                   "subprocess, as a user does; library: call the diagnosis in this process")
     p.set_defaults(func=run)
 
 
@@ -65,12 +68,15 @@ def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
 
     def progress(ev: dict) -> None:
         bar.update(1)
+        if ev.get("failed"):
+            bar.write(f"{ev['case']:40s} FAILED: virtualaxis diagnose exit {ev['exit_code']}: {ev['error']}")
+            return
         bar.write(f"{ev['case']:40s} truth={'+'.join(ev['truth']) or '-':32s} "
                   f"found={'+'.join(ev['answer']) or ev['conclusion']}")
 
     try:
         out = run_reference_bench(out_dir, seed=args.seed, case_names=names, quick=args.quick, jobs=args.jobs,
-                                  progress=progress)
+                                  progress=progress, door=args.door)
     finally:
         bar.close()
     s = out["summary"]
@@ -78,6 +84,9 @@ def run_reference(args: argparse.Namespace, out_dir: Path) -> dict:
           f"{_pct(s['clean_nothing_accepted'])}, no accepted effect outside the truth {_pct(s['none_outside_truth'])}, "
           f"main parameter within 15 % {_pct(s['param_within_15pct'])}, held-out shrink >= 60 % on the effect's "
           f"channel {_pct(s['shrink_ge_60pct'])}")
+    if out.get("failed"):
+        print(f"{len(out['failed'])} case(s) not scored: virtualaxis diagnose failed on "
+              f"{', '.join(f['case'] for f in out['failed'])}")
     print(f"wrote {out_dir / 'reference.json'}")
     return out
 
@@ -126,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     own_dir = Path(args.out) / "own" if args.suite == "both" else Path(args.out)
     try:
         out = run_bench(own_dir, seed=args.seed, case_names=names, quick=args.quick, jobs=args.jobs,
-                        progress=progress)
+                        progress=progress, door=args.door)
     finally:
         bar.close()
     s = out["summary"]

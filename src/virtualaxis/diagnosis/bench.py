@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -265,9 +266,62 @@ def evaluate_case(meta: dict, report: dict, truth_metrics: dict | None = None) -
             "hybrid_model": hyb.get("model"), "seconds": report["timing"]["total_s"]}
 
 
+#: how a bench diagnoses each case: ``cli`` runs ``virtualaxis diagnose`` in a subprocess, as a user does, and
+#: reads the report.json it wrote; ``library`` calls :func:`~virtualaxis.diagnosis.pipeline.run_diagnosis`
+DOORS = ("cli", "library")
+
+
+class DiagnoseFailed(RuntimeError):
+    """``virtualaxis diagnose`` exited with a non-zero status on a bench case."""
+
+    def __init__(self, exit_code: int, message: str, log_path: Path):
+        self.exit_code = exit_code
+        self.message = message
+        self.log_path = log_path
+        super().__init__(f"virtualaxis diagnose exited with {exit_code}: {message} (log: {log_path})")
+
+
+def diagnose_command(config: str | Path, fit: list, holdout: list, out_dir: str | Path, jobs: int,
+                     hybrid: bool) -> list[str]:
+    """The ``virtualaxis diagnose`` command line of a case (run with this interpreter)."""
+    cmd = [sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(config),
+           *[str(p) for p in fit]]
+    if holdout:
+        cmd += ["--holdout", *[str(p) for p in holdout]]
+    cmd += ["--out", str(out_dir), "--force", "--jobs", str(jobs)]
+    if not hybrid:
+        cmd.append("--no-hybrid")
+    return cmd
+
+
+def diagnose_through_cli(config: str | Path, fit: list, holdout: list, out_dir: str | Path, jobs: int = 1,
+                         hybrid: bool = True) -> dict:
+    """Run ``virtualaxis diagnose`` on the case's files in a subprocess (no terminal: stdin closed, output
+    captured) and return its report.json. The command, exit status, stdout and stderr go to
+    ``<out_dir>.log``; a non-zero exit raises :class:`DiagnoseFailed` with the CLI's last stderr line."""
+    import subprocess
+
+    out_dir = Path(out_dir)
+    cmd = diagnose_command(config, fit, holdout, out_dir, jobs, hybrid)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True, check=False)
+    wall_s = time.perf_counter() - t0
+    log = out_dir.with_name(out_dir.name + ".log")
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text(f"$ {' '.join(cmd)}\nexit status {proc.returncode}, {wall_s:.1f} s\n--- stdout\n{proc.stdout}"
+                   f"--- stderr\n{proc.stderr}", encoding="utf-8")
+    if proc.returncode != 0:
+        last = next((ln for ln in reversed(proc.stderr.splitlines()) if ln.strip()), "(no output)")
+        raise DiagnoseFailed(proc.returncode, last, log)
+    rep = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
+    rep["_door"] = {"door": "cli", "exit_code": proc.returncode, "wall_s": wall_s, "log": str(log)}
+    return rep
+
+
 def run_bench(out_dir: Path, seed: int = 0, case_names: list[str] | None = None, quick: bool = False,
-              jobs: int = 1, simulate=None, progress=None) -> dict:
-    """Generate the cases, diagnose each, evaluate; writes bench.json and per-case reports."""
+              jobs: int = 1, simulate=None, progress=None, door: str = "cli") -> dict:
+    """Generate the cases, diagnose each (``door``: see :data:`DOORS`; a custom ``simulate`` needs
+    ``library``), evaluate; writes bench.json and per-case reports."""
     from virtualaxis.diagnosis.data import default_simulate
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
@@ -279,17 +333,25 @@ def run_bench(out_dir: Path, seed: int = 0, case_names: list[str] | None = None,
         from virtualaxis.config.errors import InputError
 
         raise InputError("--cases", f"unknown case(s) {', '.join(unknown)}; known: {', '.join(cases)}")
+    if door not in DOORS or (simulate is not None and door != "library"):
+        raise ValueError(f"door must be one of {DOORS} (a custom simulate needs 'library'), got {door!r}")
     results = []
     t0 = time.perf_counter()
     for k, name in enumerate(names):
         case = cases[name]
         cdir = out_dir / name
         meta = generate_case(case, cdir, seed + k, quick)
-        cfg = load_axis_config(cdir / "nominal.toml")
-        rep = run_diagnosis(cfg, meta["files"]["fit"], meta["files"]["holdout"], simulate=simulate or default_simulate,
-                            jobs=jobs, settings=FitSettings(), hybrid=not quick)
-        write_outputs(rep, cdir / "diagnosis")
+        if door == "cli":
+            rep = diagnose_through_cli(cdir / "nominal.toml", meta["files"]["fit"], meta["files"]["holdout"],
+                                       cdir / "diagnosis", jobs=jobs, hybrid=not quick)
+        else:
+            cfg = load_axis_config(cdir / "nominal.toml")
+            rep = run_diagnosis(cfg, meta["files"]["fit"], meta["files"]["holdout"],
+                                simulate=simulate or default_simulate, jobs=jobs, settings=FitSettings(),
+                                hybrid=not quick)
+            write_outputs(rep, cdir / "diagnosis")
         ev = evaluate_case(meta, rep, truth_model_metrics(case, meta, simulate))
+        ev["door"] = rep.get("_door", {"door": "library"})
         results.append(ev)
         if progress:
             progress(ev)

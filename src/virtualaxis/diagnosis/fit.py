@@ -46,6 +46,7 @@ from virtualaxis.diagnosis.data import (
     simulate_trace,
     weighted_ssr,
 )
+from virtualaxis.diagnosis.progress import ProgressEvent, ProgressFn, item_counter
 from virtualaxis.diagnosis.where import Localisation, MotionScale, localise, signature_overlap
 
 
@@ -793,7 +794,7 @@ def select_effects(
     runner: Runner,
     settings: FitSettings | None = None,
     effect_names: list[str] | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: ProgressFn | None = None,
     weights: Weights | None = None,
     hint_fn: Callable[[AxisConfig, list[dict]], dict] | None = None,
 ) -> Selection:
@@ -846,9 +847,9 @@ def select_effects(
                       settings=settings, simulate=simulate, base_preds=preds, target=target,
                       target_channel=target_ch)
         if progress:
-            progress(f"round {rnd + 1}: screening {len(remaining)} candidates")
+            progress(ProgressEvent("screen", round=rnd + 1, total=len(remaining)))
         screened = runner.map([FitJob(n, stage="screen", **common) for n in remaining],
-                              progress=(lambda r: progress(f"screened {r.effect}")) if progress else None)
+                              progress=item_counter(progress, "screen", rnd + 1, len(remaining)))
         for r in screened:
             n_sims += r.n_sims
             if rnd == 0:
@@ -857,10 +858,10 @@ def select_effects(
         to_refine = [r for r in order if r.screen_gain >= settings.min_screen_gain and not r.error]
         to_refine = to_refine[: settings.refine_top]
         if progress:
-            progress(f"round {rnd + 1}: refining {len(to_refine)} candidates")
+            progress(ProgressEvent("refine", round=rnd + 1, total=len(to_refine)))
         refined = runner.map([FitJob(r.effect, stage="refine", start=r.values, alt_starts=r.alternatives, **common)
                               for r in to_refine],
-                             progress=(lambda r: progress(f"refined {r.effect}")) if progress else None)
+                             progress=item_counter(progress, "refine", rnd + 1, len(to_refine)))
         refined_by = {r.effect: r for r in refined}
         ctx = dict(cur=cur, before_fit=before_fit, before_hold=before_hold, counts_fit=counts_fit,
                    counts_hold=counts_hold, w=w, left=left, settings=settings)
@@ -916,7 +917,8 @@ def select_effects(
                 trial = accepted + [Step(r.effect, r.values, r.stderr, fx.EFFECTS[r.effect].apply(cur, r.values),
                                          r.fit_metrics, r.holdout_metrics)]
                 if progress:
-                    progress(f"round {rnd + 1}: joint refit with {r.effect}")
+                    progress(ProgressEvent("joint_refit", round=rnd + 1,
+                                           effects=tuple(s.effect for s in trial)))
                 jr = joint_refit(cfg, trial, traces, fit_idx, holdout_idx, w, settings, simulate, runner)
                 n_sims += jr.pop("n_sims")
                 steps = jr.pop("steps")
@@ -975,7 +977,7 @@ def select_effects(
             # refit all accepted effects together after each acceptance (effects that trade off leave the first
             # one biased when it is held fixed), then try removing each (backward step)
             if progress:
-                progress(f"round {rnd + 1}: joint refit of {len(accepted)} effects")
+                progress(ProgressEvent("joint_refit", round=rnd + 1, effects=tuple(s.effect for s in accepted)))
             first = None
             for _ in range(JOINT_PASSES):  # again from the joint values while a pass cuts the fit cost by 10 %
                 joint = joint_refit(cfg, accepted, traces, fit_idx, holdout_idx, w, settings, simulate, runner)

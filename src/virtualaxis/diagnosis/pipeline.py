@@ -29,6 +29,8 @@ from virtualaxis.diagnosis.data import (
 )
 from virtualaxis.diagnosis.fit import FitSettings, Runner, select_effects
 from virtualaxis.diagnosis.hybrid import fit_hybrid
+from virtualaxis.diagnosis.plausibility import check_baseline
+from virtualaxis.diagnosis.progress import ProgressEvent, ProgressFn
 from virtualaxis.diagnosis.trace import CHANNEL_UNITS, Trace, check_units, read_trace
 from virtualaxis.diagnosis.verdict import channel_verdict
 from virtualaxis.diagnosis.where import localise
@@ -390,13 +392,19 @@ def run_diagnosis(
     scheduler: str | None = None,
     settings: FitSettings | None = None,
     effect_names: list[str] | None = None,
-    progress: Callable[[str], None] | None = None,
+    progress: ProgressFn | None = None,
     hybrid: bool = True,
 ) -> dict:
     """Run the diagnosis. Returns the report dict; ``report["_calibrated_cfg"]`` is the calibrated config
-    and ``report["_plots"]`` arrays for the plots (both removed before writing JSON)."""
+    and ``report["_plots"]`` arrays for the plots (both removed before writing JSON). ``progress`` receives a
+    :class:`~virtualaxis.diagnosis.progress.ProgressEvent` as each stage starts and each candidate fit ends."""
+    def stage(name: str) -> None:
+        if progress:
+            progress(ProgressEvent(name))
+
     timing: dict[str, float] = {}
     t_start = time.perf_counter()
+    stage("read")
     traces, fit_idx, hold_idx, notes = load_traces(cfg, fit_paths, holdout_paths or [])
     if effect_names:
         unknown = [n for n in effect_names if n not in fx.EFFECTS]
@@ -405,6 +413,7 @@ def run_diagnosis(
     tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
     timing["read_s"] = time.perf_counter() - t_start
     t0 = time.perf_counter()
+    stage("controller_check")
     controller_checks = check_controllers(cfg, traces, tds, simulate, fit_idx, hold_idx)
     ff_form = check_feedforward_form(cfg, tds, simulate, fit_idx, hold_idx)
     if ff_form and ff_form["used"] != ff_form["config_form"]:
@@ -412,6 +421,7 @@ def run_diagnosis(
     timing["controller_check_s"] = time.perf_counter() - t0
     # baseline
     t0 = time.perf_counter()
+    stage("baseline")
     base_pred = [simulate_trace(cfg, td, simulate) for td in tds]
     for td, tr, p in zip(tds, traces, base_pred, strict=True):
         _align_motor_angle(td, tr, p)
@@ -433,8 +443,11 @@ def run_diagnosis(
     base_pred = [apply_post(td, p, cfg.mechanics.lead_m) if td.post else p for td, p in zip(tds, base_pred,
                                                                                            strict=True)]
     base_res = [residuals(td, p) for td, p in zip(tds, base_pred, strict=True)]
+    # the nominal model must follow the measured motion at all before any effect is fitted to the difference
+    check_baseline(cfg, tds, base_pred)
     timing["baseline_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
+    stage("localise")
     loc = localise([(td.name, td.t, td.pos_cmd, r) for td, r in zip(tds, base_res, strict=True)])
     timing["localise_s"] = time.perf_counter() - t0
     # selection
@@ -450,6 +463,7 @@ def run_diagnosis(
     timing["fitting_s"] = sel.seconds_fitting
     # cumulative metrics with the full model, step by step
     t0 = time.perf_counter()
+    stage("verify")
     cumulative = []
     prev_fit = pooled_metrics([base_res[i] for i in fit_idx])
     prev_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
@@ -469,6 +483,7 @@ def run_diagnosis(
     t0 = time.perf_counter()
     hyb = None
     if hybrid:
+        stage("hybrid")
         chans = sorted({c for r in final_res for c in r})
         items = [(td.t, td.pos_cmd, p, r) for td, p, r in zip(tds, final_pred, final_res, strict=True)]
         hyb = fit_hybrid([items[i] for i in fit_idx], [items[i] for i in hold_idx], chans)

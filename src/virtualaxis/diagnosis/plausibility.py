@@ -18,6 +18,14 @@ conclusion meaningless, and returns warnings (prefixed ``plausibility:``) for fi
   held-out trace identical to a fit trace would judge the fit on its own data.
 - **absurd magnitudes**: an external or drive force beyond :data:`FORCE_FACTOR` times the axis' peak drive
   force (``force_ext = 1e300``) is refused.
+- **the model's travel**: a commanded or measured position beyond the model's hard end stops
+  (``+-(axis.stroke_m / 2 + over-travel)``), or one that puts a ball-screw nut off its screw, is refused naming
+  the config key to change; beyond ``+-axis.stroke_m / 2`` but inside the end stops is a warning.
+
+:func:`check_baseline` runs after the nominal model is simulated on every trace and before any effect is
+fitted: a nominal model that does not follow the measured motion at all (its position misses the measurement
+by far more than the measured following error and by a visible share of the move) leaves a gap no effect of
+the library reaches, and is refused with the numbers in engineering units and what to check in the config.
 """
 
 from __future__ import annotations
@@ -261,11 +269,162 @@ def _check_duplicates(traces, n_fit: int | None) -> None:
         seen[h] = i
 
 
+def _mm(x_m: float) -> str:
+    return f"{1e3 * x_m:.4g} mm"
+
+
+def _check_travel(tr, cfg, warnings: list[str]) -> None:
+    """Positions the model's table can reach: inside its end stops (and, on a ball screw, with the nut on the
+    screw). Table position 0 is the middle of the stroke in the model."""
+    from virtualaxis.sim.simulator import end_stop_overtravel_m, end_stops
+
+    lo, hi = end_stops(cfg)[:2]
+    half = cfg.axis.stroke_m / 2
+    over = end_stop_overtravel_m(cfg)
+    screw = cfg.mechanics.model != "rigid" and cfg.mechanics.lead_m > 0 and cfg.mechanics.screw_length_m > 0
+    worst: tuple[float, str, int, float] | None = None  # (how far past the stroke end, column, row, value)
+    for col in ("pos_cmd", "pos_meas", "pos_fb"):
+        x = tr.columns.get(col)
+        if x is None or not x.size:
+            continue
+        i = int(np.argmax(np.abs(x)))
+        v = float(x[i])
+        if worst is None or abs(v) - half > worst[0]:
+            worst = (abs(v) - half, col, i, v)
+        if not lo <= v <= hi:
+            need = 2 * (abs(v) + 1e-3)
+            raise InputError(
+                tr.path, f"the table reaches {v:+.4g} m (row {i + 2}) but the nominal model's end stops sit at "
+                f"{lo:+.4g} / {hi:+.4g} m (axis.stroke_m {cfg.axis.stroke_m:g} m / 2 + {_mm(over)} over-travel; "
+                "table position 0 is the middle of the stroke): the model cannot follow this trace. Set "
+                f"axis.stroke_m to the axis' real travel (at least {need:.4g} m for this trace), or give the "
+                "trace's positions relative to the middle of the stroke", i + 2, col)
+        if screw:
+            nut = cfg.axis.nut_offset_m + v
+            if not 0.0 <= nut <= cfg.mechanics.screw_length_m:
+                raise InputError(
+                    tr.path, f"the table reaches {v:+.4g} m (row {i + 2}), which puts the nut at {nut:.4g} m from "
+                    f"the fixed bearing, off the screw (mechanics.screw_length_m {cfg.mechanics.screw_length_m:g} m, "
+                    f"axis.nut_offset_m {cfg.axis.nut_offset_m:g} m): the model cannot follow this trace. Check "
+                    "axis.nut_offset_m, mechanics.screw_length_m and the trace's position origin", i + 2, col)
+    if worst is not None and worst[0] > 1e-3 + 0.01 * half:
+        warnings.append(f"{PREFIX}{tr.name}: {worst[1]} reaches {worst[3]:+.4g} m (row {worst[2] + 2}), "
+                        f"{_mm(worst[0])} beyond the usable stroke +-{half:.4g} m (axis.stroke_m): inside the "
+                        "model's end stops, but check the config's stroke and the trace's position origin")
+
+
+#: the nominal model does not follow the measured motion when its position misses the measurement by more than
+#: this multiple of the measured following error (the model's residual is the difference of two following
+#: errors, so a model that follows the same command stays of that order whatever plant effect it lacks) ...
+BASELINE_FOLLOWING_FACTOR = 5.0
+#: ... and by more than this share of the commanded move (peak to peak): far beyond any effect of the library
+#: (backlash, lead error, thermal growth: tens of micrometres)
+BASELINE_MOTION_SHARE = 0.05
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if x.size else 0.0
+
+
+def _position_channels(cfg, td, pred: dict) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(channel, measured, model) in metres of the table for every position channel both have."""
+    out = []
+    for ch in ("pos_meas", "pos_fb", "motor_pos"):
+        if ch not in td.measured or ch not in pred:
+            continue
+        scale = 1.0
+        if ch == "motor_pos":
+            if cfg.mechanics.lead_m <= 0:
+                continue
+            scale = cfg.mechanics.lead_m / (2 * math.pi)
+        out.append((ch, np.asarray(td.measured[ch]) * scale, np.asarray(pred[ch]) * scale))
+    return out
+
+
+def _channel_gap(ch: str, rms: float) -> str:
+    from virtualaxis.diagnosis.trace import CHANNEL_UNITS
+
+    unit = CHANNEL_UNITS.get(ch, "")
+    if unit == "m":
+        return f"{ch} {_mm(rms)} RMS"
+    return f"{ch} {rms:.4g} {unit} RMS".replace("  ", " ")
+
+
+#: the model's drive effort counts as saturated when it sits within this share of its limit ...
+SATURATION_LEVEL = 0.98
+#: ... for at least this share of the samples
+SATURATION_SHARE = 0.2
+
+
+def _saturation(cfg, td, pred: dict, n: int) -> str:
+    """Why the model cannot follow when its drive sits at its limit: the limit, its config key and how long."""
+    if cfg.actuator.kind == "force":
+        ch, limit, key, unit = "force_drive", cfg.actuator.force_limit_n, "actuator.force_limit_n", "N"
+    else:
+        ch, limit, unit = "current_q", cfg.control.current_limit_a or 3.0 * cfg.motor.rated_current_a, "A"
+        key = "control.current_limit_a" if cfg.control.current_limit_a else "control.current_limit_a (0: 3 x rated)"
+    x = pred.get(ch)
+    if x is None or not limit or limit <= 0:
+        return ""
+    share = float(np.mean(np.abs(np.asarray(x)[:n]) >= SATURATION_LEVEL * limit))
+    if share < SATURATION_SHARE:
+        return ""
+    meas = td.measured.get(ch)
+    peak = f", the measured {ch} peaks at {float(np.max(np.abs(meas))):.4g} {unit}" if meas is not None else ""
+    return (f"The model's drive sits at its limit {key} = {limit:.4g} {unit} for {100 * share:.0f} % of the "
+            f"trace{peak}: set it to the drive's real limit")
+
+
+def check_baseline(cfg, tds: list, preds: list[dict]) -> None:
+    """Refuse to diagnose when the nominal model cannot follow the measured motion (see the module doc):
+    raises InputError naming the config, the trace, the gap in engineering units and what to check."""
+    from virtualaxis.sim.simulator import end_stops
+
+    lo, hi = end_stops(cfg)[:2]
+    for td, pred in zip(tds, preds, strict=True):
+        cmd = np.asarray(td.pos_cmd)
+        move = float(np.ptp(cmd)) if cmd.size else 0.0
+        for ch, meas, model in _position_channels(cfg, td, pred):
+            n = min(meas.size, model.size, cmd.size)
+            gap = _rms(meas[:n] - model[:n])
+            fe_meas = _rms(cmd[:n] - meas[:n])
+            if not (gap > BASELINE_FOLLOWING_FACTOR * fe_meas and gap > BASELINE_MOTION_SHARE * move):
+                continue
+            fe_model = _rms(cmd[:n] - model[:n])
+            others = [_channel_gap(c, _rms(np.asarray(td.measured[c]) - np.asarray(pred[c])))
+                      for c in sorted(td.measured) if c in pred and c != ch
+                      and np.size(pred[c]) == np.size(td.measured[c])]
+            reach = (float(np.min(model[:n])), float(np.max(model[:n])))
+            causes = []
+            if reach[1] >= hi - 0.01 * (hi - lo) or reach[0] <= lo + 0.01 * (hi - lo):
+                causes.append(f"the model's table stops at its end stop ({lo:+.4g} / {hi:+.4g} m: axis.stroke_m "
+                              f"{cfg.axis.stroke_m:g} m / 2 + over-travel) while the command goes to "
+                              f"{float(np.min(cmd)):+.4g} .. {float(np.max(cmd)):+.4g} m: set axis.stroke_m to the "
+                              "axis' real travel")
+            else:
+                sat = _saturation(cfg, td, pred, n)
+                if sat:
+                    causes.append(sat)
+                causes.append("Check the config's units and sizes that set whether the axis can follow this "
+                              "command at all: axis.stroke_m, the masses ([mechanics]), the drive's force or "
+                              "current limit ([actuator] / [control]) and the control gains ([control])")
+            raise InputError(
+                cfg.path or "config",
+                f"{td.name}: the nominal model does not follow the measured motion, so no effect can be diagnosed: "
+                f"its {ch} misses the measurement by {_mm(gap)} RMS over a {_mm(move)} move, while the measured "
+                f"following error is {_mm(fe_meas)} RMS and the model's own {_mm(fe_model)} RMS (the model's table "
+                + (f"stays at {reach[0]:+.4g} m" if reach[1] - reach[0] < 0.01 * max(move, 1e-12) else
+                   f"moves {reach[0]:+.4g} .. {reach[1]:+.4g} m, the command {float(np.min(cmd)):+.4g} .. "
+                   f"{float(np.max(cmd)):+.4g} m") + ")"
+                + (f"; also {', '.join(others)}" if others else "") + f". {'. '.join(causes)}")
+
+
 def check_plausibility(cfg, traces: list, fit_paths: list[str], holdout_paths: list[str]) -> list[str]:
     """Run every check on every trace (see the module doc). Returns warnings; raises InputError to stop."""
     warnings: list[str] = []
     for tr in traces:
         _check_motion(tr)
+        _check_travel(tr, cfg, warnings)
         _check_time(tr, cfg, warnings)
         _check_magnitudes(tr, cfg)
         _check_positions(tr, cfg, warnings)

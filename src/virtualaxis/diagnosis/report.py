@@ -107,7 +107,7 @@ def _plots(report: dict) -> list[tuple[str, str]]:
     axes[0, 0].set_ylabel("residual PSD")
     out.append(("Residual spectrum (nominal model)", _png(fig)))
     # effects ranking
-    eff = report["effects"]
+    eff = [e for e in report["effects"] if e.get("fitted", True)]
     if eff:
         fig, ax = plt.subplots(figsize=(7, 0.35 * len(eff) + 1))
         names = [e["name"] for e in eff][::-1]
@@ -136,6 +136,110 @@ def _g(x: float | None) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.4g}"
 
 
+#: (prefix, factor) for showing a value of a base unit in engineering notation
+_PREFIXES = ((1e-9, "n"), (1e-6, "u"), (1e-3, "m"), (1.0, ""), (1e3, "k"), (1e6, "M"), (1e9, "G"))
+
+
+_SI = ("m", "N", "s", "Hz", "A", "V", "rad")
+
+
+def _scale(ref: float, unit: str) -> tuple[float, str]:
+    """(factor, unit with prefix) to show values of magnitude ``ref``; (1, unit) for compound units."""
+    if unit in _SI and ref > 0 and math.isfinite(ref):
+        factor, prefix = next(((f, p) for f, p in reversed(_PREFIXES) if ref >= f), _PREFIXES[0])
+        return factor, prefix + unit
+    return 1.0, unit
+
+
+def _eng_pair(before: float | None, after: float | None, unit: str, stderr: float | None = None) -> str:
+    """``17 -> 50.1 +- 0.15 um`` (``before`` None: ``50.1 +- 0.15 um``), all in the prefix of the larger value."""
+    vals = [abs(v) for v in (before, after) if v is not None and math.isfinite(v)]
+    factor, u = _scale(max(vals) if vals else 0.0, "" if unit in ("1", "-") else unit)
+
+    def num(v: float | None) -> str:
+        return "-" if v is None or not math.isfinite(v) else f"{v / factor:.3g}"
+
+    txt = f"{num(before)} -> {num(after)}" if before is not None else num(after)
+    if stderr is not None and math.isfinite(stderr):
+        txt += f" +- {stderr / factor:.2g}"
+    return f"{txt} {u}".rstrip()
+
+
+_POSITION_CHANNELS = ("pos_meas", "pos_fb", "motor_pos")
+
+
+def _error_change(side: dict) -> str:
+    """``held-out position error -97 %`` from an effect's before/after RMSE per channel: the position channel
+    when there is one, else every channel."""
+    before, after = side.get("rmse_before") or {}, side.get("rmse_after") or {}
+    chans = [c for c in _POSITION_CHANNELS if c in before and c in after and before[c]]
+    if chans:
+        c = chans[0]
+        return f"position error {100 * (after[c] / before[c] - 1):+.0f} %"
+    parts = [f"{c} {100 * (after[c] / before[c] - 1):+.0f} %" for c in before if c in after and before[c]]
+    return "error " + ", ".join(parts) if parts else ""
+
+
+def headline(report: dict) -> list[str]:
+    """What was found, in engineering units, one line per accepted effect: the config's value -> the fitted one
+    +- its standard error (``backlash: gap_m 17 -> 50.1 +- 0.15 um; held-out position error -97 %``); a
+    parameter the config does not have (a scale, an added amount) shows the fitted value alone."""
+    held = bool(report.get("baseline_heldout"))
+    changes = report.get("calibrated_changes") or {}
+    out = []
+    for e in report["effects"]:
+        if not e.get("accepted"):
+            continue
+        ps = []
+        for k, v in e["params"].items():
+            was = next((c["from"] for key, c in changes.items() if key.rsplit(".", 1)[-1] == k
+                        and isinstance(c.get("from"), (int, float)) and not isinstance(c.get("from"), bool)), None)
+            determined = v.get("determined", True) and v.get("stderr") is not None
+            txt = _eng_pair(was, v.get("value"), v.get("unit", ""), v["stderr"] if determined else None)
+            if not v.get("determined", True):
+                txt += " (not determined by the fit traces)"
+            ps.append(f"{k} {txt}")
+        change = _error_change(e["heldout"] if held else e["fit"])
+        out.append(f"{e['name']}: {', '.join(ps)}" + (f"; {'held-out' if held else 'fit'} {change}" if change
+                                                      else ""))
+    if not out:
+        out.append(report["conclusion"])
+    return out
+
+
+def verdict_text(verdict: dict) -> str:
+    """Per channel RMSE before -> after in engineering units (``pos_meas 148 -> 0.93 um``)."""
+    from virtualaxis.diagnosis.trace import CHANNEL_UNITS
+
+    parts = []
+    for ch, v in (verdict or {}).get("channels", {}).items():
+        worse = " (worse beyond its noise)" if v.get("worse") else ""
+        parts.append(f"{ch} {_eng_pair(v.get('before'), v.get('after'), CHANNEL_UNITS.get(ch, ''))}{worse}")
+    return ", ".join(parts)
+
+
+def mark_unfitted(report: dict) -> None:
+    """Candidates that were only screened (never refined) or failed carry no fitted values: their parameters,
+    held-out figures and change vs the model are removed, ``fitted`` is False and ``not_fitted`` says why."""
+    for e in report.get("effects", []):
+        fitted = e.get("stage") != "screen" and not e.get("error")
+        e["fitted"] = fitted
+        if fitted:
+            continue
+        e["not_fitted"] = (f"fit failed: {e['error']}" if e.get("error") else
+                           f"screened only: explained {100 * (e.get('screen_gain') or 0.0):.2g} % of the fit "
+                           "residual at its screening start, below the share that is refined")
+        e["params"] = {}
+        e["params_at_bound"] = []
+        e["relative_change"] = None
+        e["ic_delta"] = None
+        e["verdict"] = None
+        for side in ("fit", "heldout"):
+            if isinstance(e.get(side), dict):
+                e[side] = {"rmse_before": e[side].get("rmse_before", {}), "rmse_after": {}, "metrics_after": {},
+                           "gain": None, "gain_per_channel": {}}
+
+
 def _change(x: float | None) -> str:
     return "new" if x is None else f"{100 * x:.1f} %"
 
@@ -148,7 +252,11 @@ def report_html(report: dict) -> str:
         f"<h1>Sim-to-real gap diagnosis: {html.escape(report['axis'])}</h1>",
         f"<p>Config <code>{html.escape(report['config'])}</code>. Conclusion: <b>{html.escape(report['conclusion'])}"
         "</b></p>",
+        "<ul>" + "".join(f"<li>{html.escape(h)}</li>" for h in report.get("headline", [])) + "</ul>",
     ]
+    if report.get("calibrated_diff"):
+        parts.append("<h2>calibrated.toml: changed lines</h2><pre>"
+                     + html.escape("\n".join(report["calibrated_diff"])) + "</pre>")
     if report["warnings"]:
         parts.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in report["warnings"])
                      + "</ul>")
@@ -189,6 +297,9 @@ def report_html(report: dict) -> str:
         rows, ["channel", "dimension", "bin", "share of residual energy", "share / share of samples"]))
     rows = []
     for e in report["effects"]:
+        if not e.get("fitted", True):
+            rows.append([e["rank"], e["name"], "no", "-", "-", "-", "-", e.get("not_fitted", "not fitted")])
+            continue
         ps = "; ".join(f"{k} = {_g(v['value'])} {v['unit']} " + (f"± {_g(v['stderr'])}" if v.get("determined", True)
                                                                   else "(not determined by the fit traces)")
                        for k, v in e["params"].items())
@@ -247,31 +358,97 @@ def report_html(report: dict) -> str:
     return "\n".join(parts)
 
 
+def _calibrated_text(report: dict) -> str | None:
+    """The calibrated config as text: the input file with only the changed values edited on their lines
+    (:mod:`virtualaxis.diagnosis.calibrated`), checked by loading it again; when the input cannot be read or the
+    edit does not load to the same values, the whole config written anew (``AxisConfig.to_toml``)."""
+    cfg = report.get("_calibrated_cfg")
+    if cfg is None:
+        return None
+    srcs = dict(cfg.sources)
+    base = report.get("_base_cfg")
+    changes: dict[str, object] = {}
+    new_sources: dict[str, str] = {}
+    if base is not None:
+        a, b = base.to_dict(), cfg.to_dict()
+        for sec, vals in b.items():
+            if not isinstance(vals, dict):
+                continue
+            for k, v in vals.items():
+                if a.get(sec, {}).get(k) == v or isinstance(v, dict):
+                    continue
+                changes[f"{sec}.{k}"] = v
+                if sec == "control":
+                    new_sources[f"{sec}.{k}"] = ("gap diagnosis: controller identified from the traces (median over "
+                                                 "traces, report.json controller_check)")
+                else:
+                    new_sources[f"{sec}.{k}"] = (f"gap diagnosis ({report['conclusion']}) fitted on "
+                                                 f"{', '.join(_fit_names(report))}")
+    srcs.update(new_sources)
+    header = (f"calibrated by virtualaxis diagnose from {report['config']}\n"
+              f"accepted effects: {report['conclusion']}")
+    rewritten = dataclasses.replace(cfg, sources=srcs).to_toml(header)
+    path = getattr(base, "path", None)
+    try:
+        original = Path(path).read_text(encoding="utf-8") if path else None
+    except (OSError, UnicodeDecodeError):
+        original = None
+    report["calibrated_changes"] = {k: {"from": _plain(base.to_dict(), k) if base is not None else None,
+                                        "to": v} for k, v in changes.items()}
+    if original is None:
+        report["calibrated_diff"] = []
+        return rewritten
+    from virtualaxis.diagnosis.calibrated import edit_config_text, text_diff
+
+    edited = edit_config_text(original, changes, new_sources)
+    if not _loads_to(edited, Path(path), cfg):
+        report.setdefault("warnings", []).append(
+            "calibrated.toml: the input config could not be edited in place (a value did not load back as "
+            "fitted); it is written anew with every key")
+        report["calibrated_diff"] = text_diff(original, rewritten, str(path), "calibrated.toml")
+        return rewritten
+    report["calibrated_diff"] = text_diff(original, edited, str(path), "calibrated.toml")
+    return edited
+
+
+def _plain(d: dict, key: str):
+    sec, k = key.rsplit(".", 1)
+    return d.get(sec, {}).get(k)
+
+
+def _loads_to(text: str, original_path: Path, cfg) -> bool:
+    """``text`` loads with the config loader (next to the input, so relative references resolve alike) to
+    ``cfg``'s values."""
+    import os
+    import tempfile
+
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.config.errors import ConfigError
+
+    fd, tmp = tempfile.mkstemp(suffix=".toml", prefix=".calibrated-", dir=str(original_path.parent)
+                               if os.access(original_path.parent, os.W_OK) else None)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        loaded = load_axis_config(tmp).to_dict()
+    except (ConfigError, OSError, ValueError):
+        return False
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    want = cfg.to_dict()
+    return all(loaded.get(sec) == vals for sec, vals in want.items() if isinstance(vals, dict))
+
+
 def write_report(report: dict, out_dir: Path) -> dict[str, Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "report.json", "html": out_dir / "report.html", "toml": out_dir / "calibrated.toml"}
+    mark_unfitted(report)
+    toml_text = _calibrated_text(report)
+    report["headline"] = headline(report)
     paths["json"].write_text(report_json(report), encoding="utf-8")
     paths["html"].write_text(report_html(report), encoding="utf-8")
-    cfg = report.get("_calibrated_cfg")
-    if cfg is not None:
-        srcs = dict(cfg.sources)
-        base = report.get("_base_cfg")
-        if base is not None:
-            a, b = base.to_dict(), cfg.to_dict()
-            for sec, vals in b.items():
-                if not isinstance(vals, dict):
-                    continue
-                for k, v in vals.items():
-                    if a.get(sec, {}).get(k) != v and sec == "control":
-                        srcs[f"{sec}.{k}"] = ("gap diagnosis: controller identified from the traces (median over "
-                                              "traces, report.json controller_check)")
-                    elif a.get(sec, {}).get(k) != v:
-                        srcs[f"{sec}.{k}"] = (f"gap diagnosis ({report['conclusion']}) fitted on "
-                                              f"{', '.join(_fit_names(report))}")
-        cfg = dataclasses.replace(cfg, sources=srcs)
-        header = (f"calibrated by virtualaxis diagnose from {report['config']}\n"
-                  f"accepted effects: {report['conclusion']}")
-        paths["toml"].write_text(cfg.to_toml(header), encoding="utf-8")
+    if toml_text is not None:
+        paths["toml"].write_text(toml_text, encoding="utf-8")
     return paths
 
 

@@ -324,6 +324,14 @@ def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: lis
     return y
 
 
+def simulator_columns() -> frozenset[str]:
+    """Every column ``virtualaxis simulate`` writes (with ``--extras``): read without a warning when the
+    diagnosis does not use them (``following_error``, ``table_true``, ...)."""
+    from virtualaxis.sim.batch import EXTRA_COLUMNS, TRACE_COLUMNS
+
+    return frozenset(TRACE_COLUMNS) | frozenset(EXTRA_COLUMNS)
+
+
 def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     """Read, validate and regularise one trace. ``axis_name``: the config's ``axis.name`` (checked
     against the sidecar metadata)."""
@@ -344,7 +352,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     if data.shape[0] < 16:
         raise _err(sp, f"only {data.shape[0]} data rows (at least 16 needed)")
     cols = {h: data[:, i] for i, h in enumerate(names)}
-    extra = [h for h in header if h not in KNOWN_COLUMNS]
+    extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns()]
     if extra:
         warnings.append(f"extra columns ignored: {', '.join(extra)}")
     t = cols["t"]

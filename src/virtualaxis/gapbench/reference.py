@@ -182,11 +182,17 @@ def summarise_reference(results: list[dict]) -> dict:
 
 
 def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | None = None, quick: bool = False,
-                        jobs: int = 1, progress=None) -> dict:
+                        jobs: int = 1, progress=None, door: str = "cli") -> dict:
     """Make the reference cases, diagnose each with the nominal config the case provides, score; writes
-    ``reference.json`` and each case's report under ``out_dir/<case>/diagnosis``."""
+    ``reference.json`` and each case's report under ``out_dir/<case>/diagnosis``.
+
+    ``door="cli"`` (the default) runs ``virtualaxis diagnose`` on the case's files in a subprocess, as a user
+    does (its command line and output in ``<case>/diagnosis.log``); a case where it exits non-zero is listed in
+    ``reference.json["failed"]`` with the CLI's error line, is not scored, and the bench goes on. ``"library"``
+    calls the pipeline in-process."""
     from virtualaxis.config import load_axis_config
     from virtualaxis.config.errors import InputError
+    from virtualaxis.diagnosis.bench import DOORS, DiagnoseFailed, diagnose_through_cli
     from virtualaxis.diagnosis.fit import FitSettings
     from virtualaxis.diagnosis.pipeline import run_diagnosis, write_outputs
     from virtualaxis.diagnosis.report import report_json
@@ -198,7 +204,10 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
     unknown = [n for n in names if n not in known]
     if unknown:
         raise InputError("--cases", f"unknown reference case(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    if door not in DOORS:
+        raise ValueError(f"door must be one of {DOORS}, got {door!r}")
     results: list[dict] = []
+    failed: list[dict] = []
     t0 = time.perf_counter()
     out: dict = {}
     for k, name in enumerate(names):
@@ -208,13 +217,29 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
         cf = make_case(name, cdir, seed=seed + known.index(name), quick=quick)
         cfg = load_axis_config(cf.config_path)
         _ANY_CFG[:] = [cfg]
-        rep = run_diagnosis(cfg, [str(p) for p in cf.fit], [str(p) for p in cf.holdout], jobs=jobs,
-                            settings=FitSettings(), hybrid=not quick)
-        write_outputs(rep, cdir / "diagnosis")
+        fit, hold = [str(p) for p in cf.fit], [str(p) for p in cf.holdout]
+        (cdir / "score.json").unlink(missing_ok=True)
+        if door == "cli":
+            try:
+                rep = diagnose_through_cli(cf.config_path, fit, hold, cdir / "diagnosis", jobs=jobs,
+                                           hybrid=not quick)
+            except DiagnoseFailed as exc:
+                ev = {"case": name, "failed": True, "exit_code": exc.exit_code, "error": exc.message,
+                      "log": str(exc.log_path)}
+                failed.append(ev)
+                out = _write_summary(out_dir, seed, quick, results, t0, complete=k == len(names) - 1,
+                                     failed=failed)
+                if progress:
+                    progress(ev)
+                continue
+        else:
+            rep = run_diagnosis(cfg, fit, hold, jobs=jobs, settings=FitSettings(), hybrid=not quick)
+            write_outputs(rep, cdir / "diagnosis")
         ev = evaluate_reference_case(name, cf.truth, rep, _truth_metrics(cf, rep))
+        ev["door"] = rep.get("_door", {"door": "library"})
         results.append(ev)
         (cdir / "score.json").write_text(report_json(ev), encoding="utf-8")
-        out = _write_summary(out_dir, seed, quick, results, t0, complete=k == len(names) - 1)
+        out = _write_summary(out_dir, seed, quick, results, t0, complete=k == len(names) - 1, failed=failed)
         if progress:
             progress(ev)
     return out
@@ -228,15 +253,17 @@ def summarise_by_structure(results: list[dict]) -> dict[str, dict]:
     return {k: summarise_reference(v) for k, v in groups.items()}
 
 
-def _write_summary(out_dir: Path, seed: int, quick: bool, results: list[dict], t0: float, complete: bool) -> dict:
+def _write_summary(out_dir: Path, seed: int, quick: bool, results: list[dict], t0: float, complete: bool,
+                   failed: list[dict] | None = None) -> dict:
     """``reference.json`` after every case (a long run that is stopped keeps what it scored)."""
     from virtualaxis.diagnosis.report import report_json
 
     summary = summarise_reference(results)
     summary["by_structure"] = summarise_by_structure(results)
     summary["seconds"] = time.perf_counter() - t0
+    summary["n_failed"] = len(failed or [])
     out = {"generator": "virtualaxis.refaxis", "seed": seed, "quick": quick, "complete": complete,
-           "summary": summary, "cases": results}
+           "summary": summary, "cases": results, "failed": list(failed or [])}
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     (Path(out_dir) / "reference.json").write_text(report_json(out), encoding="utf-8")
     return out
