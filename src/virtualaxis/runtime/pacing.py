@@ -31,6 +31,13 @@
   (``catch_up_syncs=True``, the exact SYNC-count plant time of a deterministic run) makes every later answer
   later still on a machine that cannot keep up.
 
+Drive time per SYNC in lockstep is the communication cycle the master declares (0x1006), bounded by
+``max_sync_period_s`` (default :data:`LOCKSTEP_MAX_SYNC_PERIOD_S`): a larger 0x1006 is refused (SDO abort
+0x06090031), so no SDO write can make one SYNC compute for minutes. A pass whose cycles take longer than
+``stall_s`` of wall time (default :data:`LOCKSTEP_STALL_S`: SDO, NMT and the next SYNC waited that long) is a
+*stall*: counted (:attr:`RuntimeStats.stalls`, :attr:`RuntimeStats.max_sync_work_s`) and ``Runtime.healthy`` is
+then False.
+
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
 (``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
 n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
@@ -77,6 +84,10 @@ DRAIN_LIMIT = 256
 #: timer slack of the runtime thread [ns] (Linux default 50 us; prctl PR_SET_TIMERSLACK)
 TIMER_SLACK_NS = 1000
 _PR_SET_TIMERSLACK = 29
+#: lockstep: drive time one SYNC advances at most [s] (0x1006 above it is refused)
+LOCKSTEP_MAX_SYNC_PERIOD_S = 0.1
+#: lockstep: wall time one SYNC's cycles may take before the pass counts as a stall [s]
+LOCKSTEP_STALL_S = 1.0
 
 
 def freeze_startup_heap() -> None:
@@ -107,6 +118,8 @@ class RuntimeStats:
     syncs_skipped: int = 0  # lockstep: SYNCs of a backlog answered without their cycles (per axis, first axis)
     max_late_s: float = 0.0  # largest lateness of a cycle start
     syncs: int = 0  # SYNC frames handled (per axis, first axis)
+    stalls: int = 0  # lockstep: passes whose cycles took longer than stall_s (nothing was served meanwhile)
+    max_sync_work_s: float = 0.0  # lockstep: longest wall time of one pass's cycles
     loops: int = 0  # poll loop iterations
     busy_s: float = 0.0  # time spent polling and computing (not waiting)
     first_deadline_s: float = 0.0  # real time: perf_counter deadline of the first cycle
@@ -126,6 +139,8 @@ class RuntimeStats:
             "max_late_ms": self.max_late_s * 1e3,
             "syncs": self.syncs,
             "syncs_skipped": self.syncs_skipped,
+            "stalls": self.stalls,
+            "max_sync_work_ms": self.max_sync_work_s * 1e3,
             "loops": self.loops,
             "elapsed_s": elapsed,
             "busy_share": self.busy_s / elapsed if elapsed > 0 else 0.0,
@@ -203,6 +218,8 @@ class Runtime:
         catch_up_syncs: bool = False,
         max_sync_backlog: int = 2,
         read_in_loop: bool = True,
+        max_sync_period_s: float = LOCKSTEP_MAX_SYNC_PERIOD_S,
+        stall_s: float = LOCKSTEP_STALL_S,
     ):
         if not axes:
             raise ValueError("no axes to run")
@@ -224,6 +241,12 @@ class Runtime:
         # lockstep: SYNCs found in one pass whose cycles are still run in order; more: only the latest one's run
         self.max_sync_backlog = max(1, int(max_sync_backlog))
         self.read_in_loop = read_in_loop  # read the bus in the loop's thread (if it has a descriptor)
+        if not max_sync_period_s > 0.0 or not stall_s > 0.0:
+            raise ValueError(f"max_sync_period_s and stall_s must be > 0 s (got {max_sync_period_s}, {stall_s})")
+        self.stall_s = stall_s  # lockstep: a pass's cycles longer than this (wall time) are a stall
+        if lockstep:
+            for ax in axes:
+                ax.limit_sync_period(max_sync_period_s)
         self.stats = RuntimeStats()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -284,8 +307,9 @@ class Runtime:
     # ------------------------------------------------------------------ loop
     @property
     def healthy(self) -> bool:
-        """False once a drive cycle raised or the runtime thread stopped on an exception."""
-        return not self.stats.drive_exceptions and not self.stats.thread_error
+        """False once a drive cycle raised, the runtime thread stopped on an exception or (lockstep) a pass's
+        cycles stalled the node for longer than ``stall_s``."""
+        return not self.stats.drive_exceptions and not self.stats.thread_error and not self.stats.stalls
 
     def run(self, duration_s: float | None = None) -> RuntimeStats:
         """Run until :meth:`stop` (or for ``duration_s``); an exception that escapes the loop is logged and
@@ -370,6 +394,7 @@ class Runtime:
         answered.clear()
         if stepping:
             axes0 = self.axes[0]
+            t_cycles = time.perf_counter()
             for ax, counters in stepping:
                 n = ax.sync_cycles()
                 self._step(ax, n)
@@ -380,6 +405,13 @@ class Runtime:
                 if ax is axes0:
                     self.stats.cycles += n * len(counters)
             stepping.clear()
+            took = time.perf_counter() - t_cycles
+            if took > self.stats.max_sync_work_s:
+                self.stats.max_sync_work_s = took
+            if took > self.stall_s:
+                self.stats.stalls += 1
+                log.error("lockstep: one SYNC's cycles took %.3f s (> %.3f s): SDO, NMT and SYNC went unanswered "
+                          "meanwhile", took, self.stall_s)
 
     def _poll_axes(self, now: float, queued_only: bool) -> Iterator[tuple[int, AxisNode, list[int]]]:
         """Frames and timers of every axis (``queued_only``: only of the axes with frames waiting), axis after
