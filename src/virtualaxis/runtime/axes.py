@@ -75,6 +75,10 @@ class AxisNode:
         self.app.attach(self.slave)
         #: drive cycles one SYNC runs at most in lockstep (see :meth:`limit_sync_period`)
         self.max_sync_cycles = 1 << 31
+        #: drive cycles run by the runtime (the drive's own clock, see :attr:`drive_time_s`)
+        self.drive_cycles = 0
+        #: lockstep: the runtime's clock at drive time 0 once SYNCs started (None before the first SYNC)
+        self.lockstep_origin_s: float | None = None
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
         #: the live 0x1006 entry (read every SYNC in lockstep; None when the EDS has no 0x1006)
         self._comm_period = self.slave.entry(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else None
@@ -92,6 +96,11 @@ class AxisNode:
                 with drive._lock:
                     drive._raise_fault(code)
         self.app.flush()
+
+    @property
+    def drive_time_s(self) -> float:
+        """The drive's own clock [s]: drive cycles run x position cycle (the slave's timers in lockstep)."""
+        return self.drive_cycles * self.drive.cycle_s
 
     def limit_sync_period(self, max_period_s: float) -> None:
         """Lockstep: a SYNC advances the drive by at most ``max_period_s``; a larger 0x1006 is refused by SDO

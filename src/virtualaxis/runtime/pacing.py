@@ -36,7 +36,10 @@ Drive time per SYNC in lockstep is the communication cycle the master declares (
 0x06090031), so no SDO write can make one SYNC compute for minutes. A pass whose cycles take longer than
 ``stall_s`` of wall time (default :data:`LOCKSTEP_STALL_S`: SDO, NMT and the next SYNC waited that long) is a
 *stall*: counted (:attr:`RuntimeStats.stalls`, :attr:`RuntimeStats.max_sync_work_s`) and ``Runtime.healthy`` is
-then False.
+then False. Once SYNCs run, the slave's timers (SYNC timeout, heartbeat producer / consumer, guarding, EMCY
+inhibit, SDO timeout, RPDO deadlines) run on the drive's own cycle clock (:attr:`AxisNode.drive_time_s`, made
+continuous with the wall clock at the first SYNC; a frame arrives at the drive time it is handled at), and what
+falls due during a SYNC's cycles goes out right after them; before the first SYNC they run on the wall clock.
 
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
 (``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
@@ -247,6 +250,7 @@ class Runtime:
         if lockstep:
             for ax in axes:
                 ax.limit_sync_period(max_sync_period_s)
+                ax.slave.frame_timestamps = False  # every frame arrives at the drive time it is handled at
         self.stats = RuntimeStats()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -279,6 +283,13 @@ class Runtime:
         for ax in self.axes:
             ax.slave.boot(now)
             ax.app.flush()
+
+    def _clock(self, ax: AxisNode, now: float) -> float:
+        """The time ``ax``'s slave timers run on: in lockstep, once SYNCs started, the drive's own cycle clock
+        (continuous with the wall clock at the first SYNC); else (real time, or lockstep before any SYNC: boot-up
+        and heartbeats of a node nobody drives yet) ``now``."""
+        origin = ax.lockstep_origin_s
+        return now if origin is None else origin + ax.drive_time_s
 
     def start(self) -> Runtime:
         self.open()
@@ -338,6 +349,7 @@ class Runtime:
                 log.exception("axis %s: putting the drive in fault failed", ax.name)
 
     def _step(self, ax: AxisNode, n: int) -> None:
+        ax.drive_cycles += n
         try:
             ax.drive.step(n)
             ax.app.flush()
@@ -372,9 +384,9 @@ class Runtime:
         lockstep = self.lockstep
         for _, ax, counters in self._poll_axes(now, queued_only):
             if lockstep and len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
-                counters = self._skip_backlog(ax, counters, now)
+                counters = self._skip_backlog(ax, counters, self._clock(ax, now))
             # the TPDOs of the oldest SYNC out now (real time with a backlog: one after the other, below)
-            ax.slave.transmit_sync(counters[0], now)
+            ax.slave.transmit_sync(counters[0], self._clock(ax, now))
             answered.append((ax, counters))
         if not answered:
             return
@@ -399,9 +411,11 @@ class Runtime:
                 n = ax.sync_cycles()
                 self._step(ax, n)
                 for counter in counters[1:]:  # a backlog of SYNCs: one communication cycle per SYNC, in order
-                    ax.slave.on_sync(counter, now)
+                    ax.slave.on_sync(counter, self._clock(ax, now))
                     self._flush(ax)
                     self._step(ax, n)
+                ax.slave.poll_timers(self._clock(ax, now))  # what fell due in these cycles goes out now, in order
+                self._flush(ax)
                 if ax is axes0:
                     self.stats.cycles += n * len(counters)
             stepping.clear()
@@ -422,10 +436,12 @@ class Runtime:
         for i, ax in enumerate(axes):
             if queued_only and not ax.slave.frames_queued:
                 continue
-            counters = ax.slave.poll(now)
+            counters = ax.slave.poll(self._clock(ax, now))
             if not counters:
                 self._flush(ax)
                 continue
+            if self.lockstep and ax.lockstep_origin_s is None:
+                ax.lockstep_origin_s = now - ax.drive_time_s
             if i == 0:
                 stats.syncs += len(counters)
             yield i, ax, counters
