@@ -109,6 +109,8 @@ class CanopenSlave:
         #: True: a frame's arrival is its receive timestamp on the caller's clock; False: the ``now_s`` of the
         #: poll that handles it (a caller whose clock is the drive's own cycle clock, SYNC lockstep)
         self.frame_timestamps = True
+        #: boot-ups sent (power-on and every NMT reset)
+        self.boots = 0
         self._sync_counters: list[int] = []
         self._due_sync_rpdos: deque[list] = deque(maxlen=16)
         self._applied_ahead = 0
@@ -161,6 +163,7 @@ class CanopenSlave:
 
     def boot(self, now_s: float) -> None:
         """Send the boot-up frame and enter PRE-OPERATIONAL."""
+        self.boots += 1
         self._now = now_s
         self.send(HEARTBEAT_BASE + self.node_id, b"\x00")
         self.heartbeat.restart(now_s)

@@ -80,14 +80,17 @@ def reset_node(ctx: Context) -> str:
 def heartbeat(ctx: Context) -> str:
     ctx.write(0x1017, 0, 40)
     mark = ctx.frames.mark()
-    time.sleep(0.5)
+    time.sleep(0.7)
     frames = ctx.frames.since(mark, ctx.hb_cob)
-    if len(frames) < 8:
-        raise Fail(f"{len(frames)} heartbeats in 0.5 s at 40 ms, expected about 12")
-    gaps = [b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False)]
+    if len(frames) < 10:
+        raise Fail(f"{len(frames)} heartbeats in 0.7 s at 40 ms, expected about 17")
+    gaps = sorted(b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False))
     mean = sum(gaps) / len(gaps)
-    if not 0.030 < mean < 0.055:
-        raise Fail(f"mean heartbeat period {mean * 1e3:.1f} ms, expected 40 ms")
+    median = gaps[len(gaps) // 2]  # (a loaded host delays single frames; the median is the producer's period)
+    ctx.note(f"heartbeat gaps [ms]: {', '.join(f'{g * 1e3:.1f}' for g in gaps)}")
+    if not 0.036 <= median <= 0.044 or not 0.030 < mean < 0.055:
+        raise Fail(f"heartbeat period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; expected 40 ms "
+                   "(+-10 %)")
     ctx.write(0x1017, 0, 0)
     time.sleep(0.1)
     mark = ctx.frames.mark()
@@ -96,7 +99,7 @@ def heartbeat(ctx: Context) -> str:
     ctx.write(0x1017, 0, 50)
     if n:
         raise Fail(f"{n} heartbeats with 0x1017 = 0, expected none")
-    return f"{len(frames)} heartbeats, mean period {mean * 1e3:.1f} ms; none with 0x1017 = 0"
+    return f"{len(frames)} heartbeats, period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; none with 0"
 
 
 @check("301-NMT-2", "nmt", "CiA 301 7.3.2.2.1 (NMT stop / start); CL 3",
@@ -358,6 +361,52 @@ def rpdo_writes(ctx: Context) -> str:
     if sw & 0x6F != 0x21:
         raise Fail(f"statusword 0x{sw:04X} after CW 0x06 by RPDO, expected ready to switch on (0x21)")
     return f"0x6040 = 0x{cw:04X}, SW 0x{sw:04X}"
+
+
+@check("301-PDO-9", "pdo", "CiA 301 7.3.2.2 / 7.2.2 (PDOs only in OPERATIONAL); CL 11",
+       "RPDO1 [0x6040 = 0x0006] in PRE-OPERATIONAL, then in STOPPED; TPDO1 synchronous, SYNCs in STOPPED",
+       "no RPDO applied (0x6040 unchanged, state unchanged) and no TPDO sent outside OPERATIONAL")
+def pdo_only_operational(ctx: Context) -> str:
+    boot(ctx)
+    n = ctx.read(0x1600, 0)
+    first = ctx.read(0x1600, 1) if n else 0
+    if not n or first >> 16 != 0x6040:
+        raise Skip(f"RPDO1 does not map the controlword first (0x1600:1 = 0x{first:08X})")
+    size = sum((ctx.read(0x1600, s) & 0xFF) for s in range(1, n + 1)) // 8
+    cob = ctx.read(0x1400, 1) & 0x7FF
+    data = (0x0006).to_bytes(2, "little")
+    for s in range(2, n + 1):
+        m = ctx.read(0x1600, s)
+        data += ctx.raw_read(m >> 16, (m >> 8) & 0xFF)[: (m & 0xFF) // 8]
+    if len(data) != size:
+        raise Fail(f"RPDO1 mapping of {size} bytes, assembled {len(data)}")
+    tcob = ctx.read(0x1800, 1) & 0x7FF
+    ctx.write(0x1800, 2, 1)  # TPDO1 on every SYNC
+    seen = []
+    for state, command in (("PRE-OPERATIONAL", None), ("STOPPED", 0x02)):
+        if command is not None:
+            ctx.nmt(command)
+            time.sleep(0.05)
+        cw0 = ctx.poll(0x6040) if command is None else None
+        mark = ctx.frames.mark()
+        for _ in range(10):
+            ctx.net.send_message(cob, data)
+            ctx.sync_once()
+            time.sleep(0.003)
+        time.sleep(0.05)
+        tpdos = len(ctx.frames.since(mark, tcob))
+        ctx.note(f"{state}: RPDO 0x{cob:03X} [{data.hex(' ')}] + SYNC x10 -> {tpdos} TPDO 0x{tcob:03X}")
+        if tpdos:
+            raise Fail(f"{tpdos} TPDO 0x{tcob:03X} on SYNC in {state}")
+        if command is not None:
+            ctx.nmt(0x80)  # back to PRE-OPERATIONAL to read by SDO
+            time.sleep(0.05)
+        cw, sw = ctx.read(0x6040), ctx.read(0x6041)
+        if (cw0 is not None and cw != cw0) or cw == 0x0006 or sw & 0x6F == 0x21:
+            raise Fail(f"RPDO applied in {state}: 0x6040 = 0x{cw:04X}, SW 0x{sw:04X}")
+        seen.append(state)
+    boot(ctx)
+    return f"no PDO applied or sent in {', '.join(seen)}"
 
 
 @check("301-EMCY-1", "emcy", "CiA 301 7.5.2.19 (0x1014 COB-ID EMCY)", "SDO read 0x1014",

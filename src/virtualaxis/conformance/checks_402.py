@@ -45,9 +45,9 @@ class Motion:
         self.tpdo1, self.tpdo2, self.rpdo1 = 0x180 + n, 0x280 + n, 0x200 + n
         boot(ctx)
         try:
-            self._map(0x1800, 0x1A00, self.tpdo1, [0x60410010, 0x60640020], 1)
-            self._map(0x1801, 0x1A01, self.tpdo2, [0x606C0020], 1)
-            self._map(0x1400, 0x1600, self.rpdo1, [0x60400010, 0x607A0020], 255)
+            self.map(0x1800, 0x1A00, self.tpdo1, [0x60410010, 0x60640020], 1)
+            self.map(0x1801, 0x1A01, self.tpdo2, [0x606C0020], 1)
+            self.map(0x1400, 0x1600, self.rpdo1, [0x60400010, 0x607A0020], 255)
         except canopen.SdoAbortedError as exc:
             raise Skip(f"dynamic PDO mapping refused (abort 0x{exc.code:08X}): the motion checks need "
                        "TPDO1 = 0x6041 + 0x6064, TPDO2 = 0x606C, RPDO1 = 0x6040 + 0x607A") from None
@@ -60,7 +60,7 @@ class Motion:
         self.cw = 0x0F
         self.step_units = 0.0
 
-    def _map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
+    def map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
         ctx = self.ctx
         ctx.write(comm, 1, cob | 0x80000000)
         ctx.write(mapping, 0, 0)
@@ -330,6 +330,8 @@ def csp_follow(ctx: Context) -> str:
             raise Fail(f"SW 0x{s2.sw:04X}: bit 12 (drive follows the target) not set in CSP")
         if d * (s2.pos - p0) < ctx.mm(10):
             raise Fail(f"moved {s2.pos - p0} units for a 20 mm stream")
+        if err > ctx.mm(1):
+            raise Fail(f"{err:.0f} units behind the target while moving at 50 mm/s (expected < 1 mm)")
         if final > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"settled {final} units from the target")
         return f"lag {err:.0f} units while moving, {final} units after; bit 12 set"
@@ -342,6 +344,9 @@ def csp_follow(ctx: Context) -> str:
        "HM, 0x6098 = 37 (or 35), 0x607C = 1 mm, CW 0x1F", "bits 12 and 10 set (homing attained), 0x6064 = 0x607C")
 def homing_current_position(ctx: Context) -> str:
     boot(ctx)
+    supported = ctx.read(0x6502)
+    if not supported & MODE_BITS[6]:
+        raise Skip(f"homing mode not supported (0x6502 = 0x{supported:X})")
     for method in (37, 35):
         try:
             ctx.write(0x6098, 0, method)
@@ -408,17 +413,30 @@ def _stop_bound(v: float, a: float, reaction_s: float, margin: float) -> float:
     return v * v / (2 * a) + abs(v) * reaction_s + margin
 
 
-@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085); issue #15 item 1",
-       "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2, 0x6085 = 10 m/s^2; "
-       "0x6065 tightened to 1 unit while moving; the master "
-       "keeps streaming", "the drive brakes from the ACTUAL speed: travel after the fault <= v^2/(2 a) + v * 20 ms "
-       "+ 1 mm, at rest (< 1 mm/s), then fault (SW & 0x4F = 0x08)")
+@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085, 1: slow-down "
+       "ramp 0x6084)", "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2 with 0x6085 = 10 m/s^2 "
+       "(0x6084 = 2 m/s^2), then 0x605E = 1 with 0x6084 = 2 m/s^2 (0x6085 = 10 m/s^2); 0x6065 tightened to 1 unit "
+       "while moving; the master keeps streaming", "the drive brakes from the ACTUAL speed on the ramp 0x605E "
+       "selects: v^2/(4 a) <= travel after the fault <= v^2/(2 a) + v * 20 ms + 1 mm, at rest (< 1 mm/s), then "
+       "fault (SW & 0x4F = 0x08)")
 def fault_reaction_from_motion(ctx: Context) -> str:
+    out = []
+    for option, ramp_index, a_mm_s2 in ((2, 0x6085, 10_000), (1, 0x6084, 2_000)):
+        out.append(_fault_stop(ctx, option, ramp_index, a_mm_s2))
+    return "; ".join(out)
+
+
+def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> str:
+    """CSP at 100 mm/s, 0x605E = ``option`` whose ramp is ``ramp_index`` = ``a_mm_s2``, the other ramp 5x
+    steeper or shallower; a following-error fault: the travel after it must be that of the ramp (at least half
+    of v^2/2a, at most v^2/2a + v * 20 ms + 1 mm)."""
     mo = Motion(ctx)
     try:
-        a = ctx.mm(10_000)
-        ctx.write(0x605E, 0, 2)
-        ctx.write(0x6085, 0, a)
+        a = ctx.mm(a_mm_s2)
+        other = 0x6084 if ramp_index == 0x6085 else 0x6085
+        ctx.write(0x605E, 0, option)
+        ctx.write(ramp_index, 0, a)
+        ctx.write(other, 0, ctx.mm(a_mm_s2 * 5 if ramp_index == 0x6084 else a_mm_s2 / 5))
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
         v_cmd = ctx.mm(100)
@@ -460,16 +478,27 @@ def fault_reaction_from_motion(ctx: Context) -> str:
         bound = _stop_bound(v_f, a, 0.020, ctx.mm(1))
         v_end = abs(last.vel or 0)
         ctx.note(f"fault at SW 0x{first.sw:04X} pos {first.pos} v {v_f}; end pos {last.pos} v {v_end}")
+        least = 0.5 * v_f * v_f / (2 * a)
         if travel > bound:
-            raise Fail(f"travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
+            raise Fail(f"0x605E = {option}: travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
                        f"{v_f / ctx.units_per_mm:.0f} mm/s, bound v^2/2a + margin = "
-                       f"{bound / ctx.units_per_mm:.2f} mm (coasting?)")
+                       f"{bound / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X} (coasting? another ramp?)")
+        if travel < least:
+            raise Fail(f"0x605E = {option}: stopped in {travel / ctx.units_per_mm:.2f} mm from "
+                       f"{v_f / ctx.units_per_mm:.0f} mm/s, less than half of v^2/2a = "
+                       f"{2 * least / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X}: not the ramp 0x605E "
+                       "selects")
         if v_end > ctx.mm(1):
             raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1 s after the fault")
+        end = time.monotonic() + 2.0
+        while last.sw & 0x4F != 0x08 and time.monotonic() < end:  # the reaction ends once the axis is at rest
+            time.sleep(0.05)
+            last = mo.samples(mark)[-1]
         if last.sw & 0x4F != 0x08:
-            raise Fail(f"SW 0x{last.sw:04X} 1 s after the fault, expected fault (0x08)")
-        return (f"{travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
-                f"(bound {bound / ctx.units_per_mm:.2f} mm), at rest, fault")
+            raise Fail(f"0x605E = {option}: SW 0x{last.sw:04X} 3 s after the fault, expected fault (0x08)")
+        return (f"0x605E = {option}: {travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
+                f"(ramp 0x{ramp_index:04X}: {least / ctx.units_per_mm:.2f}..{bound / ctx.units_per_mm:.2f} mm), "
+                "at rest, fault")
     finally:
         mo.close()
         boot(ctx)
@@ -796,6 +825,98 @@ def fault_reset_edge(ctx: Context) -> str:
         return f"fault 0x{code:04X} (EMCY = 0x603F = 0x1003:1); stays in fault on 0x0F / 0x00; reset on 0x80 + EMCY 0"
     finally:
         mo.close()
+        boot(ctx)
+
+
+@check("402-FLT-2", "reaction", "CiA 402 6.1.3 (transition 15 only on the rising edge of CW bit 7); CL 16",
+       "PP enabled with CW bit 7 already set (0x8F), a following error (0x6065 = 1) with bit 7 held (0x9F, 0x8F), "
+       "then 0x8F again, then 0x0F and 0x8F", "fault; it stays while bit 7 stays high; the edge resets it")
+def fault_reset_needs_an_edge(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(50))
+        ctx.write(0x6065, 0, 1)
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        ctx.write(0x6040, 0, 0x8F)
+        time.sleep(0.05)
+        if ctx.sw() & 0x6F != 0x27:
+            raise Skip("the node leaves OPERATION ENABLED on CW 0x8F (bit 7 outside FAULT): the fault cannot be "
+                       "provoked with bit 7 held")
+        p0 = mo.last().pos
+        ctx.write(0x607A, 0, p0 + _toward_middle(ctx) * ctx.mm(5))
+        ctx.write(0x6040, 0, 0x9F)
+        ctx.write(0x6040, 0, 0x8F)
+        ctx.wait_sw(0x4F, 0x08, 2.0, "fault after a following error (CW bit 7 held)")
+        for _ in range(3):
+            ctx.write(0x6040, 0, 0x8F)
+            time.sleep(0.05)
+            sw = ctx.sw()
+            if sw & 0x4F != 0x08:
+                raise Fail(f"left fault with CW bit 7 held high, without a rising edge (SW 0x{sw:04X})")
+        ctx.write(0x6040, 0, 0x0F)
+        ctx.write(0x6040, 0, 0x8F)
+        ctx.wait_sw(0x4F, 0x40, 1.0, "fault reset (CW bit 7 edge)")
+        return "stays in fault while bit 7 is held; the rising edge resets it"
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+@check("402-CSP-2", "modes", "CiA 402 (cyclic synchronous position: the target of SYNC k drives cycle k); CL 22",
+       "lockstep: CSP, 0x60C2 = one SYNC period, TPDO2 = position demand 0x6062; RPDO1 target step of 0.1 mm "
+       "before SYNC k", "the answer to SYNC k shows the old demand, the answer to SYNC k + 1 the new target")
+def csp_target_at_its_sync(ctx: Context) -> str:
+    if not ctx.lockstep:
+        raise Skip("needs a node in SYNC lockstep (--pacing lockstep): in real time the cycle a target lands in "
+                   "depends on the host")
+    if 0x6062 not in ctx.od and 0x60FC not in ctx.od:
+        raise Skip("the EDS lists no position demand value (0x6062 / 0x60FC)")
+    demand = 0x6062 if 0x6062 in ctx.od else 0x60FC
+    mo = Motion(ctx)
+    try:
+        ctx.nmt(0x80)
+        time.sleep(0.03)
+        mo.map(0x1801, 0x1A01, mo.tpdo2, [(demand << 16) | 0x20], 1)
+        mo.map(0x1400, 0x1600, mo.rpdo1, [0x60400010, 0x607A0020], 1)  # synchronous: applied at the SYNC
+        ctx.write(0x1006, 0, round(ctx.sync_period_s * 1e6))
+        if 0x60C2 in ctx.od:
+            ctx.write(0x60C2, 1, round(ctx.sync_period_s * 1e3))
+            ctx.write(0x60C2, 2, -3)
+        ctx.nmt(0x01)
+        time.sleep(0.03)
+        _enable_mode(ctx, 8)
+        p0 = ctx.read(0x6064)
+
+        def answer(target: int) -> tuple[int, int]:
+            """RPDO1 (CW 0x0F, target), one SYNC; (position demand, position) of its answer."""
+            mark = ctx.frames.mark()
+            mo.rpdo(0x0F, target)
+            ctx.sync_once()
+            f1 = ctx.frames.wait(mark, mo.tpdo1, None, 2.0)
+            f2 = ctx.frames.wait(mark, mo.tpdo2, None, 2.0)
+            if f1 is None or f2 is None:
+                raise Fail("no TPDO1 / TPDO2 answer to a SYNC within 2 s")
+            return (int.from_bytes(f2[2][0:4], "little", signed=True),
+                    int.from_bytes(f1[2][2:6], "little", signed=True))
+
+        for _ in range(5):
+            answer(p0)
+        step = _toward_middle(ctx) * ctx.mm(0.1)
+        got_k = answer(p0 + step)
+        got_k1 = answer(p0 + step)
+        ctx.note(f"demand / position: SYNC k {got_k}, SYNC k+1 {got_k1}; target {p0} -> {p0 + step}")
+        tol = max(1, abs(step) // 20)
+        if abs(got_k[0] - p0) > tol:
+            raise Fail(f"the answer to SYNC k (values before its cycle) shows demand {got_k[0]}, expected the old "
+                       f"{p0}")
+        if abs(got_k1[0] - (p0 + step)) > tol:
+            raise Fail(f"the answer to SYNC k + 1 shows demand {got_k1[0]}, expected the target {p0 + step} of "
+                       "SYNC k (applied a SYNC late?)")
+        return f"demand {got_k[0]} -> {got_k1[0]} in the cycle of the SYNC that carried the target"
+    finally:
+        mo.close()
+        ctx.disable()
         boot(ctx)
 
 

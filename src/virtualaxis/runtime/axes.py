@@ -77,8 +77,11 @@ class AxisNode:
         self.max_sync_cycles = 1 << 31
         #: drive cycles run by the runtime (the drive's own clock, see :attr:`drive_time_s`)
         self.drive_cycles = 0
-        #: lockstep: the runtime's clock at drive time 0 once SYNCs started (None before the first SYNC)
+        #: lockstep: the slave's clock at drive time 0 once SYNCs started (None before the first SYNC after a boot)
         self.lockstep_origin_s: float | None = None
+        #: lockstep: slave clock - runtime clock while no SYNC runs (keeps the slave's clock continuous)
+        self.wall_offset_s = 0.0
+        self.clock_boots = 0  # the slave's boot count the lockstep origin belongs to
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
         #: the live 0x1006 entry (read every SYNC in lockstep; None when the EDS has no 0x1006)
         self._comm_period = self.slave.entry(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else None

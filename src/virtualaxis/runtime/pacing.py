@@ -286,10 +286,18 @@ class Runtime:
 
     def _clock(self, ax: AxisNode, now: float) -> float:
         """The time ``ax``'s slave timers run on: in lockstep, once SYNCs started, the drive's own cycle clock
-        (continuous with the wall clock at the first SYNC); else (real time, or lockstep before any SYNC: boot-up
-        and heartbeats of a node nobody drives yet) ``now``."""
+        (continuous with the wall clock at the first SYNC); else (real time, or lockstep before the first SYNC
+        after a boot: boot-up, configuration, heartbeats of a node nobody drives yet) the wall clock ``now``
+        (shifted to stay continuous)."""
         origin = ax.lockstep_origin_s
-        return now if origin is None else origin + ax.drive_time_s
+        if origin is None:
+            return now + ax.wall_offset_s
+        if ax.slave.boots != ax.clock_boots:  # the node booted again (NMT reset): wall clock until the next SYNC
+            t = origin + ax.drive_time_s
+            ax.lockstep_origin_s = None
+            ax.wall_offset_s = t - now
+            return t
+        return origin + ax.drive_time_s
 
     def start(self) -> Runtime:
         self.open()
@@ -441,7 +449,8 @@ class Runtime:
                 self._flush(ax)
                 continue
             if self.lockstep and ax.lockstep_origin_s is None:
-                ax.lockstep_origin_s = now - ax.drive_time_s
+                ax.lockstep_origin_s = now + ax.wall_offset_s - ax.drive_time_s
+                ax.clock_boots = ax.slave.boots
             if i == 0:
                 stats.syncs += len(counters)
             yield i, ax, counters
