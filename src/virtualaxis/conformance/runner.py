@@ -111,7 +111,7 @@ class FrameLog:
 class _FrameTap(can.Listener):
     """Frames of the logged COB-IDs into a :class:`FrameLog`, straight from the bus notifier."""
 
-    def __init__(self, frames: FrameLog, cobs: frozenset[int]):
+    def __init__(self, frames: FrameLog, cobs: set[int]):
         self.frames = frames
         self.cobs = cobs
 
@@ -165,13 +165,14 @@ class Context:
         self._sync_task = None
         self.emcy_cob = 0x80 + node_id
         self.hb_cob = 0x700 + node_id
-        self.logged_cobs = frozenset((self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id,
-                                      0x480 + node_id))
+        self.logged_cobs = {self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id,
+                            0x480 + node_id}
         # every frame of these COB-IDs, as received, before (and apart from) canopen's own consumers: a frame
         # they cannot parse (a 3-byte EMCY) is still seen and judged by the checks
         self._listener = _FrameTap(self.frames, self.logged_cobs)
         notifier = getattr(network, "notifier", None)
-        if notifier is not None:
+        self._tapped = notifier is not None
+        if self._tapped:
             notifier.add_listener(self._listener)
         else:
             for cob in self.logged_cobs:
@@ -182,6 +183,14 @@ class Context:
         self.sdo_timeout_s = sdo_timeout_s
         self.retries: list[str] = []  # this check's SDO requests sent again after a timeout
         self.late_answers_due = 0  # requests that timed out and may still be answered (across checks)
+
+    def log_frames(self, cob: int) -> None:
+        """Record the frames of ``cob`` in :attr:`frames` too (once, whatever the number of calls)."""
+        if cob in self.logged_cobs:
+            return
+        self.logged_cobs.add(cob)
+        if not self._tapped:
+            self.net.subscribe(cob, self.frames.on_frame)
 
     def _sdo(self, op: Callable[[], Any], what: str) -> Any:
         """An expedited SDO exchange with one retry after a timeout, as a field master does: a request or its
