@@ -237,8 +237,7 @@ def sdo_segmented_block(ctx: Context) -> str:
         raise Skip("the EDS lists no 0x1008 device name")
     seg = ctx.node.sdo.upload(0x1008, 0)
     ctx.note(f"segmented upload 0x1008 -> {seg!r}")
-    with ctx.node.sdo[0x1008].open("rb", block_transfer=True) as fh:
-        blk = fh.read()
+    blk = _block_transfer(ctx, "upload 0x1008", lambda: _block_read(ctx, 0x1008))
     ctx.note(f"block upload 0x1008 -> {blk!r}")
     if seg != blk:
         raise Fail(f"segmented {seg!r} != block {blk!r}")
@@ -687,17 +686,49 @@ def sdo_high_limit(ctx: Context) -> str:
 def sdo_block_download(ctx: Context) -> str:
     if 0x1017 not in ctx.od:
         raise Skip("the EDS lists no 0x1017")
-    try:
+    def download() -> None:
         with ctx.node.sdo[0x1017].open("wb", size=2, block_transfer=True) as fh:
             fh.write((77).to_bytes(2, "little"))
-    except canopen.SdoAbortedError as exc:
-        raise Fail(f"block download of 0x1017 aborted 0x{exc.code:08X}") from None
+
+    _block_transfer(ctx, "download 0x1017", download)
     ctx.note("block download 0x1017 = 77")
     v = ctx.read(0x1017)
     ctx.write(0x1017, 0, 50)
     if v != 77:
         raise Fail(f"0x1017 = {v} after a block download of 77")
     return "0x1017 = 77 after a block download"
+
+
+#: abort codes of a node that does not serve SDO block transfer (an optional service, CiA 301 7.2.4.3.9)
+BLOCK_REFUSED = frozenset({0x05040001, 0x06010000, 0x08000000})
+
+
+def _block_read(ctx: Context, index: int) -> bytes:
+    with ctx.node.sdo[index].open("rb", block_transfer=True) as fh:
+        return fh.read()
+
+
+def _block_transfer(ctx: Context, what: str, op):
+    """An SDO block transfer (optional service): refused by the node with an abort that says so, or not answered
+    while expedited SDO is, is a skip with the reason; any other abort fails."""
+    try:
+        return op()
+    except canopen.SdoAbortedError as exc:
+        ctx.note(f"block {what} -> abort 0x{exc.code:08X}")
+        if exc.code in BLOCK_REFUSED:
+            raise Skip(f"the node refuses SDO block transfer (block {what}: abort 0x{exc.code:08X}); block "
+                       "transfer is optional") from None
+        raise Fail(f"block {what} aborted 0x{exc.code:08X}") from None
+    except canopen.SdoCommunicationError as exc:
+        ctx.note(f"block {what} -> {exc}")
+        try:
+            ctx.node.sdo.abort(0x05040001)
+        except Exception:  # noqa: BLE001 - only to end the node's half-open transfer
+            pass
+        time.sleep(0.05)
+        ctx.read(0x1000)  # answers expedited SDO (else this is the check's failure: no SDO answer)
+        raise Skip(f"no answer to an SDO block {what} while expedited SDO is answered: the node does not serve "
+                   "block transfer (optional)") from None
 
 
 def _remap(ctx: Context, comm: int, entries: list[int], ttype: int) -> int:
