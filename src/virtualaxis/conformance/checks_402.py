@@ -59,6 +59,7 @@ class Motion:
         self.target = 0
         self.cw = 0x0F
         self.step_units = 0.0
+        self.streamed = 0  # SYNCs the stream has sent
 
     def map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
         ctx = self.ctx
@@ -129,7 +130,8 @@ class Motion:
             while not self._stop.is_set():
                 self.target += self.step_units
                 self.rpdo(self.cw, round(self.target))
-                ctx.sync_once()
+                ctx.sync_once(answer_cob=self.tpdo1)  # (lockstep: waits for the node's answer)
+                self.streamed += 1
                 nxt += period
                 delay = nxt - time.monotonic()
                 if delay > 0:
@@ -139,6 +141,20 @@ class Motion:
 
         self._stream = threading.Thread(target=run, daemon=True, name="conformance-csp")
         self._stream.start()
+
+    def run_syncs(self, n: int, timeout_s: float = 10.0) -> None:
+        """Let the stream run for ``n`` SYNC periods of the node: ``n`` SYNCs (lockstep: the node's time is
+        the SYNC count), ``n`` periods of wall time (real time)."""
+        if not self.ctx.lockstep:
+            time.sleep(n * self.ctx.sync_period_s)
+            return
+        goal = self.streamed + n
+        end = time.monotonic() + timeout_s
+        while self.streamed < goal:
+            if time.monotonic() > end:
+                raise Fail(f"{goal - self.streamed} of {n} SYNCs not sent in {timeout_s:g} s (master or host too "
+                           "slow)")
+            time.sleep(0.002)
 
     def stop_stream(self) -> None:
         self._stop.set()
@@ -319,11 +335,11 @@ def csp_follow(ctx: Context) -> str:
         p0 = ctx.read(0x6064)
         d = _toward_middle(ctx)
         mo.stream(p0, d * ctx.mm(50))
-        time.sleep(0.4)
+        mo.run_syncs(400)
         s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
         err = abs(mo.target - s[0].pos)
         mo.step_units = 0.0
-        time.sleep(0.3)
+        mo.run_syncs(300)
         s2 = mo.last()
         final = abs(round(mo.target) - s2.pos)
         if not s2.sw & 0x1000:

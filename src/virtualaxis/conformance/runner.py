@@ -108,6 +108,22 @@ class FrameLog:
                 del self.frames[:-keep]
 
 
+#: lockstep: longest wait for the node's answer to one SYNC [s] (a node that stops answering: the run goes on)
+ANSWER_WAIT_S = 0.5
+#: lockstep: SYNCs sent without waiting after one the node did not answer (it may not answer SYNC at all)
+UNANSWERED_SKIP = 20
+
+
+class _SyncThread:
+    def __init__(self, thread: threading.Thread, stop: threading.Event):
+        self.thread = thread
+        self._stop_event = stop
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.thread.join(2.0)
+
+
 class _FrameTap(can.Listener):
     """Frames of the logged COB-IDs into a :class:`FrameLog`, straight from the bus notifier."""
 
@@ -163,6 +179,9 @@ class Context:
         self.frames = FrameLog()
         self.trace: list[str] = []
         self._sync_task = None
+        self.syncs = 0  # SYNCs sent
+        self._answer_skip: dict[int, int] = {}  # COB-ID -> SYNCs not to wait for it (it did not answer lately)
+        self._pdos_on = False  # the latest NMT command was a start (PDOs may answer SYNC)
         self.emcy_cob = 0x80 + node_id
         self.hb_cob = 0x700 + node_id
         self.logged_cobs = {self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id,
@@ -312,6 +331,8 @@ class Context:
         return obj is not None and not isinstance(obj, canopen.objectdictionary.Variable)
 
     def nmt(self, command: int) -> None:
+        self._answer_skip.clear()  # (a new NMT state: PDOs may start or stop)
+        self._pdos_on = command == 0x01  # only an OPERATIONAL node answers SYNC with PDOs
         self.note(f"NMT 0x{command:02X} -> node {self.node_id}")
         self.net.send_message(0, bytes((command, self.node_id)))
 
@@ -359,16 +380,56 @@ class Context:
 
     # ------------------------------------------------------------------ SYNC
     def start_sync(self, period_s: float | None = None) -> None:
-        if self._sync_task is None:
-            self._sync_task = self.net.send_periodic(0x80, b"", period_s or self.sync_period_s)
+        """SYNC every ``period_s`` (default :attr:`sync_period_s`) until :meth:`stop_sync`. Lockstep: a SYNC is
+        sent only once the node answered the previous one (its TPDO1, when TPDO1 answers SYNC), never faster
+        than the period: a loaded master or host slows the node's time down but never makes it skip cycles."""
+        if self._sync_task is not None:
+            return
+        period = period_s or self.sync_period_s
+        if not self.lockstep:
+            self._sync_task = self.net.send_periodic(0x80, b"", period)
+            return
+        stop = threading.Event()
+
+        def run() -> None:
+            nxt = time.monotonic()
+            while not stop.is_set():
+                self.sync_once(answer_cob=0x180 + self.node_id)
+                nxt += period
+                delay = nxt - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                else:
+                    nxt = time.monotonic()
+
+        thread = threading.Thread(target=run, daemon=True, name="conformance-sync")
+        thread.start()
+        self._sync_task = _SyncThread(thread, stop)
 
     def stop_sync(self) -> None:
         if self._sync_task is not None:
             self._sync_task.stop()
             self._sync_task = None
 
-    def sync_once(self) -> None:
+    def sync_once(self, answer_cob: int | None = None) -> None:
+        """One SYNC (counted in :attr:`syncs`). Lockstep with ``answer_cob``: then wait (at most
+        :data:`ANSWER_WAIT_S`) for that frame, the node's answer, once the node has answered a SYNC with it."""
+        mark = self.frames.mark() if answer_cob is not None and self.lockstep and self._pdos_on else None
         self.net.send_message(0x80, b"")
+        self.syncs += 1
+        if mark is None:
+            return
+        skip = self._answer_skip.get(answer_cob, 0)
+        if skip:  # the node did not answer with this frame lately: not waited for, asked again now and then
+            self._answer_skip[answer_cob] = skip - 1
+            return
+        end = time.monotonic() + ANSWER_WAIT_S
+        while self.frames.wait(mark, answer_cob, None, 0.01) is None:
+            if not self._pdos_on:  # an NMT command meanwhile: no answer to wait for
+                return
+            if time.monotonic() > end:
+                self._answer_skip[answer_cob] = UNANSWERED_SKIP
+                return
 
     # ------------------------------------------------------------------ units
     def mm(self, x_mm: float) -> int:
