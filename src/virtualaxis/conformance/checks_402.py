@@ -962,7 +962,7 @@ def real_limit_switch_every_mode(ctx: Context) -> str:
             ctx.write(0x607D, 2, min(hi + (hi - lo) // 5, 2**31 - 1))
         for mode in (3, 1, 4, 8, 9, 10):
             if supported & MODE_BITS[mode]:
-                res, x_sw = _onto_switch(ctx, mo, mode, x_sw, a)
+                res, x_sw = _onto_switch(ctx, mo, mode, x_sw, a, hi if hi < 2**31 - 1 and lo > -2**31 else None)
                 done.append(res)
     finally:
         mo.close()
@@ -970,7 +970,8 @@ def real_limit_switch_every_mode(ctx: Context) -> str:
     return "; ".join(done)
 
 
-def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) -> tuple[str, int]:
+def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
+                 soft_max: int | None = None) -> tuple[str, int]:
     """Drive onto the + switch in ``mode`` (approach first if ``x_sw`` is known and far), check the stop,
     move away in PV. Returns the result text and the switch position [units]."""
     name = MODES[mode]
@@ -1007,8 +1008,14 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         if hit is None:
             ctx.note(f"no switch: 0x6064 = {ctx.read(0x6064)}, 0x606C = {ctx.read(0x606C)}, SW 0x{ctx.sw():04X}")
             if x_sw is None:
+                pos = ctx.read(0x6064)
+                if soft_max is not None and pos > soft_max:
+                    raise Fail(f"{name}: the axis ran to {pos}, {(pos - soft_max) / ctx.units_per_mm:.1f} mm past "
+                               f"its software limit 0x607D:2 = {soft_max}, with no + limit switch in 0x60FD "
+                               f"({(pos - p0) / ctx.units_per_mm:.0f} mm travelled)")
                 raise Skip(f"no + limit switch (0x60FD bit 1) met within {timeout:g} s at "
-                           f"{v / ctx.units_per_mm:.0f} mm/s from {p0}")
+                           f"{v / ctx.units_per_mm:.0f} mm/s from {p0} (the axis reached {pos}, inside its "
+                           "software limits)")
             raise Fail(f"{name}: 0x60FD bit 1 not set although the axis reached {ctx.read(0x6064)} "
                        f"(switch found at {x_sw})")
         time.sleep(0.15)
