@@ -163,12 +163,12 @@ class Motion:
             self._stream = None
 
     def wait(self, pred, timeout: float, what: str) -> Sample:
-        end = time.monotonic() + timeout
+        expired = self.ctx.deadline(timeout)  # (lockstep: node time, in SYNCs)
         while True:
             s = self.last()
             if pred(s):
                 return s
-            if time.monotonic() > end:
+            if expired():
                 raise Fail(f"{what} not reached in {timeout:g} s (SW 0x{s.sw:04X}, position {s.pos})")
             time.sleep(0.01)
 
@@ -744,11 +744,11 @@ def pp_halt(ctx: Context) -> str:
         target = p0 + _toward_middle(ctx) * ctx.mm(40)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
-        time.sleep(0.1)
+        ctx.sleep(0.1)
         ctx.write(0x6040, 0, 0x11F)
         s = mo.wait(lambda s: s.vel is not None and abs(s.vel) < ctx.mm(1) and s.sw & 0x400, 0.8,
                     "standstill with bit 10 after halt")
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         s = mo.last()
         if abs(s.pos - p0) < ctx.mm(1):
             raise Fail(f"the move did not start before the halt (position {s.pos}, start {p0})")

@@ -110,6 +110,8 @@ class FrameLog:
 
 #: lockstep: longest wait for the node's answer to one SYNC [s] (a node that stops answering: the run goes on)
 ANSWER_WAIT_S = 0.5
+#: lockstep: a wait for ``t`` s of node time ends after at most this many times ``t`` of wall time
+LOCKSTEP_WAIT_FACTOR = 20.0
 #: lockstep: SYNCs sent without waiting after one the node did not answer (it may not answer SYNC at all)
 UNANSWERED_SKIP = 20
 
@@ -340,11 +342,35 @@ class Context:
     def sw(self) -> int:
         return self.read(0x6041)
 
+    def deadline(self, timeout_s: float) -> Callable[[], bool]:
+        """A timeout of ``timeout_s`` of the node's time: wall time in real time; in lockstep, while SYNCs run,
+        ``timeout_s`` / SYNC period SYNCs sent (a loaded master or host slows the node's time down with its
+        SYNCs), at most :data:`LOCKSTEP_WAIT_FACTOR` x ``timeout_s`` of wall time. Returns "expired?"."""
+        t0, s0 = time.monotonic(), self.syncs
+        need = timeout_s / self.sync_period_s
+
+        def expired() -> bool:
+            waited = time.monotonic() - t0
+            if waited <= timeout_s:
+                return False
+            if not self.lockstep or waited > LOCKSTEP_WAIT_FACTOR * timeout_s or self.syncs == s0:
+                return True  # (no SYNC sent meanwhile: the wait is not for motion)
+            return self.syncs - s0 >= need
+
+        return expired
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the node's time pass (see :meth:`deadline`)."""
+        expired = self.deadline(seconds)
+        time.sleep(seconds)
+        while not expired():
+            time.sleep(0.002)
+
     def wait_sw(self, mask: int, value: int, timeout: float = 1.0, what: str = "") -> int:
-        end = time.monotonic() + timeout
+        expired = self.deadline(timeout)
         sw = self.poll(0x6041)
         while sw & mask != value:
-            if time.monotonic() > end:
+            if expired():
                 self.note(f"statusword 0x{sw:04X}, waited for & 0x{mask:04X} == 0x{value:04X}")
                 raise Fail(f"{what or 'statusword'}: 0x{sw:04X} after {timeout:g} s, expected "
                            f"(sw & 0x{mask:04X}) == 0x{value:04X}")
