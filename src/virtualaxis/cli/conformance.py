@@ -108,7 +108,8 @@ def run(args) -> int:
     dt = time.monotonic() - t0
     retried = (f"; {s['sdo_retries']} SDO request(s) sent again after no answer in {ctx.sdo_timeout_s:g} s "
                f"({', '.join(r.id for r in results if r.sdo_retries)})" if s["sdo_retries"] else "")
-    print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped "
+    errors = f", {s['error']} run error(s) (the master or host missed a stimulus)" if s["error"] else ""
+    print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped{errors} "
           f"in {dt:.1f} s (node {args.node_id} on {args.can}){retried}")
     meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3),
             "pacing": args.pacing, "sync_period_s": ctx.sync_period_s, "identity": ident}
@@ -124,4 +125,4 @@ def run(args) -> int:
         with atomic_path(json_out) as tmp:
             runner.write_json(tmp, results, meta)
     sys.stdout.flush()
-    return 1 if s["fail"] else 0
+    return 1 if s["fail"] or s["error"] else 0

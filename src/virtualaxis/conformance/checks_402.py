@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import canopen
 
-from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
+from virtualaxis.conformance.runner import Context, Fail, RunError, Skip, boot, check
 
 STATE_MASK = 0x6F
 SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
@@ -142,18 +142,19 @@ class Motion:
         self._stream = threading.Thread(target=run, daemon=True, name="conformance-csp")
         self._stream.start()
 
-    def run_syncs(self, n: int, timeout_s: float = 10.0) -> None:
+    def run_syncs(self, n: int, timeout_s: float | None = None) -> None:
         """Let the stream run for ``n`` SYNC periods of the node: ``n`` SYNCs (lockstep: the node's time is
         the SYNC count), ``n`` periods of wall time (real time)."""
         if not self.ctx.lockstep:
             time.sleep(n * self.ctx.sync_period_s)
             return
         goal = self.streamed + n
+        timeout_s = timeout_s if timeout_s is not None else max(10.0, 0.1 * n)
         end = time.monotonic() + timeout_s
         while self.streamed < goal:
             if time.monotonic() > end:
-                raise Fail(f"{goal - self.streamed} of {n} SYNCs not sent in {timeout_s:g} s (master or host too "
-                           "slow)")
+                raise RunError(f"{goal - self.streamed} of {n} SYNCs not sent in {timeout_s:g} s: the master or "
+                               "the host is too slow")
             time.sleep(0.002)
 
     def stop_stream(self) -> None:

@@ -30,6 +30,11 @@ class Skip(Exception):
     """The check cannot run against this node (the reason says why)."""
 
 
+class RunError(Exception):
+    """The master or the host, not the node, missed the stimulus (e.g. SYNCs not sent in time): an error of
+    the run with its cause, never a failure of the node."""
+
+
 @dataclass(frozen=True)
 class Check:
     id: str
@@ -58,7 +63,7 @@ class Result:
     id: str
     family: str
     clause: str
-    status: str  # pass / fail / skipped
+    status: str  # pass / fail / skipped / error (of the run: the master or host missed the stimulus)
     detail: str
     trace: list[str] = field(default_factory=list)
     duration_s: float = 0.0
@@ -488,6 +493,8 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
             status, detail, failure_type = "fail", str(exc), "behaviour"
         except Skip as exc:
             status, detail = "skipped", str(exc)
+        except RunError as exc:
+            status, detail, failure_type = "error", str(exc), "run"
         except (KeyError, canopen.SdoAbortedError) as exc:
             index = missing_object(exc, ctx)
             how = "the EDS lists no" if isinstance(exc, KeyError) else "the node has no (SDO abort " \
@@ -543,7 +550,7 @@ def line(res: Result) -> str:
 
 def summary(results: list[Result]) -> dict[str, int]:
     """Checks per status, and the SDO requests sent again after a timeout (``sdo_retries``)."""
-    out = {"pass": 0, "fail": 0, "skipped": 0, "sdo_retries": 0}
+    out = {"pass": 0, "fail": 0, "skipped": 0, "error": 0, "sdo_retries": 0}
     for r in results:
         out[r.status] += 1
         out["sdo_retries"] += len(r.sdo_retries)
@@ -580,7 +587,7 @@ def write_junit(path: Path, results: list[Result], name: str = "virtualaxis.conf
     ``properties``: the node's identity and the run's pacing."""
     s = summary(results)
     suite = ET.Element("testsuite", name=name, tests=str(len(results)), failures=str(s["fail"]),
-                       skipped=str(s["skipped"]), errors="0",
+                       skipped=str(s["skipped"]), errors=str(s["error"]),
                        time=f"{sum(r.duration_s for r in results):.3f}")
     if properties:
         props = ET.SubElement(suite, "properties")
@@ -593,6 +600,8 @@ def write_junit(path: Path, results: list[Result], name: str = "virtualaxis.conf
                 "\n".join(r.trace))
         elif r.status == "skipped":
             ET.SubElement(case, "skipped", message=r.detail)
+        elif r.status == "error":
+            ET.SubElement(case, "error", message=r.detail, type="run").text = "\n".join(r.trace)
         out = ET.SubElement(case, "system-out")
         retried = f"\nSDO sent again: {', '.join(r.sdo_retries)}" if r.sdo_retries else ""
         out.text = f"{r.clause}\n{r.status}: {r.detail}{retried}\n" + "\n".join(r.trace)
