@@ -1000,9 +1000,9 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
         if ctx.read(0x60FD) & 0x2:
             raise Fail(f"{name}: + limit switch already active at {p0} before the move")
         _start_positive(ctx, mo, mode, p0, v)
-        end = time.monotonic() + timeout
+        expired = ctx.deadline(timeout)  # (lockstep: node time, in SYNCs)
         hit = None
-        while hit is None and time.monotonic() < end:
+        while hit is None and not expired():
             time.sleep(0.02)
             if ctx.poll(0x60FD) & 0x2:
                 hit = mo.samples(mark)
@@ -1019,7 +1019,7 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
                            "software limits)")
             raise Fail(f"{name}: 0x60FD bit 1 not set although the axis reached {ctx.read(0x6064)} "
                        f"(switch found at {x_sw})")
-        time.sleep(0.15)
+        ctx.sleep(0.15)
         s1, v_rest = mo.at_rest_velocity()
         inputs = ctx.read(0x60FD)
         moving = [s for s in hit if s.vel is not None]
