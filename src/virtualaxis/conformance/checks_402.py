@@ -488,7 +488,7 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
         if v_f < 0.5 * v_cmd:
             raise Fail(f"the fault came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
                        f"{v_cmd / ctx.units_per_mm:.0f} mm/s: the stop from motion cannot be judged")
-        time.sleep(1.0)
+        ctx.sleep(1.0)  # (lockstep: 1 s of node time)
         samples = mo.samples(mark)
         last = samples[-1]
         travel = abs(last.pos - first.pos)
