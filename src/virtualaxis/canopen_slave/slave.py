@@ -108,6 +108,11 @@ class CanopenSlave:
         self._rx_fd: int | None = None   # the bus's receive file descriptor (-1: none), looked up once
         self._sync_cob = -1             # COB-ID of SYNC while it is monitored (receive-path delay measured)
         self._wall_to_now = 0.0          # caller's clock - time.time() at the last poll [s]
+        #: True: a frame's arrival is its receive timestamp on the caller's clock; False: the ``now_s`` of the
+        #: poll that handles it (a caller whose clock is the drive's own cycle clock, SYNC lockstep)
+        self.frame_timestamps = True
+        #: boot-ups sent (power-on and every NMT reset)
+        self.boots = 0
         self._sync_counters: list[int] = []
         self._due_sync_rpdos: deque[list] = deque(maxlen=16)
         self._applied_ahead = 0
@@ -151,7 +156,7 @@ class CanopenSlave:
             self.counters["rx_overruns"] += 1
             return
         self._queue.append(msg)
-        if msg.arbitration_id == self._sync_cob and msg.timestamp:
+        if msg.arbitration_id == self._sync_cob and msg.timestamp and self.frame_timestamps:
             self.sync.note_delivery(time.time() - msg.timestamp)   # receive-path delay of SYNC frames
 
     def listener(self) -> can.Listener:
@@ -160,6 +165,7 @@ class CanopenSlave:
 
     def boot(self, now_s: float) -> None:
         """Send the boot-up frame and enter PRE-OPERATIONAL."""
+        self.boots += 1
         self._now = now_s
         self.send(HEARTBEAT_BASE + self.node_id, b"\x00")
         self.heartbeat.restart(now_s)
@@ -191,6 +197,16 @@ class CanopenSlave:
                 handler(msg, now_s)
             except Exception:  # noqa: BLE001 - the drive cycle must survive any frame
                 counters["internal_errors"] += 1
+        self.poll_timers(now_s)
+        return self._take_sync_counters()
+
+    def poll_timers(self, now_s: float) -> None:
+        """The timers only (heartbeat producer and consumer, guarding, EMCY inhibit, SDO timeout, RPDO deadlines,
+        SYNC timeout) at ``now_s``; no frame is taken (:meth:`poll` does both)."""
+        self._now = now_s
+        if self.nmt_state == NMT_STATE.INITIALISING:
+            return
+        counters = self.counters
         try:
             self.heartbeat.poll(now_s)
             if self.heartbeat_consumer.monitors:
@@ -206,7 +222,6 @@ class CanopenSlave:
                     self._sync_timeout()
         except Exception:  # noqa: BLE001
             counters["internal_errors"] += 1
-        return self._take_sync_counters()
 
     def apply_sync_rpdos(self) -> None:
         """Optional, before the application cycle of the oldest pending SYNC: apply the synchronous RPDOs
@@ -688,7 +703,7 @@ class CanopenSlave:
         ``time.time()``-based ones for virtual and udp_multicast, the kernel's for socketcan), ``now_s`` when
         the frame has none or one that does not fit the wall clock."""
         stamp = msg.timestamp
-        if not stamp:
+        if not stamp or not self.frame_timestamps:
             return now_s
         arrival = stamp + self._wall_to_now
         if arrival > now_s or arrival < now_s - 10.0:

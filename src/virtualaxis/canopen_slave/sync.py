@@ -35,6 +35,8 @@ MAX_ALLOWANCE_S = 0.1
 class SyncConsumer:
     def __init__(self, slave: CanopenSlave):
         self.slave = slave
+        #: largest 0x1006 accepted [us] (None: any); a lockstep runtime sets it (drive time per SYNC is bounded)
+        self.max_period_us: int | None = None
         self.configure()
         self.last_sync_s: float | None = None     # arrival of the last SYNC [s, caller's clock]
         self.delivery_delay_s = 0.0                  # decaying max of (hand-over - arrival) of SYNC frames [s]
@@ -52,6 +54,9 @@ class SyncConsumer:
         self.expected_dlc = 1 if self.counter_enabled else 0
 
     def validate_write(self, index: int, _sub: int, value: int) -> None:
+        if index == 0x1006 and self.max_period_us is not None and value > self.max_period_us:
+            raise SdoAbort(ab.VALUE_TOO_HIGH, f"communication cycle period {value} us exceeds the "
+                                              f"{self.max_period_us} us this node serves in SYNC lockstep")
         if index == 0x1005 and value & (SYNC_GENERATE | SYNC_EXTENDED):
             raise SdoAbort(ab.INVALID_VALUE, "this device is a SYNC consumer with an 11-bit COB-ID only")
         if index == 0x1019:

@@ -23,6 +23,9 @@ def register(sub) -> None:
                    help="comma-separated check ids, id prefixes or families (e.g. 301-SDO,limits)")
     p.add_argument("--units-per-mm", type=float, default=1000.0,
                    help="position units per mm of the node (default 1000: 1 unit = 1 um)")
+    p.add_argument("--pacing", choices=("lockstep", "realtime"), default="lockstep",
+                   help="how the node under test is paced: lockstep (it advances only on SYNC, as `virtualaxis serve "
+                        "--lockstep`; timings judged in SYNC counts; default) or realtime (its own clock)")
     p.add_argument("--sdo-timeout", type=float, default=1.0, help="SDO response timeout [s] (default 1)")
     p.add_argument("--junit", default=None, help="write a JUnit XML report here")
     p.add_argument("--json", default=None, help="write a JSON report here")
@@ -94,11 +97,12 @@ def run(args) -> int:
     t0 = time.monotonic()
     try:
         ctx = runner.Context(net, args.node_id, eds or DEFAULT_EDS, sdo_timeout_s=args.sdo_timeout,
-                             units_per_mm=args.units_per_mm)
+                             units_per_mm=args.units_per_mm, lockstep=args.pacing == "lockstep")
         try:
             ctx.read(0x1000)
         except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here
             raise CliError(f"node {args.node_id} does not answer on {args.can} (SDO read 0x1000: {exc})") from None
+        ident = runner.identity(ctx)
         try:
             results = runner.run_checks(ctx, checks, progress=lambda r: print(runner.line(r), flush=True))
         except runner.RunStopped as exc:  # the node's SDO server is broken: an error of the run, no report
@@ -109,16 +113,21 @@ def run(args) -> int:
     dt = time.monotonic() - t0
     retried = (f"; {s['sdo_retries']} SDO request(s) sent again after no answer in {ctx.sdo_timeout_s:g} s "
                f"({', '.join(r.id for r in results if r.sdo_retries)})" if s["sdo_retries"] else "")
-    print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped "
+    errors = f", {s['error']} run error(s) (the master or host missed a stimulus)" if s["error"] else ""
+    print(f"summary: {len(results)} checks, {s['pass']} passed, {s['fail']} failed, {s['skipped']} skipped{errors} "
           f"in {dt:.1f} s (node {args.node_id} on {args.can}){retried}")
-    meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3)}
+    meta = {"can": args.can, "node_id": args.node_id, "eds": eds or DEFAULT_EDS, "duration_s": round(dt, 3),
+            "pacing": args.pacing, "sync_period_s": ctx.sync_period_s, "identity": ident}
     from virtualaxis.cli.outputs import atomic_path
 
     if junit:
         with atomic_path(junit) as tmp:  # complete or not at all
-            runner.write_junit(tmp, results)
+            runner.write_junit(tmp, results, properties={
+                **{f"identity.{k}": v for k, v in ident.items()}, "pacing": args.pacing,
+                "sync_period_s": ctx.sync_period_s, "can": args.can, "eds": eds or DEFAULT_EDS,
+                "duration_s": round(dt, 3)})
     if json_out:
         with atomic_path(json_out) as tmp:
             runner.write_json(tmp, results, meta)
     sys.stdout.flush()
-    return 1 if s["fail"] else 0
+    return 1 if s["fail"] or s["error"] else 0

@@ -36,6 +36,9 @@ def register(sub) -> None:
         help="a (further) axis on the same bus, e.g. X=1:configs/seed000-hust.toml (repeatable)",
     )
     p.add_argument("--lockstep", action="store_true", help="advance the plants only on SYNC (deterministic)")
+    p.add_argument("--stall-s", type=float, default=None, metavar="S",
+                   help="lockstep: wall time one SYNC's cycles may take before the node counts as stalled (then "
+                        "'healthy' is false; default 1.0)")
     p.add_argument("--allow-fault-injection", action="store_true",
                    help="accept fault injection (objects 0x5FF0.., `virtualaxis fault`, Modbus 40600.., MQTT "
                         "fault/set); refused otherwise")
@@ -93,6 +96,8 @@ def run(args) -> int:
     if not 0 <= args.status_interval < 1e9:
         raise CliError(f"--status-interval must be a finite number of seconds >= 0, 0 for none (got "
                        f"{args.status_interval})")
+    if args.stall_s is not None and (not args.lockstep or not 0 < args.stall_s < 1e9):
+        raise CliError(f"--stall-s must be a finite number of seconds > 0, with --lockstep (got {args.stall_s})")
     specs = [AxisSpec.parse(a) for a in args.axis]
     where = [f"--axis {a!r}" for a in args.axis]  # what names each axis, for the error lines
     if args.config is not None or not specs:
@@ -145,7 +150,8 @@ def run(args) -> int:
         axes = [AxisNode(bus, s.node_id, c, name=s.name, eds_path=eds,
                          allow_fault_injection=args.allow_fault_injection) for s, c in zip(specs, configs, strict=True)]
         # (--latency-probe times the receive thread's hand-over: keep the Notifier thread it probes)
-        runtime = Runtime(bus, axes, lockstep=args.lockstep, read_in_loop=not args.latency_probe)
+        runtime = Runtime(bus, axes, lockstep=args.lockstep, read_in_loop=not args.latency_probe,
+                          **({} if args.stall_s is None else {"stall_s": args.stall_s}))
     except ValueError as exc:
         bus.shutdown()
         raise CliError(str(exc)) from None
@@ -227,14 +233,21 @@ def run(args) -> int:
     summary["drive_exceptions"] = st.drive_exceptions
     summary["thread_error"] = st.thread_error
     summary["axes_exceptions"] = {a.name: a.exceptions for a in axes}
+    summary["stalls"] = st.stalls
     if args.json:
         _write_json(Path(args.json), summary)
     if args.latency_probe:
         bus.write(args.latency_probe)
     if not healthy:
-        what = (f"the runtime thread stopped: {st.thread_error.strip().splitlines()[-1]}" if st.thread_error
-                else f"{st.drive_exceptions} drive-cycle exception(s), last: {st.last_exception}")
-        print(f"error: {what} (drives faulted with 0x6100; tracebacks above)", file=sys.stderr, flush=True)
+        if st.thread_error:
+            what = f"the runtime thread stopped: {st.thread_error.strip().splitlines()[-1]} (tracebacks above)"
+        elif st.drive_exceptions:
+            what = (f"{st.drive_exceptions} drive-cycle exception(s), last: {st.last_exception} (drives faulted "
+                    "with 0x6100; tracebacks above)")
+        else:
+            what = (f"the lockstep cycle stalled {st.stalls} time(s), longest {st.max_sync_work_s:.3f} s > "
+                    f"--stall-s {runtime.stall_s:g} s: SDO, NMT and SYNC went unanswered meanwhile")
+        print(f"error: {what}", file=sys.stderr, flush=True)
         return 1
     return 0
 

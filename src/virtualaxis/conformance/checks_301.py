@@ -80,14 +80,17 @@ def reset_node(ctx: Context) -> str:
 def heartbeat(ctx: Context) -> str:
     ctx.write(0x1017, 0, 40)
     mark = ctx.frames.mark()
-    time.sleep(0.5)
+    time.sleep(0.7)
     frames = ctx.frames.since(mark, ctx.hb_cob)
-    if len(frames) < 8:
-        raise Fail(f"{len(frames)} heartbeats in 0.5 s at 40 ms, expected about 12")
-    gaps = [b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False)]
+    if len(frames) < 10:
+        raise Fail(f"{len(frames)} heartbeats in 0.7 s at 40 ms, expected about 17")
+    gaps = sorted(b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False))
     mean = sum(gaps) / len(gaps)
-    if not 0.030 < mean < 0.055:
-        raise Fail(f"mean heartbeat period {mean * 1e3:.1f} ms, expected 40 ms")
+    median = gaps[len(gaps) // 2]  # (a loaded host delays single frames; the median is the producer's period)
+    ctx.note(f"heartbeat gaps [ms]: {', '.join(f'{g * 1e3:.1f}' for g in gaps)}")
+    if not 0.036 <= median <= 0.044 or not 0.030 < mean < 0.055:
+        raise Fail(f"heartbeat period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; expected 40 ms "
+                   "(+-10 %)")
     ctx.write(0x1017, 0, 0)
     time.sleep(0.1)
     mark = ctx.frames.mark()
@@ -96,7 +99,7 @@ def heartbeat(ctx: Context) -> str:
     ctx.write(0x1017, 0, 50)
     if n:
         raise Fail(f"{n} heartbeats with 0x1017 = 0, expected none")
-    return f"{len(frames)} heartbeats, mean period {mean * 1e3:.1f} ms; none with 0x1017 = 0"
+    return f"{len(frames)} heartbeats, period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; none with 0"
 
 
 @check("301-NMT-2", "nmt", "CiA 301 7.3.2.2.1 (NMT stop / start); CL 3",
@@ -234,8 +237,7 @@ def sdo_segmented_block(ctx: Context) -> str:
         raise Skip("the EDS lists no 0x1008 device name")
     seg = ctx.node.sdo.upload(0x1008, 0)
     ctx.note(f"segmented upload 0x1008 -> {seg!r}")
-    with ctx.node.sdo[0x1008].open("rb", block_transfer=True) as fh:
-        blk = fh.read()
+    blk = _block_transfer(ctx, "upload 0x1008", lambda: _block_read(ctx, 0x1008))
     ctx.note(f"block upload 0x1008 -> {blk!r}")
     if seg != blk:
         raise Fail(f"segmented {seg!r} != block {blk!r}")
@@ -307,7 +309,7 @@ def tpdo_sync(ctx: Context) -> str:
     boot(ctx)
     ctx.write(0x1800, 2, 1)
     cob = ctx.read(0x1800, 1) & 0x7FF
-    ctx.net.subscribe(cob, ctx.frames.on_frame)
+    ctx.log_frames(cob)
     mark = ctx.frames.mark()
     for _ in range(3):
         ctx.sync_once()
@@ -360,6 +362,52 @@ def rpdo_writes(ctx: Context) -> str:
     return f"0x6040 = 0x{cw:04X}, SW 0x{sw:04X}"
 
 
+@check("301-PDO-9", "pdo", "CiA 301 7.3.2.2 / 7.2.2 (PDOs only in OPERATIONAL); CL 11",
+       "RPDO1 [0x6040 = 0x0006] in PRE-OPERATIONAL, then in STOPPED; TPDO1 synchronous, SYNCs in STOPPED",
+       "no RPDO applied (0x6040 unchanged, state unchanged) and no TPDO sent outside OPERATIONAL")
+def pdo_only_operational(ctx: Context) -> str:
+    boot(ctx)
+    n = ctx.read(0x1600, 0)
+    first = ctx.read(0x1600, 1) if n else 0
+    if not n or first >> 16 != 0x6040:
+        raise Skip(f"RPDO1 does not map the controlword first (0x1600:1 = 0x{first:08X})")
+    size = sum((ctx.read(0x1600, s) & 0xFF) for s in range(1, n + 1)) // 8
+    cob = ctx.read(0x1400, 1) & 0x7FF
+    data = (0x0006).to_bytes(2, "little")
+    for s in range(2, n + 1):
+        m = ctx.read(0x1600, s)
+        data += ctx.raw_read(m >> 16, (m >> 8) & 0xFF)[: (m & 0xFF) // 8]
+    if len(data) != size:
+        raise Fail(f"RPDO1 mapping of {size} bytes, assembled {len(data)}")
+    tcob = ctx.read(0x1800, 1) & 0x7FF
+    ctx.write(0x1800, 2, 1)  # TPDO1 on every SYNC
+    seen = []
+    for state, command in (("PRE-OPERATIONAL", None), ("STOPPED", 0x02)):
+        if command is not None:
+            ctx.nmt(command)
+            time.sleep(0.05)
+        cw0 = ctx.poll(0x6040) if command is None else None
+        mark = ctx.frames.mark()
+        for _ in range(10):
+            ctx.net.send_message(cob, data)
+            ctx.sync_once()
+            time.sleep(0.003)
+        time.sleep(0.05)
+        tpdos = len(ctx.frames.since(mark, tcob))
+        ctx.note(f"{state}: RPDO 0x{cob:03X} [{data.hex(' ')}] + SYNC x10 -> {tpdos} TPDO 0x{tcob:03X}")
+        if tpdos:
+            raise Fail(f"{tpdos} TPDO 0x{tcob:03X} on SYNC in {state}")
+        if command is not None:
+            ctx.nmt(0x80)  # back to PRE-OPERATIONAL to read by SDO
+            time.sleep(0.05)
+        cw, sw = ctx.read(0x6040), ctx.read(0x6041)
+        if (cw0 is not None and cw != cw0) or cw == 0x0006 or sw & 0x6F == 0x21:
+            raise Fail(f"RPDO applied in {state}: 0x6040 = 0x{cw:04X}, SW 0x{sw:04X}")
+        seen.append(state)
+    boot(ctx)
+    return f"no PDO applied or sent in {', '.join(seen)}"
+
+
 @check("301-EMCY-1", "emcy", "CiA 301 7.5.2.19 (0x1014 COB-ID EMCY)", "SDO read 0x1014",
        "0x80 + node id (valid)")
 def emcy_cob(ctx: Context) -> str:
@@ -379,6 +427,9 @@ def emcy_cob(ctx: Context) -> str:
 def sync_timeout(ctx: Context) -> str:
     if 0x1006 not in ctx.od:
         raise Skip("the EDS lists no 0x1006")
+    if ctx.lockstep:
+        raise Skip("a node in SYNC lockstep runs its clock on SYNC: SYNC loss shows only in real time "
+                   "(--pacing realtime against a node served in real time)")
     period = 0.020
     boot(ctx)
     ctx.write(0x1006, 0, round(period * 1e6))
@@ -635,17 +686,49 @@ def sdo_high_limit(ctx: Context) -> str:
 def sdo_block_download(ctx: Context) -> str:
     if 0x1017 not in ctx.od:
         raise Skip("the EDS lists no 0x1017")
-    try:
+    def download() -> None:
         with ctx.node.sdo[0x1017].open("wb", size=2, block_transfer=True) as fh:
             fh.write((77).to_bytes(2, "little"))
-    except canopen.SdoAbortedError as exc:
-        raise Fail(f"block download of 0x1017 aborted 0x{exc.code:08X}") from None
+
+    _block_transfer(ctx, "download 0x1017", download)
     ctx.note("block download 0x1017 = 77")
     v = ctx.read(0x1017)
     ctx.write(0x1017, 0, 50)
     if v != 77:
         raise Fail(f"0x1017 = {v} after a block download of 77")
     return "0x1017 = 77 after a block download"
+
+
+#: abort codes of a node that does not serve SDO block transfer (an optional service, CiA 301 7.2.4.3.9)
+BLOCK_REFUSED = frozenset({0x05040001, 0x06010000, 0x08000000})
+
+
+def _block_read(ctx: Context, index: int) -> bytes:
+    with ctx.node.sdo[index].open("rb", block_transfer=True) as fh:
+        return fh.read()
+
+
+def _block_transfer(ctx: Context, what: str, op):
+    """An SDO block transfer (optional service): refused by the node with an abort that says so, or not answered
+    while expedited SDO is, is a skip with the reason; any other abort fails."""
+    try:
+        return op()
+    except canopen.SdoAbortedError as exc:
+        ctx.note(f"block {what} -> abort 0x{exc.code:08X}")
+        if exc.code in BLOCK_REFUSED:
+            raise Skip(f"the node refuses SDO block transfer (block {what}: abort 0x{exc.code:08X}); block "
+                       "transfer is optional") from None
+        raise Fail(f"block {what} aborted 0x{exc.code:08X}") from None
+    except canopen.SdoCommunicationError as exc:
+        ctx.note(f"block {what} -> {exc}")
+        try:
+            ctx.node.sdo.abort(0x05040001)
+        except Exception:  # noqa: BLE001 - only to end the node's half-open transfer
+            pass
+        time.sleep(0.05)
+        ctx.read(0x1000)  # answers expedited SDO (else this is the check's failure: no SDO answer)
+        raise Skip(f"no answer to an SDO block {what} while expedited SDO is answered: the node does not serve "
+                   "block transfer (optional)") from None
 
 
 def _remap(ctx: Context, comm: int, entries: list[int], ttype: int) -> int:

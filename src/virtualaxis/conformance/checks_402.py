@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import canopen
 
-from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
+from virtualaxis.conformance.runner import Context, Fail, RunError, Skip, boot, check
 
 STATE_MASK = 0x6F
 SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
@@ -45,9 +45,9 @@ class Motion:
         self.tpdo1, self.tpdo2, self.rpdo1 = 0x180 + n, 0x280 + n, 0x200 + n
         boot(ctx)
         try:
-            self._map(0x1800, 0x1A00, self.tpdo1, [0x60410010, 0x60640020], 1)
-            self._map(0x1801, 0x1A01, self.tpdo2, [0x606C0020], 1)
-            self._map(0x1400, 0x1600, self.rpdo1, [0x60400010, 0x607A0020], 255)
+            self.map(0x1800, 0x1A00, self.tpdo1, [0x60410010, 0x60640020], 1)
+            self.map(0x1801, 0x1A01, self.tpdo2, [0x606C0020], 1)
+            self.map(0x1400, 0x1600, self.rpdo1, [0x60400010, 0x607A0020], 255)
         except canopen.SdoAbortedError as exc:
             raise Skip(f"dynamic PDO mapping refused (abort 0x{exc.code:08X}): the motion checks need "
                        "TPDO1 = 0x6041 + 0x6064, TPDO2 = 0x606C, RPDO1 = 0x6040 + 0x607A") from None
@@ -59,8 +59,9 @@ class Motion:
         self.target = 0
         self.cw = 0x0F
         self.step_units = 0.0
+        self.streamed = 0  # SYNCs the stream has sent
 
-    def _map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
+    def map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
         ctx = self.ctx
         ctx.write(comm, 1, cob | 0x80000000)
         ctx.write(mapping, 0, 0)
@@ -129,7 +130,8 @@ class Motion:
             while not self._stop.is_set():
                 self.target += self.step_units
                 self.rpdo(self.cw, round(self.target))
-                ctx.sync_once()
+                ctx.sync_once(answer_cob=self.tpdo1)  # (lockstep: waits for the node's answer)
+                self.streamed += 1
                 nxt += period
                 delay = nxt - time.monotonic()
                 if delay > 0:
@@ -140,6 +142,21 @@ class Motion:
         self._stream = threading.Thread(target=run, daemon=True, name="conformance-csp")
         self._stream.start()
 
+    def run_syncs(self, n: int, timeout_s: float | None = None) -> None:
+        """Let the stream run for ``n`` SYNC periods of the node: ``n`` SYNCs (lockstep: the node's time is
+        the SYNC count), ``n`` periods of wall time (real time)."""
+        if not self.ctx.lockstep:
+            time.sleep(n * self.ctx.sync_period_s)
+            return
+        goal = self.streamed + n
+        timeout_s = timeout_s if timeout_s is not None else max(10.0, 0.1 * n)
+        end = time.monotonic() + timeout_s
+        while self.streamed < goal:
+            if time.monotonic() > end:
+                raise RunError(f"{goal - self.streamed} of {n} SYNCs not sent in {timeout_s:g} s: the master or "
+                               "the host is too slow")
+            time.sleep(0.002)
+
     def stop_stream(self) -> None:
         self._stop.set()
         if self._stream is not None:
@@ -147,12 +164,12 @@ class Motion:
             self._stream = None
 
     def wait(self, pred, timeout: float, what: str) -> Sample:
-        end = time.monotonic() + timeout
+        expired = self.ctx.deadline(timeout)  # (lockstep: node time, in SYNCs)
         while True:
             s = self.last()
             if pred(s):
                 return s
-            if time.monotonic() > end:
+            if expired():
                 raise Fail(f"{what} not reached in {timeout:g} s (SW 0x{s.sw:04X}, position {s.pos})")
             time.sleep(0.01)
 
@@ -319,17 +336,19 @@ def csp_follow(ctx: Context) -> str:
         p0 = ctx.read(0x6064)
         d = _toward_middle(ctx)
         mo.stream(p0, d * ctx.mm(50))
-        time.sleep(0.4)
+        mo.run_syncs(400)
         s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
         err = abs(mo.target - s[0].pos)
         mo.step_units = 0.0
-        time.sleep(0.3)
+        mo.run_syncs(300)
         s2 = mo.last()
         final = abs(round(mo.target) - s2.pos)
         if not s2.sw & 0x1000:
             raise Fail(f"SW 0x{s2.sw:04X}: bit 12 (drive follows the target) not set in CSP")
         if d * (s2.pos - p0) < ctx.mm(10):
             raise Fail(f"moved {s2.pos - p0} units for a 20 mm stream")
+        if err > ctx.mm(1):
+            raise Fail(f"{err:.0f} units behind the target while moving at 50 mm/s (expected < 1 mm)")
         if final > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"settled {final} units from the target")
         return f"lag {err:.0f} units while moving, {final} units after; bit 12 set"
@@ -342,6 +361,9 @@ def csp_follow(ctx: Context) -> str:
        "HM, 0x6098 = 37 (or 35), 0x607C = 1 mm, CW 0x1F", "bits 12 and 10 set (homing attained), 0x6064 = 0x607C")
 def homing_current_position(ctx: Context) -> str:
     boot(ctx)
+    supported = ctx.read(0x6502)
+    if not supported & MODE_BITS[6]:
+        raise Skip(f"homing mode not supported (0x6502 = 0x{supported:X})")
     for method in (37, 35):
         try:
             ctx.write(0x6098, 0, method)
@@ -408,17 +430,30 @@ def _stop_bound(v: float, a: float, reaction_s: float, margin: float) -> float:
     return v * v / (2 * a) + abs(v) * reaction_s + margin
 
 
-@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085)",
-       "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2, 0x6085 = 10 m/s^2; "
-       "0x6065 tightened to 1 unit while moving; the master "
-       "keeps streaming", "the drive brakes from the ACTUAL speed: travel after the fault <= v^2/(2 a) + v * 20 ms "
-       "+ 1 mm, at rest (< 1 mm/s), then fault (SW & 0x4F = 0x08)")
+@check("402-FLD-1", "reaction", "CiA 402 (fault reaction option 0x605E = 2: quick-stop ramp 0x6085, 1: slow-down "
+       "ramp 0x6084)", "CSP at 100 mm/s (toward the middle of the travel), 0x605E = 2 with 0x6085 = 10 m/s^2 "
+       "(0x6084 = 2 m/s^2), then 0x605E = 1 with 0x6084 = 2 m/s^2 (0x6085 = 10 m/s^2); 0x6065 tightened to 1 unit "
+       "while moving; the master keeps streaming", "the drive brakes from the ACTUAL speed on the ramp 0x605E "
+       "selects: v^2/(4 a) <= travel after the fault <= v^2/(2 a) + v * 20 ms + 1 mm, at rest (< 1 mm/s), then "
+       "fault (SW & 0x4F = 0x08)")
 def fault_reaction_from_motion(ctx: Context) -> str:
+    out = []
+    for option, ramp_index, a_mm_s2 in ((2, 0x6085, 10_000), (1, 0x6084, 2_000)):
+        out.append(_fault_stop(ctx, option, ramp_index, a_mm_s2))
+    return "; ".join(out)
+
+
+def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> str:
+    """CSP at 100 mm/s, 0x605E = ``option`` whose ramp is ``ramp_index`` = ``a_mm_s2``, the other ramp 5x
+    steeper or shallower; a following-error fault: the travel after it must be that of the ramp (at least half
+    of v^2/2a, at most v^2/2a + v * 20 ms + 1 mm)."""
     mo = Motion(ctx)
     try:
-        a = ctx.mm(10_000)
-        ctx.write(0x605E, 0, 2)
-        ctx.write(0x6085, 0, a)
+        a = ctx.mm(a_mm_s2)
+        other = 0x6084 if ramp_index == 0x6085 else 0x6085
+        ctx.write(0x605E, 0, option)
+        ctx.write(ramp_index, 0, a)
+        ctx.write(other, 0, ctx.mm(a_mm_s2 * 5 if ramp_index == 0x6084 else a_mm_s2 / 5))
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
         v_cmd = ctx.mm(100)
@@ -453,23 +488,34 @@ def fault_reaction_from_motion(ctx: Context) -> str:
         if v_f < 0.5 * v_cmd:
             raise Fail(f"the fault came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
                        f"{v_cmd / ctx.units_per_mm:.0f} mm/s: the stop from motion cannot be judged")
-        time.sleep(1.0)
+        ctx.sleep(1.0)  # (lockstep: 1 s of node time)
         samples = mo.samples(mark)
         last = samples[-1]
         travel = abs(last.pos - first.pos)
         bound = _stop_bound(v_f, a, 0.020, ctx.mm(1))
         v_end = abs(last.vel or 0)
         ctx.note(f"fault at SW 0x{first.sw:04X} pos {first.pos} v {v_f}; end pos {last.pos} v {v_end}")
+        least = 0.5 * v_f * v_f / (2 * a)
         if travel > bound:
-            raise Fail(f"travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
+            raise Fail(f"0x605E = {option}: travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
                        f"{v_f / ctx.units_per_mm:.0f} mm/s, bound v^2/2a + margin = "
-                       f"{bound / ctx.units_per_mm:.2f} mm (coasting?)")
+                       f"{bound / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X} (coasting? another ramp?)")
+        if travel < least:
+            raise Fail(f"0x605E = {option}: stopped in {travel / ctx.units_per_mm:.2f} mm from "
+                       f"{v_f / ctx.units_per_mm:.0f} mm/s, less than half of v^2/2a = "
+                       f"{2 * least / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X}: not the ramp 0x605E "
+                       "selects")
         if v_end > ctx.mm(1):
             raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1 s after the fault")
+        end = time.monotonic() + 2.0
+        while last.sw & 0x4F != 0x08 and time.monotonic() < end:  # the reaction ends once the axis is at rest
+            time.sleep(0.05)
+            last = mo.samples(mark)[-1]
         if last.sw & 0x4F != 0x08:
-            raise Fail(f"SW 0x{last.sw:04X} 1 s after the fault, expected fault (0x08)")
-        return (f"{travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
-                f"(bound {bound / ctx.units_per_mm:.2f} mm), at rest, fault")
+            raise Fail(f"0x605E = {option}: SW 0x{last.sw:04X} 3 s after the fault, expected fault (0x08)")
+        return (f"0x605E = {option}: {travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
+                f"(ramp 0x{ramp_index:04X}: {least / ctx.units_per_mm:.2f}..{bound / ctx.units_per_mm:.2f} mm), "
+                "at rest, fault")
     finally:
         mo.close()
         boot(ctx)
@@ -699,11 +745,11 @@ def pp_halt(ctx: Context) -> str:
         target = p0 + _toward_middle(ctx) * ctx.mm(40)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
-        time.sleep(0.1)
+        ctx.sleep(0.1)
         ctx.write(0x6040, 0, 0x11F)
         s = mo.wait(lambda s: s.vel is not None and abs(s.vel) < ctx.mm(1) and s.sw & 0x400, 0.8,
                     "standstill with bit 10 after halt")
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         s = mo.last()
         if abs(s.pos - p0) < ctx.mm(1):
             raise Fail(f"the move did not start before the halt (position {s.pos}, start {p0})")
@@ -799,6 +845,98 @@ def fault_reset_edge(ctx: Context) -> str:
         boot(ctx)
 
 
+@check("402-FLT-2", "reaction", "CiA 402 6.1.3 (transition 15 only on the rising edge of CW bit 7); CL 16",
+       "PP enabled with CW bit 7 already set (0x8F), a following error (0x6065 = 1) with bit 7 held (0x9F, 0x8F), "
+       "then 0x8F again, then 0x0F and 0x8F", "fault; it stays while bit 7 stays high; the edge resets it")
+def fault_reset_needs_an_edge(ctx: Context) -> str:
+    mo = Motion(ctx)
+    try:
+        ctx.write(0x6081, 0, ctx.mm(50))
+        ctx.write(0x6065, 0, 1)
+        _enable_mode(ctx, 1)
+        ctx.start_sync()
+        ctx.write(0x6040, 0, 0x8F)
+        time.sleep(0.05)
+        if ctx.sw() & 0x6F != 0x27:
+            raise Skip("the node leaves OPERATION ENABLED on CW 0x8F (bit 7 outside FAULT): the fault cannot be "
+                       "provoked with bit 7 held")
+        p0 = mo.last().pos
+        ctx.write(0x607A, 0, p0 + _toward_middle(ctx) * ctx.mm(5))
+        ctx.write(0x6040, 0, 0x9F)
+        ctx.write(0x6040, 0, 0x8F)
+        ctx.wait_sw(0x4F, 0x08, 2.0, "fault after a following error (CW bit 7 held)")
+        for _ in range(3):
+            ctx.write(0x6040, 0, 0x8F)
+            time.sleep(0.05)
+            sw = ctx.sw()
+            if sw & 0x4F != 0x08:
+                raise Fail(f"left fault with CW bit 7 held high, without a rising edge (SW 0x{sw:04X})")
+        ctx.write(0x6040, 0, 0x0F)
+        ctx.write(0x6040, 0, 0x8F)
+        ctx.wait_sw(0x4F, 0x40, 1.0, "fault reset (CW bit 7 edge)")
+        return "stays in fault while bit 7 is held; the rising edge resets it"
+    finally:
+        mo.close()
+        boot(ctx)
+
+
+@check("402-CSP-2", "modes", "CiA 402 (cyclic synchronous position: the target of SYNC k drives cycle k); CL 22",
+       "lockstep: CSP, 0x60C2 = one SYNC period, TPDO2 = position demand 0x6062; RPDO1 target step of 0.1 mm "
+       "before SYNC k", "the answer to SYNC k shows the old demand, the answer to SYNC k + 1 the new target")
+def csp_target_at_its_sync(ctx: Context) -> str:
+    if not ctx.lockstep:
+        raise Skip("needs a node in SYNC lockstep (--pacing lockstep): in real time the cycle a target lands in "
+                   "depends on the host")
+    if 0x6062 not in ctx.od and 0x60FC not in ctx.od:
+        raise Skip("the EDS lists no position demand value (0x6062 / 0x60FC)")
+    demand = 0x6062 if 0x6062 in ctx.od else 0x60FC
+    mo = Motion(ctx)
+    try:
+        ctx.nmt(0x80)
+        time.sleep(0.03)
+        mo.map(0x1801, 0x1A01, mo.tpdo2, [(demand << 16) | 0x20], 1)
+        mo.map(0x1400, 0x1600, mo.rpdo1, [0x60400010, 0x607A0020], 1)  # synchronous: applied at the SYNC
+        ctx.write(0x1006, 0, round(ctx.sync_period_s * 1e6))
+        if 0x60C2 in ctx.od:
+            ctx.write(0x60C2, 1, round(ctx.sync_period_s * 1e3))
+            ctx.write(0x60C2, 2, -3)
+        ctx.nmt(0x01)
+        time.sleep(0.03)
+        _enable_mode(ctx, 8)
+        p0 = ctx.read(0x6064)
+
+        def answer(target: int) -> tuple[int, int]:
+            """RPDO1 (CW 0x0F, target), one SYNC; (position demand, position) of its answer."""
+            mark = ctx.frames.mark()
+            mo.rpdo(0x0F, target)
+            ctx.sync_once()
+            f1 = ctx.frames.wait(mark, mo.tpdo1, None, 2.0)
+            f2 = ctx.frames.wait(mark, mo.tpdo2, None, 2.0)
+            if f1 is None or f2 is None:
+                raise Fail("no TPDO1 / TPDO2 answer to a SYNC within 2 s")
+            return (int.from_bytes(f2[2][0:4], "little", signed=True),
+                    int.from_bytes(f1[2][2:6], "little", signed=True))
+
+        for _ in range(5):
+            answer(p0)
+        step = _toward_middle(ctx) * ctx.mm(0.1)
+        got_k = answer(p0 + step)
+        got_k1 = answer(p0 + step)
+        ctx.note(f"demand / position: SYNC k {got_k}, SYNC k+1 {got_k1}; target {p0} -> {p0 + step}")
+        tol = max(1, abs(step) // 20)
+        if abs(got_k[0] - p0) > tol:
+            raise Fail(f"the answer to SYNC k (values before its cycle) shows demand {got_k[0]}, expected the old "
+                       f"{p0}")
+        if abs(got_k1[0] - (p0 + step)) > tol:
+            raise Fail(f"the answer to SYNC k + 1 shows demand {got_k1[0]}, expected the target {p0 + step} of "
+                       "SYNC k (applied a SYNC late?)")
+        return f"demand {got_k[0]} -> {got_k1[0]} in the cycle of the SYNC that carried the target"
+    finally:
+        mo.close()
+        ctx.disable()
+        boot(ctx)
+
+
 # ============================================================================ real hardware limit switches
 @check("402-FLD-6", "limits", "CiA 402 (0x60FD bit 1 positive limit switch; the drive stops in every mode)",
        "0x607D max widened by 20 % (if finite); the axis driven onto the REAL + switch in PV "
@@ -825,7 +963,7 @@ def real_limit_switch_every_mode(ctx: Context) -> str:
             ctx.write(0x607D, 2, min(hi + (hi - lo) // 5, 2**31 - 1))
         for mode in (3, 1, 4, 8, 9, 10):
             if supported & MODE_BITS[mode]:
-                res, x_sw = _onto_switch(ctx, mo, mode, x_sw, a)
+                res, x_sw = _onto_switch(ctx, mo, mode, x_sw, a, hi if hi < 2**31 - 1 and lo > -2**31 else None)
                 done.append(res)
     finally:
         mo.close()
@@ -833,7 +971,8 @@ def real_limit_switch_every_mode(ctx: Context) -> str:
     return "; ".join(done)
 
 
-def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) -> tuple[str, int]:
+def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
+                 soft_max: int | None = None) -> tuple[str, int]:
     """Drive onto the + switch in ``mode`` (approach first if ``x_sw`` is known and far), check the stop,
     move away in PV. Returns the result text and the switch position [units]."""
     name = MODES[mode]
@@ -861,20 +1000,26 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int) 
         if ctx.read(0x60FD) & 0x2:
             raise Fail(f"{name}: + limit switch already active at {p0} before the move")
         _start_positive(ctx, mo, mode, p0, v)
-        end = time.monotonic() + timeout
+        expired = ctx.deadline(timeout)  # (lockstep: node time, in SYNCs)
         hit = None
-        while hit is None and time.monotonic() < end:
+        while hit is None and not expired():
             time.sleep(0.02)
             if ctx.poll(0x60FD) & 0x2:
                 hit = mo.samples(mark)
         if hit is None:
             ctx.note(f"no switch: 0x6064 = {ctx.read(0x6064)}, 0x606C = {ctx.read(0x606C)}, SW 0x{ctx.sw():04X}")
             if x_sw is None:
+                pos = ctx.read(0x6064)
+                if soft_max is not None and pos > soft_max:
+                    raise Fail(f"{name}: the axis ran to {pos}, {(pos - soft_max) / ctx.units_per_mm:.1f} mm past "
+                               f"its software limit 0x607D:2 = {soft_max}, with no + limit switch in 0x60FD "
+                               f"({(pos - p0) / ctx.units_per_mm:.0f} mm travelled)")
                 raise Skip(f"no + limit switch (0x60FD bit 1) met within {timeout:g} s at "
-                           f"{v / ctx.units_per_mm:.0f} mm/s from {p0}")
+                           f"{v / ctx.units_per_mm:.0f} mm/s from {p0} (the axis reached {pos}, inside its "
+                           "software limits)")
             raise Fail(f"{name}: 0x60FD bit 1 not set although the axis reached {ctx.read(0x6064)} "
                        f"(switch found at {x_sw})")
-        time.sleep(0.15)
+        ctx.sleep(0.15)
         s1, v_rest = mo.at_rest_velocity()
         inputs = ctx.read(0x60FD)
         moving = [s for s in hit if s.vel is not None]

@@ -9,6 +9,7 @@ or waits for is recorded in ``ctx.trace`` and reported with its result.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 import xml.etree.ElementTree as ET
@@ -17,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import can
 import canopen
 
 from virtualaxis.master import SdoTransferOverrun, install_bounded_sdo
@@ -28,6 +30,11 @@ class Fail(Exception):
 
 class Skip(Exception):
     """The check cannot run against this node (the reason says why)."""
+
+
+class RunError(Exception):
+    """The master or the host, not the node, missed the stimulus (e.g. SYNCs not sent in time): an error of
+    the run with its cause, never a failure of the node."""
 
 
 @dataclass(frozen=True)
@@ -58,12 +65,15 @@ class Result:
     id: str
     family: str
     clause: str
-    status: str  # pass / fail / skipped
+    status: str  # pass / fail / skipped / error (of the run: the master or host missed the stimulus)
     detail: str
     trace: list[str] = field(default_factory=list)
     duration_s: float = 0.0
     #: SDO requests of this check that got no answer within the timeout and were sent again (see Context.read)
     sdo_retries: list[str] = field(default_factory=list)
+    #: a failure's kind: behaviour (the node did not do what the clause requires), missing-object, sdo-abort,
+    #: no-answer, error (the check itself could not go on)
+    failure_type: str = ""
 
 
 class FrameLog:
@@ -105,12 +115,67 @@ class FrameLog:
                 del self.frames[:-keep]
 
 
+#: lockstep: longest wait for the node's answer to one SYNC [s] (a node that stops answering: the run goes on)
+ANSWER_WAIT_S = 0.5
+#: lockstep: a wait for ``t`` s of node time ends after at most this many times ``t`` of wall time
+LOCKSTEP_WAIT_FACTOR = 20.0
+#: lockstep: SYNCs sent without waiting after one the node did not answer (it may not answer SYNC at all)
+UNANSWERED_SKIP = 20
+
+
+class _SyncThread:
+    def __init__(self, thread: threading.Thread, stop: threading.Event):
+        self.thread = thread
+        self._stop_event = stop
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.thread.join(2.0)
+
+
+class _FrameTap(can.Listener):
+    """Frames of the logged COB-IDs into a :class:`FrameLog`, straight from the bus notifier."""
+
+    def __init__(self, frames: FrameLog, cobs: set[int]):
+        self.frames = frames
+        self.cobs = cobs
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not msg.is_extended_id and not msg.is_error_frame and msg.arbitration_id in self.cobs:
+            self.frames.on_frame(msg.arbitration_id, msg.data, msg.timestamp)
+
+
+#: objects every CiA 301 / CiA 402 drive has (CiA 301 7.5.2, CiA 402 mandatory objects); any other object a
+#: check needs and the node lacks makes that check a skip
+MANDATORY_OBJECTS = frozenset({0x1000, 0x1001, 0x1018, 0x6040, 0x6041, 0x6060, 0x6061, 0x6502})
+#: SDO abort codes that say the object / sub-index does not exist
+NO_OBJECT_ABORTS = frozenset({0x06020000, 0x06090011})
+_MISSING_IN_EDS = re.compile(r"(0x[0-9A-Fa-f]{1,4}|[0-9A-Fa-f]{4}|\d+) was not found in Object Dictionary")
+
+
+def missing_object(exc: BaseException, ctx: Context | None = None) -> int | None:
+    """The index of the object whose absence ``exc`` reports (canopen's KeyError for an object the EDS lacks,
+    or an SDO abort 0x06020000 / 0x06090011 from the node), else None."""
+    if isinstance(exc, KeyError):
+        if re.search(r"Subindex \S+ was not found", str(exc)):
+            return -1  # (canopen does not name the object of a missing sub-index)
+        m = _MISSING_IN_EDS.search(str(exc))
+        if m:
+            text = m.group(1)
+            return int(text, 16) if text.lower().startswith("0x") or len(text) == 4 else int(text)
+        return None
+    if isinstance(exc, canopen.SdoAbortedError) and exc.code in NO_OBJECT_ABORTS and ctx is not None \
+            and ctx.last_abort is not None and ctx.last_abort[2] == exc.code:
+        return ctx.last_abort[0]
+    return None
+
+
 class Context:
     """What a check works with: the network, the node (``BaseNode402`` on the EDS), the EDS' dictionary,
     frame logs and helpers that record every exchange in :attr:`trace`."""
 
     def __init__(self, network: canopen.Network, node_id: int, eds: str, *, sdo_timeout_s: float = 1.0,
-                 units_per_mm: float = 1000.0, sync_period_s: float = 0.001):
+                 units_per_mm: float = 1000.0, sync_period_s: float = 0.001, lockstep: bool = True):
         self.net = network
         self.node_id = node_id
         self.eds = eds
@@ -124,14 +189,37 @@ class Context:
         self.frames = FrameLog()
         self.trace: list[str] = []
         self._sync_task = None
+        self.syncs = 0  # SYNCs sent
+        self._answer_skip: dict[int, int] = {}  # COB-ID -> SYNCs not to wait for it (it did not answer lately)
+        self._pdos_on = False  # the latest NMT command was a start (PDOs may answer SYNC)
         self.emcy_cob = 0x80 + node_id
         self.hb_cob = 0x700 + node_id
-        for cob in (self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id, 0x480 + node_id):
-            network.subscribe(cob, self.frames.on_frame)
+        self.logged_cobs = {self.emcy_cob, self.hb_cob, 0x180 + node_id, 0x280 + node_id, 0x380 + node_id,
+                            0x480 + node_id}
+        # every frame of these COB-IDs, as received, before (and apart from) canopen's own consumers: a frame
+        # they cannot parse (a 3-byte EMCY) is still seen and judged by the checks
+        self._listener = _FrameTap(self.frames, self.logged_cobs)
+        notifier = getattr(network, "notifier", None)
+        self._tapped = notifier is not None
+        if self._tapped:
+            notifier.add_listener(self._listener)
+        else:
+            for cob in self.logged_cobs:
+                network.subscribe(cob, self.frames.on_frame)
+        self.lockstep = lockstep  # the node advances only on SYNC: timings are judged in SYNC counts
+        self.last_abort: tuple[int, int, int] | None = None  # (index, sub, abort code) of the latest SDO abort
         self.state: dict[str, Any] = {}  # facts one check learns for later ones (e.g. PDO layout)
         self.sdo_timeout_s = sdo_timeout_s
         self.retries: list[str] = []  # this check's SDO requests sent again after a timeout
         self.late_answers_due = 0  # requests that timed out and may still be answered (across checks)
+
+    def log_frames(self, cob: int) -> None:
+        """Record the frames of ``cob`` in :attr:`frames` too (once, whatever the number of calls)."""
+        if cob in self.logged_cobs:
+            return
+        self.logged_cobs.add(cob)
+        if not self._tapped:
+            self.net.subscribe(cob, self.frames.on_frame)
 
     def _sdo(self, op: Callable[[], Any], what: str) -> Any:
         """An expedited SDO exchange with one retry after a timeout, as a field master does: a request or its
@@ -170,6 +258,7 @@ class Context:
         try:
             value = self._sdo(lambda: var.raw, f"SDO read 0x{index:04X}:{sub}")
         except canopen.SdoAbortedError as exc:
+            self.last_abort = (index, sub, exc.code)
             self.note(f"SDO read 0x{index:04X}:{sub} -> abort 0x{exc.code:08X}")
             raise
         self.note(f"SDO read 0x{index:04X}:{sub} -> {value!r}")
@@ -183,13 +272,18 @@ class Context:
         """SDO upload in a polling loop: like :meth:`read` (one retry after a timeout, noted) but without a
         trace line per poll."""
         var = self._var(index, sub)
-        return self._sdo(lambda: var.raw, f"SDO read 0x{index:04X}:{sub}")
+        try:
+            return self._sdo(lambda: var.raw, f"SDO read 0x{index:04X}:{sub}")
+        except canopen.SdoAbortedError as exc:
+            self.last_abort = (index, sub, exc.code)
+            raise
 
     def write(self, index: int, sub: int, value: Any) -> None:
         var = self._var(index, sub)
         try:
             self._sdo(lambda: setattr(var, "raw", value), f"SDO write 0x{index:04X}:{sub} = {value!r}")
         except canopen.SdoAbortedError as exc:
+            self.last_abort = (index, sub, exc.code)
             self.note(f"SDO write 0x{index:04X}:{sub} = {value!r} -> abort 0x{exc.code:08X}")
             raise
         self.note(f"SDO write 0x{index:04X}:{sub} = {value!r} -> ok")
@@ -247,6 +341,8 @@ class Context:
         return obj is not None and not isinstance(obj, canopen.objectdictionary.Variable)
 
     def nmt(self, command: int) -> None:
+        self._answer_skip.clear()  # (a new NMT state: PDOs may start or stop)
+        self._pdos_on = command == 0x01  # only an OPERATIONAL node answers SYNC with PDOs
         self.note(f"NMT 0x{command:02X} -> node {self.node_id}")
         self.net.send_message(0, bytes((command, self.node_id)))
 
@@ -254,11 +350,35 @@ class Context:
     def sw(self) -> int:
         return self.read(0x6041)
 
+    def deadline(self, timeout_s: float) -> Callable[[], bool]:
+        """A timeout of ``timeout_s`` of the node's time: wall time in real time; in lockstep, while SYNCs run,
+        ``timeout_s`` / SYNC period SYNCs sent (a loaded master or host slows the node's time down with its
+        SYNCs), at most :data:`LOCKSTEP_WAIT_FACTOR` x ``timeout_s`` of wall time. Returns "expired?"."""
+        t0, s0 = time.monotonic(), self.syncs
+        need = timeout_s / self.sync_period_s
+
+        def expired() -> bool:
+            waited = time.monotonic() - t0
+            if waited <= timeout_s:
+                return False
+            if not self.lockstep or waited > LOCKSTEP_WAIT_FACTOR * timeout_s or self.syncs == s0:
+                return True  # (no SYNC sent meanwhile: the wait is not for motion)
+            return self.syncs - s0 >= need
+
+        return expired
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the node's time pass (see :meth:`deadline`)."""
+        expired = self.deadline(seconds)
+        time.sleep(seconds)
+        while not expired():
+            time.sleep(0.002)
+
     def wait_sw(self, mask: int, value: int, timeout: float = 1.0, what: str = "") -> int:
-        end = time.monotonic() + timeout
+        expired = self.deadline(timeout)
         sw = self.poll(0x6041)
         while sw & mask != value:
-            if time.monotonic() > end:
+            if expired():
                 self.note(f"statusword 0x{sw:04X}, waited for & 0x{mask:04X} == 0x{value:04X}")
                 raise Fail(f"{what or 'statusword'}: 0x{sw:04X} after {timeout:g} s, expected "
                            f"(sw & 0x{mask:04X}) == 0x{value:04X}")
@@ -294,16 +414,56 @@ class Context:
 
     # ------------------------------------------------------------------ SYNC
     def start_sync(self, period_s: float | None = None) -> None:
-        if self._sync_task is None:
-            self._sync_task = self.net.send_periodic(0x80, b"", period_s or self.sync_period_s)
+        """SYNC every ``period_s`` (default :attr:`sync_period_s`) until :meth:`stop_sync`. Lockstep: a SYNC is
+        sent only once the node answered the previous one (its TPDO1, when TPDO1 answers SYNC), never faster
+        than the period: a loaded master or host slows the node's time down but never makes it skip cycles."""
+        if self._sync_task is not None:
+            return
+        period = period_s or self.sync_period_s
+        if not self.lockstep:
+            self._sync_task = self.net.send_periodic(0x80, b"", period)
+            return
+        stop = threading.Event()
+
+        def run() -> None:
+            nxt = time.monotonic()
+            while not stop.is_set():
+                self.sync_once(answer_cob=0x180 + self.node_id)
+                nxt += period
+                delay = nxt - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                else:
+                    nxt = time.monotonic()
+
+        thread = threading.Thread(target=run, daemon=True, name="conformance-sync")
+        thread.start()
+        self._sync_task = _SyncThread(thread, stop)
 
     def stop_sync(self) -> None:
         if self._sync_task is not None:
             self._sync_task.stop()
             self._sync_task = None
 
-    def sync_once(self) -> None:
+    def sync_once(self, answer_cob: int | None = None) -> None:
+        """One SYNC (counted in :attr:`syncs`). Lockstep with ``answer_cob``: then wait (at most
+        :data:`ANSWER_WAIT_S`) for that frame, the node's answer, once the node has answered a SYNC with it."""
+        mark = self.frames.mark() if answer_cob is not None and self.lockstep and self._pdos_on else None
         self.net.send_message(0x80, b"")
+        self.syncs += 1
+        if mark is None:
+            return
+        skip = self._answer_skip.get(answer_cob, 0)
+        if skip:  # the node did not answer with this frame lately: not waited for, asked again now and then
+            self._answer_skip[answer_cob] = skip - 1
+            return
+        end = time.monotonic() + ANSWER_WAIT_S
+        while self.frames.wait(mark, answer_cob, None, 0.01) is None:
+            if not self._pdos_on:  # an NMT command meanwhile: no answer to wait for
+                return
+            if time.monotonic() > end:
+                self._answer_skip[answer_cob] = UNANSWERED_SKIP
+                return
 
     # ------------------------------------------------------------------ units
     def mm(self, x_mm: float) -> int:
@@ -370,29 +530,47 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
             raise stopped
         ctx.trace = []
         ctx.retries = []
+        ctx.last_abort = None
         t0 = time.monotonic()
+        failure_type = ""
         try:
             got = chk.fn(ctx)
             status, detail = "pass", got or "as expected"
         except SdoTransferOverrun:
             status, detail = "fail", "the node's SDO server does not finish its transfers"
         except Fail as exc:
-            status, detail = "fail", str(exc)
+            status, detail, failure_type = "fail", str(exc), "behaviour"
         except Skip as exc:
             status, detail = "skipped", str(exc)
-        except canopen.SdoAbortedError as exc:
-            status, detail = "fail", f"unexpected SDO abort 0x{exc.code:08X} ({exc})"
+        except RunError as exc:
+            status, detail, failure_type = "error", str(exc), "run"
+        except (KeyError, canopen.SdoAbortedError) as exc:
+            index = missing_object(exc, ctx)
+            how = "the EDS lists no" if isinstance(exc, KeyError) else "the node has no (SDO abort " \
+                f"0x{exc.code:08X})"
+            if index == -1:
+                status, detail = "skipped", f"the EDS lists no {str(exc).strip(chr(39))} (a sub-index this check " \
+                    "needs; optional)"
+            elif index is not None and index not in MANDATORY_OBJECTS:
+                status, detail = "skipped", f"{how} object 0x{index:04X}, which this check needs (optional)"
+            elif index is not None:
+                status, detail, failure_type = "fail", f"{how} object 0x{index:04X}, mandatory", "missing-object"
+            elif isinstance(exc, canopen.SdoAbortedError):
+                status, detail = "fail", f"unexpected SDO abort 0x{exc.code:08X} ({exc})"
+                failure_type = "sdo-abort"
+            else:
+                status, detail, failure_type = "fail", f"{type(exc).__name__}: {exc}", "error"
         except canopen.SdoCommunicationError as exc:
-            status, detail = "fail", f"no SDO answer: {exc}"
+            status, detail, failure_type = "fail", f"no SDO answer: {exc}", "no-answer"
         except Exception as exc:  # noqa: BLE001 - a check must never stop the run
-            status, detail = "fail", f"{type(exc).__name__}: {exc}"
+            status, detail, failure_type = "fail", f"{type(exc).__name__}: {exc}", "error"
         finally:
             ctx.stop_sync()
         stopped = _run_stopped(ctx, chk, results)
         if stopped is not None:
             raise stopped
-        res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-12:]),
-                     time.monotonic() - t0, list(ctx.retries))
+        res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-40:]),
+                     time.monotonic() - t0, list(ctx.retries), failure_type)
         results.append(res)
         ctx.frames.trim()
         if progress is not None:
@@ -424,7 +602,7 @@ def line(res: Result) -> str:
 
 def summary(results: list[Result]) -> dict[str, int]:
     """Checks per status, and the SDO requests sent again after a timeout (``sdo_retries``)."""
-    out = {"pass": 0, "fail": 0, "skipped": 0, "sdo_retries": 0}
+    out = {"pass": 0, "fail": 0, "skipped": 0, "error": 0, "sdo_retries": 0}
     for r in results:
         out[r.status] += 1
         out["sdo_retries"] += len(r.sdo_retries)
@@ -436,18 +614,48 @@ def write_json(path: Path, results: list[Result], meta: dict) -> None:
                                 "checks": [asdict(r) for r in results]}, indent=2))
 
 
-def write_junit(path: Path, results: list[Result], name: str = "virtualaxis.conformance") -> None:
+def identity(ctx: Context) -> dict[str, str]:
+    """The node's identity for a report: device type 0x1000, identity 0x1018:1..4, names 0x1008 / 0x100A (those
+    it answers)."""
+    out: dict[str, str] = {"node_id": str(ctx.node_id)}
+    for key, index, sub in (("device_type", 0x1000, 0), ("vendor_id", 0x1018, 1), ("product_code", 0x1018, 2),
+                            ("revision", 0x1018, 3), ("serial", 0x1018, 4)):
+        try:
+            out[key] = f"0x{int.from_bytes(ctx.node.sdo.upload(index, sub)[:4], 'little'):08X}"
+        except Exception:  # noqa: BLE001 - an identity entry the node lacks is left out
+            pass
+    for key, index in (("device_name", 0x1008), ("software_version", 0x100A)):
+        try:
+            out[key] = ctx.node.sdo.upload(index, 0).decode("latin-1").rstrip("\x00")
+        except Exception:  # noqa: BLE001
+            pass
+    return out
+
+
+def write_junit(path: Path, results: list[Result], name: str = "virtualaxis.conformance",
+                properties: dict[str, Any] | None = None) -> None:
+    """One testcase per check: a failure with its ``type`` and message, a skip with its reason, and in
+    ``system-out`` the clause, the outcome and every exchange and measured value the check recorded;
+    ``properties``: the node's identity and the run's pacing."""
     s = summary(results)
     suite = ET.Element("testsuite", name=name, tests=str(len(results)), failures=str(s["fail"]),
-                       skipped=str(s["skipped"]), errors="0",
+                       skipped=str(s["skipped"]), errors=str(s["error"]),
                        time=f"{sum(r.duration_s for r in results):.3f}")
+    if properties:
+        props = ET.SubElement(suite, "properties")
+        for key, value in properties.items():
+            ET.SubElement(props, "property", name=str(key), value=str(value))
     for r in results:
         case = ET.SubElement(suite, "testcase", classname=f"{name}.{r.family}", name=r.id, time=f"{r.duration_s:.3f}")
         if r.status == "fail":
-            ET.SubElement(case, "failure", message=r.detail).text = "\n".join(r.trace)
+            ET.SubElement(case, "failure", message=r.detail, type=r.failure_type or "behaviour").text = (
+                "\n".join(r.trace))
         elif r.status == "skipped":
             ET.SubElement(case, "skipped", message=r.detail)
+        elif r.status == "error":
+            ET.SubElement(case, "error", message=r.detail, type="run").text = "\n".join(r.trace)
         out = ET.SubElement(case, "system-out")
-        out.text = f"{r.clause}\n" + "\n".join(r.trace)
+        retried = f"\nSDO sent again: {', '.join(r.sdo_retries)}" if r.sdo_retries else ""
+        out.text = f"{r.clause}\n{r.status}: {r.detail}{retried}\n" + "\n".join(r.trace)
     ET.indent(suite)
     ET.ElementTree(suite).write(path, encoding="utf-8", xml_declaration=True)

@@ -73,6 +73,15 @@ class AxisNode:
         self.slave, self.injection = serve_with_injection(bus, node_id, self.drive, self.app, eds_path,
                                                           allowed=allow_fault_injection, store_path=store_path)
         self.app.attach(self.slave)
+        #: drive cycles one SYNC runs at most in lockstep (see :meth:`limit_sync_period`)
+        self.max_sync_cycles = 1 << 31
+        #: drive cycles run by the runtime (the drive's own clock, see :attr:`drive_time_s`)
+        self.drive_cycles = 0
+        #: lockstep: the slave's clock at drive time 0 once SYNCs started (None before the first SYNC after a boot)
+        self.lockstep_origin_s: float | None = None
+        #: lockstep: slave clock - runtime clock while no SYNC runs (keeps the slave's clock continuous)
+        self.wall_offset_s = 0.0
+        self.clock_boots = 0  # the slave's boot count the lockstep origin belongs to
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
         #: the live 0x1006 entry (read every SYNC in lockstep; None when the EDS has no 0x1006)
         self._comm_period = self.slave.entry(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else None
@@ -91,12 +100,24 @@ class AxisNode:
                     drive._raise_fault(code)
         self.app.flush()
 
+    @property
+    def drive_time_s(self) -> float:
+        """The drive's own clock [s]: drive cycles run x position cycle (the slave's timers in lockstep)."""
+        return self.drive_cycles * self.drive.cycle_s
+
+    def limit_sync_period(self, max_period_s: float) -> None:
+        """Lockstep: a SYNC advances the drive by at most ``max_period_s``; a larger 0x1006 is refused by SDO
+        (abort 0x06090031) and, when one comes from a stored parameter set, bounded in :meth:`sync_cycles`."""
+        self.max_sync_cycles = max(1, int(round(max_period_s / self.drive.cycle_s)))
+        self.slave.sync.max_period_us = int(round(max_period_s * 1e6))
+
     def sync_cycles(self) -> int:
-        """Drive cycles per SYNC in lockstep: 0x1006 (communication cycle) / position cycle, at least 1."""
+        """Drive cycles per SYNC in lockstep: 0x1006 (communication cycle) / position cycle, at least 1 and at
+        most :attr:`max_sync_cycles`."""
         period_us = self._comm_period.value if self._comm_period is not None else 0
         if not period_us:
             return 1
-        return max(1, int(round(period_us * 1e-6 / self.drive.cycle_s)))
+        return min(self.max_sync_cycles, max(1, int(round(period_us * 1e-6 / self.drive.cycle_s))))
 
 
 def build_axes(bus: can.BusABC, specs: list[AxisSpec], *, eds_path: str | Path = DEFAULT_EDS) -> list[AxisNode]:

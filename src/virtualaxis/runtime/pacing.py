@@ -31,6 +31,16 @@
   (``catch_up_syncs=True``, the exact SYNC-count plant time of a deterministic run) makes every later answer
   later still on a machine that cannot keep up.
 
+Drive time per SYNC in lockstep is the communication cycle the master declares (0x1006), bounded by
+``max_sync_period_s`` (default :data:`LOCKSTEP_MAX_SYNC_PERIOD_S`): a larger 0x1006 is refused (SDO abort
+0x06090031), so no SDO write can make one SYNC compute for minutes. A pass whose cycles take longer than
+``stall_s`` of wall time (default :data:`LOCKSTEP_STALL_S`: SDO, NMT and the next SYNC waited that long) is a
+*stall*: counted (:attr:`RuntimeStats.stalls`, :attr:`RuntimeStats.max_sync_work_s`) and ``Runtime.healthy`` is
+then False. Once SYNCs run, the slave's timers (SYNC timeout, heartbeat producer / consumer, guarding, EMCY
+inhibit, SDO timeout, RPDO deadlines) run on the drive's own cycle clock (:attr:`AxisNode.drive_time_s`, made
+continuous with the wall clock at the first SYNC; a frame arrives at the drive time it is handled at), and what
+falls due during a SYNC's cycles goes out right after them; before the first SYNC they run on the wall clock.
+
 Order of a SYNC answer with several axes: every axis' TPDOs first (in axis order), then every axis' RPDOs
 (``CanopenSlave.transmit_sync`` / ``apply_sync``). Answering axis by axis (RPDO applied, then TPDO) made the
 n-th axis' TPDO wait for n - 1 set-point processings (~47 us each: +280 us for the 7th of 7 axes).
@@ -78,6 +88,10 @@ DRAIN_LIMIT = 256
 #: timer slack of the runtime thread [ns] (Linux default 50 us; prctl PR_SET_TIMERSLACK)
 TIMER_SLACK_NS = 1000
 _PR_SET_TIMERSLACK = 29
+#: lockstep: drive time one SYNC advances at most [s] (0x1006 above it is refused)
+LOCKSTEP_MAX_SYNC_PERIOD_S = 0.1
+#: lockstep: wall time one SYNC's cycles may take before the pass counts as a stall [s]
+LOCKSTEP_STALL_S = 1.0
 
 
 def freeze_startup_heap() -> None:
@@ -108,6 +122,8 @@ class RuntimeStats:
     syncs_skipped: int = 0  # lockstep: SYNCs of a backlog answered without their cycles (per axis, first axis)
     max_late_s: float = 0.0  # largest lateness of a cycle start
     syncs: int = 0  # SYNC frames handled (per axis, first axis)
+    stalls: int = 0  # lockstep: passes whose cycles took longer than stall_s (nothing was served meanwhile)
+    max_sync_work_s: float = 0.0  # lockstep: longest wall time of one pass's cycles
     loops: int = 0  # poll loop iterations
     busy_s: float = 0.0  # time spent polling and computing (not waiting)
     first_deadline_s: float = 0.0  # real time: perf_counter deadline of the first cycle
@@ -134,6 +150,8 @@ class RuntimeStats:
             "max_late_ms": self.max_late_s * 1e3,
             "syncs": self.syncs,
             "syncs_skipped": self.syncs_skipped,
+            "stalls": self.stalls,
+            "max_sync_work_ms": self.max_sync_work_s * 1e3,
             "loops": self.loops,
             "elapsed_s": elapsed,
             "busy_share": self.busy_s / elapsed if elapsed > 0 else 0.0,
@@ -253,6 +271,8 @@ class Runtime:
         catch_up_syncs: bool = False,
         max_sync_backlog: int = 2,
         read_in_loop: bool = True,
+        max_sync_period_s: float = LOCKSTEP_MAX_SYNC_PERIOD_S,
+        stall_s: float = LOCKSTEP_STALL_S,
     ):
         if not axes:
             raise ValueError("no axes to run")
@@ -274,6 +294,13 @@ class Runtime:
         # lockstep: SYNCs found in one pass whose cycles are still run in order; more: only the latest one's run
         self.max_sync_backlog = max(1, int(max_sync_backlog))
         self.read_in_loop = read_in_loop  # read the bus in the loop's thread (if it has a descriptor)
+        if not max_sync_period_s > 0.0 or not stall_s > 0.0:
+            raise ValueError(f"max_sync_period_s and stall_s must be > 0 s (got {max_sync_period_s}, {stall_s})")
+        self.stall_s = stall_s  # lockstep: a pass's cycles longer than this (wall time) are a stall
+        if lockstep:
+            for ax in axes:
+                ax.limit_sync_period(max_sync_period_s)
+                ax.slave.frame_timestamps = False  # every frame arrives at the drive time it is handled at
         self.stats = RuntimeStats()
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -308,6 +335,21 @@ class Runtime:
             ax.slave.boot(now)
             ax.app.flush()
 
+    def _clock(self, ax: AxisNode, now: float) -> float:
+        """The time ``ax``'s slave timers run on: in lockstep, once SYNCs started, the drive's own cycle clock
+        (continuous with the wall clock at the first SYNC); else (real time, or lockstep before the first SYNC
+        after a boot: boot-up, configuration, heartbeats of a node nobody drives yet) the wall clock ``now``
+        (shifted to stay continuous)."""
+        origin = ax.lockstep_origin_s
+        if origin is None:
+            return now + ax.wall_offset_s
+        if ax.slave.boots != ax.clock_boots:  # the node booted again (NMT reset): wall clock until the next SYNC
+            t = origin + ax.drive_time_s
+            ax.lockstep_origin_s = None
+            ax.wall_offset_s = t - now
+            return t
+        return origin + ax.drive_time_s
+
     def start(self) -> Runtime:
         self.open()
         self._stop.clear()
@@ -335,8 +377,9 @@ class Runtime:
     # ------------------------------------------------------------------ loop
     @property
     def healthy(self) -> bool:
-        """False once a drive cycle raised or the runtime thread stopped on an exception."""
-        return not self.stats.drive_exceptions and not self.stats.thread_error
+        """False once a drive cycle raised, the runtime thread stopped on an exception or (lockstep) a pass's
+        cycles stalled the node for longer than ``stall_s``."""
+        return not self.stats.drive_exceptions and not self.stats.thread_error and not self.stats.stalls
 
     def run(self, duration_s: float | None = None) -> RuntimeStats:
         """Run until :meth:`stop` (or for ``duration_s``); an exception that escapes the loop is logged and
@@ -365,6 +408,7 @@ class Runtime:
                 log.exception("axis %s: putting the drive in fault failed", ax.name)
 
     def _step(self, ax: AxisNode, n: int) -> None:
+        ax.drive_cycles += n
         try:
             ax.drive.step(n)
             ax.app.flush()
@@ -399,9 +443,9 @@ class Runtime:
         lockstep = self.lockstep
         for _, ax, counters in self._poll_axes(now, queued_only):
             if lockstep and len(counters) > self.max_sync_backlog and not self.catch_up_syncs:
-                counters = self._skip_backlog(ax, counters, now)
+                counters = self._skip_backlog(ax, counters, self._clock(ax, now))
             # the TPDOs of the oldest SYNC out now (real time with a backlog: one after the other, below)
-            ax.slave.transmit_sync(counters[0], now)
+            ax.slave.transmit_sync(counters[0], self._clock(ax, now))
             answered.append((ax, counters))
         if not answered:
             return
@@ -421,16 +465,26 @@ class Runtime:
         answered.clear()
         if stepping:
             axes0 = self.axes[0]
+            t_cycles = time.perf_counter()
             for ax, counters in stepping:
                 n = ax.sync_cycles()
                 self._step(ax, n)
                 for counter in counters[1:]:  # a backlog of SYNCs: one communication cycle per SYNC, in order
-                    ax.slave.on_sync(counter, now)
+                    ax.slave.on_sync(counter, self._clock(ax, now))
                     self._flush(ax)
                     self._step(ax, n)
+                ax.slave.poll_timers(self._clock(ax, now))  # what fell due in these cycles goes out now, in order
+                self._flush(ax)
                 if ax is axes0:
                     self.stats.cycles += n * len(counters)
             stepping.clear()
+            took = time.perf_counter() - t_cycles
+            if took > self.stats.max_sync_work_s:
+                self.stats.max_sync_work_s = took
+            if took > self.stall_s:
+                self.stats.stalls += 1
+                log.error("lockstep: one SYNC's cycles took %.3f s (> %.3f s): SDO, NMT and SYNC went unanswered "
+                          "meanwhile", took, self.stall_s)
 
     def _poll_axes(self, now: float, queued_only: bool) -> Iterator[tuple[int, AxisNode, list[int]]]:
         """Frames and timers of every axis (``queued_only``: only of the axes with frames waiting), axis after
@@ -441,10 +495,13 @@ class Runtime:
         for i, ax in enumerate(axes):
             if queued_only and not ax.slave.frames_queued:
                 continue
-            counters = ax.slave.poll(now)
+            counters = ax.slave.poll(self._clock(ax, now))
             if not counters:
                 self._flush(ax)
                 continue
+            if self.lockstep and ax.lockstep_origin_s is None:
+                ax.lockstep_origin_s = now + ax.wall_offset_s - ax.drive_time_s
+                ax.clock_boots = ax.slave.boots
             if i == 0:
                 stats.syncs += len(counters)
             yield i, ax, counters
