@@ -52,3 +52,46 @@ def test_generator_prints_each_format_and_refuses_an_unknown_suffix(tmp_path):
     bad = _run("--write", str(tmp_path / "map.txt"))
     assert bad.returncode == 2 and bad.stderr.startswith("error: --write") and "Traceback" not in bad.stderr
     assert not (tmp_path / "map.txt").exists()
+
+
+def test_unit_ids_0_and_255_address_the_single_served_axis():
+    """`virtualaxis serve --modbus` in a subprocess, a pymodbus client: units 0 and 255 read and write the axis
+    served as node 5 and get an answer; an unknown unit id still gets exception 0B."""
+    from pymodbus.client import ModbusTcpClient
+    from services_fixtures import free_port, wait_port
+
+    port = free_port()
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    cli = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+    proc = subprocess.Popen(
+        [*cli, "serve", "--can", f"udp_multicast:239.74.163.9,port={free_port()}", "--node-id", "5",
+         "--modbus", f"127.0.0.1:{port}", "--modbus-writable", "--status-interval", "0"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
+    try:
+        wait_port(port, timeout_s=120)
+        assert client.connect()
+        mode = 40102 - 40001
+        for unit in (0, 255):
+            r = client.read_holding_registers(mode, count=1, device_id=unit)
+            assert not r.isError(), (unit, r)
+        w = client.write_register(mode, 3, device_id=0)
+        assert not w.isError(), w
+        assert client.read_holding_registers(mode, count=1, device_id=5).registers == [3]
+        w = client.write_register(mode, 1, device_id=255)
+        assert not w.isError(), w
+        assert client.read_holding_registers(mode, count=1, device_id=0).registers == [1]
+        r = client.read_holding_registers(mode, count=1, device_id=6)
+        assert r.isError() and r.exception_code == 0x0B
+    finally:
+        client.close()
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def test_units_0_and_255_name_no_axis_when_several_are_served():
+    from virtualaxis.services.modbus_units import resolve_unit
+
+    assert resolve_unit(0, [5]) == 5 and resolve_unit(255, [5]) == 5 and resolve_unit(7, [5]) == 7
+    assert resolve_unit(0, [1, 2]) == 0 and resolve_unit(255, [1, 2]) == 255
+    assert resolve_unit(255, [255]) == 255

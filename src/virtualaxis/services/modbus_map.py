@@ -821,7 +821,10 @@ def render_markdown() -> str:
         "| 04 server device failure | a write while writes are disabled, a write to a read-only register, a "
         "write the drive refuses in its present state (SDO abort 0x08000022; fault injection not allowed) | 1, 2, 3 |",
         "",
-        "An unknown unit id is answered with exception 0B (gateway target device failed to respond).",
+        "An unknown unit id is answered with exception 0B (gateway target device failed to respond). Unit ids "
+        "0 and 255 (\"this device\" in Modbus TCP gateways and SCADA drivers) address the axis when `serve` "
+        "serves a single axis: reads and writes, each answered (Modbus TCP has no broadcast, so a write to unit 0 "
+        "is applied and answered like any other). With several axes they name no axis: exception 0B.",
         "",
         "Last-error registers (per unit): 40499 reason code, 40496 PDU address of the refused register, "
         "40497-40498 the drive's SDO abort code (0 when the Modbus layer refused). They keep the last error.",
