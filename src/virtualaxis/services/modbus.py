@@ -331,8 +331,8 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     from pymodbus.server import ModbusTcpServer
 
-    from virtualaxis.services.register_image import ImageReader
     from virtualaxis.services.modbus_units import resolve_unit
+    from virtualaxis.services.register_image import ImageReader
 
     image = ImageReader(image_name, units)
 
