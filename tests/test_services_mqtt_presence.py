@@ -146,3 +146,39 @@ def test_each_connection_state_change_is_one_line_on_serve_stderr(mosquitto):  #
     finally:
         s.stop()
         mosquitto.start()
+
+
+def test_an_untrusted_broker_certificate_is_one_line_on_serve_stderr(tmp_path):
+    """mqtts:// to a TLS broker whose certificate is signed by a CA serve does not trust."""
+    import shutil
+
+    from services_fixtures import Mosquitto, readable_dir
+
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command (makes the test CA and certificate) is not installed")
+    d = readable_dir("va-mqtt-tls-")
+
+    def ossl(*a):
+        subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
+
+    ossl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.pem", "-days", "2",
+         "-subj", "/CN=virtualaxis test CA")
+    ossl("req", "-newkey", "rsa:2048", "-nodes", "-keyout", "server.key", "-out", "server.csr",
+         "-subj", "/CN=127.0.0.1")
+    (d / "san.ext").write_text("subjectAltName=IP:127.0.0.1\n")
+    ossl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+         "-out", "server.pem", "-days", "2", "-extfile", "san.ext")
+    for f in d.iterdir():
+        f.chmod(0o644)
+    broker = Mosquitto(tmp_path, tls=(d / "ca.pem", d / "server.pem", d / "server.key"))
+    broker.start()
+    s = Serve(f"mqtts://127.0.0.1:{broker.port}", machine="cell10")
+    try:
+        line = s.wait_line("cannot connect to", timeout_s=60)
+        assert "CERTIFICATE_VERIFY_FAILED" in line and "CA file" in line
+        time.sleep(1.5)  # retries with the same reason: no further line
+        assert len(s.having("cannot connect to")) == 1
+    finally:
+        s.stop()
+        broker.cleanup()
+        shutil.rmtree(d, ignore_errors=True)
