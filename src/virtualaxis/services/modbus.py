@@ -331,6 +331,7 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     from pymodbus.server import ModbusTcpServer
 
+    from virtualaxis.services.modbus_units import resolve_unit
     from virtualaxis.services.register_image import ImageReader
 
     image = ImageReader(image_name, units)
@@ -341,6 +342,7 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
 
     async def call(op: int, unit: int, fc: int, address: int, count: int, values: Sequence[int] = ()) -> bytes:
         rid = next(ids) & 0xFFFFFFFF
+        unit = resolve_unit(unit, units)  # 0 / 255: the single served axis (modbus_units)
         msg = _REQ.pack(rid, op, unit & 0xFF, fc & 0xFF, address & 0xFFFF, count & 0xFFFF)
         if values:
             msg += struct.pack(f">{len(values)}H", *values)

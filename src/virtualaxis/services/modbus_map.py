@@ -19,6 +19,7 @@ Conventions (SINAMICS Modbus TCP style):
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -773,6 +774,11 @@ def render_markdown() -> str:
         "the **unit id is the axis' CANopen node id** (one server for a multi-axis `serve`). Writes need "
         "`--modbus-writable`.",
         "",
+        "The same map for import into SCADA / HMI tools, generated from the same data: "
+        "[modbus-map.csv](modbus-map.csv) (one row per register or 32-bit pair: register, PDU address, words, name, "
+        "type, signed, min, max, access, scaling, meaning, source) and [modbus-map.json](modbus-map.json) (the "
+        "same rows under `registers`, with the conventions and the contiguous ranges).",
+        "",
         "## Conventions",
         "",
         "- Register numbers are Modicon 4xxxx numbers as in the SINAMICS manuals: register 4xxxx is PDU "
@@ -815,7 +821,10 @@ def render_markdown() -> str:
         "| 04 server device failure | a write while writes are disabled, a write to a read-only register, a "
         "write the drive refuses in its present state (SDO abort 0x08000022; fault injection not allowed) | 1, 2, 3 |",
         "",
-        "An unknown unit id is answered with exception 0B (gateway target device failed to respond).",
+        "An unknown unit id is answered with exception 0B (gateway target device failed to respond). Unit ids "
+        "0 and 255 (\"this device\" in Modbus TCP gateways and SCADA drivers) address the axis when `serve` "
+        "serves a single axis: reads and writes, each answered (Modbus TCP has no broadcast, so a write to unit 0 "
+        "is applied and answered like any other). With several axes they name no axis: exception 0B.",
         "",
         "Last-error registers (per unit): 40499 reason code, 40496 PDU address of the refused register, "
         "40497-40498 the drive's SDO abort code (0 when the Modbus layer refused). They keep the last error.",
@@ -851,14 +860,74 @@ def render_markdown() -> str:
     return "\n".join(lines)
 
 
+MACHINE_READABLE_FIELDS = ("register", "address", "words", "name", "type", "signed", "min", "max", "access",
+                           "scaling", "meaning", "source")
+
+
+def register_rows() -> list[dict]:
+    """The register map as plain rows (one per register or 32-bit pair), the content of ``docs/modbus-map.csv``
+    and ``docs/modbus-map.json``: ``register`` Modicon number of the first word, ``address`` its PDU address
+    (0-based), ``words`` 1 or 2 (high word first), ``min`` / ``max`` the value range of the type, ``access`` R or
+    RW (RW: written with ``--modbus-writable``)."""
+    rows = []
+    for r in REGISTERS:
+        _, lo, hi = DTYPES[r.dtype]
+        rows.append({"register": r.number, "address": r.address, "words": r.words, "name": r.name,
+                     "type": r.dtype, "signed": r.dtype.startswith("i"), "min": lo, "max": hi,
+                     "access": "RW" if r.writable else "R", "scaling": r.scaling, "meaning": r.meaning,
+                     "source": r.source})
+    return rows
+
+
+def render_csv() -> str:
+    """``docs/modbus-map.csv``: :func:`register_rows` as CSV (RFC 4180, header row, comma, UTF-8)."""
+    import csv
+    import io
+
+    out = io.StringIO()
+    w = csv.DictWriter(out, fieldnames=MACHINE_READABLE_FIELDS, lineterminator="\n")
+    w.writeheader()
+    for row in register_rows():
+        w.writerow(row | {"signed": "true" if row["signed"] else "false"})
+    return out.getvalue()
+
+
+def render_json() -> str:
+    """``docs/modbus-map.json``: the conventions, the contiguous ranges and :func:`register_rows`."""
+    import json
+
+    doc = {
+        "schema": 1,
+        "register_numbering": "Modicon 4xxxx: PDU address = register - 40001",
+        "word_order": "high word first (big-endian); each register big-endian on the wire",
+        "signed": "two's complement",
+        "out_of_range_values": "saturated at the type's limit",
+        "function_codes": [3, 4, 6, 16, 23],
+        "contiguous_ranges": [[a, b] for a, b in _ranges()],
+        "registers": register_rows(),
+    }
+    return json.dumps(doc, indent=2, ensure_ascii=False) + "\n"
+
+
+RENDERERS: dict[str, Callable[[], str]] = {".md": render_markdown, ".csv": render_csv, ".json": render_json}
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
     from pathlib import Path
 
-    p = argparse.ArgumentParser(description="print or write docs/modbus-map.md from the register map")
-    p.add_argument("--write", metavar="FILE", help="write the document to FILE instead of printing it")
+    p = argparse.ArgumentParser(description="print or write docs/modbus-map.md (.csv, .json) from the register map")
+    p.add_argument("--write", metavar="FILE", help="write the document to FILE instead of printing it; the format "
+                   "follows the suffix: .md, .csv or .json")
+    p.add_argument("--format", choices=("md", "csv", "json"), default=None,
+                   help="the format printed (default md, or the suffix of --write)")
     args = p.parse_args(argv)
-    text = render_markdown()
+    suffix = f".{args.format}" if args.format else (Path(args.write).suffix.lower() if args.write else ".md")
+    if suffix not in RENDERERS:
+        print(f"error: --write {args.write}: unknown suffix {suffix!r} (expected .md, .csv or .json)",
+              file=sys.stderr)
+        return 2
+    text = RENDERERS[suffix]()
     if args.write:
         Path(args.write).write_text(text)
     else:

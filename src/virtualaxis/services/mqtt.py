@@ -54,6 +54,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+from virtualaxis.services.mqtt_presence import (
+    ConnectionLog,
+    client_identifier,
+    new_instance_id,
+    other_publisher,
+    presence_fields,
+)
 from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
 if TYPE_CHECKING:  # the publisher process must not import the drive (numba)
@@ -877,6 +884,7 @@ class PubChannel:
     auth_warned: bool = False  # the broker's refusal of the credentials was reported on stderr
     mqtt5: bool = True  # MQTT 5 (retain-as-published for fault/set); False after a 3.1.1 broker refused it
     mqtt5_unanswered: bool = False  # 3.1.1 because an MQTT 5 CONNECT got no CONNACK (not a refusal)
+    birth_seq: int = 0  # the connection's birth sequence (its birth and will carry it; mqtt_presence)
 
     def counters(self) -> dict:
         return self.buffer.counters() | {
@@ -905,6 +913,9 @@ class Publisher:
         self._tick: asyncio.Event | None = None  # set by serve's tick: new samples in the ring
         self._work: list[asyncio.Event] = []  # per axis: drained, publish now
         self.to_serve: Callable[[bytes], None] | None = None  # sends a message to serve (the command thread)
+        self.instance_id = new_instance_id()  # this process' identity on the broker (mqtt_presence)
+        self.connection_log = ConnectionLog(settings.host, settings.port)
+        self.serve_pid = os.getppid()  # this publisher process is serve's child
 
     # -------------------------------------------------------------------------------- inputs
     def on_message(self, raw: bytes) -> None:
@@ -1017,6 +1028,7 @@ class Publisher:
 
     def status_payload(self, ch: PubChannel, online: bool) -> bytes:
         d = self._head(ch) | {"status": "online" if online else "offline", "ts_unix_s": round(time.time(), 3)}
+        d |= presence_fields(self.instance_id, ch.birth_seq, self.serve_pid)
         if online:
             d["telemetry_rate_hz"] = self.settings.rate_hz
             d["telemetry_batch_size"] = self.settings.batch_size
@@ -1027,10 +1039,11 @@ class Publisher:
         return json.dumps(self._head(ch) | {"ts_unix_s": round(time.time(), 3)} | result).encode()
 
     def will_payload(self, ch: PubChannel) -> bytes:
-        return json.dumps(self._head(ch) | {"status": "offline"}).encode()
+        presence = presence_fields(self.instance_id, ch.birth_seq, self.serve_pid)
+        return json.dumps(self._head(ch) | {"status": "offline"} | presence).encode()
 
-    def state_payload(self, ch: PubChannel, fields: dict) -> bytes:
-        d = self._head(ch) | {"ts_unix_s": round(time.time(), 3)} | fields | {
+    def state_payload(self, ch: PubChannel, fields: dict, online: bool = True) -> bytes:
+        d = self._head(ch) | {"ts_unix_s": round(time.time(), 3), "online": online} | fields | {
             "telemetry": ch.buffer.counters()
             | {
                 "rate_hz": self.settings.rate_hz,
@@ -1049,6 +1062,7 @@ class Publisher:
     def telemetry_payload(self, ch: PubChannel, batch: list[dict]) -> bytes:
         c = ch.buffer.counters()
         d = self._head(ch) | {
+            "ts_unix_s": round(time.time(), 3),
             "rate_hz": self.settings.rate_hz,
             "seq_first": batch[0]["seq"],
             "samples_dropped": c["samples_dropped"],
@@ -1123,13 +1137,14 @@ class Publisher:
             self.export(ch)
             v5 = ch.mqtt5
             accepted = False  # CONNACK with success received
+            ch.birth_seq = ch.connects + 1  # the will of this attempt carries the birth sequence it would have
             try:
                 client = aiomqtt.Client(
                     st.host,
                     st.port,
                     username=st.username,
                     password=st.password,
-                    identifier=f"virtualaxis-{st.machine}-{ch.name}",
+                    identifier=client_identifier(st.machine, ch.name, self.instance_id),
                     will=aiomqtt.Will(self.topic(ch, "status"), self.will_payload(ch), qos=1, retain=True),
                     keepalive=st.keepalive_s,
                     timeout=st.publish_timeout_s,
@@ -1143,9 +1158,11 @@ class Publisher:
                     _no_delay(client)
                     ch.connects += 1
                     ch.connected = True
+                    self.connection_log.connected(ch.name, ch.birth_seq, "MQTT 5" if v5 else "MQTT 3.1.1")
                     self.export(ch)
                     backoff = st.backoff_min_s
                     await self._session(client, ch)
+                    self.connection_log.stopped(ch.name)
                     return  # clean stop
             except aiomqtt.MqttError as exc:
                 ch.last_error = str(exc)
@@ -1175,6 +1192,8 @@ class Publisher:
                         ch.mqtt5 = True  # 3.1.1 went unanswered too: a broker away, not a 3.1.1 one
             except OSError as exc:
                 ch.last_error = str(exc)
+            if not self._stop.is_set():
+                self.connection_log.failed(ch.name, ch.last_error, ch.connected, backoff)
             if ch.connected:
                 ch.disconnects += 1
                 ch.connected = False
@@ -1202,6 +1221,8 @@ class Publisher:
                                        options=SubscribeOptions(qos=1, retainAsPublished=True))
             else:
                 await client.subscribe(self.topic(ch, "fault/set"), qos=1)
+            # the status topic too: a retained or live birth of another process there is a clash, named
+            await client.subscribe(self.topic(ch, "status"), qos=1)
             await client.publish(self.topic(ch, "status"), self.status_payload(ch, True), qos=1, retain=True)
             while ch.current is None and not self._stop.is_set():  # serve forwards the state right at start
                 await asyncio.sleep(0.01)
@@ -1256,6 +1277,9 @@ class Publisher:
                                          retain=True)
                     next_state = now + st.state_interval_s
                 if stopping:
+                    # the retained state says it is no longer live (a consumer reads ``online``), then the status
+                    await client.publish(self.topic(ch, "state"), self.state_payload(ch, published, online=False),
+                                         qos=1, retain=True)
                     await client.publish(self.topic(ch, "status"), self.status_payload(ch, False), qos=1, retain=True)
                     self.export(ch)
                     return
@@ -1267,9 +1291,14 @@ class Publisher:
     async def _watch(self, client, ch: PubChannel) -> None:
         """Takes the ``fault/set`` commands; ends with aiomqtt.MqttError when the connection drops."""
         topic = self.topic(ch, "fault/set")
+        status = self.topic(ch, "status")
         async for message in client.messages:
             if str(message.topic) == topic:
                 self.on_command(ch, message.payload, bool(message.retain))
+            elif str(message.topic) == status:
+                other = other_publisher(self.instance_id, message.payload)
+                if other is not None:
+                    self.connection_log.clash(ch.name, status, other)
 
 
 def _no_delay(client) -> None:
