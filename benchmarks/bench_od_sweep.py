@@ -9,7 +9,8 @@ HighLimit, the drive's own ranges, and either side of the per-axis loop-gain bou
 0x2004: a value the drive refuses is counted, not run), its default and a few values in between (every value
 of an option code). One value at a time, on the seed axis (configs/seed000-hust.toml) moving in PV at 200 mm/s
 from -100 mm toward the + limit switch: the value is written, the drive runs 50 cycles, then one stop event:
-quick stop (controlword 0x02, 0x605A as set), disable (0x06, 0x605B) or a fault (0x4210 injected, 0x605E). Measured until the axis is at rest in the stop's final state:
+quick stop (controlword 0x02, 0x605A as set), disable (0x06, 0x605B) or a fault
+(0x4210 injected, 0x605E). Measured until the axis is at rest in the stop's final state:
 
 - stop time [s] and distance [mm] from the event, peak table position against the + limit switch and the
   hard end stop;
