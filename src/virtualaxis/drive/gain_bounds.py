@@ -1,11 +1,12 @@
-"""Per-axis bounds of the loop-gain objects 0x2003 (speed controller P gain) and 0x2000 (position loop Kv).
+"""Per-axis bounds of the loop-gain objects 0x2003 (speed controller P gain), 0x2000 (position loop Kv) and
+0x2004 (speed controller integral time Tn).
 
 A cascade loop is tuned slower than the loop it commands: the speed loop's crossover Kp / J below the current
 loop's bandwidth and the speed cycle's Nyquist frequency, the position loop's Kv below the speed loop's. A
 speed-loop crossover beyond what the current loop follows makes the speed controller switch the current
 set-point between its limits every speed cycle, and the current loop then overshoots the current limit. The
-drive refuses a gain beyond these bounds (SDO abort 0x06090031), computed from the axis config at drive start
-(docs/drive.md, "Loop-gain bounds"):
+drive refuses a gain beyond these bounds (SDO abort 0x06090031; a Tn below its bound 0x06090032), computed
+from the axis config at drive start (docs/drive.md, "Loop-gain bounds"):
 
 - current-loop bandwidth w_i [rad/s]: K_p,i / L_q of a PMSM (the PI zero cancels the winding's R / L pole; the
   closed current loop is then a first-order lag 1 / (1 + s L_q / K_p,i)); 1 / actuator.force_lag_s of a force
@@ -38,7 +39,8 @@ SPEED_TN_FACTOR = 4.0
 
 @dataclass(frozen=True)
 class LoopGainBounds:
-    """The largest loop gains the drive accepts on one axis."""
+    """The loop gains the drive accepts on one axis: speed Kp and Kv up to their maximum, Tn 0 or from its
+    minimum."""
 
     current_bandwidth_rad_s: float
     speed_crossover_max_rad_s: float
