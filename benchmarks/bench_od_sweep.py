@@ -5,11 +5,12 @@
 
 For every writable object of the drive (eds/virtualaxis.eds; not the controlword 0x6040, the fault injection
 0x2010 or a manufacturer alias), the values tried are the ends of its legal range (data type, EDS LowLimit /
-HighLimit, the drive's own ranges: a value the drive refuses is counted, not run), its default and a few
-values in between (every value of an option code). One value at a time, on the seed axis (configs/
-seed000-hust.toml) moving in PV at 200 mm/s from -100 mm toward the + limit switch: the value is written, the
-drive runs 50 cycles, then one stop event: quick stop (controlword 0x02, 0x605A as set), disable (0x06, 0x605B)
-or a fault (0x4210 injected, 0x605E). Measured until the axis is at rest in the stop's final state:
+HighLimit, the drive's own ranges, and either side of the per-axis loop-gain bounds of 0x2000 / 0x2003 /
+0x2004: a value the drive refuses is counted, not run), its default and a few values in between (every value
+of an option code). One value at a time, on the seed axis (configs/seed000-hust.toml) moving in PV at 200 mm/s
+from -100 mm toward the + limit switch: the value is written, the drive runs 50 cycles, then one stop event:
+quick stop (controlword 0x02, 0x605A as set), disable (0x06, 0x605B) or a fault
+(0x4210 injected, 0x605E). Measured until the axis is at rest in the stop's final state:
 
 - stop time [s] and distance [mm] from the event, peak table position against the + limit switch and the
   hard end stop;
@@ -65,6 +66,11 @@ def candidates(d: Drive, key: tuple[int, int]) -> list[float]:
     default = d.read_object(*key)
     if spec.dtype == "f32":
         vals = {0.0, float(default), float(default) / 10, float(default) * 10, 1e3, 1e6, -1e3, lo, hi}
+        b = d.gain_bounds  # the drive's own per-axis bounds of the loop gains: the ends of what it accepts
+        edge = {(0x2003, 0): b.speed_kp_max, (0x2000, 0): b.kv_max_1000_per_min,
+                (0x2004, 0): b.speed_tn_min_s * 1000.0}.get(key)
+        if edge is not None:
+            vals |= {edge * (1 - 1e-6), edge * (1 + 1e-6)}
         return sorted(v for v in vals if lo <= v <= hi)
     lo, hi = int(lo), int(hi)
     if hi - lo <= 16:

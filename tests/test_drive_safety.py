@@ -7,6 +7,7 @@ the rest on the in-process ``virtual`` bus (tests/test_drive_rig.py)."""
 
 from __future__ import annotations
 
+import math
 import time
 
 import canopen
@@ -16,6 +17,7 @@ from test_drive_rig import Rig
 
 from virtualaxis.drive.core import DEFAULT_EDS
 from virtualaxis.master import connect
+from virtualaxis.plant.mechanics import reflected_inertia_kg_m2
 
 NODE = 1
 UNIT_M = 1e-6
@@ -297,3 +299,54 @@ def test_modbus_current_limit_register_zero_is_zero_torque():
         assert peak_a < 0.005 * drive.cfg.motor.rated_current_a, peak_a  # zero within the current loop's error
     finally:
         server.close()
+
+
+def _gain_bounds_from_config(cfg) -> tuple[float, float, float]:
+    """The bounds of docs/drive.md ("Loop-gain bounds") from the axis config: speed Kp max [N m s/rad], Kv max
+    [1000/min], Tn min [ms]."""
+    c = cfg.control
+    w_n = min(c.current_kp_v_per_a / cfg.motor.lq_h, math.pi / c.speed_cycle_s) / 2
+    kv_per_s = min(w_n, math.pi / c.position_cycle_s) / 4
+    return w_n * reflected_inertia_kg_m2(cfg), kv_per_s * 60 / 1000, 4 / w_n * 1000
+
+
+def _abort_code(node: canopen.BaseNode402, index: int, value: float) -> int | None:
+    try:
+        node.sdo[index].raw = value
+    except canopen.SdoAbortedError as exc:
+        return exc.code
+    return None
+
+
+def test_loop_gains_beyond_what_the_cascade_follows_are_refused_and_those_accepted_keep_the_torque_limit():
+    """Speed Kp 0x2003, Kv 0x2000 and Tn 0x2004 inside the EDS range but beyond the axis' cascade (speed-loop
+    crossover above half the current loop's bandwidth, Kv above a quarter of it, Tn below 4 / crossover) are
+    refused with 0x06090031 / 0x06090032 and leave the value as it was; at the bounds the axis at 200 mm/s
+    quick-stops with the motor torque within 0x6072."""
+    r = Rig()
+    try:
+        node = r.node
+        kp_max, kv_max, tn_min_ms = _gain_bounds_from_config(r.drive.cfg)
+        kp0, kv0, tn0 = node.sdo[0x2003].raw, node.sdo[0x2000].raw, node.sdo[0x2004].raw
+        for index, value, code in ((0x2003, 1000.0, 0x06090031), (0x2003, 1e6, 0x06090031),
+                                   (0x2003, kp_max * 1.01, 0x06090031), (0x2000, kv_max * 1.01, 0x06090031),
+                                   (0x2000, 2000.0, 0x06090031), (0x2004, tn_min_ms * 0.99, 0x06090032),
+                                   (0x2004, 1e-3, 0x06090032)):
+            assert _abort_code(node, index, value) == code, (hex(index), value)
+        assert (node.sdo[0x2003].raw, node.sdo[0x2000].raw, node.sdo[0x2004].raw) == (kp0, kv0, tn0)
+        assert _abort_code(node, 0x2004, 0.0) is None  # 0: a P-only speed loop
+        _start_pv(r, 200_000)
+        for index, value in ((0x2003, kp_max * 0.99), (0x2000, kv_max * 0.99), (0x2004, tn_min_ms * 1.01)):
+            assert _abort_code(node, index, value) is None, (hex(index), value)
+        r.sync(50)
+        torque_limit_nm = node.sdo[0x6072].raw / 1000 * node.sdo[0x6076].raw / 1000
+        node.sdo[0x6040].raw = 0x02
+        peak_nm, cycles = 0.0, 0
+        while cycles < 2000 and abs(r.drive.state.velocity_actual_m_s) > 1e-3 or cycles < 50:
+            r.sync(1)
+            cycles += 1
+            peak_nm = max(peak_nm, abs(r.drive.state.current_a) * r.drive.cfg.motor.kt_nm_per_a)
+        assert cycles < 2000, "not at rest"
+        assert 0 < peak_nm <= torque_limit_nm, (peak_nm, torque_limit_nm)
+    finally:
+        r.close()

@@ -485,6 +485,29 @@ def test_modbus_writes_refuse_what_the_eds_limits_refuse_over_sdo():
         srv.close()
 
 
+def test_modbus_loop_gain_writes_beyond_the_axis_bounds_are_refused():
+    """docs/drive.md "Loop-gain bounds": SPEED_KP 40363, KV 40361 and SPEED_TN 40364 beyond the seed axis'
+    cascade bounds (speed Kp 21.5 N m s/rad, Kv 37.5 (1000/min), Tn 1.6 ms; inside the EDS ranges) get
+    exception 03 with the SDO abort 0x06090031 / 0x06090032 and change nothing; values inside are taken."""
+    drive = make_drive()
+    srv = Server({1: drive}, writable=True)
+    c = srv.client
+    try:
+        for number, raw, index, abort in ((40363, 30_000, 0x2003, 0x06090031), (40363, 0xFFFF, 0x2003, 0x06090031),
+                                          (40361, 4_000, 0x2000, 0x06090031), (40364, 10, 0x2004, 0x06090032)):
+            before = drive.read_object(index, 0)
+            r = c.write_register(number - 40001, raw, device_id=1)
+            assert srv.exc(r) == 3, (number, raw)
+            assert srv.last_error()[1:] == (number - 40001, abort), (number, raw)
+            assert drive.read_object(index, 0) == before
+        for number, raw, index, value in ((40363, 20_000, 0x2003, 20.0), (40361, 3_700, 0x2000, 37.0),
+                                          (40364, 17, 0x2004, 1.7), (40364, 0, 0x2004, 0.0)):
+            r = c.write_register(number - 40001, raw, device_id=1)
+            assert not r.isError(), (number, raw)
+            assert drive.read_object(index, 0) == pytest.approx(value)
+    finally:
+        srv.close()
+
 def test_pipelined_requests_on_one_connection_are_all_answered_in_order(server):
     """The Modbus TCP implementation guide lets a client send several requests on one connection without
     waiting for the answers; pymodbus' own handler answered only one of them (found by a docs-only client).

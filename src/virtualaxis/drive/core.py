@@ -46,6 +46,7 @@ from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
+from virtualaxis.drive.gain_bounds import loop_gain_bounds
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults, eds_limits
 from virtualaxis.drive.profiles import WindowTimer
 from virtualaxis.drive.settings import drive_settings
@@ -236,6 +237,22 @@ class Drive:
         #: value ranges of the objects (option codes, and the EDS's LowLimit / HighLimit): every write path
         #: refuses what an SDO download refuses
         self._value_ranges = _value_ranges(eds_limits(eds_path) if has_eds else {})
+        #: the loop gains this axis' cascade follows (speed Kp 0x2003, Kv 0x2000): larger ones are refused
+        self.gain_bounds = loop_gain_bounds(cfg)
+        b = self.gain_bounds
+        self._range_reasons = {
+            (0x2003, 0): (f" (this axis' bound: speed-loop crossover Kp / J <= {b.speed_crossover_max_rad_s:.0f} "
+                          f"rad/s, half of min(current-loop bandwidth {b.current_bandwidth_rad_s:.0f} rad/s, "
+                          f"speed-cycle Nyquist), J = {b.inertia:.4g})"),
+            (0x2000, 0): (f" (this axis' bound: Kv <= {b.kv_max_per_s:.0f} 1/s, a quarter of min(speed-loop "
+                          "crossover bound, position-cycle Nyquist))"),
+        }
+        for key, high in (((0x2003, 0), b.speed_kp_max), ((0x2000, 0), b.kv_max_1000_per_min)):
+            lo, hi = self._value_ranges.get(key, DTYPE_RANGES[SPECS[key].dtype])
+            if high < hi:
+                self._value_ranges[key] = (lo, high)
+            else:
+                del self._range_reasons[key]
         self._plain_int_ranges = _plain_int_ranges(self._value_ranges)
         self._observers: list[Callable[[str, DriveState], None]] = []
         self._changed: set[tuple[int, int]] = set()
@@ -503,7 +520,8 @@ class Drive:
         if key in self._value_ranges:
             lo2, hi2 = self._value_ranges[key]
             if value > hi2:
-                raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}")
+                raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}"
+                                        + self._range_reasons.get(key, ""))
             if value < lo2:
                 raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo2}")
         if (
@@ -530,6 +548,12 @@ class Drive:
                 raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
         if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
+        if key == (0x2004, 0) and 0 < value < self.gain_bounds.speed_tn_min_s * 1000.0:
+            b = self.gain_bounds
+            raise ObjectAccessError(
+                ABORT_VALUE_TOO_LOW,
+                f"0x2004:0 speed controller Tn {value:g} ms < {b.speed_tn_min_s * 1000.0:.4g} ms (this axis' bound: "
+                f"Tn >= 4 / {b.speed_crossover_max_rad_s:.0f} rad/s, the fastest speed-loop crossover; 0 = P only)")
         if key == (0x2011, 0) and abs(value) > MAX_EXTERNAL_FORCE_N:
             code = ABORT_VALUE_TOO_HIGH if value > 0 else ABORT_VALUE_TOO_LOW
             raise ObjectAccessError(code, f"0x2011 external force {value:g} N beyond +-{MAX_EXTERNAL_FORCE_N:g} N")
