@@ -64,14 +64,26 @@ def _effect_names(text: str | None) -> list[str] | None:
 class StageProgress:
     """Renders the diagnosis' :class:`~virtualaxis.diagnosis.progress.ProgressEvent` s on stderr: on a terminal
     a bar per fitting stage (advancing per candidate); otherwise (a CI log, a pipe) one line per stage and
-    nothing per candidate."""
+    nothing per candidate. The lines of the checking stages (reading the traces, the controller check, the
+    baseline and its plausibility, locating the residual) are shown once the first fit starts: an input these
+    stages refuse gets its ``error:`` line alone."""
+
+    #: stages that may still refuse the input
+    CHECKING = ("read", "controller_check", "baseline", "localise")
 
     def __init__(self, stream=None) -> None:
         self.stream = stream or sys.stderr
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.bar = None
+        self.pending: list[str] = []
 
     def __call__(self, ev) -> None:
+        if ev.kind == "start" and ev.stage in self.CHECKING:
+            self.pending.append(f"diagnose: {ev.describe()}")
+            return
+        if self.pending:
+            print("\n".join(self.pending), file=self.stream, flush=True)
+            self.pending.clear()
         if not self.tty:
             if ev.kind == "start":
                 print(f"diagnose: {ev.describe()}", file=self.stream, flush=True)
