@@ -170,7 +170,8 @@ def test_heartbeat_loss_faults_the_drive():
         time.sleep(0.15)
         assert r.sw() & 0x6F == 0x27  # heartbeat present: still running
         r.hb_task.stop()
-        r.emcy.wait_for(0x8130, timeout=2)
+        # lockstep: the consumer's 60 ms are drive time, so they pass only with the SYNCs that advance it
+        r.wait(lambda: 0x8130 in r.emcy.codes(), sync=True)
         r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)
         assert r.node.sdo[0x1001].raw & 0x10
         assert r.drive.faults[0].emcy_code == 0x8130
@@ -185,7 +186,7 @@ def test_heartbeat_loss_quick_stop_reaction():
     try:
         r.sync(50)
         r.hb_task.stop()
-        r.emcy.wait_for(0x8130, timeout=2)
+        r.wait(lambda: 0x8130 in r.emcy.codes(), sync=True)  # drive time: the SYNCs advance it
         r.wait(lambda: r.sw() & 0x4F == 0x40, sync=True, timeout=5)
         r.sync(20)
         assert abs(r.node.sdo[0x606C].raw) < 2_000
@@ -202,7 +203,8 @@ def test_rpdo_timeout_faults_the_drive(rig):  # noqa: F811
     _send_target(rig, here)
     rig.sync(2)
     assert rig.sw() & 0x6F == 0x27
-    rig.emcy.wait_for(0x8250, timeout=2)
+    # lockstep: the 50 ms deadline is drive time, passed by the SYNCs that come without an RPDO
+    rig.wait(lambda: 0x8250 in rig.emcy.codes(), sync=True)
     rig.wait(lambda: rig.sw() & 0x4F == 0x08, sync=True)
 
 
