@@ -119,7 +119,9 @@ def test_npz_bomb_is_refused_from_its_headers_before_decompressing(tmp_path):
     rc, err, rss = _run_measured(["diagnose", "--config", str(C4), str(trace), "--out", str(tmp_path / "d")],
                                  tmp_path)
     _one_error(subprocess.CompletedProcess([], rc, "", err), "bomb.npz", "40,000,000 samples")
-    assert rss < 500 * 2**20, f"peak RSS {rss / 2**20:.0f} MiB"
+    # below the 960 MB of arrays: none of them was decompressed (reading them takes 2 GB); the process itself
+    # (interpreter, numpy, scipy, the kernels compiled on a cold numba cache) peaks at 170-670 MiB
+    assert rss < 900 * 2**20, f"peak RSS {rss / 2**20:.0f} MiB"
 
 
 def test_npz_member_whose_declared_size_disagrees_with_its_header_is_refused(tmp_path):
