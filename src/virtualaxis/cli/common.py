@@ -106,3 +106,43 @@ def check_jobs(value: int | None, option: str = "--jobs", default: int = 2) -> i
     if value > limit:
         raise CliError(f"{option} {value}: at most {limit} worker processes on this machine ({why})")
     return value
+
+
+def check_node_options(node_id: int, timeout_s: float) -> None:
+    """``--node-id`` and ``--timeout`` of a command that talks to one node; a ``CliError`` naming the option."""
+    from virtualaxis.cli.errors import CliError
+
+    if not 1 <= node_id <= 127:
+        raise CliError(f"--node-id must be 1..127 (got {node_id})")
+    if not 0.001 <= timeout_s <= 60:  # (also refuses nan: every comparison with nan is false)
+        raise CliError(f"--timeout must be 0.001..60 s (got {timeout_s})")
+
+
+def open_remote_node(can: str, node_id: int, timeout_s: float):
+    """``(network, node)``: a ``canopen`` master on the bus string ``can`` with the remote node ``node_id``
+    (the shipped EDS), its SDO client bounded (short frames and transfers that never end are errors, not hangs
+    or crashes) with a response timeout of ``timeout_s``. Bad options and a bus that does not open are a
+    ``CliError``; the caller disconnects the network."""
+    import logging
+
+    import canopen
+
+    from virtualaxis.cli.errors import CliError
+    from virtualaxis.master import DEFAULT_EDS, connect, install_bounded_sdo
+    from virtualaxis.runtime import BusOpenError
+
+    check_node_options(node_id, timeout_s)
+    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # its SDO timeouts are reported by us, once
+    try:
+        net = connect(can)
+    except BusOpenError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        node = canopen.RemoteNode(node_id, DEFAULT_EDS)
+        install_bounded_sdo(node)
+        node.sdo.RESPONSE_TIMEOUT = timeout_s
+        net.add_node(node)
+    except BaseException:
+        net.disconnect()
+        raise
+    return net, node

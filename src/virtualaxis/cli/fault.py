@@ -50,33 +50,20 @@ def register(sub) -> None:
 def run(args) -> int:
     import canopen
 
+    from virtualaxis.cli.common import check_node_options, open_remote_node
     from virtualaxis.cli.errors import CliError
-    from virtualaxis.master import DEFAULT_EDS, SdoTransferOverrun, connect, install_bounded_sdo
-    from virtualaxis.runtime import BusOpenError
+    from virtualaxis.master import SdoTransferOverrun
 
     if not args.action:
         raise CliError("fault: give an action: inject KIND, clear [KIND], status or list")
-    if not 1 <= args.node_id <= 127:
-        raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
-    if not 0.001 <= args.timeout <= 60:  # (also refuses nan: every comparison with nan is false)
-        raise CliError(f"--timeout must be 0.001..60 s (got {args.timeout})")
+    check_node_options(args.node_id, args.timeout)
     if args.action == "inject":
         if not 0 < args.duty <= 1:
             raise CliError(f"--duty must be in (0, 1] (got {args.duty})")
         if not 0.002 <= args.period <= 3600:
             raise CliError(f"--period must be 0.002..3600 s (got {args.period})")
-    import logging
-
-    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # its SDO timeouts are reported by us, once
+    net, node = open_remote_node(args.can, args.node_id, args.timeout)
     try:
-        net = connect(args.can)
-    except BusOpenError as exc:
-        raise CliError(str(exc)) from None
-    try:
-        node = canopen.RemoteNode(args.node_id, DEFAULT_EDS)
-        install_bounded_sdo(node)  # short frames and transfers that never end are errors, not hangs or crashes
-        node.sdo.RESPONSE_TIMEOUT = args.timeout
-        net.add_node(node)
         sdo = node.sdo
         try:
             if args.action == "inject":

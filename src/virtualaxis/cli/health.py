@@ -32,31 +32,17 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    import logging
-
     import canopen
 
-    from virtualaxis.cli.errors import CliError
-    from virtualaxis.master import DEFAULT_EDS, connect
-    from virtualaxis.runtime import BusOpenError
+    from virtualaxis.cli.common import open_remote_node
+    from virtualaxis.master import SdoTransferOverrun
 
-    if not 1 <= args.node_id <= 127:
-        raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
-    if not 0.001 <= args.timeout <= 60:  # (also refuses nan)
-        raise CliError(f"--timeout must be 0.001..60 s (got {args.timeout})")
-    logging.getLogger("canopen").setLevel(logging.CRITICAL)  # its SDO timeouts are reported by us, once
+    net, node = open_remote_node(args.can, args.node_id, args.timeout)
     try:
-        net = connect(args.can)
-    except BusOpenError as exc:
-        raise CliError(str(exc)) from None
-    try:
-        node = canopen.RemoteNode(args.node_id, DEFAULT_EDS)
-        node.sdo.RESPONSE_TIMEOUT = args.timeout
-        net.add_node(node)
         try:
             device_type = int(node.sdo[0x1000].raw)
             statusword = int(node.sdo[0x6041].raw)
-        except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
+        except (canopen.SdoCommunicationError, canopen.SdoAbortedError, SdoTransferOverrun) as exc:
             print(f"error: {args.can} node {args.node_id}: the drive does not answer ({exc})", file=sys.stderr)
             return 1
     finally:
