@@ -101,6 +101,7 @@ class MqttSettings:
     backoff_max_s: float = 5.0
     keepalive_s: int = 10
     publish_timeout_s: float = 2.0
+    sparkplug_group: str | None = None  # Sparkplug B instead of the JSON topics (services/sparkplug.py)
 
     def validate(self) -> None:
         if not self.rate_hz > 0 or self.rate_hz > 1000:
@@ -114,6 +115,9 @@ class MqttSettings:
             )
         if not TOPIC_NAME.fullmatch(self.machine):
             raise MqttSettingsError(f"--machine {self.machine!r}: use letters, digits, '_', '-', '.'")
+        if self.sparkplug_group is not None and not TOPIC_NAME.fullmatch(self.sparkplug_group):
+            raise MqttSettingsError(f"--sparkplug {self.sparkplug_group!r}: a group id takes letters, digits, '_', "
+                                    "'-', '.'")
 
 
 def parse_mqtt_url(url: str, machine: str) -> MqttSettings:
@@ -1331,7 +1335,12 @@ def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
     finally:
         os.close(fd)
     ring = TelemetryRing(memoryview(mem), len(spec["axes"]))
-    pub = Publisher(settings, spec["axes"], ring)
+    if settings.sparkplug_group is not None:
+        from virtualaxis.services.sparkplug import SparkplugPublisher
+
+        pub: Publisher = SparkplugPublisher(settings, spec["axes"], ring)
+    else:
+        pub = Publisher(settings, spec["axes"], ring)
     conn, ctl = Connection(msg_fd), Connection(ctl_fd)
     pub.to_serve = conn.send_bytes  # (only the event loop's thread sends: fault/set commands)
 

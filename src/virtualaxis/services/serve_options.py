@@ -30,6 +30,9 @@ def add_arguments(p) -> None:
     g.add_argument("--modbus-writable", action="store_true", help="accept Modbus writes (else exception 04)")
     g.add_argument("--mqtt", default=None, metavar="URL", help="publish MQTT telemetry to mqtt://HOST:PORT or mqtts://")
     g.add_argument("--machine", default=None, help="machine name in the MQTT topics (default: the config's file stem)")
+    g.add_argument("--sparkplug", nargs="?", const="virtualaxis", default=None, metavar="GROUP",
+                   help="with --mqtt: publish Sparkplug B (group GROUP, default virtualaxis; edge node = --machine) "
+                        "instead of the JSON topics")
     g.add_argument(
         "--mqtt-credentials",
         default=None,
@@ -90,10 +93,10 @@ class SideChannels:
             chans = [(a.name, a.node_id, a.drive, _nmt_getter(a), getattr(a, "injection", None)) for a in axes]
             self.telemetry = MqttService(st, chans, gate=self.gate).start()
             scheme = "mqtts" if st.tls else "mqtt"
-            self.lines.append(
-                f"mqtt: {scheme}://{st.host}:{st.port}, topics virtualaxis/{st.machine}/<axis>/..., "
-                f"telemetry {st.rate_hz:g} Hz in batches of {st.batch_size}"
-            )
+            topics = (f"Sparkplug B spBv1.0/{st.sparkplug_group}/<type>/{st.machine}[/<axis>]"
+                      if st.sparkplug_group is not None else f"topics virtualaxis/{st.machine}/<axis>/...")
+            self.lines.append(f"mqtt: {scheme}://{st.host}:{st.port}, {topics}, telemetry {st.rate_hz:g} Hz in "
+                              f"batches of {st.batch_size}")
 
     def stop(self) -> None:
         if self.telemetry is not None:
@@ -144,11 +147,16 @@ def prepare(args, main_config) -> SideChannels:
         st.rate_hz = TELEMETRY_DEFAULTS["rate"] if rate is None else rate
         st.batch_size = TELEMETRY_DEFAULTS["batch"] if batch is None else batch
         st.buffer_samples = TELEMETRY_DEFAULTS["buffer"] if buffer is None else buffer
+        st.sparkplug_group = getattr(args, "sparkplug", None)
+        if st.sparkplug_group is not None:
+            from virtualaxis.services.sparkplug import check_available
+
+            check_available()
         load_credentials(st, args.mqtt_credentials)
         st.validate()
         sc.mqtt = st
-    elif args.mqtt_credentials or args.machine:
-        raise ValueError("--machine / --mqtt-credentials need --mqtt")
+    elif args.mqtt_credentials or args.machine or getattr(args, "sparkplug", None) is not None:
+        raise ValueError("--machine / --mqtt-credentials / --sparkplug need --mqtt")
     elif given := [opt for opt, value in telemetry.items() if value is not None]:
         raise ValueError(f"{' / '.join(given)} need(s) --mqtt (the telemetry is published over MQTT)")
     return sc
