@@ -17,7 +17,10 @@ Phases (``--phases``, alternated ``--rounds`` times so that drifting machine loa
 - ``modbus`` / ``mqtt``: only that half of the load (to separate the causes);
 - ``ext``: ``serve`` without side channels while the ten Modbus clients poll a plain pymodbus server of their
   own (static registers): the machine carries the client load, ``serve`` none of it;
-- ``idle``: ``serve --modbus --mqtt`` with nobody polling or subscribing (the side channels' own cost in serve).
+- ``idle``: ``serve --modbus --mqtt`` with nobody polling or subscribing (the side channels' own cost in serve);
+- ``load-spb``, ``mqtt-spb``, ``idle-spb``: ``load``, ``mqtt``, ``idle`` with the MQTT side as Sparkplug B
+  (``serve --sparkplug bench``; the subscriber counts the Position values of the DDATA); ``--sparkplug`` makes
+  every MQTT phase Sparkplug B.
 
 Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
 priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
@@ -37,6 +40,7 @@ master's ``time.time()`` before ``send`` -> its SYNC on the wire (not part of th
     python benchmarks/bench_side_channels.py --seconds 20 --rounds 2 --rt-priority 20
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 1 --rt-priority 20 --phases off,modbus,mqtt,load
     python benchmarks/bench_side_channels.py --seconds 5 --rounds 3 --rt-priority 20 --modbus-client raw --json F
+    python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --rt-priority 20 --phases off,load,load-spb
 
 ``--modbus-client raw``: the ten clients pack their FC03 requests with ``struct`` on a plain socket (and check every
 answer) instead of using pymodbus' client, which on a slow host costs 2.5x the CPU per request: the clients of a
@@ -188,22 +192,35 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
     Path(out).write_text(json.dumps({"errors": int(sum(errors)), "skipped_polls": int(sum(late))}))
 
 
-def telemetry_count(port: int, out: str) -> None:
-    """A paho subscriber counting telemetry samples until SIGTERM; writes ``{"samples", "batches"}``."""
+def telemetry_count(port: int, out: str, sparkplug: bool = False) -> None:
+    """A paho subscriber counting telemetry samples until SIGTERM; writes ``{"samples", "batches"}``. With
+    ``sparkplug``: DDATA messages are the batches and the Position values in them the samples (a sine move
+    changes the position in every sample, so report by exception sends each)."""
     import paho.mqtt.client as mqtt
 
     count = {"samples": 0, "batches": 0, "t_first": None, "t_last": None}
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    if sparkplug:
+        from virtualaxis.services.sparkplug import device_alias
+        from virtualaxis.services.sparkplug_proto import sparkplug_b_pb2
+
+        position_alias = device_alias(0, 0)
 
     def on_message(client, userdata, m):
         count["batches"] += 1
-        count["samples"] += len(json.loads(m.payload)["samples"])
+        if sparkplug:
+            p = sparkplug_b_pb2.Payload()
+            p.ParseFromString(m.payload)
+            count["samples"] += sum(1 for x in p.metrics if x.alias == position_alias)
+        else:
+            count["samples"] += len(json.loads(m.payload)["samples"])
         count["t_last"] = time.time()
         count["t_first"] = count["t_first"] or count["t_last"]
 
+    topic = "spBv1.0/bench/DDATA/#" if sparkplug else "virtualaxis/+/+/telemetry"
     c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
-    c.on_connect = lambda c, u, f, rc, p: c.subscribe("virtualaxis/+/+/telemetry", qos=0)
+    c.on_connect = lambda c, u, f, rc, p: c.subscribe(topic, qos=0)
     c.on_message = on_message
     c.connect("127.0.0.1", port)
     c.loop_start()
@@ -321,7 +338,9 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
 
 
 # ------------------------------------------------------------------------------------ one phase
-def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
+def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
+    phase = phase_name.removesuffix("-spb")
+    sparkplug = opts.sparkplug or phase_name.endswith("-spb")  # MQTT as Sparkplug B
     modbus_on = phase in ("load", "modbus", "idle")
     external = phase == "ext"  # the Modbus clients poll a server that is not serve's (machine load only)
     mqtt_on = phase in ("load", "mqtt", "idle")
@@ -338,6 +357,8 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         args += ["--modbus", f"127.0.0.1:{mb_port}"]
     if mqtt_on:
         args += ["--mqtt", f"mqtt://127.0.0.1:{broker.port}", "--machine", "bench"]
+        if sparkplug:
+            args += ["--sparkplug", "bench"]
     if opts.rt_priority:
         args += ["--rt-priority", str(opts.rt_priority)]
     args += opts.serve_args
@@ -382,7 +403,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
     loader: list[subprocess.Popen] = []
     counter = None
     outs: list[str] = []
-    out: dict = {"phase": phase, "seconds": seconds}
+    out: dict = {"phase": phase_name, "seconds": seconds}
     load_flags = ["--load-priority", str(opts.load_priority)]
     if opts.load_cpus:
         load_flags += ["--load-cpus", ",".join(map(str, sorted(opts.load_cpus)))]
@@ -392,7 +413,7 @@ def run_phase(phase: str, seconds: float, port: int, broker: Mosquitto | None, o
         if mqtt_on and clients:
             tel_out = str(tmp / f"telemetry-{port}.json")
             counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
-                                        *load_flags])
+                                        *load_flags, *(["--sparkplug"] if sparkplug else [])])
         if (modbus_on and clients) or external:
             # ten clients = ten processes (each its own interpreter, as separate client machines would be)
             outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
@@ -480,7 +501,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="passes over --phases")
-    ap.add_argument("--phases", default="off,load", help="comma list of off, load, modbus, mqtt, ext, idle")
+    ap.add_argument("--phases", default="off,load",
+                    help="comma list of off, load, modbus, mqtt, ext, idle, and load-spb, mqtt-spb, idle-spb (the "
+                         "MQTT side as Sparkplug B)")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and of the master")
     ap.add_argument("--load-priority", type=int, default=0,
                     help="SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus server process, "
@@ -503,6 +526,8 @@ def main() -> int:
                     help="the ten load clients: pymodbus' client (default) or a lean struct-packed FC03 client "
                     "(raw), whose own CPU on this host (the clients of a real drive run on other machines) is a "
                     "fraction of pymodbus'")
+    ap.add_argument("--sparkplug", action="store_true",
+                    help="MQTT as Sparkplug B (serve --sparkplug bench); the subscriber counts DDATA Position values")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_side_channels.json"))
     ap.add_argument("--raw", default=None, metavar="DIR", help="also save every phase's timestamps (.npz) in DIR")
     ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -521,12 +546,14 @@ def main() -> int:
             modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
                         args.load_start, args.modbus_client)
         else:
-            telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1])
+            telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1], args.sparkplug)
         return 0
     phases = [p.strip() for p in args.phases.split(",") if p.strip()]
-    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext", "idle")]
+    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext", "idle", "load-spb", "mqtt-spb",
+                                          "idle-spb")]
     if bad:
-        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext, idle)")
+        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext, idle; load-spb, mqtt-spb, "
+                 "idle-spb: MQTT as Sparkplug B)")
     args.drive_cpus = args.load_cpus = None
     if args.pin:
         d, _, lo = args.pin.partition(":")
