@@ -273,17 +273,18 @@ class SparkplugPublisher(Publisher):
             _birth_metric(p, m, i + 1, values[m.key], ts)
         return p.SerializeToString()
 
-    def _source_values(self, ch: PubChannel, sample: dict | None, state: dict | None) -> dict[int, object]:
-        """position in DEVICE_METRICS -> value, for the metrics whose source is given."""
+    def _source_values(self, ch: PubChannel, sample: dict | None, state: dict | None,
+                       counters: bool = False) -> dict[int, object]:
+        """position in DEVICE_METRICS -> value, for the metrics of the sources given."""
         out: dict[int, object] = {}
-        counters = ch.buffer.counters()
+        counts = ch.buffer.counters() if counters else {}
         for i, m in enumerate(DEVICE_METRICS):
             if m.source == "sample" and sample is not None:
                 out[i] = sample[m.key]
             elif m.source == "state" and state is not None and m.key in state:
                 out[i] = _value(m, state[m.key])
-            elif m.source == "counter":
-                out[i] = counters[m.key]
+            elif m.source == "counter" and counters:
+                out[i] = counts[m.key]
         return out
 
     def device_birth_payload(self, ch: PubChannel) -> bytes:
@@ -293,7 +294,7 @@ class SparkplugPublisher(Publisher):
         p.timestamp = ts
         p.seq = self._next_seq()
         newest = ch.buffer.peek(len(ch.buffer))[-1:] or [None]
-        values = self._source_values(ch, newest[0], ch.current)
+        values = self._source_values(ch, newest[0], ch.current, counters=True)
         values[_COMMAND] = ""
         last = self._last[ch.index]
         values = {i: last.get(i) for i in range(len(DEVICE_METRICS))} | values  # (a rebirth: the values known)
@@ -480,9 +481,7 @@ class SparkplugPublisher(Publisher):
                     ch.events.popleft()
                     ch.events_published += 1  # (the fault shows in State/*: Fault Active, Error Code, Active Faults)
         if ch.current is not None:
-            state_values = {i: v for i, v in self._source_values(ch, None, ch.current).items()
-                            if DEVICE_METRICS[i].source == "state"}
-            self._changes(ch, state_values, _now_ms(), changes)
+            self._changes(ch, self._source_values(ch, None, ch.current), _now_ms(), changes)
         if changes:  # a state change goes out at once, before the samples that follow it
             await client.publish(topic, self.device_data_payload(ch, changes), qos=0)
             changes = []
@@ -503,7 +502,7 @@ class SparkplugPublisher(Publisher):
         now = time.monotonic()
         if now - self._last_counters_at[ch.index] >= st.state_interval_s or stopping:
             self._last_counters_at[ch.index] = now
-            self._changes(ch, self._source_values(ch, None, None), _now_ms(), changes)
+            self._changes(ch, self._source_values(ch, None, None, counters=True), _now_ms(), changes)
             if changes:
                 await client.publish(topic, self.device_data_payload(ch, changes), qos=0)
 
