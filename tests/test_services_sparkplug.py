@@ -284,3 +284,22 @@ def test_the_docs_metric_table_is_the_one_the_node_publishes():
 
     page = (Path(ROOT) / "docs" / "side-channels.md").read_text()
     assert metric_table_markdown() in page
+
+
+def test_seq_wraps_from_255_to_0_and_each_nbirth_starts_at_0():
+    """The edge node's payloads in order (no broker: 600 messages would take a minute of a moving axis):
+    NBIRTH 0, DBIRTH 1, DDATA 2..255, 0, 1, ...; a rebirth's NBIRTH is 0 again; aliases only in DDATA."""
+    from virtualaxis.services.mqtt import MqttSettings
+    from virtualaxis.services.sparkplug import SparkplugPublisher
+
+    st = MqttSettings(host="127.0.0.1", port=1, machine=NODE, sparkplug_group=GROUP)
+    pub = SparkplugPublisher(st, [{"name": AXIS, "node_id": 1, "lead_m": 0.016}], ring=None)
+    ch = pub.channels[0]
+    seqs = [decode(pub.node_birth_payload())["seq"], decode(pub.device_birth_payload(ch))["seq"]]
+    for k in range(600):
+        d = decode(pub.device_data_payload(ch, [(0, float(k), 1)]))
+        assert [set(m) for m in d["metrics"]] == [{"alias", "timestamp", "value"}]
+        seqs.append(d["seq"])
+    assert seqs == [k % 256 for k in range(602)]
+    assert decode(pub.node_birth_payload()).get("seq", 0) == 0
+    assert decode(pub.device_birth_payload(ch))["seq"] == 1
