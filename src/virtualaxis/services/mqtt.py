@@ -1159,7 +1159,7 @@ class Publisher:
                 )
                 async with client:
                     accepted = True
-                    _no_delay(client)
+                    tcp_no_delay(client)
                     ch.connects += 1
                     ch.connected = True
                     self.connection_log.connected(ch.name, ch.birth_seq, "MQTT 5" if v5 else "MQTT 3.1.1")
@@ -1305,7 +1305,7 @@ class Publisher:
                     self.connection_log.clash(ch.name, status, other)
 
 
-def _no_delay(client) -> None:
+def tcp_no_delay(client) -> None:
     """TCP_NODELAY on the client's socket: a small QoS 1 message (a fault event, a fault/result) leaves at once
     instead of waiting, behind the unacknowledged telemetry, for the broker's delayed ACK (Nagle: ~40 ms)."""
     import socket

@@ -33,7 +33,7 @@ from virtualaxis.services.mqtt import (
     MqttSettingsError,
     PubChannel,
     Publisher,
-    _no_delay,
+    tcp_no_delay,
 )
 from virtualaxis.services.mqtt_presence import client_identifier
 
@@ -385,7 +385,7 @@ class SparkplugPublisher(Publisher):
                 )
                 async with client:
                     accepted = True
-                    _no_delay(client)
+                    tcp_no_delay(client)
                     for ch in self.channels:
                         ch.connects += 1
                         ch.connected = True
