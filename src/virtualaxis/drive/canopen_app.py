@@ -1,5 +1,5 @@
 """The CiA 402 device application: plugs a :class:`~virtualaxis.drive.core.Drive` into a CiA 301
-:class:`~virtualaxis.canopen_slave.CanopenSlave` (the ``DeviceApplication`` hooks of docs/canopen-slave-api.md).
+:class:`~virtualaxis.canopen_slave.CanopenSlave` (the ``CanopenApplication`` hooks of docs/canopen-slave-api.md).
 
 - ``validate_write`` -> :meth:`Drive.check_object_write`; a refusal becomes the SDO abort code (an RPDO value
   refused is dropped and counted by the stack).
@@ -14,7 +14,7 @@
 
 from __future__ import annotations
 
-from virtualaxis.canopen_slave import CanopenSlave, NmtState, SdoAbort
+from virtualaxis.canopen_slave import BaseApplication, CanopenSlave, NmtState, SdoAbort
 from virtualaxis.canopen_slave.nmt import NMT_STATE
 from virtualaxis.drive.core import ALIASES, OUTPUT_KEYS, Drive, ObjectAccessError
 from virtualaxis.drive.objects import SPECS
@@ -27,7 +27,7 @@ SYNC_LOSS_MIN_S = 0.050
 _DRIVE_KEYS = frozenset(SPECS) | frozenset(ALIASES)
 
 
-class Cia402Application:
+class Cia402Application(BaseApplication):
     """The bridge between one :class:`Drive` and one :class:`CanopenSlave`."""
 
     #: objects whose write only sets a value that the next write replaces (targets and offsets, no edge
@@ -75,8 +75,7 @@ class Cia402Application:
         derived = drive.derived_objects()
         values = {key: entry.value for key, entry in self._entries.items() if key not in derived}
         drive.load_objects(values)
-        for key, value in derived.items():
-            drive._store(key, value)
+        drive.store_objects(derived)
         self.flush(everything=True)
 
     def flush(self, everything: bool = False) -> None:
@@ -89,7 +88,7 @@ class Cia402Application:
         if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
             self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
             self._watch_sync(slave)
-        outputs = drive._published  # (Drive.outputs without the property call: every flush reads it)
+        outputs = drive.outputs
         if outputs is not self._outputs_mirrored:  # a cycle changed actual values: only those compared
             # (CanopenSlave.write_entry inlined: ~10 values of every axis in every cycle)
             for entry, value, old, real in zip(self._output_entries, outputs, self._outputs_mirrored,
@@ -106,7 +105,7 @@ class Cia402Application:
             drive.take_changed()
             objects = drive.objects
             changes = [(key, objects[ALIASES.get(key, key)]) for key in self._entries]
-        elif not drive._changed:  # the common case of the several flushes per cycle
+        elif not drive.changed():  # the common case of the several flushes per cycle
             return
         else:
             changes = drive.take_changed()
@@ -116,7 +115,7 @@ class Cia402Application:
             if entry is not None:
                 slave.write_entry(entry, float(value) if key in float_keys else value)
 
-    # ------------------------------------------------------------------ DeviceApplication hooks
+    # ------------------------------------------------------------------ CanopenApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:
         if (index, sub) in _DRIVE_KEYS:
             try:
