@@ -275,9 +275,10 @@ def main() -> int:
                     help="one more argument for serve (repeat), e.g. --serve-arg=--sync-spin-us --serve-arg=150")
     ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
+    ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
     args = ap.parse_args()
     if args.cycle_cost:
-        res = cycle_cost()
+        res = cycle_cost(tuple(int(n) for n in args.axes.split(",")))
         base = res[0]["cycle_us"]
         print(f"{'axes':>4} {'cycle us':>9} {'per axis us':>11} {'vs 1 axis':>9} {'CPU us':>8} {'CPU/axis':>8}")
         for r in res:

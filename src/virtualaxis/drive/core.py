@@ -241,6 +241,9 @@ class Drive:
         #: the objects' values, aliases, changed set, shared write checks and per-cycle outputs
         self.object_table = ObjectTable(ALIASES, _OUTPUT_KEYS, self._value_ranges, self._range_reasons,
                                   _plain_int_keys())
+        #: set an object (and its alias) without reaction, marked changed (the table's store, bound once: the
+        #: statusword and counters go through it every cycle)
+        self._store: Callable[[tuple[int, int], int | float], None] = self.object_table.store
         self._observers: list[Callable[[str, DriveState], None]] = []
         self.emcy_sink: Callable[[int, int, bytes], None] | None = None  # (code, register bits, data)
         self.emcy_reset_sink: Callable[[], None] | None = None
@@ -543,12 +546,15 @@ class Drive:
         the target 0x607A in one RPDO start the move to the NEW target."""
         with self._lock:
             keyed = []
+            table = self.object_table
+            aliases, store = table.aliases, table.store
             for index, sub, value in items:
                 if not checked:
                     self.check_object_write(index, sub, value)
-                key = self.object_table.key(index, sub)
+                key = (index, sub)
+                key = aliases.get(key, key)
                 value = float(value) if SPECS[key].dtype == "f32" else int(value)
-                self.object_table.store(key, value)
+                store(key, value)
                 if key[0] in _MONITOR_PARAMETER_INDICES:
                     self._params_dirty = True
                 keyed.append((key, value))
@@ -601,9 +607,6 @@ class Drive:
         slave's dictionary was loaded); changed ones are reported by :meth:`take_changed`."""
         with self._lock:
             self.object_table.store_all(values)
-
-    def _store(self, key: tuple[int, int], value) -> None:
-        self.object_table.store(key, value)
 
     def _obj(self, index: int, sub: int = 0):
         return self.objects[(index, sub)]

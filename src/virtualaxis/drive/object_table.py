@@ -9,6 +9,8 @@ position factor written in operation, ...) are :meth:`virtualaxis.drive.Drive.ch
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any
 
 from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, ObjectSpec
 
@@ -51,7 +53,11 @@ class ObjectTable:
         self.plain_int_ranges = self._plain_int_ranges(plain_int_keys)
         self.values: dict[Key, int | float] = {}
         self._changed: set[Key] = set()
-        self._published: tuple = (None,) * len(output_keys)
+        #: the actual values of the last :meth:`publish` in the order of ``output_keys`` (read only; a new tuple
+        #: whenever a value changed: compare by identity to see whether anything did)
+        self.outputs: tuple = (None,) * len(output_keys)
+        #: where :meth:`publish` copies the changed outputs too (see :meth:`mirror_outputs`)
+        self._mirror: tuple[tuple, tuple[bool, ...]] | None = None
 
     def _plain_int_ranges(self, keys: frozenset[Key]) -> dict[Key, tuple[int, int]]:
         out = {}
@@ -75,7 +81,7 @@ class ObjectTable:
         for alias, target in self.aliases.items():
             v[alias] = v[target]
         self._changed = set(v)
-        self._published = (None,) * len(self.output_keys)
+        self.outputs = (None,) * len(self.output_keys)
         return v
 
     def key(self, index: int, sub: int) -> Key:
@@ -120,22 +126,42 @@ class ObjectTable:
         return out
 
     # ------------------------------------------------------------------ per-cycle outputs
-    @property
-    def outputs(self) -> tuple:
-        """The actual values of the last :meth:`publish` in the order of ``output_keys``; a new tuple whenever a
-        value changed (compare by identity to see whether anything did)."""
-        return self._published
+    def mirror_outputs(self, entries: Sequence[Any], real: Sequence[bool]) -> None:
+        """From now on :meth:`publish` copies each output that changed into ``entries[i].value`` too (``None``:
+        not mirrored), as ``float`` where ``real[i]``, and marks every TPDO in ``entries[i].tpdos`` that maps it
+        (``.dirty = True``) when the entry's value changed: the CANopen dictionary gets a cycle's actual values in
+        the one pass that stores them (a slave's entries; see :mod:`virtualaxis.drive.canopen_app`)."""
+        if len(entries) != len(self.output_keys) or len(real) != len(self.output_keys):
+            raise ValueError("one mirror entry and one real flag per output")
+        self._mirror = (tuple(entries), tuple(bool(r) for r in real))
+        current, self.outputs = self.outputs, (None,) * len(self.output_keys)
+        self.publish(current)  # (the values already published go in now; nothing when none were)
 
     def publish(self, values: tuple) -> None:
-        """The actual values of one cycle (``output_keys`` order): the changed ones into the objects. Not marked
-        in the changed set: a mirror compares :attr:`outputs` itself (one comparison per value and cycle)."""
-        last = self._published
-        if values != last:
-            objects = self.values
+        """The actual values of one cycle (``output_keys`` order): the changed ones into the objects (and the
+        mirror's entries). Not marked in the changed set: a reader compares :attr:`outputs` by identity."""
+        last = self.outputs
+        if values == last:
+            return
+        objects = self.values
+        mirror = self._mirror
+        if mirror is None:
             for key, value, old in zip(self.output_keys, values, last, strict=True):
                 if value != old:
                     objects[key] = value
-            self._published = values
+        else:
+            for key, value, old, entry, real in zip(self.output_keys, values, last, mirror[0], mirror[1],
+                                                    strict=True):
+                if value != old:
+                    objects[key] = value
+                    if entry is not None:
+                        if real:
+                            value = float(value)
+                        if entry.value != value:
+                            entry.value = value
+                            for tpdo in entry.tpdos:
+                                tpdo.dirty = True
+        self.outputs = values
 
     # ------------------------------------------------------------------ write checks
     def check_write(self, index: int, sub: int, value) -> ObjectSpec | None:
