@@ -13,6 +13,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py --scale --seconds 10  # 1/2/4/7 axes x real time/lockstep x FIFO/not
     python benchmarks/bench_drive_latency.py --scale --seconds 8 --rounds 3   # the same, 3 interleaved rounds
     python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
+    python benchmarks/bench_drive_latency.py --cycle-cost --axes 1,3,7 --bytecodes   # the same as bytecodes
 
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
@@ -257,6 +258,50 @@ def cycle_cost(axis_counts=(1, 2, 4, 7), cycles: int = 2000, repeats: int = 3) -
     return out
 
 
+def cycle_bytecodes(axis_counts=(1, 3, 7), cycles: int = 100) -> list[dict]:
+    """Python bytecodes the runtime executes per axis in one communication cycle of :func:`cycle_cost` (frame
+    handling, drive cycles, TPDOs; median of ``cycles`` cycles after its warm-up): a count that a loaded machine
+    does not disturb (the compiled plant kernel and C functions count nothing; their share is the same in any
+    checkout of the same plant)."""
+    from virtualaxis.runtime import pacing
+
+    counts: list[int] = []
+    n_ops = [0]
+
+    def local(frame, event, arg):
+        if event == "opcode":
+            n_ops[0] += 1
+        return local
+
+    def tracer(frame, event, arg):
+        frame.f_trace_opcodes = True
+        frame.f_trace_lines = False
+        return local
+
+    poll_once = pacing.Runtime.poll_once
+
+    def traced(self) -> None:
+        n_ops[0] = 0
+        sys.settrace(tracer)
+        try:
+            poll_once(self)
+        finally:
+            sys.settrace(None)
+        counts.append(n_ops[0])
+
+    out = []
+    pacing.Runtime.poll_once = traced
+    try:
+        for n in axis_counts:
+            counts.clear()
+            cycle_cost((n,), cycles=cycles, repeats=1)
+            timed = sorted(counts[300:])  # (cycle_cost's 300 warm-up cycles left out)
+            out.append({"axes": n, "bytecodes_per_axis": timed[len(timed) // 2] / n})
+    finally:
+        pacing.Runtime.poll_once = poll_once
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -275,9 +320,16 @@ def main() -> int:
                     help="one more argument for serve (repeat), e.g. --serve-arg=--sync-spin-us --serve-arg=150")
     ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
+    ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
+    ap.add_argument("--bytecodes", action="store_true",
+                    help="--cycle-cost as Python bytecodes per axis and cycle (load-independent)")
     args = ap.parse_args()
+    if args.cycle_cost and args.bytecodes:
+        for r in cycle_bytecodes(tuple(int(n) for n in args.axes.split(","))):
+            print(f"{r['axes']:>4} axes: {r['bytecodes_per_axis']:.0f} Python bytecodes per axis and cycle")
+        return 0
     if args.cycle_cost:
-        res = cycle_cost()
+        res = cycle_cost(tuple(int(n) for n in args.axes.split(",")))
         base = res[0]["cycle_us"]
         print(f"{'axes':>4} {'cycle us':>9} {'per axis us':>11} {'vs 1 axis':>9} {'CPU us':>8} {'CPU/axis':>8}")
         for r in res:

@@ -34,7 +34,7 @@ def _outcome(drive: Drive, index: int, sub: int, value) -> int | None:
 
 def test_the_range_shortcut_of_the_write_check_answers_as_the_full_check(monkeypatch):
     drive = Drive(seed_config(), discrete=seed_discrete())
-    plain = dict(drive._plain_int_ranges)
+    plain = dict(drive.object_table.plain_int_ranges)
     assert (0x6040, 0) in plain and (0x607A, 0) in plain and (0x60FF, 0) in plain  # an RPDO's usual objects
     assert (0x6060, 0) not in plain and (0x2011, 0) not in plain  # objects with rules of their own
     assert (0x2005, 0) in plain  # an alias takes its object's range
@@ -43,7 +43,7 @@ def test_the_range_shortcut_of_the_write_check_answers_as_the_full_check(monkeyp
         for value in (lo - 1, lo, lo + 1, 0, hi - 1, hi, hi + 1, float(lo), 0.5, True, math.nan, "1"):
             cases.append((index, sub, value))
     fast = [_outcome(drive, *case) for case in cases]
-    monkeypatch.setattr(drive, "_plain_int_ranges", {})
+    monkeypatch.setattr(drive.object_table, "plain_int_ranges", {})
     full = [_outcome(drive, *case) for case in cases]
     assert fast == full
     assert fast.count(None) > len(plain) * 3  # (the cases accepted are many: the comparison means something)

@@ -10,7 +10,7 @@ from virtualaxis.canopen_slave import errors as ab
 from virtualaxis.canopen_slave.errors import SdoAbort
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import NodeContext
 
 #: COB-IDs no configurable object may use (CiA 301 table 39: NMT, reserved, SDO, NMT error control, LSS)
 RESTRICTED: tuple[tuple[int, int], ...] = (
@@ -52,7 +52,7 @@ def _label(index: int) -> str:
     return f"TPDO{index - TPDO_COMM + 1} (0x{index:04X}:1)"
 
 
-def in_use(slave: CanopenSlave, except_index: int) -> dict[int, str]:
+def in_use(slave: NodeContext, except_index: int) -> dict[int, str]:
     """COB-ID -> user, for every active COB-ID object of this node other than ``except_index``, plus the
     node's fixed ones (default SDO server, NMT error control)."""
     od = slave.od
@@ -74,7 +74,7 @@ def in_use(slave: CanopenSlave, except_index: int) -> dict[int, str]:
     return users
 
 
-def check_write(slave: CanopenSlave, index: int, value: int) -> None:
+def check_write(slave: NodeContext, index: int, value: int) -> None:
     """Refuse (SdoAbort 0x06090030) a COB-ID the object may not use."""
     if not _active(index, value):
         return

@@ -11,7 +11,7 @@ from virtualaxis.canopen_slave import errors as ab
 from virtualaxis.canopen_slave.errors import SdoAbort
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import NodeContext
 
 ERROR_FIELD = 0x1003
 HISTORY_LENGTH = 8
@@ -20,7 +20,7 @@ COB_INVALID = 0x80000000
 
 
 class EmcyProducer:
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: NodeContext):
         self.slave = slave
         self.pending: deque[bytes] = deque()
         self.last_tx_s = -1e30

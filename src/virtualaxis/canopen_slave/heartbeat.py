@@ -10,13 +10,13 @@ from virtualaxis.canopen_slave import errors as ab
 from virtualaxis.canopen_slave.errors import SdoAbort
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import CommErrorNode
 
 HEARTBEAT_BASE = 0x700
 
 
 class HeartbeatProducer:
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: CommErrorNode):
         self.slave = slave
         self.next_s: float | None = None
 
@@ -46,7 +46,7 @@ class Monitor:
 
 
 class HeartbeatConsumer:
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: CommErrorNode):
         self.slave = slave
         self.monitors: dict[int, Monitor] = {}
         self.configure()
@@ -108,7 +108,7 @@ def _split(value: int) -> tuple[int, int]:
 
 
 class NodeGuarding:
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: CommErrorNode):
         self.slave = slave
         self.reset()
 

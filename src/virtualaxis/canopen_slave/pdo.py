@@ -16,7 +16,7 @@ from virtualaxis.canopen_slave.errors import SdoAbort
 from virtualaxis.canopen_slave.od import Entry
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import PdoNode
 
 N_PDO = 4
 RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
@@ -71,7 +71,7 @@ class Tpdo(Pdo):
 class PdoEngine:
     """Configuration (from the OD), validation of writes to 0x1400-0x1BFF, reception and transmission."""
 
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: PdoNode):
         self.slave = slave
         self.rpdos = [Rpdo(n) for n in range(1, N_PDO + 1)]
         self.tpdos = [Tpdo(n) for n in range(1, N_PDO + 1)]
@@ -239,18 +239,15 @@ class PdoEngine:
         self.apply(rpdo, data)
 
     def apply(self, rpdo: Rpdo, data: bytes) -> None:
-        """Store every entry of the PDO, then let the application react (its optional ``begin_pdo`` /
-        ``end_pdo`` hooks bracket the stores: CiA 402 needs controlword + target of one RPDO together)."""
+        """Store every entry of the PDO, then let the application react (its ``begin_pdo`` / ``end_pdo`` hooks
+        bracket the stores: CiA 402 needs controlword + target of one RPDO together)."""
         values = rpdo.packer.unpack(data)
         slave = self.slave
-        begin, end = slave.hook_begin_pdo, slave.hook_end_pdo
-        if begin is not None:
-            begin()
+        slave.hook_begin_pdo()
         try:
             slave.store_all_from_pdo(rpdo.entries, values)
         finally:
-            if end is not None:
-                end()
+            slave.hook_end_pdo()
 
     def latch_sync_rpdos(self) -> list[tuple[Rpdo, bytes]]:
         """At a SYNC: take the synchronous RPDO data received before it (applied by ``on_sync``)."""

@@ -17,7 +17,7 @@ from virtualaxis.canopen_slave.counters import abort_key
 from virtualaxis.canopen_slave.errors import SdoAbort
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import SdoNode
 
 IDLE, SEG_DOWNLOAD, SEG_UPLOAD, BLOCK_DOWNLOAD, BLOCK_DOWNLOAD_END = 0, 1, 2, 3, 4
 BLOCK_UPLOAD_START, BLOCK_UPLOAD_ACK, BLOCK_UPLOAD_END = 5, 6, 7
@@ -39,7 +39,7 @@ def crc16(data: bytes) -> int:
 class SdoServer:
     """The default SDO server channel (0x600 + id -> 0x580 + id)."""
 
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: SdoNode):
         self.slave = slave
         self.tx_cob = 0x580 + slave.node_id
         self.rx_cob = 0x600 + slave.node_id

@@ -15,11 +15,11 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
 
 import can
 
 from virtualaxis.canopen_slave import errors as ab
+from virtualaxis.canopen_slave.app import BaseApplication, CanopenApplication, check_application
 from virtualaxis.canopen_slave.cobid import check_write as check_cob_id
 from virtualaxis.canopen_slave.cobid import is_cob_id_object
 from virtualaxis.canopen_slave.counters import COUNTERS_2100, abort_key, new_counters
@@ -56,17 +56,6 @@ _NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchr
 DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
 
 
-class DeviceApplication(Protocol):
-    """The device application (the CiA 402 drive). Every hook is optional."""
-
-    def validate_write(self, index: int, sub: int, value: Any) -> None: ...
-    def after_write(self, index: int, sub: int, value: Any) -> None: ...
-    def before_read(self, index: int, sub: int) -> None: ...
-    def on_nmt_state(self, state: NmtState) -> None: ...
-    def on_communication_error(self, kind: str, detail: int) -> None: ...
-    def on_reset(self, application: bool) -> None: ...
-
-
 class _SlaveListener(can.Listener):
     def __init__(self, slave: CanopenSlave):
         self._slave = slave
@@ -94,12 +83,11 @@ class CanopenSlave:
     """One CANopen node served from an EDS. See docs/canopen-slave-api.md."""
 
     def __init__(self, bus: can.BusABC, node_id: int, eds_path: str | Path, *,
-                 app: DeviceApplication | None = None, store_path: str | Path | None = None):
+                 app: CanopenApplication | None = None, store_path: str | Path | None = None):
         if not isinstance(node_id, int) or not 1 <= node_id <= 127:
             raise ValueError(f"node id must be 1..127 (got {node_id!r})")
         self.bus = bus
         self.node_id = node_id
-        self.app = app
         self.counters: dict[str, int] = new_counters()
         self.od = ObjectStore(eds_path, node_id)
         self.nmt_state = NMT_STATE.INITIALISING
@@ -127,17 +115,20 @@ class CanopenSlave:
         self._emcy_after_boot: list[tuple[int, bytes]] = []
         #: called (no arguments) whenever the COB-IDs this node listens to change (a frame router's cache)
         self.on_dispatch_change: Callable[[], None] | None = None
-        self._hook_validate = getattr(app, "validate_write", None)
-        self._hook_after = getattr(app, "after_write", None)
-        self._hook_before_read = getattr(app, "before_read", None)
-        self._hook_nmt = getattr(app, "on_nmt_state", None)
-        self._hook_comm_error = getattr(app, "on_communication_error", None)
-        self._hook_reset = getattr(app, "on_reset", None)
-        self.hook_begin_pdo = getattr(app, "begin_pdo", None)   # (looked up once: RPDOs are a hot path)
-        self.hook_end_pdo = getattr(app, "end_pdo", None)
+        app = BaseApplication() if app is None else check_application(app)
+        self.app: CanopenApplication = app
+        # the hooks bound once (RPDOs are a hot path); a bare node's do nothing (BaseApplication)
+        self._hook_validate = app.validate_write
+        self._hook_after = app.after_write
+        self._hook_before_read = app.before_read
+        self._hook_nmt = app.on_nmt_state
+        self._hook_comm_error = app.on_communication_error
+        self._hook_reset = app.on_reset
+        self.hook_begin_pdo = app.begin_pdo
+        self.hook_end_pdo = app.end_pdo
         #: objects whose write only sets a value that the next write replaces (the application's
         #: ``setpoint_objects``, e.g. CiA 402 targets); see :meth:`skip_sync`
-        self.setpoint_objects = frozenset(getattr(app, "setpoint_objects", ()) or ())
+        self.setpoint_objects = frozenset(app.setpoint_objects)
         self.store = ParameterStore(store_path, self.od)
         self._power_on_values(0x0000, 0xFFFF)
         self.sdo = SdoServer(self)
@@ -349,8 +340,7 @@ class CanopenSlave:
 
     def _app_has_error(self) -> bool:
         """The application reports an error of its own (a drive in fault or with a warning)."""
-        has_error = getattr(self.app, "has_error", None)
-        return has_error is not None and bool(has_error())
+        return bool(self.app.has_error())
 
     def emcy_reset(self) -> None:
         """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F); a communication error still
@@ -408,11 +398,10 @@ class CanopenSlave:
             self.counters["tx_errors"] += 1
 
     def communication_error(self, kind: str, detail: int) -> None:
-        if self._hook_comm_error is not None:
-            try:
-                self._hook_comm_error(kind, detail)
-            except Exception:  # noqa: BLE001
-                self.counters["internal_errors"] += 1
+        try:
+            self._hook_comm_error(kind, detail)
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
 
     def error_behaviour(self) -> None:
         """0x1029:1 reaction to a communication error (heartbeat / life guarding lost)."""
@@ -489,8 +478,7 @@ class CanopenSlave:
             raise SdoAbort(ab.READ_WRITE_ONLY)
         if index == DIAGNOSTICS or index == ABORT_COUNTERS:
             self._refresh_counters()
-        if self._hook_before_read is not None:
-            self._call_app(self._hook_before_read, index, sub)
+        self._call_app(self._hook_before_read, index, sub)
         return entry.encode(entry.value)
 
     def sdo_download(self, index: int, sub: int, data: bytes) -> None:
@@ -511,11 +499,9 @@ class CanopenSlave:
             return
         if index < 0x2000:
             self._comm_validate(index, sub, value)
-        if self._hook_validate is not None:
-            self._call_app(self._hook_validate, index, sub, value)
+        self._call_app(self._hook_validate, index, sub, value)
         self.write(index, sub, value) if index < 0x2000 else self.write_entry(entry, value)
-        if self._hook_after is not None:
-            self._call_app(self._hook_after, index, sub, entry.value)
+        self._call_app(self._hook_after, index, sub, entry.value)
 
     def _call_app(self, hook, *args) -> None:
         try:
@@ -547,8 +533,7 @@ class CanopenSlave:
                 if ((high is not None and value > high) or (low is not None and value < low)
                         or (isinstance(value, float) and not math.isfinite(value))):
                     self._check_limits(entry, value)
-                if validate is not None:
-                    validate(entry.index, entry.sub, value)
+                validate(entry.index, entry.sub, value)
             except SdoAbort:
                 counters["rpdo_values_refused"] += 1
                 continue
@@ -559,11 +544,10 @@ class CanopenSlave:
                 entry.value = value
                 for tpdo in entry.tpdos:
                     tpdo.dirty = True
-            if after is not None:
-                try:
-                    after(entry.index, entry.sub, value)
-                except Exception:  # noqa: BLE001
-                    counters["internal_errors"] += 1
+            try:
+                after(entry.index, entry.sub, value)
+            except Exception:  # noqa: BLE001
+                counters["internal_errors"] += 1
 
     def store_from_pdo(self, entry: Entry, value) -> None:
         """One RPDO value (see :meth:`store_all_from_pdo`)."""
@@ -634,11 +618,10 @@ class CanopenSlave:
             self.sdo.reset()
         self._due_sync_rpdos.clear()
         self._applied_ahead = 0
-        if self._hook_nmt is not None:
-            try:
-                self._hook_nmt(state)
-            except Exception:  # noqa: BLE001
-                self.counters["internal_errors"] += 1
+        try:
+            self._hook_nmt(state)
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
 
     def _reset(self, application: bool) -> None:
         self.nmt_state = NMT_STATE.INITIALISING
@@ -657,11 +640,10 @@ class CanopenSlave:
         self._due_sync_rpdos.clear()
         self._applied_ahead = 0
         self.pdo.configure_all()
-        if self._hook_reset is not None:
-            try:
-                self._hook_reset(application)
-            except Exception:  # noqa: BLE001
-                self.counters["internal_errors"] += 1
+        try:
+            self._hook_reset(application)
+        except Exception:  # noqa: BLE001
+            self.counters["internal_errors"] += 1
         self.boot(self._now)
 
     # ================================================================== frame handlers

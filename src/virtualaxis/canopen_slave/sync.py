@@ -24,7 +24,7 @@ from virtualaxis.canopen_slave import errors as ab
 from virtualaxis.canopen_slave.errors import SdoAbort
 
 if TYPE_CHECKING:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.canopen_slave.context import CommErrorNode
 
 SYNC_GENERATE = 0x40000000
 SYNC_EXTENDED = 0x20000000
@@ -33,7 +33,7 @@ MAX_ALLOWANCE_S = 0.1
 
 
 class SyncConsumer:
-    def __init__(self, slave: CanopenSlave):
+    def __init__(self, slave: CommErrorNode):
         self.slave = slave
         #: largest 0x1006 accepted [us] (None: any); a lockstep runtime sets it (drive time per SYNC is bounded)
         self.max_period_us: int | None = None

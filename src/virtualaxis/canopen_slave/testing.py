@@ -20,6 +20,7 @@ from pathlib import Path
 
 import can
 
+from virtualaxis.canopen_slave.app import BaseApplication
 from virtualaxis.canopen_slave.slave import CanopenSlave
 from virtualaxis.resources import project_file
 
@@ -213,7 +214,7 @@ class MasterRig:
             bus.shutdown()
 
 
-class RecordingApp:
+class RecordingApp(BaseApplication):
     """A test-only device application: records every hook call and refuses what ``refuse`` says.
 
     ``refuse[(index, sub)] = code`` makes validate_write raise SdoAbort(code); ``explode`` holds

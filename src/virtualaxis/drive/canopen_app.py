@@ -1,12 +1,14 @@
 """The CiA 402 device application: plugs a :class:`~virtualaxis.drive.core.Drive` into a CiA 301
-:class:`~virtualaxis.canopen_slave.CanopenSlave` (the ``DeviceApplication`` hooks of docs/canopen-slave-api.md).
+:class:`~virtualaxis.canopen_slave.CanopenSlave` (the ``CanopenApplication`` hooks of docs/canopen-slave-api.md).
 
 - ``validate_write`` -> :meth:`Drive.check_object_write`; a refusal becomes the SDO abort code (an RPDO value
   refused is dropped and counted by the stack).
 - ``after_write`` -> :meth:`Drive.write_object` (controlword, mode, targets, parameters take effect at once).
-- The drive's changed objects (statusword, actual values, ...) are copied into the slave's dictionary by
-  :meth:`Cia402Application.flush`, which the runtime calls after every drive cycle and every poll, and which
-  the hooks call before an SDO upload and after a write.
+- The drive's per-cycle actual values go into the slave's dictionary as the cycle publishes them
+  (:meth:`ObjectTable.mirror_outputs <virtualaxis.drive.object_table.ObjectTable.mirror_outputs>`); its other
+  changed objects (statusword, parameters, ...) are copied by :meth:`Cia402Application.flush`, which the
+  runtime calls after every drive cycle and every poll, and which the hooks call before an SDO upload and after
+  a write.
 - EMCY: the drive's faults go out through ``slave.emcy`` (0x1001, 0x1003, 0x603F kept by the stack), a
   fault reset through ``slave.emcy_reset``.
 - NMT reset node: the drive restarts (application objects to defaults, state machine to switch on disabled).
@@ -14,7 +16,7 @@
 
 from __future__ import annotations
 
-from virtualaxis.canopen_slave import CanopenSlave, NmtState, SdoAbort
+from virtualaxis.canopen_slave import BaseApplication, CanopenSlave, NmtState, SdoAbort
 from virtualaxis.canopen_slave.nmt import NMT_STATE
 from virtualaxis.drive.core import ALIASES, OUTPUT_KEYS, Drive, ObjectAccessError
 from virtualaxis.drive.objects import SPECS
@@ -27,7 +29,7 @@ SYNC_LOSS_MIN_S = 0.050
 _DRIVE_KEYS = frozenset(SPECS) | frozenset(ALIASES)
 
 
-class Cia402Application:
+class Cia402Application(BaseApplication):
     """The bridge between one :class:`Drive` and one :class:`CanopenSlave`."""
 
     #: objects whose write only sets a value that the next write replaces (targets and offsets, no edge
@@ -37,12 +39,11 @@ class Cia402Application:
 
     def __init__(self, drive: Drive):
         self.drive = drive
+        self._table = drive.object_table  # (the drive's for its life: read by every flush)
+        self._counters = drive.counters
         self.slave: CanopenSlave | None = None
         self._entries: dict = {}
         self._float_keys: frozenset = frozenset()
-        self._output_entries: tuple = ()
-        self._output_float: tuple = ()
-        self._outputs_mirrored: tuple = ()
         self.nmt_state: NmtState | None = None
         self._batch: list[tuple[int, int, int | float]] | None = None  # RPDO entries being stored
         self._syncs_seen = 0
@@ -58,11 +59,9 @@ class Cia402Application:
         self._entries = {key: slave.entry(*key) for key in list(SPECS) + list(ALIASES) if key in slave.od.entries}
         #: keys whose OD entry is a REAL32/REAL64 (the drive may hold an int there)
         self._float_keys = frozenset(key for key, entry in self._entries.items() if entry.fmt in ("f", "d"))
-        #: the OD entries of the drive's per-cycle outputs (Drive.outputs order; None: not in the EDS), whether
-        #: each is REAL, and the outputs last copied into them
-        self._output_entries = tuple(self._entries.get(key) for key in OUTPUT_KEYS)
-        self._output_float = tuple(key in self._float_keys for key in OUTPUT_KEYS)
-        self._outputs_mirrored = (None,) * len(OUTPUT_KEYS)
+        # the drive's per-cycle outputs go into their OD entries (None: not in the EDS) as the cycle publishes them
+        self._table.mirror_outputs([self._entries.get(key) for key in OUTPUT_KEYS],
+                                   [key in self._float_keys for key in OUTPUT_KEYS])
         self._sync_from_slave()
 
     def missing_objects(self) -> list[tuple[int, int]]:
@@ -75,8 +74,7 @@ class Cia402Application:
         derived = drive.derived_objects()
         values = {key: entry.value for key, entry in self._entries.items() if key not in derived}
         drive.load_objects(values)
-        for key, value in derived.items():
-            drive._store(key, value)
+        drive.store_objects(derived)
         self.flush(everything=True)
 
     def flush(self, everything: bool = False) -> None:
@@ -84,39 +82,27 @@ class Cia402Application:
         slave = self.slave
         if slave is None:
             return
-        drive = self.drive
-        cycles = drive.counters["cycles"]
+        table = self._table
+        cycles = self._counters["cycles"]
         if cycles != self._cycles_watched or slave.counters["sync_received"] != self._syncs_seen:
             self._cycles_watched = cycles  # (nothing to watch while neither the drive nor the SYNCs moved)
             self._watch_sync(slave)
-        outputs = drive._published  # (Drive.outputs without the property call: every flush reads it)
-        if outputs is not self._outputs_mirrored:  # a cycle changed actual values: only those compared
-            # (CanopenSlave.write_entry inlined: ~10 values of every axis in every cycle)
-            for entry, value, old, real in zip(self._output_entries, outputs, self._outputs_mirrored,
-                                               self._output_float, strict=True):
-                if value != old and entry is not None:
-                    if real:
-                        value = float(value)
-                    if entry.value != value:
-                        entry.value = value
-                        for tpdo in entry.tpdos:
-                            tpdo.dirty = True
-            self._outputs_mirrored = outputs
+        drive = self.drive
         if everything:
             drive.take_changed()
             objects = drive.objects
             changes = [(key, objects[ALIASES.get(key, key)]) for key in self._entries]
-        elif not drive._changed:  # the common case of the several flushes per cycle
+        elif not table.changed():  # the common case of the several flushes per cycle
             return
         else:
             changes = drive.take_changed()
         float_keys = self._float_keys
-        for key, value in changes:  # (few per cycle since the outputs have their own loop above)
+        for key, value in changes:  # (few per cycle: the outputs went in as the cycle published them)
             entry = self._entries.get(key)
             if entry is not None:
                 slave.write_entry(entry, float(value) if key in float_keys else value)
 
-    # ------------------------------------------------------------------ DeviceApplication hooks
+    # ------------------------------------------------------------------ CanopenApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:
         if (index, sub) in _DRIVE_KEYS:
             try:

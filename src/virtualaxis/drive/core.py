@@ -47,6 +47,7 @@ from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
+from virtualaxis.drive.object_table import ObjectAccessError, ObjectTable
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults, eds_limits
 from virtualaxis.drive.profiles import WindowTimer
 from virtualaxis.drive.settings import drive_settings
@@ -179,32 +180,16 @@ def _value_ranges(limits: dict[tuple[int, int], tuple[float | None, float | None
     return out
 
 
-def _plain_int_ranges(value_ranges: dict) -> dict[tuple[int, int], tuple[int, int]]:
-    out = {}
-    for key, spec in SPECS.items():
-        if spec.access == "ro" or spec.dtype == "f32" or key[0] in _OWN_RULES:
-            continue
-        lo, hi = DTYPE_RANGES[spec.dtype]
-        lo2, hi2 = value_ranges.get(key, (lo, hi))
-        out[key] = (max(lo, lo2), min(hi, hi2))
-    for alias, target in ALIASES.items():
-        if target in out:
-            out[alias] = out[target]
-    return out
+def _plain_int_keys() -> frozenset[tuple[int, int]]:
+    """The writable integer objects without a rule of their own in :meth:`Drive.check_object_write`."""
+    return frozenset(key for key, spec in SPECS.items()
+                     if spec.access != "ro" and spec.dtype != "f32" and key[0] not in _OWN_RULES)
 
 
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
 _TRANSITIONS = {(state.value, bits): transition_for(state, decode(bits)) for state in Cia402State for bits in range(16)}
-
-
-class ObjectAccessError(Exception):
-    """A refused object access; ``code`` is the SDO abort code a CANopen master sees."""
-
-    def __init__(self, code: int, message: str):
-        super().__init__(message)
-        self.code = code
 
 
 class Drive:
@@ -253,9 +238,13 @@ class Drive:
                 self._value_ranges[key] = (lo, high)
             else:
                 del self._range_reasons[key]
-        self._plain_int_ranges = _plain_int_ranges(self._value_ranges)
+        #: the objects' values, aliases, changed set, shared write checks and per-cycle outputs
+        self.object_table = ObjectTable(ALIASES, _OUTPUT_KEYS, self._value_ranges, self._range_reasons,
+                                  _plain_int_keys())
+        #: set an object (and its alias) without reaction, marked changed (the table's store, bound once: the
+        #: statusword and counters go through it every cycle)
+        self._store: Callable[[tuple[int, int], int | float], None] = self.object_table.store
         self._observers: list[Callable[[str, DriveState], None]] = []
-        self._changed: set[tuple[int, int]] = set()
         self.emcy_sink: Callable[[int, int, bytes], None] | None = None  # (code, register bits, data)
         self.emcy_reset_sink: Callable[[], None] | None = None
         self.counters = {
@@ -270,6 +259,7 @@ class Drive:
         }
         self._refused_setpoint: str | None = None  # why the set-point of the write in progress was refused
         self._cycle_hooks: list[Callable[[Drive], None]] = []
+        self._switch_input: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None = None  # set_switch_input
         self._warnings: dict[int, int] = {}  # active warnings (set_warning): EMCY code -> alarm number
         self._reset_all()
 
@@ -411,13 +401,11 @@ class Drive:
     def _reset_all(self) -> None:
         """Power-on state: objects to defaults (spec <- EDS <- config), state machine to SWITCH ON DISABLED."""
         with self._lock:
-            self.objects: dict[tuple[int, int], int | float] = {s.key: s.default for s in SPECS.values()}
-            self.objects.update({k: v for k, v in self._eds_defaults.items() if k in SPECS})
-            self.objects.update(self.derived_objects())
-            for alias, target in ALIASES.items():
-                self.objects[alias] = self.objects[target]
-            self._changed = set(self.objects)
-            self._published: tuple = (None,) * len(_OUTPUT_KEYS)  # the outputs last published (none yet)
+            values: dict[tuple[int, int], int | float] = {s.key: s.default for s in SPECS.values()}
+            values.update({k: v for k, v in self._eds_defaults.items() if k in SPECS})
+            values.update(self.derived_objects())
+            #: the objects' values (the object table's dict: every object and alias, kept for the drive's life)
+            self.objects: dict[tuple[int, int], int | float] = self.object_table.reset(values)
             self._zero_m = 0.0  # plant position that reads as position 0 (shifted by homing)
             self._faults: list[FaultRecord] = []
             self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
@@ -492,38 +480,14 @@ class Drive:
 
     def read_object(self, index: int, sub: int = 0) -> int | float:
         with self._lock:
-            key = ALIASES.get((index, sub), (index, sub))
-            if key not in self.objects:
-                raise ObjectAccessError(ABORT_NO_OBJECT, f"0x{index:04X}:{sub} is not a drive object")
-            return self.objects[key]
+            return self.object_table.read(index, sub)
 
     def check_object_write(self, index: int, sub: int, value) -> None:
         """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
-        plain = self._plain_int_ranges.get((index, sub))
-        if plain is not None and type(value) is int and plain[0] <= value <= plain[1]:
-            return  # (an integer object without rules of its own, value in range: what the checks below find)
-        key = ALIASES.get((index, sub), (index, sub))
-        spec = SPECS.get(key)
+        spec = self.object_table.check_write(index, sub, value)  # existence, access, type, value ranges
         if spec is None:
-            raise ObjectAccessError(ABORT_NO_OBJECT, f"0x{index:04X}:{sub} is not a drive object")
-        if spec.access == "ro":
-            raise ObjectAccessError(ABORT_READ_ONLY, f"0x{index:04X}:{sub} {spec.name} is read-only")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{index:04X}:{sub} needs a number")
-        if spec.dtype != "f32" and value != int(value):
-            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{index:04X}:{sub} needs an integer")
-        lo, hi = DTYPE_RANGES[spec.dtype]
-        if value > hi:
-            raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi}")
-        if value < lo:
-            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo}")
-        if key in self._value_ranges:
-            lo2, hi2 = self._value_ranges[key]
-            if value > hi2:
-                raise ObjectAccessError(ABORT_VALUE_TOO_HIGH, f"0x{index:04X}:{sub} {spec.name}: {value} > {hi2}"
-                                        + self._range_reasons.get(key, ""))
-            if value < lo2:
-                raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} {spec.name}: {value} < {lo2}")
+            return  # (an integer object without rules of its own, value in range)
+        key = spec.key
         if (
             key == (0x6060, 0)
             and value != 0
@@ -565,10 +529,9 @@ class Drive:
         with self._lock:
             if not checked:
                 self.check_object_write(index, sub, value)
-            key = ALIASES.get((index, sub), (index, sub))
-            spec = SPECS[key]
-            value = float(value) if spec.dtype == "f32" else int(value)
-            self._store(key, value)
+            key = self.object_table.key(index, sub)
+            value = float(value) if SPECS[key].dtype == "f32" else int(value)
+            self.object_table.store(key, value)
             if key[0] in _MONITOR_PARAMETER_INDICES:
                 self._params_dirty = True
             self._refused_setpoint = None
@@ -583,12 +546,15 @@ class Drive:
         the target 0x607A in one RPDO start the move to the NEW target."""
         with self._lock:
             keyed = []
+            table = self.object_table
+            aliases, store = table.aliases, table.store
             for index, sub, value in items:
                 if not checked:
                     self.check_object_write(index, sub, value)
-                key = ALIASES.get((index, sub), (index, sub))
+                key = (index, sub)
+                key = aliases.get(key, key)
                 value = float(value) if SPECS[key].dtype == "f32" else int(value)
-                self._store(key, value)
+                store(key, value)
                 if key[0] in _MONITOR_PARAMETER_INDICES:
                     self._params_dirty = True
                 keyed.append((key, value))
@@ -606,7 +572,7 @@ class Drive:
                 spec = SPECS.get(ALIASES.get(key, key))
                 if spec is None or spec.access == "ro" or key in ((0x6040, 0), (0x6060, 0)):
                     continue
-                self._store(spec.key, float(value) if spec.dtype == "f32" else int(value))
+                self.object_table.store(spec.key, float(value) if spec.dtype == "f32" else int(value))
             self._update_scaling()
             self._apply_gains()
             self._params_dirty = True
@@ -621,27 +587,26 @@ class Drive:
         see whether anything did); :attr:`objects` holds the same values. These objects are not reported by
         :meth:`take_changed` after a cycle (a mirror compares this tuple instead: one comparison per value and
         cycle, no set)."""
-        return self._published
+        return self.object_table.outputs
+
+    def changed(self) -> bool:
+        """Whether an object changed since the last :meth:`take_changed` (the per-cycle actual values in
+        :attr:`outputs` not counted); lock-free, for a mirror that polls often."""
+        return self.object_table.changed()
 
     def take_changed(self) -> list[tuple[tuple[int, int], int | float]]:
         """Objects changed since the last call: ((index, sub), value), the values as of this call; the
         per-cycle actual values are in :attr:`outputs` instead (they are reported here only after a reset)."""
-        if not self._changed:  # (read without the lock: a change being made now is taken by the next call)
+        if not self.object_table.changed():  # (no lock: a change being made now is taken by the next call)
             return []
         with self._lock:
-            o = self.objects
-            out = [(k, o[k]) for k in self._changed]
-            self._changed = set()
-            return out
+            return self.object_table.take_changed()
 
-    def _store(self, key: tuple[int, int], value) -> None:
-        if self.objects.get(key) != value:
-            self.objects[key] = value
-            self._changed.add(key)
-            alias = ALIASES_BACK.get(key)
-            if alias is not None:
-                self.objects[alias] = value
-                self._changed.add(alias)
+    def store_objects(self, values: dict[tuple[int, int], int | float]) -> None:
+        """Set objects without the reactions of a master write (e.g. the config-derived ones back after the
+        slave's dictionary was loaded); changed ones are reported by :meth:`take_changed`."""
+        with self._lock:
+            self.object_table.store_all(values)
 
     def _obj(self, index: int, sub: int = 0):
         return self.objects[(index, sub)]
@@ -1062,7 +1027,21 @@ class Drive:
         switch is active below its position for methods 21 / 22, above it otherwise."""
         neg_at, pos_at, h = self._switch_at_m
         home = x_plant_m <= h if method == 21 or method == 22 else x_plant_m >= h
+        if self._switch_input is not None:
+            return self._switch_input(x_plant_m <= neg_at, x_plant_m >= pos_at, home)
         return x_plant_m <= neg_at, x_plant_m >= pos_at, home
+
+    def add_motor_heat(self, rise_k: float) -> None:
+        """Raise the motor winding temperature by ``rise_k`` [K] (the thermal model cools it from there)."""
+        with self._lock:
+            self._motor_rise_k += rise_k
+
+    def set_switch_input(self, fn: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None) -> None:
+        """Put ``fn`` between the switch positions and the drive's inputs: it gets the (negative limit, positive
+        limit, home) readings of the plant position and returns what the drive sees (fault injection forces a
+        limit switch this way); ``None`` takes it away."""
+        with self._lock:
+            self._switch_input = fn
 
     # ================================================================================ cycle
     def step(self, n_cycles: int = 1) -> None:
@@ -1396,12 +1375,7 @@ class Drive:
             self.counters["cycles"] & 0xFFFFFFFF,
             o[(0x6074, 0)] if self._mode in TORQUE_MODES else torque_pm,  # torque demand (torque modes: theirs)
         )
-        last = self._published
-        if values != last:
-            for key, value, old in zip(_OUTPUT_KEYS, values, last, strict=True):
-                if value != old:
-                    o[key] = value
-            self._published = values  # (not in _changed: a mirror compares :attr:`outputs` itself)
+        self.object_table.publish(values)
 
     def record_overrun(self, n: int = 1) -> None:
         """The runtime reports cycles that started late (shown in 0x2110:2 and the counters)."""

@@ -46,9 +46,11 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from virtualaxis.canopen_slave.app import CanopenApplication
 
 #: kind name -> number used on the CANopen channel (0x5FF0 / 0x5FF1)
 KINDS: dict[str, int] = {
@@ -143,10 +145,10 @@ class FaultInjector:
         self._drop_heartbeat = False
         self._bus_off = False
         self._switch_force = 0  # +1 / -1: limit switch input forced active
-        self._orig_switches: Callable | None = None
+        self._switch_hooked = False  # self._switches is the drive's switch input
         drive.add_cycle_hook(self._cycle)
         if slave is not None:
-            self._wrap_slave(slave)
+            self.attach_slave(slave)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -178,7 +180,7 @@ class FaultInjector:
             raise InjectionRefused(ABORT_VALUE_INVALID, f"period_s must be 0.002..3600 s (got {period_s!r})")
         if magnitude is not None and not math.isfinite(magnitude):
             raise InjectionRefused(ABORT_VALUE_INVALID, "magnitude must be finite")
-        with self.drive._lock, self._lock:
+        with self.drive.lock, self._lock:
             self._release(kind)
             inj = Injection(kind, float(duty), float(period_s), float(magnitude or 0.0), self.now_s())
             if kind == "limit_switch":
@@ -195,7 +197,7 @@ class FaultInjector:
         master resets it, as on a real drive."""
         if kind is not None and kind not in KINDS:
             raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind {kind!r} (known: {', '.join(KINDS)})")
-        with self.drive._lock, self._lock:
+        with self.drive.lock, self._lock:
             for k in [kind] if kind else list(self._active):
                 self._release(k)
 
@@ -251,8 +253,8 @@ class FaultInjector:
             if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED":
                 drive.raise_fault(EMCY_OF_KIND["over_current"], 0)
         elif inj.kind == "motor_overtemperature":
-            if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED" and hasattr(drive, "_motor_rise_k"):
-                drive._motor_rise_k += (inj.magnitude or DEFAULT_HEATING_K_S) * drive.cycle_s
+            if getattr(drive.cia402_state, "name", "") == "OPERATION_ENABLED" and hasattr(drive, "add_motor_heat"):
+                drive.add_motor_heat((inj.magnitude or DEFAULT_HEATING_K_S) * drive.cycle_s)
 
     def _brake_force(self, inj: Injection) -> float:
         """A holding brake clamping the table [N]: a stiff spring-damper anchored where the table was when it
@@ -326,25 +328,23 @@ class FaultInjector:
         self.drive.communication_error("bus_off", 0)
 
     def _force_switch(self, side: int) -> None:
-        """Force the limit switch input (the drive's ``_switches`` reading) active on ``side``."""
+        """Force the limit switch input (:meth:`Drive.set_switch_input`) active on ``side`` (0: as the plant is)."""
         drive = self.drive
         self._switch_force = side
-        if self._orig_switches is None and hasattr(drive, "_switches"):
-            orig = drive._switches
-            self._orig_switches = orig
-
-            def switches(x_plant_m: float, method: int | None = None) -> tuple[bool, bool, bool]:
-                neg, pos, home = orig(x_plant_m, method)
-                f = self._switch_force
-                return neg or f < 0, pos or f > 0, home
-
-            drive._switches = switches
-        if self._orig_switches is None and side:  # a drive without a switch input: the fault directly
+        if not self._switch_hooked and hasattr(drive, "set_switch_input"):
+            drive.set_switch_input(self._switches)
+            self._switch_hooked = True
+        if not self._switch_hooked and side:  # a drive without a switch input: the fault directly
             drive.raise_fault(0xFF11 if side > 0 else 0xFF10, 0)
 
+    def _switches(self, neg: bool, pos: bool, home: bool) -> tuple[bool, bool, bool]:
+        f = self._switch_force
+        return neg or f < 0, pos or f > 0, home
+
     # ------------------------------------------------------------------ CAN side (served drive)
-    def _wrap_slave(self, slave: Any) -> None:
-        """Frame-level effects: lost RPDOs, lost master heartbeat, bus-off (nothing in or out)."""
+    def attach_slave(self, slave: Any) -> None:
+        """Serve the frame-level effects on ``slave``'s frames: lost RPDOs, lost master heartbeat, bus-off
+        (nothing in or out)."""
         receive, send = slave.receive, slave.send
 
         def filtered_receive(msg: Any) -> None:
@@ -394,14 +394,20 @@ class InjectionApp:
 
     Writes (and writes of the drive's own injection object 0x2010) are refused with abort 0x08000022 (not in
     the present device state) unless ``allowed``; an unknown
-    kind or a bad option with 0x06090030. Every other object goes to the wrapped application unchanged."""
+    kind or a bad option with 0x06090030. Every other object goes to the wrapped application unchanged
+    (a :class:`~virtualaxis.canopen_slave.CanopenApplication` itself)."""
 
-    def __init__(self, app: Any, injector: FaultInjector):
+    def __init__(self, app: CanopenApplication, injector: FaultInjector):
         self._app = app
         self.injector = injector
-
-    def __getattr__(self, name: str) -> Any:  # begin_pdo, end_pdo, on_nmt_state, ...
-        return getattr(self._app, name)
+        self.setpoint_objects = app.setpoint_objects
+        # the hooks without a channel object of their own are the wrapped application's (bound: RPDO hot path)
+        self.begin_pdo = app.begin_pdo
+        self.end_pdo = app.end_pdo
+        self.on_nmt_state = app.on_nmt_state
+        self.on_communication_error = app.on_communication_error
+        self.on_reset = app.on_reset
+        self.has_error = app.has_error
 
     def validate_write(self, index: int, sub: int, value: Any) -> None:
         if index == OBJ_LEGACY_INJECT and not self.injector.allowed:
@@ -455,5 +461,5 @@ def serve_with_injection(bus: Any, node_id: int, drive: Any, app: Any, eds_path:
     wrapper = InjectionApp(app, injector)
     slave = CanopenSlave(bus, node_id, eds_path, app=wrapper, store_path=store_path)
     injector.slave = slave
-    injector._wrap_slave(slave)
+    injector.attach_slave(slave)
     return slave, injector

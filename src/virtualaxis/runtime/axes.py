@@ -92,12 +92,7 @@ class AxisNode:
         drive = self.drive
         state = getattr(drive.cia402_state, "name", "")
         if state not in ("FAULT", "FAULT_REACTION_ACTIVE"):
-            raise_fault = getattr(drive, "raise_fault", None)
-            if raise_fault is not None:
-                raise_fault(code)
-            else:  # (until Drive.raise_fault exists: the drive's own fault path, cleared by a fault reset)
-                with drive._lock:
-                    drive._raise_fault(code)
+            drive.raise_fault(code)
         self.app.flush()
 
     @property
