@@ -359,6 +359,9 @@ class LivePageService:
             return
         self.counters["requests"] += 1
         try:
+            if "upgrade" in headers:
+                raise HttpRefusal(400, f"no protocol upgrade here (asked for {headers['upgrade'][:30]!r}): live updates "
+                                  "are server-sent events at /api/axes/NAME/events")
             if path.startswith("/api/axes/") and path.endswith("/events") and method == "GET":
                 ax = self._axis(path[len("/api/axes/"):-len("/events")])
                 await self._stream(ax, writer)
@@ -466,6 +469,9 @@ class LivePageService:
                 return self._recording(ax, query)
             if what == "write":
                 self._only(method, "POST")
+                if not self.writable:
+                    self.counters["writes_refused"] += 1
+                    raise HttpRefusal(403, "the page is read-only (serve with --http-writable to write objects)")
                 return _json(200, self.write(ax, _json_body(headers, body)))
             if what == "fault":
                 self._only(method, "POST")
