@@ -360,8 +360,8 @@ class LivePageService:
         self.counters["requests"] += 1
         try:
             if "upgrade" in headers:
-                raise HttpRefusal(400, f"no protocol upgrade here (asked for {headers['upgrade'][:30]!r}): live updates "
-                                  "are server-sent events at /api/axes/NAME/events")
+                raise HttpRefusal(400, f"no protocol upgrade here (asked for {headers['upgrade'][:30]!r}): live "
+                                  "updates are server-sent events at /api/axes/NAME/events")
             if path.startswith("/api/axes/") and path.endswith("/events") and method == "GET":
                 ax = self._axis(path[len("/api/axes/"):-len("/events")])
                 await self._stream(ax, writer)
