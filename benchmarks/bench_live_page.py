@@ -134,12 +134,64 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
     return out
 
 
+def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
+    """In-process cost of the page's cycle hook: one drive in CSP (a target written and one ``Drive.step`` per
+    cycle), alternately without and with the sample ring attached; best of ``repeats`` runs of ``cycles`` cycles
+    [us of this thread's CPU time per cycle]; and the page thread's cost of draining (converting) one second of
+    cycles."""
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.drive.core import Drive
+    from virtualaxis.services.http.ring import SampleRing
+
+    drive = Drive(load_axis_config(REPO / CONFIG))
+    drive.write_object(0x6060, 0, 8)
+    for cw in (6, 7, 15):
+        drive.write_object(0x6040, 0, cw)
+    ring = SampleRing(drive, 60.0)
+    k = [0]
+
+    def run(drain_every: int = 0) -> tuple[float, float]:
+        """(drive cycle, drain) CPU time per cycle [us]; a drain every ``drain_every`` cycles (as the page's
+        thread does at 60 Hz and 1 kHz: every ~16 cycles), timed apart."""
+        spent = 0.0
+        t0 = time.thread_time()
+        for i in range(cycles):
+            k[0] += 1
+            drive.write_object(0x607A, 0, int(10000 * np.sin(k[0] * 2e-3)))
+            drive.step(1)
+            if drain_every and i % drain_every == drain_every - 1:
+                t1 = time.thread_time()
+                ring.drain()
+                spent += time.thread_time() - t1
+        total = time.thread_time() - t0
+        return (total - spent) / cycles * 1e6, spent / cycles * 1e6
+
+    run()
+    best = {"without": float("inf"), "with": float("inf")}
+    drain = float("inf")
+    for _ in range(repeats):
+        best["without"] = min(best["without"], run()[0])
+        ring.attach()
+        with_page, drain_us = run(16)
+        best["with"] = min(best["with"], with_page)
+        drain = min(drain, drain_us)
+        ring.detach()
+    return {"cycle_us_without_page": best["without"], "cycle_us_with_page": best["with"],
+            "hook_us": best["with"] - best["without"], "ratio": best["with"] / best["without"],
+            "drain_us_per_cycle": drain}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=10.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="passes over off, page")
     ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--hook-cost", action="store_true", help="only the in-process cost of the page's cycle hook")
     opts = ap.parse_args()
+    if opts.hook_cost:
+        res = hook_cost()
+        print(json.dumps(res | {"machine": machine_info()}, indent=1))
+        return 0
     import tempfile
 
     results = []

@@ -22,7 +22,7 @@ import numpy as np
 COLUMNS = ("pos_cmd", "pos_fb", "following_error", "vel_meas", "torque_meas", "current_q", "statusword")
 #: position of each column's source value in Drive.outputs (0x6062, 0x6064, 0x60F4, 0x606C, 0x6077, 0x6078)
 _OUT_INDEX = (1, 3, 9, 5, 6, 7)
-_STATUSWORD = 0x6041
+_STATUSWORD_KEY = (0x6041, 0)
 _RATED_CURRENT = 0x6075  # mA
 _RATED_TORQUE = 0x6076  # mN m (N for a force actuator)
 HANDOFF_SLOTS = 1 << 14  # drive cycles the page's thread may fall behind (16 s at a 1 ms cycle)
@@ -40,7 +40,8 @@ class SampleRing:
         self.drive = drive
         self.cycle_s = float(drive.cycle_s)
         self.capacity = max(1024, int(round(seconds / self.cycle_s)))
-        self._hand: list = [None] * HANDOFF_SLOTS
+        self._outs: list = [None] * HANDOFF_SLOTS  # Drive.outputs of each cycle
+        self._sws: list = [None] * HANDOFF_SLOTS  # statusword of each cycle
         self._mask = HANDOFF_SLOTS - 1
         self.handed = 0  # cycles handed over by the hook (only the runtime thread writes it)
         self.rows = np.full((self.capacity, len(COLUMNS)), np.nan)
@@ -53,9 +54,12 @@ class SampleRing:
 
     # ------------------------------------------------------------------ runtime thread
     def hook(self, drive) -> None:
-        """The cycle hook: keep the output tuple and the statusword of the cycle before."""
+        """The cycle hook: keep the output tuple and the statusword of the cycle before (the hook runs under the
+        drive's lock: its object table is read directly, ~0.4 us, not through read_object, ~4 us)."""
         n = self.handed
-        self._hand[n & self._mask] = (drive.outputs, drive.read_object(_STATUSWORD))
+        i = n & self._mask
+        self._outs[i] = drive.outputs
+        self._sws[i] = drive.objects[_STATUSWORD_KEY]
         self.handed = n + 1
 
     def attach(self) -> SampleRing:
@@ -78,30 +82,37 @@ class SampleRing:
                 self._lost_until = self.written  # (the rows before it and after it are not contiguous)
             if end <= start:
                 return self.written, self.written
-            hand, mask = self._hand, self._mask
-            items = [hand[i & mask] for i in range(start, end)]
-            outs = np.array([o for o, _ in items], dtype=float)
+            a, b = start & self._mask, end & self._mask
+            if a < b:
+                out_refs, sws = self._outs[a:b], self._sws[a:b]
+                self._outs[a:b] = self._sws[a:b] = [None] * (b - a)  # (no tuple kept alive longer than needed)
+            else:
+                out_refs, sws = self._outs[a:] + self._outs[:b], self._sws[a:] + self._sws[:b]
+                self._outs[a:] = self._sws[a:] = [None] * (HANDOFF_SLOTS - a)
+                self._outs[:b] = self._sws[:b] = [None] * b
+            n_new = len(out_refs)
+            outs = np.array(out_refs, dtype=float)
             if outs.ndim != 2:  # (the drive had published nothing yet: a tuple of None)
-                outs = np.full((len(items), 15), np.nan)
+                outs = np.full((n_new, 15), np.nan)
             drive = self.drive
             m_per_unit = float(drive.scaling.metres_per_unit)
             rated_nm = float(drive.read_object(_RATED_TORQUE)) * 1e-3
             rated_a = float(drive.read_object(_RATED_CURRENT)) * 1e-3
-            block = np.empty((len(items), len(COLUMNS)))
+            block = np.empty((n_new, len(COLUMNS)))
             block[:, :4] = outs[:, _OUT_INDEX[:4]] * m_per_unit
             block[:, 4] = outs[:, _OUT_INDEX[4]] * (rated_nm * 1e-3)  # per mille of the rated torque
             block[:, 5] = outs[:, _OUT_INDEX[5]] * (rated_a * 1e-3)  # per mille of the rated current
-            block[:, 6] = [sw for _, sw in items]
+            block[:, 6] = sws
             first = self.written
             if self._first_cycle is None:
                 cyc = outs[0, 13]
                 self._first_cycle = int(cyc) if np.isfinite(cyc) else 0
-            seq = np.arange(first, first + len(items))
+            seq = np.arange(first, first + n_new)
             times = (self._first_cycle + seq + self.lost) * self.cycle_s
             pos = seq % self.capacity
             self.rows[pos] = block
             self.times_s[pos] = times
-            self.written = first + len(items)
+            self.written = first + n_new
             return first, self.written
 
     def oldest(self) -> int:
