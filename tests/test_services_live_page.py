@@ -230,6 +230,96 @@ def test_writes_answer_as_sdo_and_bad_requests_change_nothing():
         assert "Traceback" not in s.stderr
 
 
+def _ws_open(url: str, path: str) -> socket.socket:
+    """A raw WebSocket handshake on ``path``; the socket after the 101 answer."""
+    u = urllib.parse.urlsplit(url)
+    sock = socket.create_connection((u.hostname, u.port), timeout=10)
+    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: {u.netloc}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += sock.recv(1)
+    assert head.startswith(b"HTTP/1.1 101") and b"s3pPLMBiTxaQ9kYGzzhZRbK+xOo=" in head, head
+    return sock
+
+
+def _ws_read(sock: socket.socket) -> tuple[int, bytes]:
+    def exact(n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = sock.recv(n - len(data))
+            if not chunk:
+                raise ConnectionError("closed")
+            data += chunk
+        return data
+
+    b0, b1 = exact(2)
+    n = b1 & 0x7F
+    if n == 126:
+        n = int.from_bytes(exact(2), "big")
+    elif n == 127:
+        n = int.from_bytes(exact(8), "big")
+    return b0 & 0x0F, exact(n)
+
+
+def _ws_frame(opcode: int, payload: bytes, *, masked: bool = True, rsv: int = 0, length: int | None = None) -> bytes:
+    n = len(payload) if length is None else length
+    head = bytes((0x80 | rsv | opcode,)) + (bytes(((0x80 if masked else 0) | n,)) if n < 126 else
+                                            bytes(((0x80 if masked else 0) | 126,)) + n.to_bytes(2, "big"))
+    if not masked:
+        return head + payload
+    mask = b"\x01\x02\x03\x04"
+    return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+def test_websocket_sends_live_updates_and_refuses_what_it_does_not_take():
+    with served("--http", "127.0.0.1:0", "--http-writable") as s:
+        url = page_url(s)
+        path = f"/api/axes/{AXIS}/live"
+        sock = _ws_open(url, path)
+        events = set()
+        while not {"state", "scope"} <= events:
+            op, data = _ws_read(sock)
+            assert op == 0x1
+            events.add(json.loads(data)["event"])
+        # a data message: an error message back, the socket stays open
+        sock.sendall(_ws_frame(0x1, b'{"index": "0x6081", "value": 1}'))
+        while True:
+            op, data = _ws_read(sock)
+            msg = json.loads(data)
+            if msg["event"] == "error":
+                assert "only sends" in msg["data"]["error"]
+                break
+        sock.sendall(_ws_frame(0x9, b"hi"))
+        while (got := _ws_read(sock))[0] != 0xA:
+            pass
+        assert got[1] == b"hi"
+        sock.close()
+        # frames that break the protocol: closed with 1002 / 1009 and a reason
+        for frame, code in [(_ws_frame(0x1, b"{}", masked=False), 1002), (_ws_frame(0x1, b"{}", rsv=0x40), 1002),
+                            (_ws_frame(0x3, b"{}"), 1002), (_ws_frame(0x9, b"x" * 126), 1002),
+                            (_ws_frame(0x1, b"", length=5000), 1009)]:
+            sock = _ws_open(url, path)
+            sock.sendall(frame)
+            while (got := _ws_read(sock))[0] != 0x8:
+                pass
+            assert int.from_bytes(got[1][:2], "big") == code and got[1][2:], (frame[:4], got)
+            sock.close()
+        # handshakes that are not: refused with a clear answer
+        for raw in [f"GET {path} HTTP/1.1\r\n\r\n",
+                    f"GET {path} HTTP/1.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    "Sec-WebSocket-Key: short\r\nSec-WebSocket-Version: 13\r\n\r\n",
+                    f"GET {path} HTTP/1.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 8\r\n\r\n"]:
+            st, body = raw_request(url, raw.encode())
+            assert st == 400 and body["error"], raw
+        st, body = request(url + f"api/axes/{AXIS}/objects")
+        assert st == 200
+        assert {(o["index"], o["sub"]): o.get("value") for o in body["objects"]}[("0x6081", 0)] != 1
+        s.stop()
+        assert "Traceback" not in s.stderr
+
+
 def test_read_only_page_refuses_writes_and_fault_injection():
     with served("--http", "127.0.0.1:0") as s:
         api = page_url(s) + f"api/axes/{AXIS}"

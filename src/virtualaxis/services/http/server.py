@@ -280,7 +280,7 @@ class LivePageService:
                 self._broadcast(ax, b"state", json.dumps(self.state_of(ax), default=str).encode())
 
     def _broadcast(self, ax: AxisPage, event: bytes, data: bytes) -> None:
-        msg = b"event: " + event + b"\ndata: " + data + b"\n\n"
+        msg = (event, data)
         for q in ax.streams:
             if q.full():
                 self.counters["messages_skipped"] += 1
@@ -359,9 +359,13 @@ class LivePageService:
             return
         self.counters["requests"] += 1
         try:
+            if path.startswith("/api/axes/") and path.endswith("/live") and method == "GET":
+                ax = self._axis(path[len("/api/axes/"):-len("/live")])
+                await self._websocket(ax, headers, reader, writer)
+                return
             if "upgrade" in headers:
-                raise HttpRefusal(400, f"no protocol upgrade here (asked for {headers['upgrade'][:30]!r}): live "
-                                  "updates are server-sent events at /api/axes/NAME/events")
+                raise HttpRefusal(400, f"no protocol upgrade here (asked for {headers['upgrade'][:30]!r}): the "
+                                  "WebSocket of the live updates is /api/axes/NAME/live")
             if path.startswith("/api/axes/") and path.endswith("/events") and method == "GET":
                 ax = self._axis(path[len("/api/axes/"):-len("/events")])
                 await self._stream(ax, writer)
@@ -651,7 +655,7 @@ class LivePageService:
         writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\n"
                      b"Connection: keep-alive\r\nX-Content-Type-Options: nosniff\r\n\r\n"
                      b"retry: 1000\n\n")
-        q.put_nowait(b"event: state\ndata: " + json.dumps(self.state_of(ax), default=str).encode() + b"\n\n")
+        q.put_nowait((b"state", json.dumps(self.state_of(ax), default=str).encode()))
         ax.streams.add(q)
         self.counters["streams_opened"] += 1
         try:
@@ -659,10 +663,106 @@ class LivePageService:
                 msg = await q.get()
                 if msg is None:
                     return
-                writer.write(msg)
+                writer.write(b"event: " + msg[0] + b"\ndata: " + msg[1] + b"\n\n")
                 await writer.drain()
         finally:
             ax.streams.discard(q)
+
+    async def _websocket(self, ax: AxisPage, headers: dict, reader: asyncio.StreamReader,
+                         writer: asyncio.StreamWriter) -> None:
+        """The live updates over a WebSocket (RFC 6455): the messages of the event stream as text frames
+        ``{"event": ..., "data": ...}``. The socket only sends: a data message from the browser is answered with
+        an ``error`` message (nothing changes); a frame that breaks the protocol (unmasked, reserved bits, unknown
+        opcode, over 4 KiB) closes the socket with code 1002 / 1009 and the reason."""
+        if headers.get("upgrade", "").lower() != "websocket" or "upgrade" not in headers.get("connection", "").lower():
+            raise HttpRefusal(400, "this is the WebSocket of the live updates: send Upgrade: websocket (or read the "
+                              "server-sent events at /api/axes/NAME/events)")
+        key = headers.get("sec-websocket-key", "")
+        try:
+            valid_key = len(base64.b64decode(key, validate=True)) == 16
+        except ValueError:
+            valid_key = False
+        if not valid_key:
+            raise HttpRefusal(400, "Sec-WebSocket-Key: missing or not 16 bytes in base64")
+        if headers.get("sec-websocket-version") != "13":
+            raise HttpRefusal(400, "Sec-WebSocket-Version: only 13")
+        if sum(len(a.streams) for a in self.axes.values()) >= MAX_STREAMS:
+            raise HttpRefusal(503, f"{MAX_STREAMS} live streams open already (close a tab)")
+        import hashlib
+
+        accept = base64.b64encode(hashlib.sha1((key + _WS_GUID).encode()).digest()).decode()
+        writer.write(("HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                      f"Sec-WebSocket-Accept: {accept}\r\n\r\n").encode())
+        q: asyncio.Queue = asyncio.Queue(STREAM_QUEUE)
+        q.put_nowait((b"state", json.dumps(self.state_of(ax), default=str).encode()))
+        ax.streams.add(q)
+        self.counters["streams_opened"] += 1
+        listener = asyncio.ensure_future(self._ws_listen(reader, q))
+        try:
+            while True:
+                msg = await q.get()
+                if msg is None:
+                    return
+                if isinstance(msg, tuple):
+                    writer.write(_ws_frame(0x1, b'{"event": "' + msg[0] + b'", "data": ' + msg[1] + b"}"))
+                else:  # a frame of the listener (pong, close)
+                    writer.write(msg)
+                    if msg[0] & 0x0F == 0x8:
+                        await _drain(writer)
+                        return
+                await writer.drain()
+        finally:
+            listener.cancel()
+            ax.streams.discard(q)
+
+    async def _ws_listen(self, reader: asyncio.StreamReader, q: asyncio.Queue) -> None:
+        """Frames from the browser: ping -> pong, close -> close, a data message -> an error message."""
+
+        def close(code: int, reason: str) -> None:
+            self.counters["refused"] += 1 if code != 1000 else 0
+            while q.full():  # (the close frame must get through)
+                q.get_nowait()
+            q.put_nowait(_ws_frame(0x8, code.to_bytes(2, "big") + reason.encode()[:120]))
+
+        try:
+            while True:
+                head = await reader.readexactly(2)
+                fin, rsv, opcode = head[0] & 0x80, head[0] & 0x70, head[0] & 0x0F
+                masked, n = head[1] & 0x80, head[1] & 0x7F
+                if n == 126:
+                    n = int.from_bytes(await reader.readexactly(2), "big")
+                elif n == 127:
+                    n = int.from_bytes(await reader.readexactly(8), "big")
+                if rsv:
+                    return close(1002, "reserved bits set (no extension was negotiated)")
+                if not masked:
+                    return close(1002, "client frames must be masked")
+                if opcode not in (0x0, 0x1, 0x2, 0x8, 0x9, 0xA):
+                    return close(1002, f"unknown opcode 0x{opcode:X}")
+                if opcode >= 0x8 and (n > 125 or not fin):
+                    return close(1002, "control frame longer than 125 bytes or fragmented")
+                if n > MAX_BODY_BYTES:
+                    return close(1009, f"message of {n} bytes (at most {MAX_BODY_BYTES}; this socket only sends)")
+                mask = await reader.readexactly(4)
+                payload = bytes(b ^ mask[i % 4] for i, b in enumerate(await reader.readexactly(n)))
+                if opcode == 0x8:
+                    return close(1000, "")
+                if opcode == 0x9:
+                    if not q.full():
+                        q.put_nowait(_ws_frame(0xA, payload))
+                    continue
+                if opcode == 0xA:
+                    continue
+                self.counters["refused"] += 1
+                if not q.full():
+                    err = {"error": "this socket only sends the live updates; it takes no messages (writes: POST "
+                           "/api/axes/NAME/write, fault injection: POST /api/axes/NAME/fault)",
+                           "received_bytes": n}
+                    q.put_nowait((b"error", json.dumps(err).encode()))
+        except (asyncio.IncompleteReadError, ConnectionError):
+            while q.full():
+                q.get_nowait()
+            q.put_nowait(None)
 
     # ------------------------------------------------------------------ responses
     def _respond(self, writer, status: int, ctype: str, payload: bytes, extra: dict | None = None) -> None:
@@ -675,6 +775,21 @@ class LivePageService:
     def _respond_json(self, writer, status: int, obj: dict) -> None:
         extra = {"Allow": obj.pop("allow")} if "allow" in obj else {}
         self._respond(writer, status, "application/json", json.dumps(obj, default=str).encode(), extra)
+
+
+_WS_GUID = "258EAFA5-E914-47DA-95CA-C5AB0DC85B11"  # RFC 6455
+
+
+def _ws_frame(opcode: int, payload: bytes) -> bytes:
+    """One unmasked, unfragmented WebSocket frame (server to client)."""
+    n = len(payload)
+    if n < 126:
+        head = bytes((0x80 | opcode, n))
+    elif n < 1 << 16:
+        head = bytes((0x80 | opcode, 126)) + n.to_bytes(2, "big")
+    else:
+        head = bytes((0x80 | opcode, 127)) + n.to_bytes(8, "big")
+    return head + payload
 
 
 async def _drain(writer) -> None:

@@ -41,13 +41,20 @@ async function main() {
 }
 
 // ------------------------------------------------------------------------------------------------ events
+// a WebSocket (not server-sent events: a browser opens at most 6 HTTP/1.1 streams per server, 10 tabs would stall)
 function connect() {
-  const es = new EventSource(api("/events"));
-  page.events = es;
-  es.addEventListener("open", () => { $("link-status").textContent = "live"; $("link-status").className = "badge live"; });
-  es.addEventListener("error", () => { $("link-status").textContent = "reconnecting"; $("link-status").className = "badge down"; });
-  es.addEventListener("state", (ev) => showState(JSON.parse(ev.data)));
-  es.addEventListener("scope", (ev) => addChunk(JSON.parse(ev.data)));
+  const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + api("/live"));
+  page.socket = ws;
+  ws.onopen = () => { $("link-status").textContent = "live"; $("link-status").className = "badge live"; };
+  ws.onclose = () => {
+    $("link-status").textContent = "reconnecting"; $("link-status").className = "badge down";
+    setTimeout(connect, 1000);
+  };
+  ws.onmessage = (ev) => {
+    const m = JSON.parse(ev.data);
+    if (m.event === "scope") addChunk(m.data);
+    else if (m.event === "state") showState(m.data);
+  };
 }
 
 function addChunk(m) {
