@@ -8,6 +8,7 @@ import json
 import os
 import re
 import socket
+import subprocess
 import threading
 import time
 import urllib.request
@@ -17,7 +18,7 @@ import canopen
 import numpy as np
 import pytest
 from cdp_browser import CHROMIUM, Browser, wait_for_file
-from served_drive import served
+from served_drive import CLI, ROOT, served
 
 from virtualaxis.master import LockstepMaster, connect
 
@@ -125,6 +126,11 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
     path = wait_for_file(downloads, ".csv")
     from virtualaxis.diagnosis.trace import read_trace
 
+    diag = subprocess.run([*CLI, "diagnose", "--config", CONFIG, str(path), "--out", str(downloads / "report"),
+                           "--effects", "coulomb_friction", "--no-hybrid", "--jobs", "1"],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert diag.returncode == 0, diag.stderr
+    assert json.loads((downloads / "report" / "report.json").read_text())
     trace = read_trace(path)
     assert len(trace.t) == rec["to"] - rec["from"]
     assert np.allclose(np.diff(trace.t), 1e-3)

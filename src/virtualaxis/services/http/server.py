@@ -7,6 +7,8 @@ library only. Routes (``NAME``: an axis name, percent-encoded):
 - ``GET /api/axes``: the served axes and what the page may do (writes, fault injection);
 - ``GET /api/axes/NAME/objects``: the object dictionary (EDS name, type, access, limits, note; the value as an
   SDO upload reads it);
+- ``GET /api/axes/NAME/live``: the same messages over a WebSocket (what the page uses: a browser opens at most
+  6 event streams per server, a WebSocket per tab has no such limit);
 - ``GET /api/axes/NAME/events``: server-sent events: ``scope`` (every drive cycle's samples since the last
   message, float32, base64, ~60 per second) and ``state`` (CiA 402 / NMT state, faults, warnings, EMCY frames
   and SDO aborts, bus load, late cycles; 10 per second);
