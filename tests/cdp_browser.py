@@ -94,7 +94,8 @@ class Browser:
         self.tabs: list[Tab] = []
 
     @classmethod
-    def launch(cls, download_dir: str | Path | None = None, width: int = 1400, height: int = 1100) -> Browser:
+    def launch(cls, download_dir: str | Path | None = None, width: int = 1400, height: int = 1100,
+               extra_args: tuple[str, ...] = ()) -> Browser:
         if CHROMIUM is None:
             raise CdpError("chromium is not installed")
         profile = tempfile.mkdtemp(prefix="virtualaxis-chromium-")
@@ -102,7 +103,7 @@ class Browser:
             [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
              "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
              "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1", f"--user-data-dir={profile}",
-             f"--window-size={width},{height}", "about:blank"],
+             f"--window-size={width},{height}", *extra_args, "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port_file = Path(profile) / "DevToolsActivePort"
         end = time.monotonic() + 60
@@ -117,8 +118,8 @@ class Browser:
                            eventsEnabled=True)
         return b
 
-    def open(self, url: str) -> Tab:
-        target = self.session.call("Target.createTarget", url=url)["targetId"]
+    def open(self, url: str, new_window: bool = False) -> Tab:
+        target = self.session.call("Target.createTarget", url=url, newWindow=new_window)["targetId"]
         tab = Tab(f"ws://127.0.0.1:{self.port}/devtools/page/{target}")
         self.tabs.append(tab)
         return tab
