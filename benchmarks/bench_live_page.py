@@ -57,6 +57,14 @@ TABS = 10
 CONFIG = "configs/seed000-hust.toml"
 
 
+def _late_cycles(bus, reply) -> int | None:
+    """Node 1's late drive cycles (OD 0x2110:2); None if the SDO got no answer within 10 s (a starved serve)."""
+    try:
+        return sdo(bus, reply, 1, 0x2110, 2, timeout_s=10.0)
+    except RuntimeError:
+        return None
+
+
 def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
     group = "239.74.163.9"
     spec = f"udp_multicast:{group},port={port}"
@@ -96,7 +104,7 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
             for t in tabs:  # count the frames each tab draws
                 t.evaluate("window.__frames = 0; (function f() { window.__frames++; requestAnimationFrame(f); })()")
             time.sleep(1.0)
-        overruns0 = sdo(bus, reply, 1, 0x2110, 2, timeout_s=10.0)
+        overruns0 = _late_cycles(bus, reply)
         cpu0, t0 = cpu_seconds(proc.pid), time.perf_counter()
         if browser is not None:
             frames0 = [t.evaluate("[window.__frames, window.livePage.samplesReceived, window.livePage.gaps]")
@@ -106,7 +114,8 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
         user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
         time.sleep(0.2)
         wall = time.perf_counter() - t0
-        out["window_overruns"] = sdo(bus, reply, 1, 0x2110, 2, timeout_s=10.0) - overruns0
+        overruns1 = _late_cycles(bus, reply)
+        out["window_overruns"] = None if None in (overruns0, overruns1) else overruns1 - overruns0
         out["serve_cpu_percent"] = 100.0 * (cpu_seconds(proc.pid) - cpu0) / wall
         if browser is not None:
             frames1 = [t.evaluate("[window.__frames, window.livePage.samplesReceived, window.livePage.gaps]")
@@ -210,7 +219,7 @@ def main() -> int:
                 print(json.dumps({k: v for k, v in res.items() if k != "per_node"}), flush=True)
 
     def med(phase: str, key: str) -> float:
-        vals = [r[key] for r in results if r["phase"] == phase and key in r]
+        vals = [r[key] for r in results if r["phase"] == phase and r.get(key) is not None]
         return float(np.median(vals)) if vals else float("nan")
 
     summary = {"machine": machine_info(), "rounds": results}
