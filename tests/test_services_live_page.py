@@ -379,3 +379,32 @@ def test_ten_streams_on_three_axes_get_every_cycle():
             assert sum(n for _, n in chunks) > 300, i  # (real time: ~1000 cycles/s on an idle host)
         s.stop()
         assert "Traceback" not in s.stderr
+
+
+def test_http_option_errors_are_one_line(tmp_path):
+    """A page address in use ends `serve` with one error line naming it, exit 2; bad values are refused before the
+    bus opens, naming the option."""
+    import argparse
+
+    from virtualaxis.services.serve_options import add_arguments, prepare
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run([*CLI, "serve", "--can", "udp_multicast:239.74.163.12,port=43918", "--duration", "1",
+                            "--status-interval", "0", "--http", f"127.0.0.1:{port}"],
+                           capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: --http 127.0.0.1:{port}: cannot listen"), r.stderr
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for argv, expect in [(["--http", "127.0.0.1:abc"], "--http '127.0.0.1:abc': port 'abc' is not a number"),
+                         (["--http", "127.0.0.1:70000"], "port must be 0..65535"),
+                         (["--http", "8080"], "expected HOST:PORT"),
+                         (["--http", "999.1.1.1:8080"], "--http 999.1.1.1:8080: cannot resolve"),
+                         (["--http", "192.0.2.1:8080"], "--http 192.0.2.1:8080: cannot listen"),
+                         (["--http-writable"], "--http-writable needs --http")]:
+        with pytest.raises(ValueError) as exc:
+            prepare(parser.parse_args(argv), CONFIG)
+        assert expect in str(exc.value), (argv, str(exc.value))
