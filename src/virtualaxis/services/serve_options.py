@@ -46,6 +46,10 @@ def add_arguments(p) -> None:
                    help=f"samples per telemetry message ({TELEMETRY_DEFAULTS['batch']})")
     g.add_argument("--telemetry-buffer", type=int, default=None, metavar="N",
                    help=f"samples kept per axis while the broker is away ({TELEMETRY_DEFAULTS['buffer']})")
+    g.add_argument("--http", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
+                   help="serve the live drive page (docs/live-page.md); default off, 127.0.0.1:8080 without a value")
+    g.add_argument("--http-writable", action="store_true",
+                   help="the live page may write objects (as SDO downloads); read-only otherwise")
 
 
 @dataclass
@@ -59,10 +63,15 @@ class SideChannels:
     telemetry: Any = None  # MqttService
     lines: list[str] = field(default_factory=list)
     gate: Any = None  # CycleGate: the periodic jobs run in the gap after a SYNC's PDOs (cycle_gate.py)
+    http_address: tuple[str, int] | None = None
+    http_writable: bool = False
+    http: Any = None  # LivePageService
+    frame_log: Any = None  # FrameLog of the live page (EMCY frames, SDO aborts sent)
+    bus: Any = None  # the bus as wrapped (its stats(): bus load on the live page)
 
     @property
     def enabled(self) -> bool:
-        return self.modbus_address is not None or self.mqtt is not None
+        return self.modbus_address is not None or self.mqtt is not None or self.http_address is not None
 
     def wrap_bus(self, bus):
         """With a side channel on: ``bus`` wrapped so that PDO sends mark the cycle gate (else ``bus``)."""
@@ -71,7 +80,13 @@ class SideChannels:
         from virtualaxis.services.cycle_gate import CycleGate, GateBus
 
         self.gate = CycleGate()
-        return GateBus(bus, self.gate)
+        if self.http_address is not None:
+            from virtualaxis.services.http.frames import FrameLog, FrameLogBus
+
+            self.frame_log = FrameLog()
+            bus = FrameLogBus(bus, self.frame_log)
+        self.bus = GateBus(bus, self.gate)
+        return self.bus
 
     def start(self, axes) -> None:
         """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave, injection)."""
@@ -98,7 +113,21 @@ class SideChannels:
             self.lines.append(f"mqtt: {scheme}://{st.host}:{st.port}, {topics}, telemetry {st.rate_hz:g} Hz in "
                               f"batches of {st.batch_size}")
 
+        if self.http_address is not None:
+            from virtualaxis.services.http import AxisPage, LivePageService
+
+            host, port = self.http_address
+            pages = [AxisPage(a.name, a.node_id, a.drive, a.slave, getattr(a, "injection", None), _nmt_getter(a))
+                     for a in axes]
+            self.http = LivePageService(pages, host=host, port=port, writable=self.http_writable, bus=self.bus,
+                                        frame_log=self.frame_log, gate=self.gate).start()
+            rw = "objects writable" if self.http_writable else "read-only"
+            shown = f"[{host}]" if ":" in host else host
+            self.lines.append(f"http: live page at http://{shown}:{self.http.bound_port}/ ({rw})")
+
     def stop(self) -> None:
+        if self.http is not None:
+            self.http.stop()
         if self.telemetry is not None:
             self.telemetry.stop()
         if self.modbus is not None:
@@ -110,6 +139,8 @@ class SideChannels:
             out["modbus"] = self.modbus.stats()
         if self.telemetry is not None:
             out["mqtt"] = self.telemetry.stats()
+        if self.http is not None:
+            out["http"] = self.http.stats()
         if self.gate is not None:
             out["cycle_gate"] = self.gate.stats()
         return out
@@ -159,6 +190,14 @@ def prepare(args, main_config) -> SideChannels:
         raise ValueError("--machine / --mqtt-credentials / --sparkplug need --mqtt")
     elif given := [opt for opt, value in telemetry.items() if value is not None]:
         raise ValueError(f"{' / '.join(given)} need(s) --mqtt (the telemetry is published over MQTT)")
+    if args.http is not None:
+        from virtualaxis.services.http.server import check_listen, parse_host_port
+
+        sc.http_address = parse_host_port(args.http)
+        check_listen(*sc.http_address)
+        sc.http_writable = args.http_writable
+    elif args.http_writable:
+        raise ValueError("--http-writable needs --http")
     return sc
 
 

@@ -1,0 +1,410 @@
+"""The live drive page of `virtualaxis serve --http` (docs/live-page.md), through the user's doors: the page in
+headless Chromium (Chrome DevTools Protocol), an HTTP client, a canopen master on the bus of the served drive."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import re
+import socket
+import subprocess
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import canopen
+import numpy as np
+import pytest
+from cdp_browser import CHROMIUM, Browser, wait_for_file
+from served_drive import CLI, ROOT, served
+
+from virtualaxis.master import LockstepMaster, connect
+
+NODE = 1
+AXIS = "seed000-hust"
+CONFIG = "configs/seed000-hust.toml"
+
+
+def page_url(s) -> str:
+    """The page address `serve` prints after its ready line (``--http 127.0.0.1:0``: a free port)."""
+    for _ in range(20):
+        line = s.proc.stdout.readline()
+        m = re.match(r"http: live page at (http://\S+/)", line)
+        if m:
+            return m.group(1)
+    raise AssertionError("serve printed no 'http:' line")
+
+
+def request(url: str, method: str = "GET", body: bytes | None = None, ctype: str = "application/json"):
+    """(status, decoded JSON or text) of one request."""
+    u = urllib.parse.urlsplit(url)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=20)
+    conn.request(method, u.path + (f"?{u.query}" if u.query else ""), body=body,
+                 headers={"Content-Type": ctype} if body is not None else {})
+    r = conn.getresponse()
+    data = r.read()
+    conn.close()
+    try:
+        return r.status, json.loads(data)
+    except ValueError:
+        return r.status, data.decode("utf-8", "replace")
+
+
+def raw_request(url: str, raw: bytes) -> tuple[int, dict]:
+    u = urllib.parse.urlsplit(url)
+    with socket.create_connection((u.hostname, u.port), timeout=10) as sock:
+        sock.sendall(raw)
+        data = b""
+        while chunk := sock.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split(b" ")[1]), json.loads(body)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (Debian: apt-get install chromium; .ci/run "
+                    "installs it)")
+def test_page_in_chromium_follows_enable_csp_move_fault_and_records_a_trace(tmp_path):
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    with served("--lockstep", "--http", "127.0.0.1:0", "--allow-fault-injection") as s:
+        url = page_url(s)
+        net = connect(s.spec)
+        try:
+            with Browser.launch(downloads) as browser:
+                tab = browser.open(url)
+                tab.wait_for("window.livePage && window.livePage.stateMessages > 0")
+                assert tab.text("#cia402-state") == "SWITCH ON DISABLED"
+                assert tab.text("#nmt-state") == "PRE-OPERATIONAL"
+                with LockstepMaster(net, [NODE], mode="csp") as m:  # PDOs by SDO, NMT start, enable
+                    tab.wait_for("document.querySelector('#cia402-state').textContent === 'OPERATION ENABLED'")
+                    assert tab.text("#nmt-state") == "OPERATIONAL"
+                    assert tab.evaluate("document.querySelector('#sw-bits li[data-bit=\"2\"]').className") == "on"
+                    _move_and_record(tab, m, downloads)
+                    _trigger_on_injected_fault(tab, m)
+        finally:
+            net.disconnect()
+
+
+def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
+    x0 = m.position_m(NODE)
+    n_move, n_hold, stroke_m = 600, 150, 0.010
+    ramp = (1 - np.cos(np.pi * np.arange(n_move) / (n_move - 1))) / 2
+    setpoints = x0 + stroke_m * np.concatenate([ramp, np.ones(n_hold)])
+    tab.wait_for("window.livePage.lastSeq >= 0")
+    tab.click("#rec")
+    seq_before = tab.evaluate("window.livePage.rec.from")
+    shot = os.environ.get("VIRTUALAXIS_LIVE_PAGE_SCREENSHOT")  # docs/img/live-page.png is taken this way
+    moved = threading.Thread(target=m.run, args=(setpoints,), daemon=True)
+    moved.start()
+    if shot:
+        tab.wait_for("window.livePage.lastState && window.livePage.lastState.position_actual_m > "
+                     f"{x0 + 0.6 * stroke_m}", timeout_s=60)
+        tab.screenshot(shot)
+    moved.join(120)
+    assert not moved.is_alive()
+    last = m.syncs
+    # the scope shows the move: every drive cycle reached the page, in order, and the plotted positions span it
+    tab.wait_for(f"window.livePage.lastState.cycles >= {last} && window.livePage.lastSeq + 1 >= "
+                 f"window.livePage.lastState.ring.written")
+    time.sleep(0.3)
+    assert tab.evaluate("window.livePage.gaps") == 0
+    pos_cmd_mm = tab.evaluate("window.livePage.charts[0].data[1]")
+    pos_fb_mm = tab.evaluate("window.livePage.charts[0].data[2]")
+    assert min(pos_cmd_mm) == pytest.approx(x0 * 1e3, abs=1e-3)
+    assert max(pos_cmd_mm) == pytest.approx((x0 + stroke_m) * 1e3, abs=1e-3)
+    assert pos_fb_mm[-1] == pytest.approx((x0 + stroke_m) * 1e3, abs=0.01)  # settled at the end of the hold
+    fe_um = tab.evaluate("window.livePage.charts[1].data[1]")
+    assert max(abs(v) for v in fe_um) > 1.0  # a lag while moving ...
+    assert abs(fe_um[-1]) < 1.0  # ... gone at rest
+    # the recording: every drive cycle between Record and Stop, a trace `virtualaxis diagnose` reads
+    tab.click("#rec")
+    rec = tab.evaluate("window.livePage.rec")
+    assert rec["from"] == seq_before and rec["to"] - rec["from"] >= n_move + n_hold
+    tab.click("#rec-download")
+    path = wait_for_file(downloads, ".csv")
+    from virtualaxis.diagnosis.trace import read_trace
+
+    diag = subprocess.run([*CLI, "diagnose", "--config", CONFIG, str(path), "--out", str(downloads / "report"),
+                           "--effects", "coulomb_friction", "--no-hybrid", "--jobs", "1"],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert diag.returncode == 0, diag.stderr
+    assert json.loads((downloads / "report" / "report.json").read_text())
+    trace = read_trace(path)
+    assert len(trace.t) == rec["to"] - rec["from"]
+    assert np.allclose(np.diff(trace.t), 1e-3)
+    data = np.genfromtxt(path, delimiter=",", names=True)
+    assert data["pos_cmd"].max() == pytest.approx(x0 + stroke_m, abs=1e-6)
+    assert data["pos_fb"][-1] == pytest.approx(x0 + stroke_m, abs=1e-5)
+    # the demand of every cycle: the master's set-points (one per SYNC), in the order sent
+    demand = data["pos_cmd"]
+    moving = demand[(demand > x0 + 1e-6) & (demand < x0 + stroke_m - 1e-6)]
+    assert len(moving) >= n_move - 30 and np.all(np.diff(moving) >= -1e-9)
+
+
+def _trigger_on_injected_fault(tab, m: LockstepMaster) -> None:
+    tab.evaluate("document.querySelector('#span').value = '0.5'; document.querySelector('#trig-mode').value = 'fault';"
+                 "document.querySelector('#trig-mode').onchange()")
+    tab.click("#trig-arm")
+    assert tab.text("#trigger-status") == "armed (fault)"
+    for _ in range(50):
+        m.step_raw()
+    tab.click('button[data-kind="over_current"]')
+    tab.wait_for("document.querySelector('#inject-result').textContent.includes('ok')")
+    for _ in range(450):  # the cycles after the fault: the trigger holds the view once 70 % of the span followed
+        m.step_raw()
+    tab.wait_for("window.livePage.paused === true", timeout_s=20)
+    status = tab.text("#trigger-status")
+    assert status.startswith("triggered at")
+    seq = int(tab.evaluate("document.querySelector('#trigger-status').dataset.seq"))
+    sw = tab.evaluate(f"(() => {{ const r = []; for (const s of [{seq - 1}, {seq}]) {{ const c = window.livePage."
+                      f"chunks.find((c) => s >= c.seq0 && s < c.seq0 + c.n); r.push(c.data[(s - c.seq0) * c.cols + "
+                      f"c.cols - 1]); }} return r; }})()")
+    assert (int(sw[0]) & 0x8, int(sw[1]) & 0x8) == (0, 0x8)  # the first cycle with the fault bit
+    tab.wait_for("document.querySelector('#cia402-state').textContent === 'FAULT'")
+    assert "0x2310" in tab.text("#faults")
+    assert "0x2310" in tab.text("#bus-events")  # the EMCY frame the drive sent
+
+
+def test_writes_answer_as_sdo_and_bad_requests_change_nothing():
+    with served("--http", "127.0.0.1:0", "--http-writable") as s:
+        url = page_url(s)
+        api = url + f"api/axes/{AXIS}"
+        net = canopen.Network()
+        net.connect(**s.bus_kwargs())
+        try:
+            node = canopen.RemoteNode(NODE, "eds/virtualaxis.eds")
+            net.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 5.0
+            # a write through the page is what an SDO upload then reads
+            st, body = request(api + "/write", "POST",
+                               json.dumps({"index": "0x6081", "sub": 0, "value": 4321}).encode())
+            assert (st, body["value"]) == (200, 4321)
+            assert node.sdo.upload(0x6081, 0) == (4321).to_bytes(4, "little")
+            # refused writes: the abort code an SDO download of the same value gets
+            cases = [(0x6041, 0, 1), (0x7777, 0, 1), (0x1003, 0, 5), (0x1003, 0, 9), (0x6060, 0, 99),
+                     (0x2000, 0, 1999.0), (0x6081, 7, 1)]
+            for index, sub, value in cases:
+                st, body = request(api + "/write", "POST",
+                                   json.dumps({"index": index, "sub": sub, "value": value}).encode())
+                fmt = "<f" if isinstance(value, float) else ("<B" if index in (0x1003,) else "<b" if index == 0x6060
+                                                               else "<I")
+                import struct
+
+                with pytest.raises(canopen.SdoAbortedError) as sdo:
+                    node.sdo.download(index, sub, struct.pack(fmt, value))
+                assert st == 422, (index, body)
+                assert body["abort_code"] == f"0x{sdo.value.code:08X}", (index, sub, value, body)
+            before = request(api + "/objects")[1]["objects"]
+            bad = [
+                b"GARBAGE\r\n\r\n",
+                b"GET / HTTP/9.9\r\n\r\n",
+                b"\xff\xfe / HTTP/1.1\r\n\r\n",
+                b"GET /" + b"a" * 5000 + b" HTTP/1.1\r\n\r\n",
+                b"DELETE /api/axes HTTP/1.1\r\n\r\n",
+                b"GET /api/axes HTTP/1.1\r\nno colon here\r\n\r\n",
+                f"POST /api/axes/{AXIS}/write HTTP/1.1\r\nContent-Length: 99999\r\n\r\n".encode(),
+                f"POST /api/axes/{AXIS}/write HTTP/1.1\r\n\r\n".encode(),
+                f"POST /api/axes/{AXIS}/write HTTP/1.1\r\nTransfer-Encoding: chunked\r\n\r\n".encode(),
+                f"GET /api/axes/{AXIS}/events HTTP/1.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\r\n".encode(),
+                f"GET /api/axes/{AXIS}/recording.csv?from=5&to=2 HTTP/1.1\r\n\r\n".encode(),
+                f"GET /api/axes/{AXIS}/recording.csv?from=0&to=99999999999 HTTP/1.1\r\n\r\n".encode(),
+                f"GET /api/axes/{AXIS}/recording.csv?from=-1&to=2 HTTP/1.1\r\n\r\n".encode(),
+                b"GET /api/axes/nope/objects HTTP/1.1\r\n\r\n",
+                b"GET /static/../server.py HTTP/1.1\r\n\r\n",
+            ]
+            for body_text in [b"{", b"[]", b'{"index": "0x6081", "sub": 0}', b'{"index": "0x6081", "value": NaN}',
+                              b'{"index": true, "value": 1}', b'{"index": "0x6081", "value": 1, "value": 2}',
+                              b'{"index": "0x6081", "value": "fast"}', b'{"index": "0x6081", "value": 1, "x": 0}',
+                              b'{"index": "0x6081", "value": 1.5}', b"\xff\xfe", b'{"index": "0x16081", "value": 1}']:
+                bad.append(f"POST /api/axes/{AXIS}/write HTTP/1.1\r\nContent-Type: application/json\r\n"
+                           f"Content-Length: {len(body_text)}\r\n\r\n".encode() + body_text)
+            for raw in bad:
+                st, body = raw_request(url, raw)
+                assert 400 <= st < 600 and isinstance(body.get("error"), str) and body["error"], (raw[:60], st, body)
+            after = request(api + "/objects")[1]["objects"]
+            values = lambda objs: {(o["index"], o["sub"]): o.get("value") for o in objs  # noqa: E731
+                                   if o["access"] in ("rw", "wo", "rwr", "rww")}
+            assert values(after) == values(before)
+            assert node.sdo.upload(0x6081, 0) == (4321).to_bytes(4, "little")
+            st, info = request(url + "api/axes")
+            assert st == 200 and info["writable"] is True
+        finally:
+            net.disconnect()
+        assert s.stop() == 0
+        assert "Traceback" not in s.stderr
+
+
+def _ws_open(url: str, path: str) -> socket.socket:
+    """A raw WebSocket handshake on ``path``; the socket after the 101 answer."""
+    u = urllib.parse.urlsplit(url)
+    sock = socket.create_connection((u.hostname, u.port), timeout=10)
+    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: {u.netloc}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += sock.recv(1)
+    assert head.startswith(b"HTTP/1.1 101") and b"s3pPLMBiTxaQ9kYGzzhZRbK+xOo=" in head, head
+    return sock
+
+
+def _ws_read(sock: socket.socket) -> tuple[int, bytes]:
+    def exact(n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = sock.recv(n - len(data))
+            if not chunk:
+                raise ConnectionError("closed")
+            data += chunk
+        return data
+
+    b0, b1 = exact(2)
+    n = b1 & 0x7F
+    if n == 126:
+        n = int.from_bytes(exact(2), "big")
+    elif n == 127:
+        n = int.from_bytes(exact(8), "big")
+    return b0 & 0x0F, exact(n)
+
+
+def _ws_frame(opcode: int, payload: bytes, *, masked: bool = True, rsv: int = 0, length: int | None = None) -> bytes:
+    n = len(payload) if length is None else length
+    head = bytes((0x80 | rsv | opcode,)) + (bytes(((0x80 if masked else 0) | n,)) if n < 126 else
+                                            bytes(((0x80 if masked else 0) | 126,)) + n.to_bytes(2, "big"))
+    if not masked:
+        return head + payload
+    mask = b"\x01\x02\x03\x04"
+    return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+def test_websocket_sends_live_updates_and_refuses_what_it_does_not_take():
+    with served("--http", "127.0.0.1:0", "--http-writable") as s:
+        url = page_url(s)
+        path = f"/api/axes/{AXIS}/live"
+        sock = _ws_open(url, path)
+        events = set()
+        while not {"state", "scope"} <= events:
+            op, data = _ws_read(sock)
+            assert op == 0x1
+            events.add(json.loads(data)["event"])
+        # a data message: an error message back, the socket stays open
+        sock.sendall(_ws_frame(0x1, b'{"index": "0x6081", "value": 1}'))
+        while True:
+            op, data = _ws_read(sock)
+            msg = json.loads(data)
+            if msg["event"] == "error":
+                assert "only sends" in msg["data"]["error"]
+                break
+        sock.sendall(_ws_frame(0x9, b"hi"))
+        while (got := _ws_read(sock))[0] != 0xA:
+            pass
+        assert got[1] == b"hi"
+        sock.close()
+        # frames that break the protocol: closed with 1002 / 1009 and a reason
+        for frame, code in [(_ws_frame(0x1, b"{}", masked=False), 1002), (_ws_frame(0x1, b"{}", rsv=0x40), 1002),
+                            (_ws_frame(0x3, b"{}"), 1002), (_ws_frame(0x9, b"x" * 126), 1002),
+                            (_ws_frame(0x1, b"", length=5000), 1009)]:
+            sock = _ws_open(url, path)
+            sock.sendall(frame)
+            while (got := _ws_read(sock))[0] != 0x8:
+                pass
+            assert int.from_bytes(got[1][:2], "big") == code and got[1][2:], (frame[:4], got)
+            sock.close()
+        # handshakes that are not: refused with a clear answer
+        for raw in [f"GET {path} HTTP/1.1\r\n\r\n",
+                    f"GET {path} HTTP/1.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    "Sec-WebSocket-Key: short\r\nSec-WebSocket-Version: 13\r\n\r\n",
+                    f"GET {path} HTTP/1.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                    "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 8\r\n\r\n"]:
+            st, body = raw_request(url, raw.encode())
+            assert st == 400 and body["error"], raw
+        st, body = request(url + f"api/axes/{AXIS}/objects")
+        assert st == 200
+        assert {(o["index"], o["sub"]): o.get("value") for o in body["objects"]}[("0x6081", 0)] != 1
+        s.stop()
+        assert "Traceback" not in s.stderr
+
+
+def test_read_only_page_refuses_writes_and_fault_injection():
+    with served("--http", "127.0.0.1:0") as s:
+        api = page_url(s) + f"api/axes/{AXIS}"
+        st, body = request(api + "/write", "POST", b'{"index": "0x6081", "sub": 0, "value": 4321}')
+        assert st == 403 and "--http-writable" in body["error"]
+        st, body = request(api + "/fault", "POST", b'{"action": "inject", "kind": "over_current"}')
+        assert st == 403 and body["abort_code"] == "0x08000022"
+        st, objs = request(api + "/objects")
+        assert {(o["index"], o["sub"]): o.get("value") for o in objs["objects"]}[("0x6081", 0)] != 4321
+        st, info = request(api.rsplit("/", 1)[0])
+        assert info["writable"] is False and info["axes"][0]["fault_injection"] is False
+
+
+def _stream(url: str, seconds: float, out: dict) -> None:
+    """Read one event stream for ``seconds``: scope sequence numbers and state messages."""
+    u = urllib.parse.urlsplit(url)
+    conn = http.client.HTTPConnection(u.hostname, u.port, timeout=10)
+    conn.request("GET", u.path)
+    r = conn.getresponse()
+    out["status"] = r.status
+    end = time.monotonic() + seconds
+    event = None
+    while time.monotonic() < end:
+        line = r.fp.readline().decode()
+        if line.startswith("event: "):
+            event = line[7:].strip()
+        elif line.startswith("data: "):
+            msg = json.loads(line[6:])
+            if event == "scope":
+                out.setdefault("scope", []).append((msg["seq0"], msg["n"]))
+            elif event == "state":
+                out["states"] = out.get("states", 0) + 1
+    conn.close()
+
+
+def test_ten_streams_on_three_axes_get_every_cycle():
+    axes = [f"--axis=X=1:{CONFIG}", f"--axis=Y=2:{CONFIG}", f"--axis=Z=3:{CONFIG}"]
+    with served(*axes, "--http", "127.0.0.1:0") as s:
+        url = page_url(s)
+        outs = [{} for _ in range(10)]
+        threads = [threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
+                   for i in range(10)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(30)
+        for i, out in enumerate(outs):
+            assert out["status"] == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
+            chunks = out["scope"]
+            assert all(a + n == b for (a, n), (b, _) in zip(chunks, chunks[1:], strict=False)), i  # contiguous
+            assert sum(n for _, n in chunks) > 300, i  # (real time: ~1000 cycles/s on an idle host)
+        s.stop()
+        assert "Traceback" not in s.stderr
+
+
+def test_http_option_errors_are_one_line(tmp_path):
+    """A page address in use ends `serve` with one error line naming it, exit 2; bad values are refused before the
+    bus opens, naming the option."""
+    import argparse
+
+    from virtualaxis.services.serve_options import add_arguments, prepare
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = subprocess.run([*CLI, "serve", "--can", "udp_multicast:239.74.163.12,port=43918", "--duration", "1",
+                            "--status-interval", "0", "--http", f"127.0.0.1:{port}"],
+                           capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: --http 127.0.0.1:{port}: cannot listen"), r.stderr
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for argv, expect in [(["--http", "127.0.0.1:abc"], "--http '127.0.0.1:abc': port 'abc' is not a number"),
+                         (["--http", "127.0.0.1:70000"], "port must be 0..65535"),
+                         (["--http", "8080"], "expected HOST:PORT"),
+                         (["--http", "999.1.1.1:8080"], "--http 999.1.1.1:8080: cannot resolve"),
+                         (["--http", "192.0.2.1:8080"], "--http 192.0.2.1:8080: cannot listen"),
+                         (["--http-writable"], "--http-writable needs --http")]:
+        with pytest.raises(ValueError) as exc:
+            prepare(parser.parse_args(argv), CONFIG)
+        assert expect in str(exc.value), (argv, str(exc.value))
