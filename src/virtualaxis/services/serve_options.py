@@ -43,6 +43,15 @@ def add_arguments(p) -> None:
                    help=f"samples per telemetry message ({TELEMETRY_DEFAULTS['batch']})")
     g.add_argument("--telemetry-buffer", type=int, default=None, metavar="N",
                    help=f"samples kept per axis while the broker is away ({TELEMETRY_DEFAULTS['buffer']})")
+    g.add_argument("--opcua", nargs="?", const="127.0.0.1:4840", default=None, metavar="HOST:PORT",
+                   help="serve OPC UA (docs/opcua.md; needs the opcua extra); default off, 127.0.0.1:4840 without a "
+                        "value")
+    g.add_argument("--opcua-writable", action="store_true", help="accept OPC UA writes of the Parameters nodes")
+    g.add_argument("--opcua-users", default=None, metavar="FILE",
+                   help="TOML file with a [users] table (name = \"password\"): username login instead of anonymous")
+    g.add_argument("--opcua-cert", default=None, metavar="FILE",
+                   help="server certificate (with --opcua-key): Basic256Sha256 SignAndEncrypt only")
+    g.add_argument("--opcua-key", default=None, metavar="FILE", help="private key of --opcua-cert")
 
 
 @dataclass
@@ -56,10 +65,12 @@ class SideChannels:
     telemetry: Any = None  # MqttService
     lines: list[str] = field(default_factory=list)
     gate: Any = None  # CycleGate: the periodic jobs run in the gap after a SYNC's PDOs (cycle_gate.py)
+    opcua_settings: Any = None  # OpcuaSettings
+    opcua: Any = None  # OpcuaService
 
     @property
     def enabled(self) -> bool:
-        return self.modbus_address is not None or self.mqtt is not None
+        return self.modbus_address is not None or self.mqtt is not None or self.opcua_settings is not None
 
     def wrap_bus(self, bus):
         """With a side channel on: ``bus`` wrapped so that PDO sends mark the cycle gate (else ``bus``)."""
@@ -95,7 +106,21 @@ class SideChannels:
                 f"telemetry {st.rate_hz:g} Hz in batches of {st.batch_size}"
             )
 
+        if self.opcua_settings is not None:
+            from virtualaxis.services.opcua import AxisSource, OpcuaService
+
+            st = self.opcua_settings
+            sources = [AxisSource(a.name, a.node_id, a.drive, _nmt_getter(a), getattr(a, "injection", None))
+                       for a in axes]
+            self.opcua = OpcuaService(st, sources, gate=self.gate).start()
+            access = "read/write parameters" if st.writable else "read-only"
+            who = "username/password" if st.users else "anonymous"
+            sec = "Basic256Sha256 SignAndEncrypt" if st.cert_file else "no security"
+            self.lines.append(f"opcua: {self.opcua.url} ({access}, {who}, {sec}), objects VirtualAxis/<axis>")
+
     def stop(self) -> None:
+        if self.opcua is not None:
+            self.opcua.stop()
         if self.telemetry is not None:
             self.telemetry.stop()
         if self.modbus is not None:
@@ -107,6 +132,8 @@ class SideChannels:
             out["modbus"] = self.modbus.stats()
         if self.telemetry is not None:
             out["mqtt"] = self.telemetry.stats()
+        if self.opcua is not None:
+            out["opcua"] = self.opcua.stats()
         if self.gate is not None:
             out["cycle_gate"] = self.gate.stats()
         return out
@@ -151,6 +178,11 @@ def prepare(args, main_config) -> SideChannels:
         raise ValueError("--machine / --mqtt-credentials need --mqtt")
     elif given := [opt for opt, value in telemetry.items() if value is not None]:
         raise ValueError(f"{' / '.join(given)} need(s) --mqtt (the telemetry is published over MQTT)")
+    if getattr(args, "opcua", None) is not None or any(
+            getattr(args, k, None) for k in ("opcua_writable", "opcua_users", "opcua_cert", "opcua_key")):
+        from virtualaxis.services.opcua import prepare as prepare_opcua
+
+        sc.opcua_settings = prepare_opcua(args)
     return sc
 
 
