@@ -312,7 +312,7 @@ class OpcuaService:
         self.gate = gate
         self.bound_port: int | None = None
         self.counters = {"samples": 0, "samples_replaced": 0, "events": 0, "writes_accepted": 0,
-                         "writes_refused": 0, "method_calls": 0, "sampler_late": 0}
+                         "writes_refused": 0, "method_calls": 0, "sampler_late": 0, "update_errors": 0}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._ready = threading.Event()
         self._stop = threading.Event()
@@ -449,11 +449,18 @@ class OpcuaService:
                 self._wake.clear()
                 with self._pending_lock:
                     batch, self._pending = self._pending, None
-                if batch is not None:
-                    await space.update(batch)
-                if time.monotonic() >= next_params:
-                    next_params = time.monotonic() + PARAMETER_PERIOD_S
-                    await space.refresh_parameters()
+                try:
+                    if batch is not None:
+                        await space.update(batch)
+                    if time.monotonic() >= next_params:
+                        next_params = time.monotonic() + PARAMETER_PERIOD_S
+                        await space.refresh_parameters()
+                except Exception:  # noqa: BLE001 - counted and logged once; the server goes on serving
+                    self.counters["update_errors"] += 1
+                    if self.counters["update_errors"] == 1:
+                        import logging
+
+                        logging.getLogger("virtualaxis").exception("OPC UA node update failed")
         finally:
             await space.stop()
 
