@@ -79,13 +79,16 @@ async def full(url: str, out: dict) -> None:
 
             def event_notification(self, ev):
                 events.append({"kind": ev.Kind, "emcy": ev.EmcyCode, "message": ev.Message.Text,
-                               "axis": ev.Axis, "injected": ev.Injected, "severity": ev.Severity})
+                               "axis": ev.Axis, "injected": ev.Injected, "severity": ev.Severity,
+                               "source": ev.SourceName})
 
         sub = await c.create_subscription(50, Handler())
         position = await values.get_child(f"{idx}:Position")
         await sub.subscribe_data_change(position)
         etype = await c.nodes.base_event_type.get_child(f"{idx}:DriveFaultEventType")
         await sub.subscribe_events(axis, etype)
+        server_events = await c.create_subscription(50, Handler())  # the same events from the Server object
+        await server_events.subscribe_events(c.nodes.server, etype)
         end = time.monotonic() + 10
         while not changes and time.monotonic() < end:
             await asyncio.sleep(0.05)
@@ -131,7 +134,7 @@ async def full(url: str, out: dict) -> None:
         out["inject_active"] = await methods.call_method(
             inject, ua.Variant("encoder_loss", ua.VariantType.String), 1.0, 1.0, 0.0)
         end = time.monotonic() + 10
-        while not any(e["kind"] == "fault" for e in events) and time.monotonic() < end:
+        while sum(e["kind"] == "fault" for e in events) < 2 and time.monotonic() < end:
             await asyncio.sleep(0.05)
         out["events"] = events
         faults = await axis.get_child(f"{idx}:Faults")

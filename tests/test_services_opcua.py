@@ -111,7 +111,8 @@ def test_browse_subscribe_write_and_fault_event_from_other_processes():
     assert r["inject_unknown"] == "BadInvalidArgument"
     assert r["inject_active"] == ["encoder_loss"]
     faults = [e for e in r["events"] if e["kind"] == "fault"]
-    assert faults and faults[0]["emcy"] == 0x7305 and faults[0]["injected"] is True, r["events"]
+    assert len(faults) == 2, r["events"]  # from the axis object and from the Server object
+    assert all(e["emcy"] == 0x7305 and e["injected"] is True and e["source"] == r["axes"][0] for e in faults), faults
     assert faults[0]["severity"] >= 700 and "0x7305" in faults[0]["message"]
     assert r["error_code"] == 0x7305 and r["fault_codes"][0] == 0x7305
 
