@@ -176,9 +176,15 @@ def test_username_login_encrypted_channel_and_read_only_by_default(tmp_path):
     (["--opcua", "--opcua-users", "{tmp}/missing.toml"], "--opcua-users {tmp}/missing.toml: file not found"),
     (["--opcua", "--opcua-users", "{tmp}/bad.toml"], "users.operator: the password must be a non-empty string"),
     (["--opcua", "--opcua-cert", "{tmp}/bad.toml"], "--opcua-cert and --opcua-key go together"),
+    (["--opcua", "--opcua-cert", "{tmp}/bad.toml", "--opcua-key", "{tmp}/server-key.pem"],
+     "--opcua-cert {tmp}/bad.toml: not a PEM or DER certificate"),
+    (["--opcua", "--opcua-cert", "{tmp}/server-cert.pem", "--opcua-key", "{tmp}/client-key.pem"],
+     "--opcua-key {tmp}/client-key.pem: not the private key of --opcua-cert {tmp}/server-cert.pem"),
 ])
 def test_bad_options_one_error_line(tmp_path, args, needle):
     (tmp_path / "bad.toml").write_text("[users]\noperator = 7\n")
+    _self_signed(tmp_path, "server")
+    _self_signed(tmp_path, "client")
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]
     p = subprocess.run([*CLI, "serve", "--can", "udp_multicast:239.74.1.1,port=47999", *args], capture_output=True,
                        text=True, timeout=120, cwd=ROOT)

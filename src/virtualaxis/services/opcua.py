@@ -198,6 +198,32 @@ def load_users(path: str) -> dict[str, str]:
     return dict(users)
 
 
+def check_certificate(cert_file: str, key_file: str) -> None:
+    """The certificate (PEM or DER) and its private key (PEM or DER, unencrypted) load and belong together."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    def load(path: str, option: str, pem, der):
+        try:
+            data = Path(path).read_bytes()
+        except OSError as exc:
+            raise OpcuaSettingsError(f"{option} {path}: cannot read ({exc.strerror or exc})") from None
+        for loader in (pem, der):
+            try:
+                return loader(data)
+            except (ValueError, TypeError):
+                continue
+        raise OpcuaSettingsError(f"{option} {path}: not a PEM or DER " + ("certificate" if option == "--opcua-cert"
+                                                                           else "unencrypted private key"))
+
+    cert = load(cert_file, "--opcua-cert", x509.load_pem_x509_certificate, x509.load_der_x509_certificate)
+    key = load(key_file, "--opcua-key", lambda d: serialization.load_pem_private_key(d, None),
+               lambda d: serialization.load_der_private_key(d, None))
+    spki = (serialization.Encoding.DER, serialization.PublicFormat.SubjectPublicKeyInfo)
+    if cert.public_key().public_bytes(*spki) != key.public_key().public_bytes(*spki):
+        raise OpcuaSettingsError(f"--opcua-key {key_file}: not the private key of --opcua-cert {cert_file}")
+
+
 def prepare(args) -> OpcuaSettings | None:
     """``--opcua*`` options of ``serve`` -> settings (None without --opcua); raises OpcuaSettingsError."""
     given = [opt for opt, v in (("--opcua-writable", args.opcua_writable), ("--opcua-users", args.opcua_users),
@@ -223,6 +249,8 @@ def prepare(args) -> OpcuaSettings | None:
         if path and not Path(path).is_file():
             raise OpcuaSettingsError(f"--opcua-{opt[8:]} {path}: " + ("not a file" if Path(path).exists()
                                                                        else "file not found"))
+    if args.opcua_cert:
+        check_certificate(args.opcua_cert, args.opcua_key)
     st.cert_file, st.key_file = args.opcua_cert, args.opcua_key
     if st.users is None and not is_loopback(host):
         raise OpcuaSettingsError(f"--opcua {args.opcua}: anonymous access is served on loopback addresses only; "
