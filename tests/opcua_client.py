@@ -137,6 +137,13 @@ async def full(url: str, out: dict) -> None:
         while sum(e["kind"] == "fault" for e in events) < 2 and time.monotonic() < end:
             await asyncio.sleep(0.05)
         out["events"] = events
+        clear = await methods.get_child(f"{idx}:ClearFault")
+        try:
+            await methods.call_method(clear, ua.Variant(7, ua.VariantType.Int32))
+            out["clear_int"] = "Good"
+        except ua.UaStatusCodeError as exc:
+            out["clear_int"] = _code_name(exc.code)
+        out["clear_active"] = await methods.call_method(clear, ua.Variant("encoder_loss", ua.VariantType.String))
         faults = await axis.get_child(f"{idx}:Faults")
         out["fault_codes"] = await (await faults.get_child(f"{idx}:FaultCodes")).read_value()
         out["error_code"] = await (await faults.get_child(f"{idx}:ErrorCode")).read_value()

@@ -90,7 +90,10 @@ def test_browse_subscribe_write_and_fault_event_from_other_processes():
     changes = r["changes"]
     moving = [v for v in changes if x0 + 1e-6 < v < x_end - 1e-6]
     assert len(set(moving)) >= 3, changes
-    assert all(b >= a - 1e-7 for a, b in zip(changes, changes[1:], strict=False)), changes
+    # (the follower may overshoot the end of the ramp by a few um and settle back: bounds, not monotony)
+    assert all(x0 - 20e-6 <= v <= x_end + 200e-6 for v in changes), changes
+    half = (x0 + x_end) / 2
+    assert changes[0] < half and next(i for i, v in enumerate(changes) if v > half) > 0, changes
     assert abs(changes[-1] - x_end) <= 2e-6 and abs(r["position_read"] - x_end) <= 2e-6, (changes[-1], x_end)
 
     # refused writes: the status code of the SDO check, the value unchanged, the reason readable
@@ -115,6 +118,7 @@ def test_browse_subscribe_write_and_fault_event_from_other_processes():
     assert all(e["emcy"] == 0x7305 and e["injected"] is True and e["source"] == r["axes"][0] for e in faults), faults
     assert faults[0]["severity"] >= 700 and "0x7305" in faults[0]["message"]
     assert r["error_code"] == 0x7305 and r["fault_codes"][0] == 0x7305
+    assert r["clear_int"] == "BadTypeMismatch" and r["clear_active"] in ([], None), r
 
 
 def _self_signed(tmp: Path, name: str) -> tuple[str, str]:
