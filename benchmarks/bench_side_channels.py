@@ -21,6 +21,9 @@ Phases (``--phases``, alternated ``--rounds`` times so that drifting machine loa
 - ``load-spb``, ``mqtt-spb``, ``idle-spb``: ``load``, ``mqtt``, ``idle`` with the MQTT side as Sparkplug B
   (``serve --sparkplug bench``; the subscriber counts the Position values of the DDATA); ``--sparkplug`` makes
   every MQTT phase Sparkplug B.
+- ``opcua``: ``serve --opcua`` and one OPC UA subscriber (asyncua, a process of its own) monitoring
+  :data:`OPCUA_ITEMS` (10 nodes of the axis) in a subscription of 100 ms publishing interval;
+- ``all``: the ``load`` phase plus the ``opcua`` one.
 
 Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
 priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
@@ -41,6 +44,7 @@ master's ``time.time()`` before ``send`` -> its SYNC on the wire (not part of th
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 1 --rt-priority 20 --phases off,modbus,mqtt,load
     python benchmarks/bench_side_channels.py --seconds 5 --rounds 3 --rt-priority 20 --modbus-client raw --json F
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --rt-priority 20 --phases off,load,load-spb
+    python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --phases off,opcua,load,all
 
 ``--modbus-client raw``: the ten clients pack their FC03 requests with ``struct`` on a plain socket (and check every
 answer) instead of using pymodbus' client, which on a slow host costs 2.5x the CPU per request: the clients of a
@@ -192,6 +196,45 @@ def modbus_load(port: int, clients: int, rate_hz: float, seconds: float, out: st
     Path(out).write_text(json.dumps({"errors": int(sum(errors)), "skipped_polls": int(sum(late))}))
 
 
+OPCUA_ITEMS = ("ActualValues.Position", "ActualValues.Velocity", "ActualValues.FollowingError",
+               "ActualValues.Current", "ActualValues.Torque", "ActualValues.MotorTemperature", "State.Statusword",
+               "State.CiA402State", "State.DriveTime", "Faults.ErrorCode")
+OPCUA_PUBLISH_MS = 100.0
+
+
+def opcua_count(port: int, out: str) -> None:
+    """An asyncua subscriber of :data:`OPCUA_ITEMS` (every axis) counting data changes until SIGTERM."""
+    import asyncio
+
+    from asyncua import Client, ua
+
+    count = {"changes": 0, "t_first": None, "t_last": None, "items": 0}
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+
+    class Handler:
+        def datachange_notification(self, node, val, data):
+            count["changes"] += 1
+            count["t_last"] = time.time()
+            count["t_first"] = count["t_first"] or count["t_last"]
+
+    async def run() -> None:
+        async with Client(f"opc.tcp://127.0.0.1:{port}/virtualaxis", timeout=30) as c:
+            idx = await c.get_namespace_index("urn:virtualaxis:opcua")
+            axes = await (await c.nodes.objects.get_child(f"{idx}:VirtualAxis")).get_children()
+            nodes = [c.get_node(ua.NodeId(f"VirtualAxis.{(await a.read_browse_name()).Name}.{item}", idx))
+                     for a in axes for item in OPCUA_ITEMS]
+            sub = await c.create_subscription(OPCUA_PUBLISH_MS, Handler())
+            await sub.subscribe_data_change(nodes)
+            count["items"] = len(nodes)
+            Path(out + ".ready").write_text("1")
+            while not stop.is_set():
+                await asyncio.sleep(0.1)
+
+    asyncio.run(run())
+    Path(out).write_text(json.dumps(count))
+
+
 def telemetry_count(port: int, out: str, sparkplug: bool = False) -> None:
     """A paho subscriber counting telemetry samples until SIGTERM; writes ``{"samples", "batches"}``. With
     ``sparkplug``: DDATA messages are the batches and the Position values in them the samples (a sine move
@@ -341,9 +384,10 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
 def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
     phase = phase_name.removesuffix("-spb")
     sparkplug = opts.sparkplug or phase_name.endswith("-spb")  # MQTT as Sparkplug B
-    modbus_on = phase in ("load", "modbus", "idle")
+    modbus_on = phase in ("load", "modbus", "idle", "all")
     external = phase == "ext"  # the Modbus clients poll a server that is not serve's (machine load only)
-    mqtt_on = phase in ("load", "mqtt", "idle")
+    mqtt_on = phase in ("load", "mqtt", "idle", "all")
+    opcua_on = phase in ("opcua", "all")
     clients = phase != "idle"  # idle: serve's side channels on, nobody polls or subscribes
     spec = f"udp_multicast:239.74.163.3,port={port}"
     node = 1
@@ -359,6 +403,9 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
         args += ["--mqtt", f"mqtt://127.0.0.1:{broker.port}", "--machine", "bench"]
         if sparkplug:
             args += ["--sparkplug", "bench"]
+    ua_port = free_port()
+    if opcua_on:
+        args += ["--opcua", f"127.0.0.1:{ua_port}"]
     if opts.rt_priority:
         args += ["--rt-priority", str(opts.rt_priority)]
     args += opts.serve_args
@@ -374,7 +421,7 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
     if not line.startswith("ready:"):
         proc.kill()
         raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
-    for _ in range(int(modbus_on) + int(mqtt_on)):
+    for _ in range(int(modbus_on) + int(mqtt_on) + int(opcua_on)):
         proc.stdout.readline()  # "modbus: ..." / "mqtt: ..." (the server process runs by then)
     load_pids = children(proc.pid)  # serve's Modbus server and MQTT publisher processes: the clients' side
     for child in load_pids:
@@ -401,7 +448,7 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
     reply = SdoReply([node])
     notifier = can.Notifier(bus, [clock, reply], timeout=0.05)
     loader: list[subprocess.Popen] = []
-    counter = None
+    counter = ua_counter = None
     outs: list[str] = []
     out: dict = {"phase": phase_name, "seconds": seconds}
     load_flags = ["--load-priority", str(opts.load_priority)]
@@ -414,6 +461,15 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
             tel_out = str(tmp / f"telemetry-{port}.json")
             counter = subprocess.Popen([sys.executable, __file__, "--telemetry-count", str(broker.port), tel_out,
                                         *load_flags, *(["--sparkplug"] if sparkplug else [])])
+        if opcua_on:
+            ua_out = str(tmp / f"opcua-{port}.json")
+            ua_counter = subprocess.Popen([sys.executable, __file__, "--opcua-count", str(ua_port), ua_out,
+                                           *load_flags])
+            end = time.monotonic() + 120
+            while not Path(ua_out + ".ready").exists() and time.monotonic() < end and ua_counter.poll() is None:
+                time.sleep(0.05)
+            if not Path(ua_out + ".ready").exists():
+                raise RuntimeError("the OPC UA subscriber did not start")
         if (modbus_on and clients) or external:
             # ten clients = ten processes (each its own interpreter, as separate client machines would be)
             outs = [str(tmp / f"modbus-{port}-{i}.json") for i in range(CLIENTS)]
@@ -460,12 +516,19 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
             span = (c["t_last"] - c["t_first"]) if c["t_first"] else 0.0
             out["telemetry_samples_per_s"] = c["samples"] / span if span > 0 else 0.0
             out["telemetry_batches"] = c["batches"]
+        if ua_counter is not None:
+            ua_counter.send_signal(signal.SIGTERM)
+            ua_counter.wait(timeout=30)
+            c = json.loads(Path(ua_out).read_text())
+            span = (c["t_last"] - c["t_first"]) if c["t_first"] else 0.0
+            out["opcua_changes_per_s"] = c["changes"] / span if span > 0 else 0.0
+            out["opcua_items"] = c["items"]
         if loader:
             for lp in loader:
                 lp.wait(timeout=seconds + 60)
             out["modbus"] = modbus_summary(outs, seconds)
     finally:
-        for lp in [*loader, *([counter] if counter else [])]:
+        for lp in [*loader, *([counter] if counter else []), *([ua_counter] if ua_counter else [])]:
             if lp.poll() is None:
                 lp.kill()
         if dummy is not None:
@@ -488,6 +551,8 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
         out["drive_max_late_ms"] = s["runtime"]["max_late_ms"]
         if "mqtt" in s:
             out["mqtt"] = next(iter(s["mqtt"].values()))
+        if "opcua" in s:
+            out["opcua"] = s["opcua"]
     else:
         out["drive_overruns"] = None
     return out
@@ -502,8 +567,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="per phase")
     ap.add_argument("--rounds", type=int, default=2, help="passes over --phases")
     ap.add_argument("--phases", default="off,load",
-                    help="comma list of off, load, modbus, mqtt, ext, idle, and load-spb, mqtt-spb, idle-spb (the "
-                         "MQTT side as Sparkplug B)")
+                    help="comma list of off, load, modbus, mqtt, ext, idle, opcua, all, and load-spb, mqtt-spb, "
+                         "idle-spb (the MQTT side as Sparkplug B)")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of serve and of the master")
     ap.add_argument("--load-priority", type=int, default=0,
                     help="SCHED_FIFO priority of the load side (Modbus clients, serve's Modbus server process, "
@@ -534,26 +599,28 @@ def main() -> int:
     ap.add_argument("--load-cpus", default="", help=argparse.SUPPRESS)
     ap.add_argument("--modbus-load", nargs=3, metavar=("PORT", "SECONDS", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--telemetry-count", nargs=2, metavar=("PORT", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--opcua-count", nargs=2, metavar=("PORT", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--modbus-dummy", type=int, metavar="PORT", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.modbus_dummy:
         _become_load(args.load_priority, None)
         dummy_modbus_server(args.modbus_dummy)
         return 0
-    if args.modbus_load or args.telemetry_count:
+    if args.modbus_load or args.telemetry_count or args.opcua_count:
         _become_load(args.load_priority, _cpus(args.load_cpus) or None)
-        if args.modbus_load:
+        if args.opcua_count:
+            opcua_count(int(args.opcua_count[0]), args.opcua_count[1])
+        elif args.modbus_load:
             modbus_load(int(args.modbus_load[0]), 1, 100.0, float(args.modbus_load[1]), args.modbus_load[2],
                         args.load_start, args.modbus_client)
         else:
             telemetry_count(int(args.telemetry_count[0]), args.telemetry_count[1], args.sparkplug)
         return 0
     phases = [p.strip() for p in args.phases.split(",") if p.strip()]
-    bad = [p for p in phases if p not in ("off", "load", "modbus", "mqtt", "ext", "idle", "load-spb", "mqtt-spb",
-                                          "idle-spb")]
+    known = ("off", "load", "modbus", "mqtt", "ext", "idle", "opcua", "all", "load-spb", "mqtt-spb", "idle-spb")
+    bad = [p for p in phases if p not in known]
     if bad:
-        ap.error(f"--phases: unknown phase(s) {bad} (off, load, modbus, mqtt, ext, idle; load-spb, mqtt-spb, "
-                 "idle-spb: MQTT as Sparkplug B)")
+        ap.error(f"--phases: unknown phase(s) {bad} ({', '.join(known)}; -spb: MQTT as Sparkplug B)")
     args.drive_cpus = args.load_cpus = None
     if args.pin:
         d, _, lo = args.pin.partition(":")
@@ -580,14 +647,15 @@ def main() -> int:
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, Python {machine['python']}, "
           f"load average {load0[0]:.2f} at start, {machine['load_average_at_end'][0]:.2f} at end")
     print(f"{'phase':>6} {'p50 us':>7} {'p99 us':>7} {'p99.9':>7} {'max us':>8} {'missed':>6} {'late':>5} "
-          f"{'overrun':>7} {'MB p50':>7} {'MB p99':>7} {'polls/s':>7} {'tele/s':>6}")
+          f"{'overrun':>7} {'MB p50':>7} {'MB p99':>7} {'polls/s':>7} {'tele/s':>6} {'ua/s':>5}")
     for r in results:
         mb = r.get("modbus", {})
         print(f"{r['phase']:>6} {r['latency_us_p50']:>7.0f} {r['latency_us_p99']:>7.0f} {r['latency_us_p999']:>7.0f} "
               f"{r['latency_us_max']:>8.0f} {r['missed_cycles']:>6} {r['late_tpdos']:>5} "
               f"{r.get('window_overruns', '?'):>7} "
               f"{mb.get('response_us_p50', float('nan')):>7.0f} {mb.get('response_us_p99', float('nan')):>7.0f} "
-              f"{mb.get('polls_per_s', 0):>7.0f} {r.get('telemetry_samples_per_s', 0):>6.0f}")
+              f"{mb.get('polls_per_s', 0):>7.0f} {r.get('telemetry_samples_per_s', 0):>6.0f} "
+              f"{r.get('opcua_changes_per_s', 0):>5.0f}")
     print("\nhops [us] p50 / p99 / max; tail = mean over the slowest 1 % of SYNCs; serve's threads: CPU % / "
           "run-queue wait % of the phase")
     for r in results:

@@ -50,6 +50,15 @@ def add_arguments(p) -> None:
                    help="serve the live drive page (docs/live-page.md); default off, 127.0.0.1:8080 without a value")
     g.add_argument("--http-writable", action="store_true",
                    help="the live page may write objects (as SDO downloads); read-only otherwise")
+    g.add_argument("--opcua", nargs="?", const="127.0.0.1:4840", default=None, metavar="HOST:PORT",
+                   help="serve OPC UA (docs/opcua.md; needs the opcua extra); default off, 127.0.0.1:4840 without a "
+                        "value")
+    g.add_argument("--opcua-writable", action="store_true", help="accept OPC UA writes of the Parameters nodes")
+    g.add_argument("--opcua-users", default=None, metavar="FILE",
+                   help="TOML file with a [users] table (name = \"password\"): username login instead of anonymous")
+    g.add_argument("--opcua-cert", default=None, metavar="FILE",
+                   help="server certificate (with --opcua-key): Basic256Sha256 SignAndEncrypt only")
+    g.add_argument("--opcua-key", default=None, metavar="FILE", help="private key of --opcua-cert")
 
 
 @dataclass
@@ -68,10 +77,13 @@ class SideChannels:
     http: Any = None  # LivePageService
     frame_log: Any = None  # FrameLog of the live page (EMCY frames, SDO aborts sent)
     bus: Any = None  # the bus as wrapped (its stats(): bus load on the live page)
+    opcua_settings: Any = None  # OpcuaSettings
+    opcua: Any = None  # OpcuaService
 
     @property
     def enabled(self) -> bool:
-        return self.modbus_address is not None or self.mqtt is not None or self.http_address is not None
+        return (self.modbus_address is not None or self.mqtt is not None or self.opcua_settings is not None
+                or self.http_address is not None)
 
     def wrap_bus(self, bus):
         """With a side channel on: ``bus`` wrapped so that PDO sends mark the cycle gate (else ``bus``)."""
@@ -125,9 +137,23 @@ class SideChannels:
             shown = f"[{host}]" if ":" in host else host
             self.lines.append(f"http: live page at http://{shown}:{self.http.bound_port}/ ({rw})")
 
+        if self.opcua_settings is not None:
+            from virtualaxis.services.opcua import AxisSource, OpcuaService
+
+            st = self.opcua_settings
+            sources = [AxisSource(a.name, a.node_id, a.drive, _nmt_getter(a), getattr(a, "injection", None))
+                       for a in axes]
+            self.opcua = OpcuaService(st, sources, gate=self.gate).start()
+            access = "read/write parameters" if st.writable else "read-only"
+            who = "username/password" if st.users else "anonymous"
+            sec = "Basic256Sha256 SignAndEncrypt" if st.cert_file else "no security"
+            self.lines.append(f"opcua: {self.opcua.url} ({access}, {who}, {sec}), objects VirtualAxis/<axis>")
+
     def stop(self) -> None:
         if self.http is not None:
             self.http.stop()
+        if self.opcua is not None:
+            self.opcua.stop()
         if self.telemetry is not None:
             self.telemetry.stop()
         if self.modbus is not None:
@@ -141,6 +167,8 @@ class SideChannels:
             out["mqtt"] = self.telemetry.stats()
         if self.http is not None:
             out["http"] = self.http.stats()
+        if self.opcua is not None:
+            out["opcua"] = self.opcua.stats()
         if self.gate is not None:
             out["cycle_gate"] = self.gate.stats()
         return out
@@ -198,6 +226,11 @@ def prepare(args, main_config) -> SideChannels:
         sc.http_writable = args.http_writable
     elif args.http_writable:
         raise ValueError("--http-writable needs --http")
+    if getattr(args, "opcua", None) is not None or any(
+            getattr(args, k, None) for k in ("opcua_writable", "opcua_users", "opcua_cert", "opcua_key")):
+        from virtualaxis.services.opcua import prepare as prepare_opcua
+
+        sc.opcua_settings = prepare_opcua(args)
     return sc
 
 
