@@ -48,7 +48,7 @@ from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
 from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults, eds_limits
-from virtualaxis.drive.profiles import WindowTimer
+from virtualaxis.drive.profiles import SpeedZeroDetector, WindowTimer
 from virtualaxis.drive.settings import drive_settings
 from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
 from virtualaxis.drive.statemachine import (
@@ -144,6 +144,8 @@ SETPOINT_REFUSED_EMCY = 0x6320
 #: the current limit sent to the plant for a torque / current limit 0x6072 / 0x6073 of 0 [A or N]: the plant's
 #: "no limit" is 0, a zero limit is zero torque (chosen: 1e-9, no torque a measurement can resolve)
 ZERO_CURRENT_LIMIT = 1e-9
+#: the simulated machine's gear (motor revolutions, screw revolutions): the plant's motor drives the screw
+MACHINE_GEAR = (1, 1)
 
 
 #: option codes and other objects with a narrower range than their data type: key -> (min, max)
@@ -162,6 +164,9 @@ _VALUE_RANGES = {
     # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
     # running at speed); refused as SDO does from the EDS's LowLimit 1
     **{(index, 0): (1, DTYPE_RANGES["u32"][1]) for index in (0x6083, 0x6084, 0x6085, 0x609A)},
+    # homing speeds: 0 would be a search that never moves and never ends
+    (0x6099, 1): (1, DTYPE_RANGES["u32"][1]),
+    (0x6099, 2): (1, DTYPE_RANGES["u32"][1]),
 }
 #: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
 #: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_object_write (the
@@ -360,8 +365,21 @@ class Drive:
         return int(math.ceil(max_table_speed_m_s(cfg) / self._lead_m() * 60.0))
 
     def _max_speed_m_s(self) -> float:
-        """0x6080 max motor speed as table speed [m/s]."""
-        return float(self._obj(0x6080)) / 60.0 * self._lead_m()
+        """0x6080 max motor speed as table speed [m/s] (motor revolutions through the gear 0x6091)."""
+        return float(self._obj(0x6080)) / 60.0 * self.scaling.motor_rev_travel_m
+
+    def check_gear_ratio(self, sub: int, value: int) -> None:
+        """0x6091 describes the machine: the simulated axis' motor drives the screw directly (one motor
+        revolution per screw revolution, :data:`MACHINE_GEAR`), so only that ratio is accepted (another one
+        would count motor revolutions, index pulses and 0x6080 against a gear the plant does not have)."""
+        motor = value if sub == 1 else int(self.objects[(0x6091, 1)])
+        shaft = value if sub == 2 else int(self.objects[(0x6091, 2)])
+        m, s = MACHINE_GEAR
+        if motor * s != shaft * m:
+            raise ObjectAccessError(
+                ABORT_VALUE_INVALID,
+                f"0x6091:{sub} gear ratio {motor}:{shaft} (motor:shaft revolutions) is not this axis' {m}:{s} "
+                "(the motor drives the screw directly)")
 
     def _lag_m(self, v_m_s: float) -> float:
         """Steady following error of the position loop at velocity ``v`` [m]: v (1 - k_ff) / Kv. A position
@@ -441,7 +459,7 @@ class Drive:
             self._fe_timer = WindowTimer()
             self._fe_exceeded = False
             self._tr_timer = WindowTimer()
-            self._vz_timer = WindowTimer()
+            self._vz_timer = SpeedZeroDetector()
             self._ss_timer = WindowTimer()
             self._rest_timer = WindowTimer()
             # the mode objects and their set-point state (0x6060 value -> mode object; see drive.modes)
@@ -546,6 +564,8 @@ class Drive:
                 raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be > 0")
             if self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
                 raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
+            if key[0] == 0x6091:
+                self.check_gear_ratio(sub, value)
         if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
         if key == (0x2004, 0) and 0 < value < self.gain_bounds.speed_tn_min_s * 1000.0:
@@ -1290,7 +1310,7 @@ class Drive:
         # target reached / velocity reached (the mode object's definition of bit 10)
         self._target_reached = self._mode_obj.target_reached(self, ax, dt)
         self._speed_zero = self._vz_timer.update(
-            abs(ax.velocity_m_s) <= pc.velocity_threshold_m_s, dt, pc.velocity_threshold_time_s
+            ax.velocity_m_s, dt, pc.velocity_threshold_m_s, pc.velocity_threshold_time_s
         )
         # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
         if pc.pmsm:

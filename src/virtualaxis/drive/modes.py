@@ -440,6 +440,11 @@ class Homing(OperatingMode):
         fast = float(d._obj(0x6099, 1)) * d._u
         slow = float(d._obj(0x6099, 2)) * d._u
         speed = fast if phase.fast else slow
+        if not speed > 0:  # (a write refuses 0; loaded parameters are not checked): a search that never ends
+            run.status = hm.HomingStatus.ERROR
+            run.error = "homing speed 0x6099 is 0"
+            self.gen.brake(acc, acc)
+            return
         if not phase.fast and phase.signal != "index" and math.isfinite(run.edge_m):
             # back to a switch edge found at the search speed, which may have braked far past it: run at up to
             # the search speed and slow down in time to cross the edge at the zero search speed (a 500 mm/s
@@ -458,7 +463,7 @@ class Homing(OperatingMode):
         hit = False
         latched = x_plant
         if phase.signal == "index":
-            period = d._lead_m() * int(d._obj(0x6091, 2)) / int(d._obj(0x6091, 1))
+            period = d.scaling.motor_rev_travel_m
             crossing = hm.index_crossed(d._prev_actual_m, x_plant, d.settings.index_pulse_offset_m, period)
             if crossing is not None and (crossing - d._prev_actual_m) * phase.direction > 0:
                 hit, latched = True, crossing
@@ -509,7 +514,7 @@ class Homing(OperatingMode):
         if run.status == hm.HomingStatus.ATTAINED:
             return 0x8000 | 0x1400
         if run.status == hm.HomingStatus.ERROR:
-            return 0x8000 | 0x2000 | (0x400 if abs(d._axis.velocity_m_s) < 1e-4 else 0)
+            return 0x8000 | 0x2000 | (0x400 if d._speed_zero_flag() else 0)
         return 0x8000
 
 
