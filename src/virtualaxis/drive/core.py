@@ -847,7 +847,7 @@ class Drive:
                     self.set_warning(code, False)
         if neg or pos:
             armed = (self._power and self._state is S.OPERATION_ENABLED and self._stop is None
-                     and not mon.homing_owns_switches(self))
+                     and not self._homing_owns_switches())
             event = self._switch_monitor.check(neg, pos, ax.velocity_m_s, self.setpoints.demand_v,
                                                rx.standstill_threshold_m_s(self), armed,
                                                int(self._obj(0x2013)) == 1)
@@ -855,6 +855,12 @@ class Drive:
                 self._apply_monitor_event(event)
         else:
             self._switch_monitor.switches = 0
+
+    def _homing_owns_switches(self) -> bool:
+        """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
+        unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
+        switch fault must not overtake."""
+        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self))
 
     def _apply_monitor_event(self, event: mon.Event) -> None:
         """A monitor's event: a fault (with its persistent cause), a cause gone, or a limit switch reached
@@ -1119,7 +1125,7 @@ class Drive:
         """Velocity modes: no motion outward beyond a software limit or toward an active limit switch
         (bit 11)."""
         switches = self._switch_monitor
-        blocked = switches.blocked_direction(mon.homing_owns_switches(self)) if switches.switches else 0
+        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
         if blocked and v * blocked > 0.0:
             self._internal_limit = True
             return 0.0
@@ -1136,7 +1142,7 @@ class Drive:
 
     def _set_position(self, p: float, vff: float) -> None:
         switches = self._switch_monitor
-        blocked = switches.blocked_direction(mon.homing_owns_switches(self)) if switches.switches else 0
+        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
         if blocked and (p - self.setpoints.demand_m) * blocked > 0.0:  # no further toward an active limit switch
             p, vff = self.setpoints.demand_m, 0.0
             self._internal_limit = True

@@ -23,25 +23,11 @@ Each monitor is a small object whose ``check`` returns an event (:class:`FaultEv
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
-from virtualaxis.drive.opmodes import OperationMode
-
-if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
-
-HM = OperationMode.HM
 LIMIT_CODES = (0xFF10, 0xFF11)  # negative, positive switch
 I32_MAX = 0x7FFFFFFF
 #: overspeed limit = this x 0x6080 (SINAMICS p2162 hysteresis above the maximum speed; chosen 1.2)
 OVERSPEED_FACTOR = 1.2
-
-
-def homing_owns_switches(drive: Drive) -> bool:
-    """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
-    unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
-    switch fault must not overtake (it did: 0xFF11 instead of the homing error)."""
-    return drive._mode == HM and (drive._hm.in_progress() or drive._hm.stopping_after_error(drive))
 
 
 @dataclass(frozen=True)
