@@ -453,7 +453,6 @@ class Drive:
             self.setpoints.last_vff = 0.0
             self._target_reached = False
             self._internal_limit = False
-            self._homed = False
             self._warning = False
             self._alarm = 0
             self._temperature_alarm = 0
@@ -828,7 +827,12 @@ class Drive:
             if isinstance(then, Cia402State):
                 self._set_state(then)
             return
+        self._hm.run = None  # a stop interrupts a homing run
         self._stop = rx.StopRamp.start(self, kind, then)
+
+    def note_internal_limit(self) -> None:
+        """A mode limited its target this cycle (0x607F / 0x6080, software limits): statusword bit 11."""
+        self._internal_limit = True
 
     def _travel_monitors(self, ax) -> None:
         """Position range, overspeed and limit switches: each monitor returns its event, applied here."""
@@ -1532,7 +1536,7 @@ class Drive:
                 target_reached=bool(int(o[(0x6041, 0)]) & 0x400),
                 internal_limit_active=bool(int(o[(0x6041, 0)]) & 0x800),
                 warning=bool(int(o[(0x6041, 0)]) & 0x80),
-                homed=self._homed,
+                homed=self._hm.homed,
                 digital_inputs=int(o[(0x60FD, 0)]),
                 fault_active=self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE),
                 error_code=int(o[(0x603F, 0)]),

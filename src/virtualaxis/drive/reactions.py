@@ -117,7 +117,6 @@ class StopRamp:
         decel = max(decel, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
         drive.setpoints.set_control(CONTROL_MODE.VELOCITY)
-        drive._hm.run = None
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
                    vramp=VelocityRamp(drive.cycle_s))
         ramp.vramp.velocity_m_s = v0

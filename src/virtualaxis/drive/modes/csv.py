@@ -32,7 +32,8 @@ class CyclicVelocity(ProfileVelocity):
         v = d._velocity_limit(v)
         o = d.objects
         requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * d._u
-        d._internal_limit = d._internal_limit or d._clamp_velocity(requested) != requested
+        if d._clamp_velocity(requested) != requested:
+            d.note_internal_limit()
         d.setpoints.demand_v = v
         d.setpoints.send_velocity(v)
 

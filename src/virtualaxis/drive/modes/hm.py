@@ -31,6 +31,7 @@ class Homing(OperatingMode):
     def __init__(self, gen: ProfileGenerator):
         super().__init__(gen)
         self.run: hm.HomingRun | None = None
+        self.homed = False  # a homing run has attained the home point since power-on (bit 12 while idle)
 
     def reset(self, d: Drive, p_m: float) -> None:
         super().reset(d, p_m)
@@ -75,7 +76,7 @@ class Homing(OperatingMode):
             self.run = hm.HomingRun(method, [], x, status=hm.HomingStatus.ERROR, error="unsupported method")
             return
         self.run = hm.HomingRun(method, phases, x)
-        d._homed = False
+        self.homed = False
         self.gen.profile.reset(d.setpoints.demand_m, 0.0)
         self.gen.jerk.reset(d.setpoints.demand_m, 1)
         if not phases:
@@ -175,7 +176,7 @@ class Homing(OperatingMode):
         gen.jerk.reset(gen.profile.position_m, 1)
         gen.target_m = gen.profile.position_m
         run.status = hm.HomingStatus.ATTAINED
-        d._homed = True
+        self.homed = True
         d._notify("homed")
 
     def target_reached(self, d: Drive, ax, dt: float) -> bool:
@@ -186,7 +187,7 @@ class Homing(OperatingMode):
         0/0/0, attained 0/1/1, error 1/0/0 (1/0/1 at standstill: speed 0 as 0x606F / 0x6070 tell)."""
         run = self.run
         if run is None:
-            return 0x1400 if d._homed else 0x400
+            return 0x1400 if self.homed else 0x400
         if run.status == hm.HomingStatus.ATTAINED:
             return 0x1400
         if run.status == hm.HomingStatus.ERROR:

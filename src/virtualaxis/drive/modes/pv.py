@@ -38,7 +38,8 @@ class ProfileVelocity(OperatingMode):
         requested = int(o[(0x60FF, 0)]) * u
         clamped = d._clamp_velocity(requested)
         target = d._velocity_limit(clamped)
-        d._internal_limit = d._internal_limit or clamped != requested
+        if clamped != requested:
+            d.note_internal_limit()
         if d._cw & 0x100:
             decel = self.halt_decel_m_s2(d)
             if math.isinf(decel):
