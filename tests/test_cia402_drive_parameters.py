@@ -3,9 +3,15 @@
 
 from __future__ import annotations
 
+import time
+from pathlib import Path
+
 import canopen
 import pytest
-from test_drive_rig import Rig, seed_config
+from test_drive_rig import Rig, seed_config, seed_discrete
+
+from virtualaxis.drive.core import DEFAULT_EDS
+from virtualaxis.runtime import AxisNode, Runtime, open_bus
 
 ABORT_VALUE_INVALID = 0x06090030
 ABORT_VALUE_TOO_LOW = 0x06090032
@@ -133,3 +139,43 @@ def test_gear_ratio_other_than_the_machines_is_refused_and_the_index_stays_one_p
         assert abs(inc0 - (-0.27) / lead_m * per_rev) < per_rev * 0.01  # before homing: from the plant's zero
     finally:
         r.close()
+
+
+def test_homing_with_a_zero_speed_from_the_eds_ends_in_a_homing_error(tmp_path):
+    """An EDS whose default 0x6099:2 is 0 (loaded at boot, no write to refuse): homing method 20 would crawl
+    at speed 0 for ever; the run ends in a homing error (bits 13/12 = 1/0) instead."""
+    eds = tmp_path / "zero-homing-speed.eds"
+    text = Path(DEFAULT_EDS).read_text()
+    head, sep, tail = text.partition("[6099sub2]")
+    body, nl, rest = tail.partition("\n\n")
+    eds.write_text(head + sep + body.replace("DefaultValue=2000", "DefaultValue=0") + nl + rest)
+    channel = f"va-zero-speed-{time.monotonic_ns()}"
+    bus = open_bus(f"virtual:{channel}")
+    axis = AxisNode(bus, 1, seed_config(), name="axis1", initial_position_m=0.03, discrete=seed_discrete(),
+                    eds_path=eds)
+    runtime = Runtime(bus, [axis], lockstep=True)
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=channel)
+    try:
+        runtime.start()
+        node = canopen.BaseNode402(1, str(eds))
+        node.sdo.RESPONSE_TIMEOUT = 2.0
+        net.add_node(node)
+        assert node.sdo[0x6099][2].raw == 0
+        node.sdo[0x6060].raw = 6
+        node.sdo[0x6098].raw = 20
+        node.sdo[0x609A].raw = 2_000_000
+        for cw in (0x06, 0x07, 0x0F, 0x1F):
+            node.sdo[0x6040].raw = cw
+        sw = 0
+        for _ in range(3000):
+            net.sync.transmit()
+            time.sleep(0.002)
+            sw = node.sdo[0x6041].raw
+            if sw & 0x3000:
+                break
+        assert sw & 0x3000 == 0x2000, hex(sw)
+    finally:
+        net.disconnect()
+        runtime.stop()
+        bus.shutdown()

@@ -225,4 +225,3 @@ def make_modes(cycle_s: float, position_m: float) -> dict[int, OperatingMode]:
     :class:`ProfileGenerator` at rest at ``position_m`` (drive coordinate [m])."""
     gen = ProfileGenerator(cycle_s, position_m)
     return {number: cls(gen) for number, cls in MODE_TYPES.items()}
-
