@@ -199,7 +199,7 @@ def _ignores_loss_of_control(axis, mp):
 def _ignores_limit_switches(axis, mp):
     import virtualaxis.drive.monitoring as mon
 
-    mp.setattr(mon, "monitor_limit_switches", lambda drive, x, v: None)
+    mp.setattr(mon.LimitSwitchMonitor, "check", lambda self, *args: None)  # never sees a switch
 
 
 def _sync_timeout_false_alarm(axis, mp):

@@ -55,14 +55,14 @@ def test_the_range_shortcut_of_the_write_check_answers_as_the_full_check(monkeyp
 def test_published_position_values_round_and_saturate_as_the_helpers(demand_m):
     drive = Drive(seed_config(), discrete=seed_discrete())
     drive.step(3)
-    drive._demand_m = demand_m
-    drive._demand_v = demand_m / 7.0 if math.isfinite(demand_m) else demand_m
+    drive.setpoints.demand_m = demand_m
+    drive.setpoints.demand_v = demand_m / 7.0 if math.isfinite(demand_m) else demand_m
     drive._publish_outputs()
     inv_u = drive._pc.inv_u
     assert drive.read_object(0x6062) == _i32(demand_m * inv_u)
-    assert drive.read_object(0x606B) == _i32(drive._demand_v * inv_u)
+    assert drive.read_object(0x606B) == _i32(drive.setpoints.demand_v * inv_u)
     ax = drive._axis
-    assert drive.read_object(0x6064) == _i32((ax.position_m - drive._zero_m) * inv_u)
+    assert drive.read_object(0x6064) == _i32((ax.position_m - drive.setpoints.zero_m) * inv_u)
     assert drive.read_object(0x6078) == _i16(ax.current_q_a / drive._pc.rated_a * 1000.0)
     assert drive.read_object(0x2110, 5) == drive.counters["cycles"]
 

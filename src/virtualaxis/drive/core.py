@@ -6,8 +6,9 @@ Data path of one cycle (what to read, in order):
    :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
    0x6060 -> mode object;
 2. :meth:`Drive.step`: cycle hooks (fault injection), then the active stop (:mod:`~virtualaxis.drive.reactions`,
-   always from the actual motion) or the mode object's ``cycle`` (:mod:`~virtualaxis.drive.modes`: PP, PV,
-   PT, HM, CSP, CSV, CST) -> set-point -> plant (``AxisSimulator.advance``);
+   always from the actual motion) or the mode object's ``cycle`` (:mod:`~virtualaxis.drive.modes`, one module
+   per mode: PP, PV, PT, HM, CSP, CSV, CST) -> set-point limiters -> set-point channel
+   (:mod:`~virtualaxis.drive.setpoints`) -> plant (``AxisSimulator.advance``);
 3. monitors: travel (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed) and
    ``Drive._monitor`` (following error, standstill, target reached via the mode object, temperature,
    DC link) -> faults (:mod:`~virtualaxis.drive.faults`, reaction class per fault);
@@ -48,8 +49,10 @@ from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
 from virtualaxis.drive.object_table import ObjectAccessError, ObjectTable
-from virtualaxis.drive.objects import DTYPE_RANGES, MODE_BITS, SPECS, clamp_to_dtype, eds_defaults, eds_limits
-from virtualaxis.drive.profiles import WindowTimer
+from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, clamp_to_dtype, eds_defaults, eds_limits
+from virtualaxis.drive.opmodes import SUPPORTED_MODE_BITS, TORQUE_MODES, OperationMode
+from virtualaxis.drive.profiles import SpeedZeroDetector, WindowTimer
+from virtualaxis.drive.setpoints import SetpointChannel
 from virtualaxis.drive.settings import drive_settings
 from virtualaxis.drive.snapshot import MODE_NAMES, PARAMETERS, DriveState
 from virtualaxis.drive.statemachine import (
@@ -64,7 +67,7 @@ from virtualaxis.drive.statemachine import (
 )
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.resources import project_file
-from virtualaxis.sim import CONTROL_MODE, AxisSimulator, ControlMode
+from virtualaxis.sim import CONTROL_MODE, AxisSimulator
 from virtualaxis.sim.simulator import end_stops
 
 S = STATE  # (the members as plain attributes; Cia402State is the type)
@@ -79,12 +82,11 @@ ABORT_VALUE_TOO_LOW = 0x06090032
 ABORT_DEVICE_STATE = 0x08000022
 ABORT_NO_OBJECT = 0x06020000
 
-PP, PV, PT, HM, CSP, CSV, CST = 1, 3, 4, 6, 8, 9, 10
-TORQUE_MODES = (PT, CST)
+PP, PV, PT, HM, CSP, CSV, CST = (OperationMode.PP, OperationMode.PV, OperationMode.PT, OperationMode.HM,
+                                 OperationMode.CSP, OperationMode.CSV, OperationMode.CST)
 # torque modes: bit 11 while the torque pushes the axis at this share of 0x6080 or faster (the plant's speed
 # limiter acts there; chosen: above the P limiter's droop at the bench axes' friction, ~1 %)
 SPEED_LIMIT_SHARE = 0.97
-POSITION_MODES = (PP, HM, CSP)
 
 # objects whose change recomputes the cached monitoring parameters (_refresh_params)
 _MONITOR_PARAMETER_INDICES = frozenset(
@@ -145,6 +147,8 @@ SETPOINT_REFUSED_EMCY = 0x6320
 #: the current limit sent to the plant for a torque / current limit 0x6072 / 0x6073 of 0 [A or N]: the plant's
 #: "no limit" is 0, a zero limit is zero torque (chosen: 1e-9, no torque a measurement can resolve)
 ZERO_CURRENT_LIMIT = 1e-9
+#: the simulated machine's gear (motor revolutions, screw revolutions): the plant's motor drives the screw
+MACHINE_GEAR = (1, 1)
 
 
 #: option codes and other objects with a narrower range than their data type: key -> (min, max)
@@ -163,6 +167,9 @@ _VALUE_RANGES = {
     # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
     # running at speed); refused as SDO does from the EDS's LowLimit 1
     **{(index, 0): (1, DTYPE_RANGES["u32"][1]) for index in (0x6083, 0x6084, 0x6085, 0x609A)},
+    # homing speeds: 0 would be a search that never moves and never ends
+    (0x6099, 1): (1, DTYPE_RANGES["u32"][1]),
+    (0x6099, 2): (1, DTYPE_RANGES["u32"][1]),
 }
 #: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
 #: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_object_write (the
@@ -309,7 +316,7 @@ class Drive:
             (0x607D, 2): clamp_to_dtype(travel_max_m / unit, "i32"),
             (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
             (0x6080, 0): self._default_max_motor_speed_rpm(),
-            (0x6502, 0): sum(MODE_BITS.values()),
+            (0x6502, 0): sum(SUPPORTED_MODE_BITS.values()),
         }
         if st.following_error_tolerance_m is not None:
             out[(0x6065, 0)] = clamp_to_dtype(st.following_error_tolerance_m / unit, "u32")
@@ -350,8 +357,21 @@ class Drive:
         return int(math.ceil(max_table_speed_m_s(cfg) / self._lead_m() * 60.0))
 
     def _max_speed_m_s(self) -> float:
-        """0x6080 max motor speed as table speed [m/s]."""
-        return float(self._obj(0x6080)) / 60.0 * self._lead_m()
+        """0x6080 max motor speed as table speed [m/s] (motor revolutions through the gear 0x6091)."""
+        return float(self._obj(0x6080)) / 60.0 * self.scaling.motor_rev_travel_m
+
+    def check_gear_ratio(self, sub: int, value: int) -> None:
+        """0x6091 describes the machine: the simulated axis' motor drives the screw directly (one motor
+        revolution per screw revolution, :data:`MACHINE_GEAR`), so only that ratio is accepted (another one
+        would count motor revolutions, index pulses and 0x6080 against a gear the plant does not have)."""
+        motor = value if sub == 1 else int(self.objects[(0x6091, 1)])
+        shaft = value if sub == 2 else int(self.objects[(0x6091, 2)])
+        m, s = MACHINE_GEAR
+        if motor * s != shaft * m:
+            raise ObjectAccessError(
+                ABORT_VALUE_INVALID,
+                f"0x6091:{sub} gear ratio {motor}:{shaft} (motor:shaft revolutions) is not this axis' {m}:{s} "
+                "(the motor drives the screw directly)")
 
     def _lag_m(self, v_m_s: float) -> float:
         """Steady following error of the position loop at velocity ``v`` [m]: v (1 - k_ff) / Kv. A position
@@ -406,7 +426,8 @@ class Drive:
             values.update(self.derived_objects())
             #: the objects' values (the object table's dict: every object and alias, kept for the drive's life)
             self.objects: dict[tuple[int, int], int | float] = self.object_table.reset(values)
-            self._zero_m = 0.0  # plant position that reads as position 0 (shifted by homing)
+            #: demand, zero offset (the plant position that reads as 0, shifted by homing), the plant's loop
+            self.setpoints = SetpointChannel(self.sim)
             self._faults: list[FaultRecord] = []
             self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
             self._fault_pending_reset = False
@@ -414,13 +435,12 @@ class Drive:
             self._cw = 0
             self._mode = 0
             self._power = False
-            self._stop: dict | None = None  # active stop ramp
-            self._demand_m = self.sim.state.position_m
-            self._demand_v = 0.0
-            self._last_vff = 0.0
+            self._stop: rx.StopRamp | None = None  # active stop ramp
+            self.setpoints.demand_m = self.sim.state.position_m
+            self.setpoints.demand_v = 0.0
+            self.setpoints.last_vff = 0.0
             self._target_reached = False
             self._internal_limit = False
-            self._homed = False
             self._warning = False
             self._alarm = 0
             self._temperature_alarm = 0
@@ -429,24 +449,24 @@ class Drive:
             self._fe_timer = WindowTimer()
             self._fe_exceeded = False
             self._tr_timer = WindowTimer()
-            self._vz_timer = WindowTimer()
+            self._vz_timer = SpeedZeroDetector()
             self._ss_timer = WindowTimer()
             self._rest_timer = WindowTimer()
             # the mode objects and their set-point state (0x6060 value -> mode object; see drive.modes)
-            self._modes = modes.make_modes(self.cycle_s, self._demand_m)
+            self._modes = modes.make_modes(self.cycle_s, self.setpoints.demand_m)
             self._mode_obj = self._modes[0]
             self._gen = self._modes[0].gen  # the profile generator of no mode / PP / HM
             self._hm: modes.Homing = self._modes[HM]
             self._csp: modes.CyclicPosition = self._modes[CSP]
-            self._prev_actual_m = self._demand_m
+            self._prev_actual_m = self.setpoints.demand_m
             self._fe_m = 0.0
-            self._limit_switches = 0  # 0x60FD bits 0/1 as last monitored
-            self._position_overflow = False
+            self._switch_monitor = mon.LimitSwitchMonitor()  # 0x60FD bits 0/1 as last monitored
+            self._range_monitor = mon.PositionRangeMonitor()
             self._index_seen_m: float | None = None
             self._update_scaling()
             self._apply_gains()
             self.sim.enable(False)
-            self._smode = self.sim.mode
+            self.setpoints.control = self.sim.mode
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
             self._axis = self.sim.state
@@ -491,7 +511,7 @@ class Drive:
         if (
             key == (0x6060, 0)
             and value != 0
-            and (value not in MODE_BITS or not MODE_BITS[value] & self.objects[(0x6502, 0)])
+            and (value not in SUPPORTED_MODE_BITS or not SUPPORTED_MODE_BITS[value] & self.objects[(0x6502, 0)])
         ):
             raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
         if key == (0x607E, 0) and value != 0:
@@ -510,6 +530,8 @@ class Drive:
                 raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be > 0")
             if self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
                 raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
+            if key[0] == 0x6091:
+                self.check_gear_ratio(sub, value)
         if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
             raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
         if key == (0x2004, 0) and 0 < value < self.gain_bounds.speed_tn_min_s * 1000.0:
@@ -746,17 +768,12 @@ class Drive:
                 self._power_off()
             self._set_state(target)
 
-    def _set_sim_mode(self, mode: ControlMode) -> None:
-        if mode != self._smode:
-            self.sim.set_mode(mode)
-            self._smode = mode
-
     def _power_on(self) -> None:
-        self._demand_m = self.sim.state.position_m - self._zero_m
-        self._demand_v = 0.0
-        self._last_vff = 0.0
-        self._set_sim_mode(CONTROL_MODE.POSITION)
-        self.sim.set_position_setpoint(self._demand_m + self._zero_m, 0.0, 0.0)
+        self.setpoints.demand_m = self.sim.state.position_m - self.setpoints.zero_m
+        self.setpoints.demand_v = 0.0
+        self.setpoints.last_vff = 0.0
+        self.setpoints.set_control(CONTROL_MODE.POSITION)
+        self.setpoints.send_position(self.setpoints.demand_m, 0.0, 0.0)
         self.sim.enable(True)
         self._power = True
 
@@ -764,7 +781,7 @@ class Drive:
         self.sim.enable(False)
         self._power = False
         self._stop = None
-        self._demand_v = 0.0
+        self.setpoints.demand_v = 0.0
         self._hm.run = None
 
     def _start_stop(self, kind: str, then: Cia402State | str | None) -> None:
@@ -775,14 +792,95 @@ class Drive:
             if isinstance(then, Cia402State):
                 self._set_state(then)
             return
+        self._hm.run = None  # a stop interrupts a homing run
         self._stop = rx.StopRamp.start(self, kind, then)
 
+    def note_internal_limit(self) -> None:
+        """A mode limited its target this cycle (0x607F / 0x6080, software limits): statusword bit 11."""
+        self._internal_limit = True
+
+    def _travel_monitors(self, ax) -> None:
+        """Position range, overspeed and limit switches: each monitor returns its event, applied here."""
+        pc = self._pc
+        event = self._range_monitor.check((ax.position_m - self.setpoints.zero_m) * pc.inv_u)
+        if event is not None:
+            self._apply_monitor_event(event)
+        event = mon.OverspeedMonitor.check(ax.velocity_m_s, pc.max_speed_m_s, pc.inv_u, self._power,
+                                           self._causes.get(0x8401))
+        if event is not None:
+            self._apply_monitor_event(event)
+        neg, pos, _ = self._switches(ax.position_m)
+        if self._warnings:
+            for code, active in zip(mon.LIMIT_CODES, (neg, pos), strict=True):
+                if not active and code in self._warnings:
+                    self.set_warning(code, False)
+        if neg or pos:
+            armed = (self._power and self._state is S.OPERATION_ENABLED and self._stop is None
+                     and not self._homing_owns_switches())
+            event = self._switch_monitor.check(neg, pos, ax.velocity_m_s, self.setpoints.demand_v,
+                                               rx.standstill_threshold_m_s(self), armed,
+                                               int(self._obj(0x2013)) == 1)
+            if event is not None:
+                self._apply_monitor_event(event)
+        else:
+            self._switch_monitor.switches = 0
+
+    def _homing_owns_switches(self) -> bool:
+        """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
+        unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
+        switch fault must not overtake."""
+        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self))
+
+    def _apply_monitor_event(self, event: mon.Event) -> None:
+        """A monitor's event: a fault (with its persistent cause), a cause gone, or a limit switch reached
+        (fault, or warning + quick stop staying enabled)."""
+        if isinstance(event, mon.FaultEvent):
+            self._raise_fault(event.code, event.value, cause=event.cause)
+        elif isinstance(event, mon.CauseCleared):
+            if self._causes.get(event.code) == event.cause:
+                del self._causes[event.code]
+        elif event.fault:
+            self._raise_fault(event.code, event.switches)
+        else:
+            self.set_warning(event.code, True)
+            self._internal_limit = True
+            self._start_stop("quick", then="resume")
+
     def _run_stop(self) -> None:
-        rx.run_stop(self)
+        s = self._stop
+        outcome = rx.run_stop(self, s)
+        if outcome is rx.StopOutcome.DONE:
+            self._finish_stop(s)
+        elif outcome is rx.StopOutcome.FAILED:
+            self._braking_failed()
+
+    def _braking_failed(self) -> None:
+        """The axis is not at standstill within the stop's bound: fault 0x8400 (F07900), pulses off (OFF2)."""
+        self._stop = None
+        v = self._axis.velocity_m_s
+        self._raise_fault(0x8400, int(round(v * self._pc.inv_u)) if math.isfinite(v) else 0)
+        self._power_off()
+        if self._state is S.FAULT_REACTION_ACTIVE:
+            self._set_state(S.FAULT)
+
+    def _finish_stop(self, s: rx.StopRamp) -> None:
+        """Stopped and held: the state change the stop was for."""
+        self._stop = None
+        self._enter_mode_idle_hold()
+        then = s.then
+        if self._state is S.FAULT_REACTION_ACTIVE:
+            self._power_off()
+            self._set_state(S.FAULT)
+        elif then == "resume":
+            self._enter_mode(self._mode)
+        elif isinstance(then, Cia402State):
+            self._power_off()
+            self._set_state(then)
+        # None: quick stop 5..8, stay in quick stop active holding the position
 
     def _enter_mode_idle_hold(self) -> None:
         """The position set-point generators at rest at the demand (after a stop)."""
-        p = self._demand_m
+        p = self.setpoints.demand_m
         self._gen.profile.reset(p)
         self._gen.jerk.reset(p, 1)
         self._csp.interp.reset(p)
@@ -912,10 +1010,10 @@ class Drive:
         and every mode object's own state), then the mode object takes over from the actual motion
         (:meth:`virtualaxis.drive.modes.OperatingMode.enter`)."""
         ax = self._axis
-        if self._smode != CONTROL_MODE.POSITION or not self._power:
-            self._demand_m = ax.position_m - self._zero_m
-        p = self._demand_m
-        self._last_vff = 0.0
+        if self.setpoints.control != CONTROL_MODE.POSITION or not self._power:
+            self.setpoints.demand_m = ax.position_m - self.setpoints.zero_m
+        p = self.setpoints.demand_m
+        self.setpoints.last_vff = 0.0
         self._gen.reset(p)
         for m in self._modes.values():  # every mode's own state at rest (PP handshake, homing run, CSP)
             m.reset(self, p)
@@ -989,20 +1087,21 @@ class Drive:
         if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._params().max_speed_m_s:
             limited = True
         self._internal_limit = limited
-        self.sim.set_torque_setpoint(t)
+        self.setpoints.send_torque(t)
         self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
 
     def _velocity_limit(self, v: float) -> float:
         """Velocity modes: no motion outward beyond a software limit or toward an active limit switch
         (bit 11)."""
-        blocked = mon.blocked_direction(self) if self._limit_switches else 0
+        switches = self._switch_monitor
+        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
         if blocked and v * blocked > 0.0:
             self._internal_limit = True
             return 0.0
         lim = self._limits_m()
         if lim is None:
             return v
-        x = self._axis.position_m - self._zero_m
+        x = self._axis.position_m - self.setpoints.zero_m
         if (x >= lim[1] and v > 0) or (x <= lim[0] and v < 0):
             self._internal_limit = True
             return 0.0
@@ -1011,14 +1110,15 @@ class Drive:
         return v
 
     def _set_position(self, p: float, vff: float) -> None:
-        blocked = mon.blocked_direction(self) if self._limit_switches else 0
-        if blocked and (p - self._demand_m) * blocked > 0.0:  # no further toward an active limit switch
-            p, vff = self._demand_m, 0.0
+        switches = self._switch_monitor
+        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
+        if blocked and (p - self.setpoints.demand_m) * blocked > 0.0:  # no further toward an active limit switch
+            p, vff = self.setpoints.demand_m, 0.0
             self._internal_limit = True
-        acc = (vff - self._last_vff) / self.cycle_s
-        self._last_vff = vff
-        self._demand_m, self._demand_v = p, vff
-        self.sim.set_position_setpoint(p + self._zero_m, vff, acc)
+        acc = (vff - self.setpoints.last_vff) / self.cycle_s
+        self.setpoints.last_vff = vff
+        self.setpoints.demand_m, self.setpoints.demand_v = p, vff
+        self.setpoints.send_position(p, vff, acc)
 
     # ================================================================================ homing
     # ================================================================================ switches
@@ -1180,8 +1280,8 @@ class Drive:
             elif self._state == S.OPERATION_ENABLED:
                 self._mode_obj.cycle(self)
             elif self._state == S.QUICK_STOP_ACTIVE:
-                self._set_sim_mode(CONTROL_MODE.POSITION)
-                self._set_position(self._demand_m, 0.0)
+                self.setpoints.set_control(CONTROL_MODE.POSITION)
+                self._set_position(self.setpoints.demand_m, 0.0)
         self.sim.advance(1)
         self._prev_actual_m = self._axis.position_m
         ax = self._axis = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
@@ -1191,14 +1291,12 @@ class Drive:
                 and math.isfinite(ax.table_position_m) and math.isfinite(ax.current_q_a)):
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
         if not self._power:
-            self._demand_m = ax.position_m - self._zero_m
-            self._gen.profile.reset(self._demand_m)
-            self._csp.interp.reset(self._demand_m)
+            self.setpoints.demand_m = ax.position_m - self.setpoints.zero_m
+            self._gen.profile.reset(self.setpoints.demand_m)
+            self._csp.interp.reset(self.setpoints.demand_m)
         if self._params_dirty:
             self._refresh_params()
-        mon.monitor_position_range(self, (ax.position_m - self._zero_m) * self._pc.inv_u)
-        mon.monitor_overspeed(self, ax.velocity_m_s)
-        mon.monitor_limit_switches(self, ax.position_m, ax.velocity_m_s)
+        self._travel_monitors(ax)
         self._monitor(ax, dt)
         self._publish_outputs()
 
@@ -1249,7 +1347,7 @@ class Drive:
         fe_m = ax.following_error_m
         in_position_control = (
             self._power
-            and self._smode == CONTROL_MODE.POSITION
+            and self.setpoints.control == CONTROL_MODE.POSITION
             and (self._state is S.OPERATION_ENABLED or self._state is S.QUICK_STOP_ACTIVE)
         )
         # following error 0x6065 / 0x6066 (position control only)
@@ -1260,7 +1358,7 @@ class Drive:
         elif self._fe_timer.held_s:
             self._fe_timer.held_s = 0.0
         # standstill monitoring (p2542/p2543): demand at rest for 0x2007 ms, |FE| > 0x2006 -> following error
-        if in_position_control and self._demand_v == 0.0 and self._stop is None:
+        if in_position_control and self.setpoints.demand_v == 0.0 and self._stop is None:
             at_rest = self._rest_timer.update(True, dt, pc.standstill_time_s)
             if at_rest and abs(fe_m) > pc.standstill_window_m and self._state is S.OPERATION_ENABLED:
                 self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
@@ -1269,7 +1367,7 @@ class Drive:
         # target reached / velocity reached (the mode object's definition of bit 10)
         self._target_reached = self._mode_obj.target_reached(self, ax, dt)
         self._speed_zero = self._vz_timer.update(
-            abs(ax.velocity_m_s) <= pc.velocity_threshold_m_s, dt, pc.velocity_threshold_time_s
+            ax.velocity_m_s, dt, pc.velocity_threshold_m_s, pc.velocity_threshold_time_s
         )
         # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
         if pc.pmsm:
@@ -1303,10 +1401,8 @@ class Drive:
         if self._internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
         if self._state == S.OPERATION_ENABLED:
-            bits = self._mode_obj.status_bits(self)  # bits 12 / 13 (HM: 10 too)
-            if bits & 0x8000:
-                sw &= ~0x3400
-            sw |= bits & 0x7FFF
+            mode = self._mode_obj  # bits 12 / 13 (HM: 10 too): the mode's status_mask
+            sw = (sw & ~mode.status_mask) | mode.status_bits(self)
         elif self._state is S.QUICK_STOP_ACTIVE:
             # CiA 402 bit 10: set once the quick stop (options 5..8) has finished and the drive is halted, in
             # every mode; bit 12 only where it tells the actual motion (PV / CSV "speed = 0")
@@ -1340,15 +1436,15 @@ class Drive:
         ax, pc, o = self._axis, self._pc, self.objects
         self._update_statusword()
         inv_u = pc.inv_u
-        x = ax.position_m - self._zero_m
-        fe = ax.following_error_m if self._power and self._smode == CONTROL_MODE.POSITION else 0.0
+        x = ax.position_m - self.setpoints.zero_m
+        fe = ax.following_error_m if self._power and self.setpoints.control == CONTROL_MODE.POSITION else 0.0
         self._fe_m = fe
         rated_nm, rated_a = pc.rated_nm, pc.rated_a
         try:
-            p_dem = round(self._demand_m * inv_u)
+            p_dem = round(self.setpoints.demand_m * inv_u)
             p_inc = round(x * self._inc_per_m)
             p_act = round(x * inv_u)
-            v_dem = round(self._demand_v * inv_u)
+            v_dem = round(self.setpoints.demand_v * inv_u)
             v_act = round(ax.velocity_m_s * inv_u)
             fe_u = round(fe * inv_u)
             torque_pm = round(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
@@ -1359,8 +1455,8 @@ class Drive:
                 _I32_MIN <= p_dem <= _I32_MAX and _I32_MIN <= p_inc <= _I32_MAX and _I32_MIN <= p_act <= _I32_MAX
                 and _I32_MIN <= v_dem <= _I32_MAX and _I32_MIN <= v_act <= _I32_MAX and _I32_MIN <= fe_u <= _I32_MAX
                 and -0x8000 <= torque_pm <= 0x7FFF and -0x8000 <= current_pm <= 0x7FFF):
-            p_dem, p_inc, p_act = _i32(self._demand_m * inv_u), _i32(x * self._inc_per_m), _i32(x * inv_u)
-            v_dem, v_act, fe_u = _i32(self._demand_v * inv_u), _i32(ax.velocity_m_s * inv_u), _i32(fe * inv_u)
+            p_dem, p_inc, p_act = _i32(self.setpoints.demand_m * inv_u), _i32(x * self._inc_per_m), _i32(x * inv_u)
+            v_dem, v_act, fe_u = _i32(self.setpoints.demand_v * inv_u), _i32(ax.velocity_m_s * inv_u), _i32(fe * inv_u)
             torque_pm = _i16(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
             current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
         vdc_mv = ax.dc_link_v * 1000.0
@@ -1401,10 +1497,10 @@ class Drive:
                 mode_name=MODE_NAMES.get(self._mode, str(self._mode)),
                 controlword=self._cw,
                 statusword=int(o[(0x6041, 0)]),
-                position_demand_m=self._demand_m,
-                position_actual_m=ax.position_m - self._zero_m,
+                position_demand_m=self.setpoints.demand_m,
+                position_actual_m=ax.position_m - self.setpoints.zero_m,
                 table_position_m=ax.table_position_m,
-                velocity_demand_m_s=self._demand_v,
+                velocity_demand_m_s=self.setpoints.demand_v,
                 velocity_actual_m_s=ax.velocity_m_s,
                 torque_nm=self._torque_actual_nm(ax),
                 current_a=ax.current_q_a,
@@ -1414,7 +1510,7 @@ class Drive:
                 target_reached=bool(int(o[(0x6041, 0)]) & 0x400),
                 internal_limit_active=bool(int(o[(0x6041, 0)]) & 0x800),
                 warning=bool(int(o[(0x6041, 0)]) & 0x80),
-                homed=self._homed,
+                homed=self._hm.homed,
                 digital_inputs=int(o[(0x60FD, 0)]),
                 fault_active=self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE),
                 error_code=int(o[(0x603F, 0)]),

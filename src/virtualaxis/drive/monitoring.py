@@ -15,84 +15,107 @@
 - **Position objects**: 0x6064 / 0x6062 are 32-bit; a position beyond their range saturates (never wraps)
   and raises fault 0x8600 (F07493) once.
 - (Following error, standstill, target reached, temperature and DC link are still in ``Drive._monitor``.)
+
+Each monitor is a small object whose ``check`` returns an event (:class:`FaultEvent`, :class:`CauseCleared`,
+:class:`LimitSwitchEvent`) or None; the drive applies the events (``Drive._apply_monitor_event``).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
-from virtualaxis.drive import reactions as rx
-from virtualaxis.drive.statemachine import STATE
-
-if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
-
-S = STATE  # (the members as plain attributes; Cia402State is the type)
-HM = 6
 LIMIT_CODES = (0xFF10, 0xFF11)  # negative, positive switch
 I32_MAX = 0x7FFFFFFF
 #: overspeed limit = this x 0x6080 (SINAMICS p2162 hysteresis above the maximum speed; chosen 1.2)
 OVERSPEED_FACTOR = 1.2
 
 
-def homing_owns_switches(drive: Drive) -> bool:
-    """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
-    unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
-    switch fault must not overtake (it did: 0xFF11 instead of the homing error)."""
-    return drive._mode == HM and (drive._hm.in_progress() or drive._hm.stopping_after_error(drive))
+@dataclass(frozen=True)
+class FaultEvent:
+    """A monitor's finding: raise fault ``code`` with ``value``; ``cause``: a persistent cause (the fault
+    reset is refused while it holds, see :class:`CauseCleared`)."""
+
+    code: int
+    value: int = 0
+    cause: str = ""
 
 
-def blocked_direction(drive: Drive) -> int:
-    """-1: motion toward negative is blocked (negative switch active), +1 positive, 0 none."""
-    if homing_owns_switches(drive):
-        return 0
-    sw = drive._limit_switches
-    if sw & 1:
-        return -1
-    if sw & 2:
-        return 1
-    return 0
+@dataclass(frozen=True)
+class CauseCleared:
+    """The persistent cause ``cause`` of fault ``code`` is gone."""
+
+    code: int
+    cause: str
 
 
-def monitor_limit_switches(drive: Drive, x_plant_m: float, v_m_s: float) -> None:
-    """Switch states, reaction on reaching a switch while moving toward it, warning bookkeeping."""
-    neg, pos, _ = drive._switches(x_plant_m)
-    drive._limit_switches = (1 if neg else 0) | (2 if pos else 0)
-    if drive._warnings:
-        for code, active in zip(LIMIT_CODES, (neg, pos), strict=True):
-            if not active and code in drive._warnings:
-                drive.set_warning(code, False)
-    if not (neg or pos) or homing_owns_switches(drive):
-        return
-    if not drive._power or drive._state is not S.OPERATION_ENABLED or drive._stop is not None:
-        return
-    threshold = rx.standstill_threshold_m_s(drive)
-    toward_neg = neg and (v_m_s < -threshold or drive._demand_v < -threshold)
-    toward_pos = pos and (v_m_s > threshold or drive._demand_v > threshold)
-    if not (toward_neg or toward_pos):
-        return
-    code = LIMIT_CODES[0] if toward_neg else LIMIT_CODES[1]
-    if int(drive._obj(0x2013)) == 1:
-        drive._raise_fault(code, drive._limit_switches)
-    else:
-        drive.set_warning(code, True)
-        drive._internal_limit = True
-        drive._start_stop("quick", then="resume")
+@dataclass(frozen=True)
+class LimitSwitchEvent:
+    """A limit switch reached while moving toward it: fault (0x2013 = 1) or warning and quick stop, staying
+    enabled (0x2013 = 0)."""
+
+    code: int  # 0xFF10 negative, 0xFF11 positive
+    switches: int  # 0x60FD bits 0/1
+    fault: bool
 
 
-def monitor_position_range(drive: Drive, x_units: float) -> None:
+Event = FaultEvent | CauseCleared | LimitSwitchEvent
+
+
+class LimitSwitchMonitor:
+    """The hardware limit switches (0x60FD bits 0 / 1): :attr:`switches` as last seen; :meth:`check` returns
+    the reaction to a switch reached while moving toward it (outside a homing run, which searches them)."""
+
+    def __init__(self) -> None:
+        self.switches = 0
+
+    def blocked_direction(self, homing_owns_switches: bool) -> int:
+        """-1: motion toward negative is blocked (negative switch active), +1 positive, 0 none (also while a
+        homing run searches the switches)."""
+        if not self.switches or homing_owns_switches:
+            return 0
+        return -1 if self.switches & 1 else 1
+
+    def check(self, neg: bool, pos: bool, v_m_s: float, demand_v_m_s: float, threshold_m_s: float,
+              armed: bool, fault_on_switch: bool) -> LimitSwitchEvent | None:
+        """``armed``: enabled, in operation, no stop running and no homing run owning the switches."""
+        self.switches = (1 if neg else 0) | (2 if pos else 0)
+        if not (neg or pos) or not armed:
+            return None
+        toward_neg = neg and (v_m_s < -threshold_m_s or demand_v_m_s < -threshold_m_s)
+        toward_pos = pos and (v_m_s > threshold_m_s or demand_v_m_s > threshold_m_s)
+        if not (toward_neg or toward_pos):
+            return None
+        return LimitSwitchEvent(LIMIT_CODES[0] if toward_neg else LIMIT_CODES[1], self.switches, fault_on_switch)
+
+
+class PositionRangeMonitor:
     """Fault 0x8600 once when the actual position leaves the 32-bit range of the position objects."""
-    over = abs(x_units) > I32_MAX
-    if over and not drive._position_overflow:
-        drive._raise_fault(0x8600, I32_MAX if x_units > 0 else -I32_MAX - 1)
-    drive._position_overflow = over
+
+    def __init__(self) -> None:
+        self.over = False
+
+    def check(self, x_units: float) -> FaultEvent | None:
+        over = abs(x_units) > I32_MAX
+        event = None
+        if over and not self.over:
+            event = FaultEvent(0x8600, I32_MAX if x_units > 0 else -I32_MAX - 1)
+        self.over = over
+        return event
 
 
-def monitor_overspeed(drive: Drive, v_m_s: float) -> None:
-    """Fault 0x8401 (OFF2) when the axis runs faster than OVERSPEED_FACTOR x the maximum motor speed."""
-    over = abs(v_m_s) > OVERSPEED_FACTOR * drive._pc.max_speed_m_s
-    if over:
-        if drive._power and 0x8401 not in drive._causes:
-            drive._raise_fault(0x8401, int(round(v_m_s * drive._pc.inv_u)), cause="overspeed")
-    elif drive._causes.get(0x8401) == "overspeed":
-        del drive._causes[0x8401]
+class OverspeedMonitor:
+    """Fault 0x8401 (OFF2) while the axis runs faster than :data:`OVERSPEED_FACTOR` x the maximum motor speed
+    (a persistent cause "overspeed" until it is slower again)."""
+
+    CAUSE = "overspeed"
+
+    @staticmethod
+    def check(v_m_s: float, max_speed_m_s: float, inv_u: float, powered: bool,
+              cause_now: str | None) -> FaultEvent | CauseCleared | None:
+        """``cause_now``: the persistent cause recorded for 0x8401 (None: none)."""
+        if abs(v_m_s) > OVERSPEED_FACTOR * max_speed_m_s:
+            if powered and cause_now is None:
+                return FaultEvent(0x8401, int(round(v_m_s * inv_u)), cause=OverspeedMonitor.CAUSE)
+        elif cause_now == OverspeedMonitor.CAUSE:
+            return CauseCleared(0x8401, OverspeedMonitor.CAUSE)
+        return None

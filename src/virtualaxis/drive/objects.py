@@ -17,6 +17,8 @@ import functools
 from dataclasses import dataclass
 from pathlib import Path
 
+from virtualaxis.drive.opmodes import SUPPORTED_MODE_BITS
+
 DTYPE_RANGES: dict[str, tuple[int, int]] = {
     "u8": (0, 0xFF),
     "i8": (-0x80, 0x7F),
@@ -50,7 +52,7 @@ def _o(index: int, sub: int, name: str, dtype: str, access: str, default: int) -
 
 # Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, CSP 0x80, CSV 0x100, CST 0x200
 SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x80 | 0x100 | 0x200
-MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 8: 0x80, 9: 0x100, 10: 0x200}
+MODE_BITS = SUPPORTED_MODE_BITS  # 0x6502: the modes of drive.opmodes
 
 OBJECTS: tuple[ObjectSpec, ...] = (
     # manufacturer objects (Siemens-style loop parameters, monitoring, faults, diagnostics)

@@ -175,3 +175,43 @@ class WindowTimer:
             return False
         self.held_s += dt_s
         return self.held_s >= time_s - 1e-12
+
+
+#: speed = 0 detection: a standstill shown is withdrawn at once above this multiple of the threshold 0x606F
+#: (chosen: 4, the hysteresis band of SINAMICS p2150 against p2161 in its ratio; between 1x and 4x the speed
+#: must stay above the threshold for the threshold time 0x6070)
+SPEED_ZERO_HYSTERESIS = 4.0
+
+
+class SpeedZeroDetector:
+    """CiA 402 "speed = 0" (0x606F velocity threshold, 0x6070 threshold time) with hysteresis: set once |v| has
+    stayed within the threshold for the threshold time; withdrawn once it has stayed above it for that time,
+    or at once beyond :data:`SPEED_ZERO_HYSTERESIS` x the threshold. A settling axis whose speed swings about
+    the threshold keeps one answer instead of toggling every few cycles."""
+
+    def __init__(self) -> None:
+        self.at_rest = False
+        self._held_s = 0.0  # how long the opposite condition has held
+
+    def reset(self) -> None:
+        self.at_rest = False
+        self._held_s = 0.0
+
+    def update(self, speed_m_s: float, dt_s: float, threshold_m_s: float, time_s: float) -> bool:
+        speed = abs(speed_m_s)
+        if self.at_rest:
+            if speed > SPEED_ZERO_HYSTERESIS * threshold_m_s:
+                self._held_s, self.at_rest = 0.0, False
+            elif speed > threshold_m_s:
+                self._held_s += dt_s
+                if self._held_s >= time_s - 1e-12:
+                    self._held_s, self.at_rest = 0.0, False
+            else:
+                self._held_s = 0.0
+        elif speed <= threshold_m_s:
+            self._held_s += dt_s
+            if self._held_s >= time_s - 1e-12:
+                self._held_s, self.at_rest = 0.0, True
+        else:
+            self._held_s = 0.0
+        return self.at_rest

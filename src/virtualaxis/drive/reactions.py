@@ -16,7 +16,8 @@ set-point that may already be at rest (after a following-error fault the demand 
 Once the ramp is at zero the drive waits for standstill (|v| below 0x606F), holds the position for
 :data:`HOLD_S` (SINAMICS p1228 pulse suppression delay) and only then changes the state (switch on disabled,
 fault, ...). If the axis is not at standstill within :func:`brake_bound_s` of the start, braking has failed:
-fault 0x8400 (F07900) is raised and the pulses are switched off.
+fault 0x8400 (F07900) is raised and the pulses are switched off. :func:`run_stop` steps one cycle and returns
+its :class:`StopOutcome`; the state change or the fault is the drive's (``Drive._run_stop``).
 
 Whatever 0x6084 / 0x6085 hold, a stop is bounded in time and distance (:func:`bounded_decel_m_s2`): the ramp
 takes at most :data:`MAX_STOP_RAMP_S` and ends before the limit switch ahead (once past it, before the end
@@ -27,18 +28,16 @@ that does not follow it falls back to the current-limit stop, which has :data:`C
 
 from __future__ import annotations
 
-import math
+import enum
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from virtualaxis.drive.profiles import VelocityRamp
-from virtualaxis.drive.statemachine import STATE, Cia402State
+from virtualaxis.drive.statemachine import Cia402State
 from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
-
-S = STATE  # (the members as plain attributes; Cia402State is the type)
 
 #: hold at standstill before the pulses are switched off [s] (SINAMICS p1228 default 0.01 s... chosen 20 ms,
 #: two speed-controller settling times of the bench axes)
@@ -110,15 +109,14 @@ class StopRamp:
     def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
         ax = drive._axis
         v0 = ax.velocity_m_s
-        p0 = ax.position_m - drive._zero_m + drive._lag_m(v0)  # bumpless: the speed set-point = actual speed
+        p0 = ax.position_m - drive.setpoints.zero_m + drive._lag_m(v0)  # bumpless: the speed set-point = actual speed
         decel_obj = 0x6084 if kind == "slow" else 0x6085
         decel = float(drive._obj(decel_obj)) * drive._u
         if kind in ("slow", "quick"):
             decel, kind = bounded_decel_m_s2(drive, v0, decel, kind)
         decel = max(decel, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
-        drive._set_sim_mode(CONTROL_MODE.VELOCITY)
-        drive._hm.run = None
+        drive.setpoints.set_control(CONTROL_MODE.VELOCITY)
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
                    vramp=VelocityRamp(drive.cycle_s))
         ramp.vramp.velocity_m_s = v0
@@ -126,7 +124,7 @@ class StopRamp:
         if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
             ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
             if velocity_control:
-                drive._set_sim_mode(CONTROL_MODE.POSITION)
+                drive.setpoints.set_control(CONTROL_MODE.POSITION)
                 ramp.velocity_control = False
         return ramp
 
@@ -156,45 +154,54 @@ def at_standstill(drive: Drive) -> bool:
     return abs(drive._axis.velocity_m_s) < standstill_threshold_m_s(drive)
 
 
-def run_stop(drive: Drive) -> None:
-    """One cycle of the running stop: ramp, standstill, hold, then the state change (or 'braking failed')."""
-    s: StopRamp = drive._stop
+class StopOutcome(enum.Enum):
+    """What one cycle of a stop ramp came to (:func:`run_stop`); the drive applies it."""
+
+    RUNNING = "running"  # ramping, or holding at standstill
+    FALLBACK = "braking fallback"  # the ramp was not followed: braking at the current limit from now on
+    DONE = "done"  # stopped and held: the state change the stop was for
+    FAILED = "failed"  # not at standstill within the bound: fault 0x8400, pulses off
+
+
+def run_stop(drive: Drive, s: StopRamp) -> StopOutcome:
+    """One cycle of the stop ``s``: ramp, standstill, hold; returns the outcome (the state change, or the
+    braking-failed fault, is the drive's)."""
     s.t_s += drive.cycle_s
     ax = drive._axis
     threshold = standstill_threshold_m_s(drive)
+    outcome = StopOutcome.RUNNING
     if s.kind == "hold":
         drive._set_position(s.p_m, 0.0)
         ramp_done = True
     elif s.kind == "current":
-        drive.sim.set_velocity_setpoint(0.0)
-        drive._demand_v = 0.0
+        drive.setpoints.send_velocity(0.0)
+        drive.setpoints.demand_v = 0.0
         ramp_done = True
     else:  # OFF1 / OFF3: the speed set-point ramps down from the actual speed
         v = s.vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
-        drive._demand_v = v
-        drive.sim.set_velocity_setpoint(v)
+        drive.setpoints.demand_v = v
+        drive.setpoints.send_velocity(v)
         ramp_done = v == 0.0
         if ramp_not_followed(drive, s, v, threshold):  # monitored ramp: fall back to the current limit
             s.kind = "current"
             s.bound_s = s.t_s + CURRENT_STOP_BOUND_S
-            drive.sim.set_velocity_setpoint(0.0)
-            drive._demand_v = 0.0
+            drive.setpoints.send_velocity(0.0)
+            drive.setpoints.demand_v = 0.0
+            outcome = StopOutcome.FALLBACK
     if ramp_done and s.stopped_s < 0.0 and abs(ax.velocity_m_s) < threshold:
         s.stopped_s = s.t_s
         if s.velocity_control:  # hold the position where the axis came to rest
-            drive._demand_m = ax.position_m - drive._zero_m
-            drive._set_sim_mode(CONTROL_MODE.POSITION)
-            drive._set_position(drive._demand_m, 0.0)
+            drive.setpoints.demand_m = ax.position_m - drive.setpoints.zero_m
+            drive.setpoints.set_control(CONTROL_MODE.POSITION)
+            drive._set_position(drive.setpoints.demand_m, 0.0)
             s.velocity_control = False
             s.kind = "hold"
-            s.v_m_s, s.p_m = 0.0, drive._demand_m
+            s.v_m_s, s.p_m = 0.0, drive.setpoints.demand_m
     if s.stopped_s < 0.0:
-        if s.t_s > s.bound_s:
-            braking_failed(drive, s)
-        return
+        return StopOutcome.FAILED if s.t_s > s.bound_s else outcome
     if s.t_s - s.stopped_s < s.hold_s - 1e-12:
-        return
-    finish_stop(drive, s)
+        return outcome
+    return StopOutcome.DONE
 
 
 def ramp_not_followed(drive: Drive, s: StopRamp, v_ramp_m_s: float, threshold_m_s: float) -> bool:
@@ -213,29 +220,3 @@ def ramp_not_followed(drive: Drive, s: StopRamp, v_ramp_m_s: float, threshold_m_
     to_switch_m, to_end_m = drive.travel_room_m(v_act)
     started_before_switch = s.room_to_switch_m > 0.0
     return (to_switch_m <= 0.0 and started_before_switch) or to_end_m <= 0.0
-
-
-def braking_failed(drive: Drive, s: StopRamp) -> None:
-    """The axis is not at standstill within the bound: fault 0x8400 (F07900), pulses off (OFF2)."""
-    drive._stop = None
-    v = drive._axis.velocity_m_s
-    drive._raise_fault(0x8400, int(round(v * drive._pc.inv_u)) if math.isfinite(v) else 0)
-    drive._power_off()
-    if drive._state is S.FAULT_REACTION_ACTIVE:
-        drive._set_state(S.FAULT)
-
-
-def finish_stop(drive: Drive, s: StopRamp) -> None:
-    """Stopped and held: the state change the stop was for."""
-    drive._stop = None
-    drive._enter_mode_idle_hold()
-    then = s.then
-    if drive._state is S.FAULT_REACTION_ACTIVE:
-        drive._power_off()
-        drive._set_state(S.FAULT)
-    elif then == "resume":
-        drive._enter_mode(drive._mode)
-    elif isinstance(then, Cia402State):
-        drive._power_off()
-        drive._set_state(then)
-    # None: quick stop 5..8, stay in quick stop active holding the position

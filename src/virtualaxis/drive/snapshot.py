@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+from virtualaxis.drive.opmodes import OperationMode
+
 MODE_NAMES = {
-    0: "NO MODE",
-    1: "PROFILED POSITION",
-    3: "PROFILED VELOCITY",
-    4: "PROFILED TORQUE",
-    6: "HOMING",
-    8: "CYCLIC SYNCHRONOUS POSITION",
-    9: "CYCLIC SYNCHRONOUS VELOCITY",
-    10: "CYCLIC SYNCHRONOUS TORQUE",
+    OperationMode.NO_MODE: "NO MODE",
+    OperationMode.PP: "PROFILED POSITION",
+    OperationMode.PV: "PROFILED VELOCITY",
+    OperationMode.PT: "PROFILED TORQUE",
+    OperationMode.HM: "HOMING",
+    OperationMode.CSP: "CYCLIC SYNCHRONOUS POSITION",
+    OperationMode.CSV: "CYCLIC SYNCHRONOUS VELOCITY",
+    OperationMode.CST: "CYCLIC SYNCHRONOUS TORQUE",
 }
 
 

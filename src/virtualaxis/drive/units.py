@@ -32,10 +32,15 @@ class PositionScaling:
         return self.lead_m * self.feed_shaft_revs / self.feed_units
 
     @property
+    def motor_rev_travel_m(self) -> float:
+        """Table travel per motor revolution [m]: the lead through the gear 0x6091 (one index pulse, 0x608F
+        increments and one revolution of 0x6080 each)."""
+        return self.lead_m * self.gear_shaft_revs / self.gear_motor_revs
+
+    @property
     def increments_per_metre(self) -> float:
-        motor_revs_per_shaft_rev = self.gear_motor_revs / self.gear_shaft_revs
         inc_per_motor_rev = self.encoder_increments / self.encoder_motor_revs
-        return inc_per_motor_rev * motor_revs_per_shaft_rev / self.lead_m
+        return inc_per_motor_rev / self.motor_rev_travel_m
 
     def to_units(self, metres: float) -> int:
         """Metres (or m/s, m/s^2) -> nearest integer user units (saturation is the caller's job)."""
