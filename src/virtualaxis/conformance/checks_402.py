@@ -327,7 +327,7 @@ def _runs_the_mode(ctx: Context, mo: Motion, mode: int) -> str:
         ctx.write(0x607A, 0, mo.last().pos)
         ctx.write(0x60FF, 0, v)
         ctx.sleep(0.02)  # (the velocity modes' acceleration)
-        _, v_mean = mo.at_rest_velocity(n, timeout=2 * MODE_PROBE_S)
+        _, v_mean = mo.at_rest_velocity(n, timeout=max(2 * MODE_PROBE_S, 5.0))  # (collects; judges nothing)
     finally:
         ctx.write(0x60FF, 0, 0)
         ctx.sleep(0.05)  # (to rest before the next mode)
