@@ -112,15 +112,15 @@ def test_homing_is_judged_in_the_cycle_that_homes_with_late_syncs():
 def test_mode_check_fails_a_drive_that_only_displays_the_mode():
     """402-MODE-1 passes our drive and fails it once 0x6061 only echoes 0x6060 while the drive keeps running the
     mode it was in (the planted defect ``mode_echo_only``): the velocity target moves the axis in PV / CSV only."""
-    with start_virtual_axis(transport="virtual") as axis:
+    with start_virtual_axis(transport="virtual", lockstep=True) as axis:
         net = canopen.Network()
         net.connect(**axis.bus_kwargs)
         try:
-            (good,) = run_conformance(net, axis.node_id, only="402-MODE-1", pacing="realtime")
+            (good,) = run_conformance(net, axis.node_id, only="402-MODE-1")
             with pytest.MonkeyPatch.context() as mp:
                 mp.setattr(Drive, "_on_mode", Drive._on_mode)  # (restored after the defect)
                 MUTANTS["mode_echo_only"].apply()
-                (bad,) = run_conformance(net, axis.node_id, only="402-MODE-1", pacing="realtime")
+                (bad,) = run_conformance(net, axis.node_id, only="402-MODE-1")
         finally:
             net.disconnect()
     assert good.status == "pass", good

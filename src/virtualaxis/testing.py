@@ -160,7 +160,7 @@ def preset_path(config: str | Path) -> Path:
 @contextlib.contextmanager
 def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None = None,
                        node_id: int | tuple[int, ...] = 1, lockstep: bool = False, allow_fault_injection: bool = True,
-                       heartbeat_ms: int = 100, ready_timeout_s: float = 60.0,
+                       heartbeat_ms: int = 100, ready_timeout_s: float = 180.0,
                        pacing: str | None = None) -> Iterator[VirtualAxis]:
     """Serve drive(s) and connect a master; the context manager behind the fixture (usable on its own).
     ``pacing`` ``"realtime"`` / ``"lockstep"`` is another way to say ``lockstep``."""
