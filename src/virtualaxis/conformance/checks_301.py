@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable
 
 import canopen
 from canopen import objectdictionary as odm
@@ -61,7 +62,8 @@ def _sync_answer(ctx: Context) -> int | None:
     return cob
 
 
-def _node_times(ctx: Context, cob: int, duration_s: float, answer_cob: int) -> list[float]:
+def _node_times(ctx: Context, cob: int, duration_s: float, answer_cob: int,
+                before_sync: Callable[[int], None] | None = None) -> list[float]:
     """Lockstep: ``duration_s`` of node time as SYNCs sent one at a time, each once the node answered the one
     before with ``answer_cob``. Returns the node time [s] of every frame of ``cob`` meanwhile: the number of
     SYNC answers before it x the SYNC period (the node sends what falls due in a SYNC's cycles after that SYNC's
@@ -72,6 +74,8 @@ def _node_times(ctx: Context, cob: int, duration_s: float, answer_cob: int) -> l
     mark = ctx.frames.mark()
     t0 = time.monotonic()
     for k in range(n):
+        if before_sync is not None:
+            before_sync(k)  # (frames sent now reach the node at node time k SYNC periods)
         m = ctx.frames.mark()
         ctx.sync_once()
         if ctx.frames.wait(m, answer_cob, None, STUCK_MIN_S) is None:
@@ -660,6 +664,44 @@ def eds_unlisted(ctx: Context) -> str:
     return f"{len(probes)} unlisted entries all refused"
 
 
+
+def _consumer_heartbeat_node_time(ctx: Context) -> str:
+    """301-HB-2 in lockstep: the consumed heartbeats at node times 0, 40, ..., 160 ms (before the SYNCs of those
+    counts), then none; EMCY 0x8130 judged at the node time of its frame (the SYNC answers before it)."""
+    answer = _sync_answer(ctx)
+    if answer is None:
+        raise Skip("no SYNC answer (TPDO2 remapping refused): the consumer timeout cannot be timed in node time")
+    beats = [k * 40 for k in range(5)]
+
+    def beat(k: int) -> None:
+        if k in beats:
+            ctx.net.send_message(0x77E, b"\x05")
+
+    try:
+        mark = ctx.frames.mark()
+        times = _node_times(ctx, ctx.emcy_cob, 0.8, answer, before_sync=beat)
+        codes = [int.from_bytes(d[0:2], "little") for _, _, d in ctx.frames.since(mark, ctx.emcy_cob)]
+        emcy = [d for _, _, d in ctx.frames.since(mark, ctx.emcy_cob)]
+        er = ctx.read(0x1001)
+    finally:
+        boot(ctx)
+    last_s = beats[-1] * ctx.sync_period_s
+    at = [t for t, c in zip(times, codes, strict=False) if c == 0x8130]
+    if not at:
+        raise Fail(f"no EMCY 0x8130 within {0.8 - last_s:.2f} s of node time after the consumed heartbeat (0x7E, "
+                   f"100 ms) stopped (seen {[hex(c) for c in codes]})")
+    if at[0] < last_s + 0.1 - 2 * ctx.sync_period_s:
+        raise Fail(f"EMCY 0x8130 at node time {at[0] * 1e3:.0f} ms while the consumed heartbeat still came every "
+                   f"40 ms (the last at {last_s * 1e3:.0f} ms, timeout 100 ms)")
+    data = emcy[codes.index(0x8130)]
+    if not data[2] & 0x10:
+        raise Fail(f"EMCY 0x8130 with error register 0x{data[2]:02X}: bit 4 (communication) not set")
+    if not er & 0x10:
+        raise Fail(f"0x1001 = 0x{er:02X} after the heartbeat timeout: bit 4 (communication) not set")
+    return (f"EMCY 0x8130 [{data.hex(' ')}] {(at[0] - last_s) * 1e3:.0f} ms of node time after the last consumed "
+            f"heartbeat, 0x1001 = 0x{er:02X}")
+
+
 # ============================================================================ consumer heartbeat, more SDO / PDO
 @check("301-HB-2", "emcy", "CiA 301 7.2.8.3.2.2 / 7.5.2.16 (0x1016 heartbeat consumer); EMCY 0x8130; CL 2, 4",
        "0x1016:1 = node 0x7E, 100 ms; 5 heartbeats 0x77E [05] every 40 ms, then none",
@@ -669,6 +711,8 @@ def consumer_heartbeat(ctx: Context) -> str:
         raise Skip("the EDS lists no consumer heartbeat time 0x1016")
     boot(ctx)
     ctx.write(0x1016, 1, (0x7E << 16) | 100)
+    if ctx.lockstep:
+        return _consumer_heartbeat_node_time(ctx)
     mark = ctx.frames.mark()
     sent: list[float] = []
     for _ in range(5):
@@ -802,10 +846,11 @@ def _block_transfer(ctx: Context, what: str, op):
                    "block transfer (optional)") from None
 
 
-def _count_frames(ctx: Context, mark: int, cob: int, expected: int, wait_s: float = 2.0) -> int:
-    """The frames of ``cob`` since ``mark``: waited for until ``expected`` are there (at most ``wait_s``: a
-    loaded host delivers answers late), then 0.05 s more for any extra frame."""
-    end = time.monotonic() + wait_s
+def _count_frames(ctx: Context, mark: int, cob: int, expected: int) -> int:
+    """The frames of ``cob`` since ``mark``: waited for until ``expected`` are there (a loaded host delivers
+    answers late: at most :data:`STUCK_MIN_S` in lockstep, 2 s in real time), then 0.05 s more for any extra
+    frame."""
+    end = time.monotonic() + (STUCK_MIN_S if ctx.lockstep else 2.0)
     while len(ctx.frames.since(mark, cob)) < expected and time.monotonic() < end:
         time.sleep(0.005)
     time.sleep(0.05)
