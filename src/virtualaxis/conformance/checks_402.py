@@ -122,6 +122,7 @@ class Motion:
         """CSP: every SYNC period, RPDO1 (CW 0x0F + target advanced by v * period), then SYNC."""
         ctx = self.ctx
         ctx.stop_sync()
+        self.stop_stream()  # (one stream at a time)
         self.target = float(start)
         self.step_units = velocity_units_s * ctx.sync_period_s
         self._stop.clear()
