@@ -40,7 +40,7 @@ def serve(mutant: str | None, spec: str, lockstep: bool) -> subprocess.Popen:
     cmd = [*CLI, *args] if mutant is None else [PY, "-m", "virtualaxis.conformance.mutants", mutant, *args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    end = time.monotonic() + 120
+    end = time.monotonic() + 600  # (a first start compiles the plant kernel: minutes on a loaded machine)
     while time.monotonic() < end:
         line = proc.stdout.readline()
         if not line or line.startswith("ready:"):

@@ -2,6 +2,7 @@
 served in SYNC lockstep, with CPU-bound processes beside it (``python -c "while True: pass"``, 4 by default).
 
     python benchmarks/bench_conformance_repeat.py --runs 10 --hogs 4 --json out.json
+    python benchmarks/bench_conformance_repeat.py --runs 30 --minutes 60   # as many of 30 as fit in an hour
 
 Per run: the failed checks (with their reasons), the skips, the duration. At the end: runs with a failure,
 and whether every run gave the same verdict for every check. Exit 1 on any failure or differing verdict.
@@ -27,14 +28,20 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=10)
     ap.add_argument("--hogs", type=int, default=4, help="CPU-bound processes beside the drive and the suite")
     ap.add_argument("--pacing", choices=("lockstep", "realtime"), default="lockstep")
+    ap.add_argument("--minutes", type=float, default=None,
+                    help="start no run after this many minutes (the runs done are reported)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    t_start = time.monotonic()
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
     spec = _spec()
     proc = serve(None, spec, args.pacing == "lockstep")
     runs = []
     try:
         for k in range(args.runs):
+            if args.minutes is not None and time.monotonic() - t_start > 60 * args.minutes:
+                print(f"--minutes {args.minutes:g} reached after {k} run(s)", flush=True)
+                break
             with tempfile.TemporaryDirectory() as tmp:
                 out = Path(tmp) / "r.json"
                 t0 = time.monotonic()
@@ -64,7 +71,7 @@ def main() -> int:
     with_failure = sum(bool(r["failed"]) for r in runs)
     first = runs[0]["verdicts"] if runs else {}
     identical = all(r["verdicts"] == first for r in runs)
-    secs = [r["seconds"] for r in runs]
+    secs = [r["seconds"] for r in runs] or [0.0]
     print(f"summary: {len(runs)} runs with {args.hogs} CPU hogs ({os.cpu_count()} CPUs), {with_failure} with a "
           f"failure, verdicts {'identical' if identical else 'DIFFER'}; run time {min(secs):.1f}..{max(secs):.1f} s")
     if args.json:

@@ -7,13 +7,16 @@ import json
 import os
 import subprocess
 import sys
+import time
 import xml.etree.ElementTree as ET
 
 import canopen
 import pytest
 
 from virtualaxis.conformance import run_conformance
-from virtualaxis.conformance.runner import REGISTRY, select, summary
+from virtualaxis.conformance.mutants import MUTANTS
+from virtualaxis.conformance.runner import REGISTRY, Context, run_checks, select, summary
+from virtualaxis.drive.core import Drive
 from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis
 
@@ -70,6 +73,58 @@ def test_motion_checks_pass_with_the_axis_left_at_the_end_of_the_travel():
             net.disconnect()
     assert len(again) == 7
     assert [(r.id, r.status) for r in again if r.status != "pass"] == [], [str(r) for r in again]
+
+
+class _LateSyncMaster(Context):
+    """The suite's master on a loaded host: every SYNC leaves 30 ms after it was due."""
+
+    def sync_once(self, answer_cob: int | None = None) -> None:
+        time.sleep(0.03)
+        super().sync_once(answer_cob)
+
+
+def test_homing_is_judged_in_the_cycle_that_homes_with_late_syncs():
+    """A drive homed before (0x607C = 5 mm) is homed again by 402-HM-1 (0x607C = 1 mm) in lockstep through a
+    master whose SYNCs come late: it shows "homing attained" before the new homing has run, and the check
+    judges 0x6064 in the TPDO of the cycle that homes, not in a read that precedes that cycle."""
+    with start_virtual_axis(transport="virtual", lockstep=True) as axis:
+        node = axis.node
+        node.sdo[0x6098].raw = 37
+        node.sdo[0x607C].raw = 5000
+        node.sdo[0x6060].raw = 6
+        for cw in (0x06, 0x07, 0x0F, 0x1F):
+            node.sdo[0x6040].raw = cw
+            axis.sync(3)
+        axis.sync(10)
+        assert node.sdo[0x6064].raw == 5000 and node.sdo[0x6041].raw & 0x3400 == 0x1400
+        node.sdo[0x6040].raw = 0
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            ctx = _LateSyncMaster(net, axis.node_id, str(DEFAULT_EDS), lockstep=True)
+            (res,) = run_checks(ctx, select("402-HM-1"))
+        finally:
+            ctx.stop_sync()
+            net.disconnect()
+    assert res.status == "pass", res
+
+
+def test_mode_check_fails_a_drive_that_only_displays_the_mode():
+    """402-MODE-1 passes our drive and fails it once 0x6061 only echoes 0x6060 while the drive keeps running the
+    mode it was in (the planted defect ``mode_echo_only``): the velocity target moves the axis in PV / CSV only."""
+    with start_virtual_axis(transport="virtual", lockstep=True) as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        try:
+            (good,) = run_conformance(net, axis.node_id, only="402-MODE-1")
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(Drive, "_on_mode", Drive._on_mode)  # (restored after the defect)
+                MUTANTS["mode_echo_only"].apply()
+                (bad,) = run_conformance(net, axis.node_id, only="402-MODE-1")
+        finally:
+            net.disconnect()
+    assert good.status == "pass", good
+    assert bad.status == "fail" and "does not follow 0x60FF" in bad.detail, bad
 
 
 def test_a_lost_sdo_request_is_sent_again_and_reported():

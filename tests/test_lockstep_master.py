@@ -1,5 +1,5 @@
 """virtualaxis.master.LockstepMaster against `virtualaxis serve --lockstep` in another process (udp_multicast,
-hop_limit 0): CSP / CSV set-points from an array, a generator and a G-code-like file, one SYNC each, the
+hop_limit 0): CSP / CSV / CST set-points from an array, a generator and a G-code-like file, one SYNC each, the
 measured trace returned."""
 
 from __future__ import annotations
@@ -51,7 +51,9 @@ def test_csp_array_generator_and_gcode_stream_and_trace(tmp_path):
             net.disconnect()
 
 
-def test_csv_stream_reaches_the_velocity():
+def test_csv_and_cst_streams_move_the_axis():
+    """CSV reaches the velocity streamed; CST: a torque of 30 % of the rated one, then the negative of it,
+    accelerates the axis one way and then the other (the same served drive, one master after the other)."""
     with served("--lockstep") as s:
         net = connect(s.spec)
         try:
@@ -59,6 +61,14 @@ def test_csv_stream_reaches_the_velocity():
                 trace = m.run(np.full(200, 0.02))  # 20 mm/s
                 assert abs(trace.velocity_m_s[-1, 0] - 0.02) < 2e-3, trace.velocity_m_s[-5:, 0]
                 assert trace.position_m[-1, 0] - trace.position_m[0, 0] > 0.002
+                m.run(np.zeros(100))  # to rest
+            with LockstepMaster(net, [1], mode="cst") as m:
+                torque_nm = 0.3 * m.rated_torque_nm[1]
+                push = m.run(np.full(100, torque_nm))
+                pull = m.run(np.full(100, -torque_nm))
+                assert np.all(push.statusword & 0x6F == 0x27) and push.setpoint[0, 0] == torque_nm
+                assert push.velocity_m_s[-1, 0] - push.velocity_m_s[0, 0] > 1e-3, push.velocity_m_s[::20, 0]
+                assert pull.velocity_m_s[-1, 0] < push.velocity_m_s[-1, 0] - 1e-3, pull.velocity_m_s[::20, 0]
         finally:
             net.disconnect()
 

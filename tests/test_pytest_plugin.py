@@ -73,6 +73,7 @@ def _record(axis):
 def test_udp_master_and_fault_over_can(virtual_axis):
     _record(virtual_axis)
     assert virtual_axis.bus_spec.startswith("udp_multicast:") and virtual_axis.process.poll() is None
+    assert virtual_axis.lockstep  # the default pacing: the drive advances one cycle per SYNC
     node = virtual_axis.node
     assert node.sdo[0x1000].raw == 0x00020192
     virtual_axis.inject("over_current")
@@ -80,13 +81,15 @@ def test_udp_master_and_fault_over_can(virtual_axis):
     end = time.monotonic() + 5
     while node.sdo[0x603F].raw != 0x2310:
         assert time.monotonic() < end
-        time.sleep(0.01)
+        virtual_axis.sync(1)
     assert node.sdo[0x6041].raw & 0x4F == 0x08
 
 
-@pytest.mark.parametrize("virtual_axis", [{"node_id": 3}, {"node_id": (5, 6)}], indirect=True)
+@pytest.mark.parametrize("virtual_axis", [{"node_id": 3}, {"node_id": (5, 6), "pacing": "realtime"}], indirect=True)
 def test_indirect_node_ids(virtual_axis):
     assert virtual_axis.node_ids in ((3,), (5, 6))
+    assert virtual_axis.lockstep == (virtual_axis.node_ids == (3,))  # lockstep unless real time is asked for
+    assert virtual_axis.runtime.lockstep == virtual_axis.lockstep
     for nid, node in virtual_axis.nodes.items():
         assert node.sdo[0x1018][1].raw is not None and node.id == nid
 

@@ -6,20 +6,24 @@ twice). In a test::
 
     import pytest
 
-    @pytest.mark.virtual_axis(transport="udp", node_id=(1, 2), lockstep=False)
+    @pytest.mark.virtual_axis(transport="udp", node_id=(1, 2))
     def test_my_controller(virtual_axis):
         node = virtual_axis.node                      # canopen.BaseNode402, SDO ready
         node.sdo[0x6060].raw = 8
         virtual_axis.inject("encoder_loss")           # fault injection (Python API or over CAN)
+        virtual_axis.sync(10)                         # lockstep (the default): ten drive cycles
 
 Marker ``virtual_axis`` keywords (all optional): ``transport`` ``"virtual"`` (python-can ``virtual`` bus, drive in
 this process; default) or ``"udp"`` (``virtualaxis serve`` in a child process on ``udp_multicast``, hop_limit 0);
 ``config`` (axis config TOML path, or a preset name of ``configs/`` such as ``"tuned-drive"``; default the seed
 axis as published, ``seed000-hust``), ``node_id`` (an int or a tuple of ints: several axes
-on one bus), ``lockstep`` (plant advances only on SYNC; default False; or ``pacing="lockstep"|"realtime"``),
+on one bus), ``pacing`` ``"lockstep"`` (the plant advances only on SYNC, every timer of the drive runs on its
+cycle clock: a test gives the same answer on a busy CI runner; default) or ``"realtime"`` (the drive's own wall
+clock: for what only real time shows, e.g. latency); or ``lockstep=True|False``,
 ``allow_fault_injection`` (default True),
-``heartbeat_ms`` (0x1017 set on start, default 100). Command-line options ``--virtual-axis-transport`` and
-``--virtual-axis-config`` set the defaults for tests without those keywords; ``@pytest.mark.parametrize`` on
+``heartbeat_ms`` (0x1017 set on start, default 100). Command-line options ``--virtual-axis-transport``,
+``--virtual-axis-config`` and ``--virtual-axis-pacing`` set the defaults for tests without those keywords;
+``@pytest.mark.parametrize`` on
 ``virtual_axis`` with ``indirect=True`` and a dict of the same keywords parametrises it.
 
 Clean-up runs when the test fails and on Ctrl-C: the child process is terminated (killed after 10 s), buses
@@ -156,7 +160,7 @@ def preset_path(config: str | Path) -> Path:
 @contextlib.contextmanager
 def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None = None,
                        node_id: int | tuple[int, ...] = 1, lockstep: bool = False, allow_fault_injection: bool = True,
-                       heartbeat_ms: int = 100, ready_timeout_s: float = 60.0,
+                       heartbeat_ms: int = 100, ready_timeout_s: float = 180.0,
                        pacing: str | None = None) -> Iterator[VirtualAxis]:
     """Serve drive(s) and connect a master; the context manager behind the fixture (usable on its own).
     ``pacing`` ``"realtime"`` / ``"lockstep"`` is another way to say ``lockstep``."""
@@ -278,12 +282,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     group.addoption("--virtual-axis-transport", choices=("virtual", "udp"), default=None,
                     help="default transport of the virtual_axis fixture (virtual: in-process; udp: a child process)")
     group.addoption("--virtual-axis-config", default=None, help="default axis config TOML of the virtual_axis fixture")
+    group.addoption("--virtual-axis-pacing", choices=("lockstep", "realtime"), default=None,
+                    help="default pacing of the virtual_axis fixture: lockstep (the drive advances only on SYNC, its "
+                         "timers on its cycle clock; the default) or realtime (its own wall clock)")
 
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
-        "virtual_axis(transport='virtual'|'udp', config=PATH, node_id=1|(1, 2), lockstep=False, "
+        "virtual_axis(transport='virtual'|'udp', config=PATH, node_id=1|(1, 2), pacing='lockstep'|'realtime', "
         "allow_fault_injection=True, heartbeat_ms=100): how the virtual_axis fixture serves the drive",
     )
 
@@ -302,7 +309,8 @@ def _option(config: pytest.Config, name: str) -> Any:
 @pytest.fixture
 def virtual_axis(request: pytest.FixtureRequest) -> Iterator[VirtualAxis]:
     """A served virtual axis and a connected ``canopen`` master (see the module docstring)."""
-    options: dict[str, Any] = {}
+    #: lockstep unless the test or the command line asks for real time (as `virtualaxis conformance`)
+    options: dict[str, Any] = {"pacing": _option(request.config, "virtual_axis_pacing") or "lockstep"}
     transport = _option(request.config, "virtual_axis_transport")
     cfg = _option(request.config, "virtual_axis_config")
     if transport:
@@ -317,6 +325,9 @@ def virtual_axis(request: pytest.FixtureRequest) -> Iterator[VirtualAxis]:
     param = getattr(request, "param", None)
     if isinstance(param, dict):
         options.update(param)
+    given = {**(marker.kwargs if marker is not None else {}), **(param if isinstance(param, dict) else {})}
+    if "lockstep" in given and "pacing" not in given:
+        del options["pacing"]  # (lockstep=True|False given: it says the pacing)
     try:
         cm = start_virtual_axis(**options)
     except TypeError as exc:

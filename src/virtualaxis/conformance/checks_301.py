@@ -7,11 +7,21 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable
 
 import canopen
 from canopen import objectdictionary as odm
 
-from virtualaxis.conformance.runner import Context, Fail, Skip, boot, check
+from virtualaxis.conformance.runner import (
+    LOCKSTEP_WAIT_FACTOR,
+    STUCK_MIN_S,
+    Context,
+    Fail,
+    RunError,
+    Skip,
+    boot,
+    check,
+)
 
 ABORT_NO_OBJECT = 0x06020000
 ABORT_NO_SUB = 0x06090011
@@ -33,6 +43,75 @@ def _hb_state(ctx: Context, mark: int, timeout: float = 0.5) -> int:
     if f is None:
         raise Fail("no heartbeat frame")
     return f[2][0] & 0x7F
+
+
+# ============================================================================ node time in lockstep
+def _sync_answer(ctx: Context) -> int | None:
+    """Lockstep, after a boot: TPDO2 remapped to the statusword, transmission type 1 (the node's answer to every
+    SYNC), 0x1006 = the SYNC period; NMT start. Returns TPDO2's COB-ID, or None when the node refuses the remap."""
+    try:
+        cob = _remap(ctx, 0x1801, [0x60410010], 1)
+        if 0x1006 in ctx.od:
+            ctx.write(0x1006, 0, round(ctx.sync_period_s * 1e6))
+    except canopen.SdoAbortedError as exc:
+        ctx.note(f"TPDO2 as the SYNC answer refused (0x{exc.code:08X}): timing judged on the wall clock")
+        return None
+    ctx.log_frames(cob)
+    ctx.nmt(0x01)
+    time.sleep(0.03)
+    return cob
+
+
+def _node_times(ctx: Context, cob: int, duration_s: float, answer_cob: int,
+                before_sync: Callable[[int], None] | None = None,
+                until: Callable[[bytes], bool] | None = None) -> list[float]:
+    """Lockstep: ``duration_s`` of node time as SYNCs sent one at a time, each once the node answered the one
+    before with ``answer_cob``. Returns the node time [s] of every frame of ``cob`` meanwhile: the number of
+    SYNC answers before it x the SYNC period (the node sends what falls due in a SYNC's cycles after that SYNC's
+    answer and before the next one's). The same every run, whatever the load of the host; SYNCs that take more
+    than :data:`LOCKSTEP_WAIT_FACTOR` x ``duration_s`` of wall time are an error of the run."""
+    n = round(duration_s / ctx.sync_period_s)
+    stuck_s = max(STUCK_MIN_S, LOCKSTEP_WAIT_FACTOR * duration_s)
+    mark = ctx.frames.mark()
+    t0 = time.monotonic()
+    for k in range(n):
+        if before_sync is not None:
+            before_sync(k)  # (frames sent now reach the node at node time k SYNC periods)
+        m = ctx.frames.mark()
+        ctx.sync_once()
+        end = time.monotonic() + STUCK_MIN_S
+        while ctx.frames.wait(m, answer_cob, None, 0.05) is None:
+            if until is not None and any(until(d) for _, _, d in ctx.frames.since(m, cob)):
+                break  # (what was waited for came; the node may answer no more SYNCs after it)
+            if time.monotonic() > end:
+                raise Fail(f"no answer (TPDO 0x{answer_cob:03X}, transmission type 1) to SYNC {k + 1} within "
+                           f"{STUCK_MIN_S:g} s")
+        if until is not None and any(until(d) for _, _, d in ctx.frames.since(m, cob)):
+            break
+        if time.monotonic() - t0 > stuck_s:
+            raise RunError(f"{k + 1} of {n} SYNCs ({duration_s:g} s of node time) sent in {stuck_s:g} s of wall "
+                           "time: the master or the host is too slow")
+    answers = 0
+    times = []
+    for _, c, _ in ctx.frames.since(mark):
+        if c == answer_cob:
+            answers += 1
+        elif c == cob:
+            times.append(answers * ctx.sync_period_s)
+    ctx.note(f"{n} SYNCs, each after the node's answer; frames 0x{cob:03X} at node time [ms]: "
+             + ", ".join(f"{t * 1e3:.0f}" for t in times))
+    return times
+
+
+def _timed_frames(ctx: Context, cob: int, duration_s: float) -> tuple[list[float], str]:
+    """The times [s] of the frames of ``cob`` over ``duration_s``: node time from SYNC counts in lockstep (the
+    node must be booted: see :func:`_sync_answer`), else (or when the node has no SYNC answer) wall time."""
+    answer = _sync_answer(ctx) if ctx.lockstep else None
+    if answer is not None:
+        return _node_times(ctx, cob, duration_s, answer), "node time"
+    mark = ctx.frames.mark()
+    time.sleep(duration_s)
+    return [t for t, _, _ in ctx.frames.since(mark, cob)], "wall time"
 
 
 # ============================================================================ identity, NMT, heartbeat
@@ -78,28 +157,32 @@ def reset_node(ctx: Context) -> str:
 @check("301-HB-1", "nmt", "CiA 301 7.2.8.3.2.2 (heartbeat producer, 0x1017); CL 2",
        "0x1017 = 40 ms, then 0", "heartbeats every 40 ms carrying the NMT state; none with 0")
 def heartbeat(ctx: Context) -> str:
-    ctx.write(0x1017, 0, 40)
-    mark = ctx.frames.mark()
-    time.sleep(0.7)
-    frames = ctx.frames.since(mark, ctx.hb_cob)
-    if len(frames) < 10:
-        raise Fail(f"{len(frames)} heartbeats in 0.7 s at 40 ms, expected about 17")
-    gaps = sorted(b[0] - a[0] for a, b in zip(frames, frames[1:], strict=False))
-    mean = sum(gaps) / len(gaps)
-    median = gaps[len(gaps) // 2]  # (a loaded host delays single frames; the median is the producer's period)
-    ctx.note(f"heartbeat gaps [ms]: {', '.join(f'{g * 1e3:.1f}' for g in gaps)}")
-    if not 0.036 <= median <= 0.044 or not 0.030 < mean < 0.055:
-        raise Fail(f"heartbeat period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; expected 40 ms "
-                   "(+-10 %)")
-    ctx.write(0x1017, 0, 0)
-    time.sleep(0.1)
-    mark = ctx.frames.mark()
-    time.sleep(0.3)
-    n = len(ctx.frames.since(mark, ctx.hb_cob))
-    ctx.write(0x1017, 0, 50)
+    if ctx.lockstep:
+        boot(ctx)  # (timings in SYNCs from a fresh start; the node's timers run on its SYNC clock from here)
+    try:
+        ctx.write(0x1017, 0, 40)
+        times, clock = _timed_frames(ctx, ctx.hb_cob, 0.7)
+        if len(times) < 10:
+            raise Fail(f"{len(times)} heartbeats in 0.7 s ({clock}) at 40 ms, expected about 17")
+        gaps = sorted(b - a for a, b in zip(times, times[1:], strict=False))
+        mean = sum(gaps) / len(gaps)
+        median = gaps[len(gaps) // 2]  # (a loaded host delays single frames; the median is the producer's period)
+        ctx.note(f"heartbeat gaps [ms, {clock}]: {', '.join(f'{g * 1e3:.1f}' for g in gaps)}")
+        if not 0.036 <= median <= 0.044 or not 0.030 < mean < 0.055:
+            raise Fail(f"heartbeat period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms ({clock}); "
+                       "expected 40 ms (+-10 %)")
+        ctx.write(0x1017, 0, 0)
+        if not ctx.lockstep:
+            time.sleep(0.1)
+        n = len(_timed_frames(ctx, ctx.hb_cob, 0.3)[0])
+    finally:
+        if ctx.lockstep:
+            boot(ctx)  # (back to the wall clock for the checks that follow)
+        ctx.write(0x1017, 0, 50)
     if n:
         raise Fail(f"{n} heartbeats with 0x1017 = 0, expected none")
-    return f"{len(frames)} heartbeats, period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms; none with 0"
+    return (f"{len(times)} heartbeats, period median {median * 1e3:.1f} ms, mean {mean * 1e3:.1f} ms ({clock}); "
+            "none with 0")
 
 
 @check("301-NMT-2", "nmt", "CiA 301 7.3.2.2.1 (NMT stop / start); CL 3",
@@ -321,8 +404,7 @@ def tpdo_sync(ctx: Context) -> str:
     for _ in range(5):
         ctx.sync_once()
         time.sleep(0.02)
-    time.sleep(0.02)
-    op = len(ctx.frames.since(mark, cob))
+    op = _count_frames(ctx, mark, cob, 5)
     boot(ctx)
     if pre:
         raise Fail(f"{pre} TPDO1 frames in PRE-OPERATIONAL")
@@ -589,6 +671,45 @@ def eds_unlisted(ctx: Context) -> str:
     return f"{len(probes)} unlisted entries all refused"
 
 
+
+def _consumer_heartbeat_node_time(ctx: Context) -> str:
+    """301-HB-2 in lockstep: the consumed heartbeats at node times 0, 40, ..., 160 ms (before the SYNCs of those
+    counts), then none; EMCY 0x8130 judged at the node time of its frame (the SYNC answers before it)."""
+    answer = _sync_answer(ctx)
+    if answer is None:
+        raise Skip("no SYNC answer (TPDO2 remapping refused): the consumer timeout cannot be timed in node time")
+    beats = [k * 40 for k in range(5)]
+
+    def beat(k: int) -> None:
+        if k in beats:
+            ctx.net.send_message(0x77E, b"\x05")
+
+    try:
+        mark = ctx.frames.mark()
+        times = _node_times(ctx, ctx.emcy_cob, 0.8, answer, before_sync=beat,
+                            until=lambda d: int.from_bytes(d[0:2], "little") == 0x8130)
+        codes = [int.from_bytes(d[0:2], "little") for _, _, d in ctx.frames.since(mark, ctx.emcy_cob)]
+        emcy = [d for _, _, d in ctx.frames.since(mark, ctx.emcy_cob)]
+        er = ctx.read(0x1001)
+    finally:
+        boot(ctx)
+    last_s = beats[-1] * ctx.sync_period_s
+    at = [t for t, c in zip(times, codes, strict=False) if c == 0x8130]
+    if not at:
+        raise Fail(f"no EMCY 0x8130 within {0.8 - last_s:.2f} s of node time after the consumed heartbeat (0x7E, "
+                   f"100 ms) stopped (seen {[hex(c) for c in codes]})")
+    if at[0] < last_s + 0.1 - 2 * ctx.sync_period_s:
+        raise Fail(f"EMCY 0x8130 at node time {at[0] * 1e3:.0f} ms while the consumed heartbeat still came every "
+                   f"40 ms (the last at {last_s * 1e3:.0f} ms, timeout 100 ms)")
+    data = emcy[codes.index(0x8130)]
+    if not data[2] & 0x10:
+        raise Fail(f"EMCY 0x8130 with error register 0x{data[2]:02X}: bit 4 (communication) not set")
+    if not er & 0x10:
+        raise Fail(f"0x1001 = 0x{er:02X} after the heartbeat timeout: bit 4 (communication) not set")
+    return (f"EMCY 0x8130 [{data.hex(' ')}] {(at[0] - last_s) * 1e3:.0f} ms of node time after the last consumed "
+            f"heartbeat, 0x1001 = 0x{er:02X}")
+
+
 # ============================================================================ consumer heartbeat, more SDO / PDO
 @check("301-HB-2", "emcy", "CiA 301 7.2.8.3.2.2 / 7.5.2.16 (0x1016 heartbeat consumer); EMCY 0x8130; CL 2, 4",
        "0x1016:1 = node 0x7E, 100 ms; 5 heartbeats 0x77E [05] every 40 ms, then none",
@@ -598,6 +719,8 @@ def consumer_heartbeat(ctx: Context) -> str:
         raise Skip("the EDS lists no consumer heartbeat time 0x1016")
     boot(ctx)
     ctx.write(0x1016, 1, (0x7E << 16) | 100)
+    if ctx.lockstep:
+        return _consumer_heartbeat_node_time(ctx)
     mark = ctx.frames.mark()
     sent: list[float] = []
     for _ in range(5):
@@ -731,6 +854,17 @@ def _block_transfer(ctx: Context, what: str, op):
                    "block transfer (optional)") from None
 
 
+def _count_frames(ctx: Context, mark: int, cob: int, expected: int) -> int:
+    """The frames of ``cob`` since ``mark``: waited for until ``expected`` are there (a loaded host delivers
+    answers late: at most :data:`STUCK_MIN_S` in lockstep, 2 s in real time), then 0.05 s more for any extra
+    frame."""
+    end = time.monotonic() + (STUCK_MIN_S if ctx.lockstep else 2.0)
+    while len(ctx.frames.since(mark, cob)) < expected and time.monotonic() < end:
+        time.sleep(0.005)
+    time.sleep(0.05)
+    return len(ctx.frames.since(mark, cob))
+
+
 def _remap(ctx: Context, comm: int, entries: list[int], ttype: int) -> int:
     """CiA 301 remapping of PDO ``comm`` (0x14xx / 0x18xx): invalid, entries, type, valid. Returns the COB-ID."""
     mapping = comm + 0x200
@@ -760,8 +894,7 @@ def tpdo_every_third(ctx: Context) -> str:
     for _ in range(12):
         ctx.sync_once()
         time.sleep(0.015)
-    time.sleep(0.1)
-    n = len(ctx.frames.since(mark, cob))
+    n = _count_frames(ctx, mark, cob, 4)
     boot(ctx)
     if n != 4:
         raise Fail(f"{n} TPDO1 frames for 12 SYNC with transmission type 3, expected 4")
@@ -784,19 +917,20 @@ def tpdo_event_timer(ctx: Context) -> str:
         pass
     ctx.write(0x1800, 5, 50)
     ctx.write(0x1800, 1, cobid)
-    ctx.nmt(0x01)
-    time.sleep(0.1)
-    mark = ctx.frames.mark()
-    time.sleep(0.45)
-    fr = ctx.frames.since(mark, cob)
-    boot(ctx)
-    gaps = sorted(b[0] - a[0] for a, b in zip(fr, fr[1:], strict=False))
+    try:
+        if not ctx.lockstep:
+            ctx.nmt(0x01)
+            time.sleep(0.1)
+        fr, clock = _timed_frames(ctx, cob, 0.45)
+    finally:
+        boot(ctx)
+    gaps = sorted(b - a for a, b in zip(fr, fr[1:], strict=False))
     if len(fr) < 6:
-        raise Fail(f"{len(fr)} TPDO1 frames in 0.45 s with event timer 50 ms, expected about 9")
+        raise Fail(f"{len(fr)} TPDO1 frames in 0.45 s ({clock}) with event timer 50 ms, expected about 9")
     med = gaps[len(gaps) // 2]
     if not 0.040 <= med <= 0.060:
-        raise Fail(f"median TPDO1 gap {med * 1e3:.1f} ms with event timer 50 ms")
-    return f"{len(fr)} TPDO1 in 0.45 s, median gap {med * 1e3:.1f} ms"
+        raise Fail(f"median TPDO1 gap {med * 1e3:.1f} ms ({clock}) with event timer 50 ms")
+    return f"{len(fr)} TPDO1 in 0.45 s, median gap {med * 1e3:.1f} ms ({clock})"
 
 
 @check("301-PDO-8", "pdo", "CiA 301 7.2.2.2 (synchronous RPDO acts at the next SYNC); CL 11",

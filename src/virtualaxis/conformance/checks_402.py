@@ -85,14 +85,16 @@ class Motion:
         return out
 
     def last(self, timeout: float = 0.5) -> Sample:
+        """The latest TPDO1 sample after two new ones (``timeout``: node time, see ``Context.deadline``)."""
         mark = self.ctx.frames.mark()
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
+        expired = self.ctx.deadline(timeout)
+        while True:
             s = self.samples(mark)
             if len(s) >= 2:
                 return s[-1]
+            if expired():
+                raise Fail(f"no TPDO1 (statusword + position) on SYNC within {timeout:g} s")
             time.sleep(0.005)
-        raise Fail("no TPDO1 (statusword + position) on SYNC")
 
     def at_rest_velocity(self, n: int = 20, timeout: float = 1.0) -> tuple[Sample, float]:
         """The last TPDO1 sample and the mean velocity (units/s) over the last ``n`` SYNC periods, from the
@@ -101,12 +103,12 @@ class Motion:
         (1 mm/s at 1 um and 1 ms), and under load the plant time between two wall-clock samples is not the SYNC
         period (lockstep: time advances per SYNC)."""
         mark = self.ctx.frames.mark()
-        end = time.monotonic() + timeout
+        expired = self.ctx.deadline(timeout)
         while True:
             s = self.samples(mark)
             if len(s) >= n + 1:
                 break
-            if time.monotonic() > end:
+            if expired():
                 raise Fail(f"{len(s)} TPDO1 in {timeout:g} s, {n + 1} needed to judge standstill")
             time.sleep(0.005)
         window = s[-(n + 1):]
@@ -120,17 +122,22 @@ class Motion:
         """CSP: every SYNC period, RPDO1 (CW 0x0F + target advanced by v * period), then SYNC."""
         ctx = self.ctx
         ctx.stop_sync()
+        self.stop_stream()  # (one stream at a time)
         self.target = float(start)
         self.step_units = velocity_units_s * ctx.sync_period_s
         self._stop.clear()
+        ctx.streams += 1
 
         def run() -> None:
             period = ctx.sync_period_s
             nxt = time.monotonic()
+            first = True
             while not self._stop.is_set():
                 self.target += self.step_units
                 self.rpdo(self.cw, round(self.target))
                 ctx.sync_once(answer_cob=self.tpdo1)  # (lockstep: waits for the node's answer)
+                ctx.periodic_sent(restart=first)
+                first = False
                 self.streamed += 1
                 nxt += period
                 delay = nxt - time.monotonic()
@@ -157,11 +164,16 @@ class Motion:
                                "the host is too slow")
             time.sleep(0.002)
 
+    def pause(self, seconds: float) -> None:
+        """Let ``seconds`` of the node's time pass while the stream runs (lockstep: that many SYNCs)."""
+        self.run_syncs(max(1, round(seconds / self.ctx.sync_period_s)))
+
     def stop_stream(self) -> None:
         self._stop.set()
         if self._stream is not None:
             self._stream.join(2.0)
             self._stream = None
+            self.ctx.streams -= 1
 
     def wait(self, pred, timeout: float, what: str) -> Sample:
         expired = self.ctx.deadline(timeout)  # (lockstep: node time, in SYNCs)
@@ -194,9 +206,9 @@ def _enable_mode(ctx: Context, mode: int) -> None:
     if not supported & MODE_BITS.get(mode, 0):
         raise Skip(f"mode {mode} ({MODES.get(mode, '?')}) not supported (0x6502 = 0x{supported:X})")
     ctx.write(0x6060, 0, mode)
-    end = time.monotonic() + 0.5
+    expired = ctx.deadline(0.5)
     while ctx.poll(0x6061) != mode:
-        if time.monotonic() > end:
+        if expired():
             raise Fail(f"0x6061 did not follow 0x6060 = {mode} within 0.5 s")
         time.sleep(0.005)
     ctx.enable()
@@ -204,7 +216,8 @@ def _enable_mode(ctx: Context, mode: int) -> None:
 
 # ============================================================================ state machine
 @check("402-SM-1", "sm", "CiA 402 6.1.3 (power drive state machine, transitions 2, 3, 4); CL 12",
-       "after reset: CW 0x06, 0x07, 0x0F by SDO", "SW & 0x6F = 0x21, 0x23, 0x27; whole chain well inside 0.8 s")
+       "after reset: CW 0x06, 0x07, 0x0F by SDO", "SW & 0x6F = 0x21, 0x23, 0x27; real time: whole chain well inside "
+       "0.8 s")
 def sm_enable(ctx: Context) -> str:
     boot(ctx)
     sw = ctx.sw()
@@ -216,6 +229,8 @@ def sm_enable(ctx: Context) -> str:
         ctx.wait_sw(STATE_MASK, exp, 0.5, f"CW 0x{cw:02X}")
     dt = time.monotonic() - t0
     ctx.disable()
+    if ctx.lockstep:  # the node changes state on the SDO write itself: wait_sw judged it in reads of the node
+        return f"0x21 -> 0x23 -> 0x27, each seen in the reads after its write ({dt * 1e3:.0f} ms of wall time)"
     if dt > 0.8:
         raise Fail(f"chain took {dt:.2f} s")
     return f"0x21 -> 0x23 -> 0x27 in {dt * 1e3:.0f} ms"
@@ -260,8 +275,20 @@ def sm_quick_stop(ctx: Context) -> str:
 
 
 # ============================================================================ modes
-@check("402-MODE-1", "modes", "CiA 402 6.2 (0x6060 / 0x6061); CL 18",
-       "0x6060 = every mode set in 0x6502", "0x6061 = the mode within 0.5 s")
+#: MODE-1: the velocity target every mode is given [mm/s]; the modes that must follow it (the others hold)
+MODE_PROBE_MM_S = 10.0
+MODE_PROBE_S = 0.1
+VELOCITY_MODES = (3, 9)
+#: MODE-1: the modes run under the probe (PT and HM have no target the probe can judge)
+PROBED_MODES = (1, 3, 8, 9, 10)
+
+
+@check("402-MODE-1", "modes", "CiA 402 6.2 (0x6060 / 0x6061; the drive runs the mode 0x6061 displays); CL 18",
+       "0x6060 = every mode set in 0x6502; then each of PP, PV, CSP, CSV, CST (those supported) enabled under SYNC "
+       "with 0x607A = actual position, 0x60FF = 10 mm/s (toward the middle of the travel), 0x6071 = 0, for 0.2 s "
+       "of node time",
+       "0x6061 = the mode within 0.5 s; the drive runs it: in PV / CSV it follows 0x60FF (travel >= half of "
+       "v t), in PP / CSP / CST it holds its position (travel < a quarter of v t)")
 def modes_follow(ctx: Context) -> str:
     boot(ctx)
     supported = ctx.read(0x6502)
@@ -269,13 +296,55 @@ def modes_follow(ctx: Context) -> str:
     for m, bit in MODE_BITS.items():
         if supported & bit:
             ctx.write(0x6060, 0, m)
-            end = time.monotonic() + 0.5
+            expired = ctx.deadline(0.5)
             while (got := ctx.poll(0x6061)) != m:
-                if time.monotonic() > end:
+                if expired():
                     raise Fail(f"0x6061 = {got} 0.5 s after 0x6060 = {m}")
                 time.sleep(0.005)
             seen.append(m)
-    return f"modes {seen} displayed in 0x6061"
+    mo = Motion(ctx)  # (TPDO1 answers every SYNC: the travel is judged over a count of the node's cycles)
+    try:
+        ran = [_runs_the_mode(ctx, mo, m) for m in PROBED_MODES if supported & MODE_BITS[m]]
+    finally:
+        mo.close()
+        ctx.disable()
+    return f"modes {seen} displayed in 0x6061; travel in {MODE_PROBE_S:g} s [units]: " + ", ".join(ran)
+
+
+def _runs_the_mode(ctx: Context, mo: Motion, mode: int) -> str:
+    """``mode`` enabled with targets of every mode at once (0x607A = actual position, 0x60FF = the probe
+    velocity, 0x6071 = 0); the travel over :data:`MODE_PROBE_S` of node time (TPDO1 positions that many SYNC
+    periods apart) tells which target the drive follows."""
+    name = MODES[mode]
+    v = _toward_middle(ctx) * ctx.mm(MODE_PROBE_MM_S)
+    n = round(MODE_PROBE_S / ctx.sync_period_s)
+    ctx.write(0x6083, 0, ctx.mm(2000))
+    ctx.write(0x6084, 0, ctx.mm(2000))
+    if 0x6071 in ctx.od:
+        ctx.write(0x6071, 0, 0)
+    _enable_mode(ctx, mode)
+    ctx.start_sync()
+    try:  # the targets once enabled (a cyclic mode takes its target in the cycle after it is written)
+        ctx.write(0x607A, 0, mo.last().pos)
+        ctx.write(0x60FF, 0, v)
+        ctx.sleep(0.02)  # (the velocity modes' acceleration)
+        _, v_mean = mo.at_rest_velocity(n, timeout=max(2 * MODE_PROBE_S, 5.0))  # (collects; judges nothing)
+    finally:
+        ctx.write(0x60FF, 0, 0)
+        ctx.sleep(0.05)  # (to rest before the next mode)
+        ctx.stop_sync()
+        ctx.disable()
+    travel = round(v_mean * MODE_PROBE_S * (1 if v > 0 else -1))
+    expected = abs(v) * MODE_PROBE_S
+    ctx.note(f"{name}: {travel:+d} units toward 0x60FF = {v} in {n} SYNC periods")
+    if mode in VELOCITY_MODES and travel < 0.5 * expected:
+        raise Fail(f"0x6061 = {mode} ({name}) but the drive does not follow 0x60FF = {v}: travelled {travel} units in "
+                   f"{MODE_PROBE_S:g} s, expected about {expected:.0f} (does it run another mode?)")
+    if mode not in VELOCITY_MODES and abs(travel) >= 0.25 * expected:
+        raise Fail(f"0x6061 = {mode} ({name}) but the drive follows the velocity target 0x60FF = {v}: travelled "
+                   f"{travel} units in {MODE_PROBE_S:g} s with 0x607A = its position and 0x6071 = 0 (does it run "
+                   "another mode?)")
+    return f"{name} {travel:+d}"
 
 
 @check("402-PP-1", "modes", "CiA 402 12 (profile position: set-point handshake, target reached); CL 19",
@@ -364,25 +433,41 @@ def homing_current_position(ctx: Context) -> str:
     supported = ctx.read(0x6502)
     if not supported & MODE_BITS[6]:
         raise Skip(f"homing mode not supported (0x6502 = 0x{supported:X})")
-    for method in (37, 35):
-        try:
-            ctx.write(0x6098, 0, method)
-            break
-        except canopen.SdoAbortedError:
-            continue
-    else:
-        raise Skip("homing methods 37 and 35 both refused")
-    ctx.write(0x607C, 0, ctx.mm(1))
-    _enable_mode(ctx, 6)
-    ctx.start_sync()
+    mo = Motion(ctx)
     try:
+        for method in (37, 35):
+            try:
+                ctx.write(0x6098, 0, method)
+                break
+            except canopen.SdoAbortedError:
+                continue
+        else:
+            raise Skip("homing methods 37 and 35 both refused")
+        ctx.write(0x607C, 0, ctx.mm(1))
+        _enable_mode(ctx, 6)
+        ctx.start_sync()
         ctx.write(0x6040, 0, 0x1F)
-        ctx.wait_sw(0x3400, 0x1400, 2.0, "homing attained (bits 13/12/10 = 0/1/1)")
-        pos = ctx.read(0x6064)
-        if abs(pos - ctx.mm(1)) > ctx.mm(0.01):
-            raise Fail(f"0x6064 = {pos} after homing on the current position, expected 0x607C = {ctx.mm(1)}")
-        return f"method {method}: 0x6064 = {pos}"
+        # judged on TPDO1 (statusword and position of the same cycle) from the second SYNC answer after the
+        # write: the first carries the values from before the cycle that starts the homing, and a node homed
+        # earlier shows bits 12 / 10 before it homes again
+        after = ctx.frames.mark()
+        expired = ctx.deadline(2.0)
+        while True:
+            samples = mo.samples(after)[1:]
+            first = next((s for s in samples if s.sw & 0x3400 == 0x1400), None)
+            if first is not None:
+                break
+            if expired():
+                sw = samples[-1].sw if samples else ctx.poll(0x6041)
+                raise Fail(f"homing attained (bits 13/12/10 = 0/1/1): SW 0x{sw:04X} after 2 s")
+            time.sleep(0.005)
+        ctx.note(f"TPDO1 at homing attained: SW 0x{first.sw:04X}, 0x6064 = {first.pos}")
+        if abs(first.pos - ctx.mm(1)) > ctx.mm(0.01):
+            raise Fail(f"0x6064 = {first.pos} when homing on the current position was attained, expected 0x607C = "
+                       f"{ctx.mm(1)}")
+        return f"method {method}: 0x6064 = {first.pos} at homing attained"
     finally:
+        mo.close()
         ctx.disable()
 
 
@@ -462,12 +547,12 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
         mo.stream(p0, 0.0)
         for i in range(1, 51):  # ramp to 100 mm/s over 50 SYNC periods (toward the middle of the travel)
             mo.step_units = d * v_cmd * ctx.sync_period_s * i / 50
-            time.sleep(ctx.sync_period_s)
-        time.sleep(0.25)
-        # judge the stop only from speed: wait (up to 2 s on a loaded host) until the axis really runs
+            mo.pause(ctx.sync_period_s)
+        mo.pause(0.25)
+        # judge the stop only from speed: wait (up to 2 s of node time) until the axis really runs
         cruise_mark = ctx.frames.mark()
-        end = time.monotonic() + 2.0
-        while time.monotonic() < end:
+        expired = ctx.deadline(2.0)
+        while not expired():
             moving = [s for s in mo.samples(cruise_mark) if s.vel is not None]
             if moving and abs(moving[-1].vel) >= 0.8 * v_cmd:
                 break
@@ -476,9 +561,9 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
         if 0x6066 in ctx.od:
             ctx.write(0x6066, 0, 0)
         ctx.write(0x6065, 0, 1)
-        end = time.monotonic() + 2.0
+        expired = ctx.deadline(2.0)
         first = None
-        while first is None and time.monotonic() < end:
+        while first is None and not expired():
             first = next((s for s in mo.samples(mark) if _is_fault(s.sw)), None)
             time.sleep(0.005)
         if first is None:
@@ -488,7 +573,7 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
         if v_f < 0.5 * v_cmd:
             raise Fail(f"the fault came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
                        f"{v_cmd / ctx.units_per_mm:.0f} mm/s: the stop from motion cannot be judged")
-        ctx.sleep(1.0)  # (lockstep: 1 s of node time)
+        mo.pause(1.0)  # (lockstep: 1 s of node time)
         samples = mo.samples(mark)
         last = samples[-1]
         travel = abs(last.pos - first.pos)
@@ -507,8 +592,8 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
                        "selects")
         if v_end > ctx.mm(1):
             raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1 s after the fault")
-        end = time.monotonic() + 2.0
-        while last.sw & 0x4F != 0x08 and time.monotonic() < end:  # the reaction ends once the axis is at rest
+        expired = ctx.deadline(2.0)
+        while last.sw & 0x4F != 0x08 and not expired():  # the reaction ends once the axis is at rest
             time.sleep(0.05)
             last = mo.samples(mark)[-1]
         if last.sw & 0x4F != 0x08:
@@ -536,13 +621,13 @@ def cw_and_target_in_one_rpdo(ctx: Context) -> str:
         new = p0 + d * ctx.mm(20)
         mo.rpdo(0x1F, new)
         ctx.note(f"RPDO1 [1f 00 {new.to_bytes(4, 'little', signed=True).hex(' ')}]")
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         mo.rpdo(0x0F, new)
         try:
             s = mo.wait(lambda s: s.sw & 0x400 and d * (s.pos - p0) > ctx.mm(1), 2.0, "target reached")
         except Fail:
             s = mo.last()
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         s = mo.last()
         if abs(s.pos - new) > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"axis at {s.pos} (moved {(s.pos - p0) / ctx.units_per_mm:.2f} mm); the RPDO's target was "
@@ -571,7 +656,7 @@ def _loss_of_control(ctx: Context, command: int) -> str:
         p0 = mo.last().pos
         mark = ctx.frames.mark()
         ctx.nmt(command)
-        time.sleep(0.5)
+        ctx.sleep(0.5)  # (lockstep: 0.5 s of node time)
         if command == 0x82:
             if ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", 1.0) is None:
                 raise Fail("no boot-up after reset communication")
@@ -681,11 +766,11 @@ def _limit_switch_in(ctx: Context, mode: int) -> str:
             mo.wait(lambda s: s.vel is not None and s.vel > ctx.mm(5), 2.0, f"{name}: motion +")
         except Fail as exc:
             raise Fail(f"{name}: the axis did not move + before the switch was forced ({exc})") from None
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         s0 = mo.last()
         v0 = max(s0.vel or v, v)
         ctx.write(INJ_INJECT, 0, LIMIT_SWITCH_KIND)
-        time.sleep(0.15)
+        ctx.sleep(0.15)
         s1, v_rest = mo.at_rest_velocity()
         inputs = ctx.read(0x60FD)
         travel = s1.pos - s0.pos
@@ -787,7 +872,7 @@ def software_limit(ctx: Context) -> str:
         target = p0 + d * ctx.mm(25)
         ctx.write(0x607A, 0, target)
         ctx.write(0x6040, 0, 0x1F)
-        time.sleep(0.4)
+        ctx.sleep(0.4)
         s = mo.last()
         window = max(ctx.read(0x6067), ctx.mm(0.05))
         beyond = (s.pos - limit) * d
@@ -830,7 +915,7 @@ def fault_reset_edge(ctx: Context) -> str:
             raise Fail(f"EMCY 0x{codes[-1]:04X}, 0x603F = 0x{code:04X}, 0x1003:1 = 0x{hist:04X}: not the same code")
         for cw in (0x0F, 0x00):
             ctx.write(0x6040, 0, cw)
-            time.sleep(0.05)
+            ctx.sleep(0.05)
             sw = ctx.sw()
             if sw & 0x4F != 0x08:
                 raise Fail(f"left fault without a rising edge of CW bit 7 (CW 0x{cw:02X} -> SW 0x{sw:04X})")
@@ -856,7 +941,7 @@ def fault_reset_needs_an_edge(ctx: Context) -> str:
         _enable_mode(ctx, 1)
         ctx.start_sync()
         ctx.write(0x6040, 0, 0x8F)
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         if ctx.sw() & 0x6F != 0x27:
             raise Skip("the node leaves OPERATION ENABLED on CW 0x8F (bit 7 outside FAULT): the fault cannot be "
                        "provoked with bit 7 held")
@@ -867,7 +952,7 @@ def fault_reset_needs_an_edge(ctx: Context) -> str:
         ctx.wait_sw(0x4F, 0x08, 2.0, "fault after a following error (CW bit 7 held)")
         for _ in range(3):
             ctx.write(0x6040, 0, 0x8F)
-            time.sleep(0.05)
+            ctx.sleep(0.05)
             sw = ctx.sw()
             if sw & 0x4F != 0x08:
                 raise Fail(f"left fault with CW bit 7 held high, without a rising edge (SW 0x{sw:04X})")
@@ -1045,12 +1130,12 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
         ctx.write(0x60FF, 0, 0)
         if mode in (4, 10):
             ctx.write(0x6071, 0, 0)
-        time.sleep(0.05)
+        ctx.sleep(0.05)
         try:
             _enable_mode(ctx, 3)
         except Fail as exc:
             ctx.note(f"{name}: enable for the move away: {exc}; once more")
-            time.sleep(0.2)
+            ctx.sleep(0.2)
             try:
                 _enable_mode(ctx, 3)
             except Fail as exc2:
@@ -1059,9 +1144,9 @@ def _onto_switch(ctx: Context, mo: Motion, mode: int, x_sw: int | None, a: int,
         ctx.write(0x60FF, 0, -ctx.mm(50))
         # away until the switch has released and the axis is 5 mm back (judged on the axis, not on a wall-clock
         # time: a loaded master or a lockstep drive advances less plant time per second), at most 2 s
-        end = time.monotonic() + 2.0
+        expired = ctx.deadline(2.0)
         x2 = x1
-        while time.monotonic() < end:
+        while not expired():
             time.sleep(0.02)
             x2 = ctx.read(0x6064)
             if x1 - x2 >= ctx.mm(5) and not ctx.read(0x60FD) & 0x2:

@@ -60,7 +60,7 @@ def _fault_reaction_ignores_605e() -> None:
     reactions.fault_reaction_kind = lambda reaction_class, _option: original(reaction_class, 2)
 
 
-@mutant("mode_echo_only", "0x6061 echoes 0x6060 but the drive stays in the mode it was in", only="modes")
+@mutant("mode_echo_only", "0x6061 echoes 0x6060 but the drive stays in the mode it was in", only="402-MODE-1")
 def _mode_echo_only() -> None:
     from virtualaxis.drive.core import Drive
 
@@ -189,6 +189,60 @@ def _sdo_wrong_abort() -> None:
             raise
 
     CanopenSlave._lookup = lookup
+
+
+@mutant("event_timer_slow", "TPDO event timer (0x18xx:5) runs 1.5 x slower than configured", only="301-PDO-7")
+def _event_timer_slow() -> None:
+    from virtualaxis.canopen_slave.pdo import PdoEngine, Tpdo
+
+    original = PdoEngine._configure
+
+    def configure(self, pdo) -> None:
+        original(self, pdo)
+        if isinstance(pdo, Tpdo):
+            pdo.event_s *= 1.5
+
+    PdoEngine._configure = configure
+
+
+@mutant("tpdo_every_sync", "a cyclic TPDO (transmission type 2..240) sent on every SYNC", only="301-PDO-6")
+def _tpdo_every_sync() -> None:
+    from virtualaxis.canopen_slave.pdo import PdoEngine
+
+    PdoEngine._cyclic_due = staticmethod(lambda tpdo, counter, counter_enabled: True)
+
+
+@mutant("sync_rpdo_at_once", "a synchronous RPDO applied when it arrives, not at the next SYNC", only="301-PDO-8")
+def _sync_rpdo_at_once() -> None:
+    from virtualaxis.canopen_slave.pdo import PdoEngine
+
+    original = PdoEngine.on_rpdo
+
+    def on_rpdo(self, rpdo, data: bytes, now_s: float) -> None:
+        original(self, rpdo, data, now_s)
+        if rpdo.pending is not None:
+            pending, rpdo.pending = rpdo.pending, None
+            self.apply(rpdo, pending)
+
+    PdoEngine.on_rpdo = on_rpdo
+
+
+@mutant("homing_offset_ignored", "homing on the current position sets 0x6064 to 0, not to the home offset 0x607C",
+        only="402-HM-1")
+def _homing_offset_ignored() -> None:
+    from virtualaxis.drive import modes
+
+    original = modes.Homing.finish
+
+    def finish(self, d) -> None:
+        read = d._obj
+        d._obj = lambda index, sub=0: 0 if index == 0x607C else read(index, sub)  # (0x607C read as 0)
+        try:
+            original(self, d)
+        finally:
+            del d._obj
+
+    modes.Homing.finish = finish
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -117,8 +117,19 @@ class FrameLog:
 
 #: lockstep: longest wait for the node's answer to one SYNC [s] (a node that stops answering: the run goes on)
 ANSWER_WAIT_S = 0.5
-#: lockstep: a wait for ``t`` s of node time ends after at most this many times ``t`` of wall time
-LOCKSTEP_WAIT_FACTOR = 20.0
+#: lockstep: a wait for ``t`` s of node time whose SYNCs take more than this many times ``t`` of wall time (and
+#: at least :data:`STUCK_MIN_S`) is stuck: the master or the host did not send them, an error of the run
+LOCKSTEP_WAIT_FACTOR = 100.0
+#: lockstep: shortest wall time after which a wait for node time counts as stuck [s]
+STUCK_MIN_S = 30.0
+#: a wait without SYNC (the node's state changes on the SDO write itself) is over only once this many reads of
+#: the node after its timeout showed the old value: a host that stalled for the whole timeout is not a verdict
+POLLS_AFTER_TIMEOUT = 3
+#: real time: a gap of the master's SYNC / set-point sending longer than this many periods (and
+#: :data:`STIMULUS_GAP_MIN_S`) during a check that failed makes the failure an error of the run (the master or
+#: the host missed the stimulus, not the node)
+STIMULUS_GAP_PERIODS = 5.0
+STIMULUS_GAP_MIN_S = 0.02
 #: lockstep: SYNCs sent without waiting after one the node did not answer (it may not answer SYNC at all)
 UNANSWERED_SKIP = 20
 
@@ -212,6 +223,32 @@ class Context:
         self.sdo_timeout_s = sdo_timeout_s
         self.retries: list[str] = []  # this check's SDO requests sent again after a timeout
         self.late_answers_due = 0  # requests that timed out and may still be answered (across checks)
+        self.streams = 0  # set-point streams sending SYNC besides start_sync (see periodic_sender)
+        #: real time: the longest gap of the master's periodic SYNC / set-point sending in this check [s]
+        self.stimulus_gap_s = 0.0
+        self._last_periodic: float | None = None
+
+    @property
+    def syncs_running(self) -> bool:
+        """SYNCs are being sent periodically (:meth:`start_sync` or a set-point stream)."""
+        return self._sync_task is not None or self.streams > 0
+
+    def periodic_sent(self, restart: bool = False) -> None:
+        """A periodic sender (SYNC, set-point stream) sent its frame now: the longest gap between two is kept in
+        :attr:`stimulus_gap_s` (``restart``: the first frame of a new sender, no gap before it)."""
+        now = time.monotonic()
+        if self._last_periodic is not None and not restart:
+            self.stimulus_gap_s = max(self.stimulus_gap_s, now - self._last_periodic)
+        self._last_periodic = now
+
+    def stimulus_missed(self) -> str | None:
+        """Real time: why the master missed its stimulus in this check (a gap of its periodic sending longer than
+        :data:`STIMULUS_GAP_PERIODS` periods), else None. Lockstep: None (the node's time waits for SYNC)."""
+        limit = max(STIMULUS_GAP_PERIODS * self.sync_period_s, STIMULUS_GAP_MIN_S)
+        if self.lockstep or self.stimulus_gap_s <= limit:
+            return None
+        return (f"the master's periodic SYNC / set-point sending paused {self.stimulus_gap_s * 1e3:.0f} ms (more "
+                f"than {limit * 1e3:.0f} ms) during the check: the master or the host missed the stimulus")
 
     def log_frames(self, cob: int) -> None:
         """Record the frames of ``cob`` in :attr:`frames` too (once, whatever the number of calls)."""
@@ -351,26 +388,43 @@ class Context:
         return self.read(0x6041)
 
     def deadline(self, timeout_s: float) -> Callable[[], bool]:
-        """A timeout of ``timeout_s`` of the node's time: wall time in real time; in lockstep, while SYNCs run,
-        ``timeout_s`` / SYNC period SYNCs sent (a loaded master or host slows the node's time down with its
-        SYNCs), at most :data:`LOCKSTEP_WAIT_FACTOR` x ``timeout_s`` of wall time. Returns "expired?"."""
+        """A timeout of ``timeout_s`` of the node's time. Returns "expired?", to be called after each look at
+        the node.
+
+        Real time: wall time. Lockstep while SYNCs run: ``timeout_s`` / SYNC period SYNCs sent (a loaded master
+        or host slows the node's time down with its SYNCs); when those SYNCs take more than
+        :data:`LOCKSTEP_WAIT_FACTOR` x ``timeout_s`` (at least :data:`STUCK_MIN_S`) of wall time, the call
+        raises :class:`RunError` (the master or the host is stuck, not the node). Lockstep without SYNC (the
+        node's state changes on the SDO exchange itself): expired once ``timeout_s`` of wall time has passed
+        and :data:`POLLS_AFTER_TIMEOUT` more looks at the node were made since."""
         t0, s0 = time.monotonic(), self.syncs
         need = timeout_s / self.sync_period_s
+        stuck_s = max(LOCKSTEP_WAIT_FACTOR * timeout_s, STUCK_MIN_S)
+        late_looks = [0]
 
         def expired() -> bool:
             waited = time.monotonic() - t0
-            if waited <= timeout_s:
-                return False
-            if not self.lockstep or waited > LOCKSTEP_WAIT_FACTOR * timeout_s or self.syncs == s0:
-                return True  # (no SYNC sent meanwhile: the wait is not for motion)
-            return self.syncs - s0 >= need
+            if not self.lockstep:
+                return waited > timeout_s
+            sent = self.syncs - s0
+            if sent >= need:
+                return True
+            if sent == 0 and not self.syncs_running:  # no SYNC: the wait is not for motion
+                if waited <= timeout_s:
+                    return False
+                late_looks[0] += 1
+                return late_looks[0] > POLLS_AFTER_TIMEOUT
+            if waited > stuck_s:
+                raise RunError(f"{sent} of {need:.0f} SYNCs ({timeout_s:g} s of node time) sent in {waited:.1f} s "
+                               "of wall time: the master or the host is too slow, the node's time stood still")
+            return False
 
         return expired
 
     def sleep(self, seconds: float) -> None:
         """Let ``seconds`` of the node's time pass (see :meth:`deadline`)."""
         expired = self.deadline(seconds)
-        time.sleep(seconds)
+        time.sleep(seconds)  # (SYNCs are never sent faster than their period: node time <= wall time)
         while not expired():
             time.sleep(0.002)
 
@@ -416,19 +470,21 @@ class Context:
     def start_sync(self, period_s: float | None = None) -> None:
         """SYNC every ``period_s`` (default :attr:`sync_period_s`) until :meth:`stop_sync`. Lockstep: a SYNC is
         sent only once the node answered the previous one (its TPDO1, when TPDO1 answers SYNC), never faster
-        than the period: a loaded master or host slows the node's time down but never makes it skip cycles."""
+        than the period: a loaded master or host slows the node's time down but never makes it skip cycles.
+        Real time: the gaps between SYNCs are kept (:meth:`periodic_sent`, :meth:`stimulus_missed`)."""
         if self._sync_task is not None:
             return
         period = period_s or self.sync_period_s
-        if not self.lockstep:
-            self._sync_task = self.net.send_periodic(0x80, b"", period)
-            return
         stop = threading.Event()
 
         def run() -> None:
             nxt = time.monotonic()
+            first = True
             while not stop.is_set():
-                self.sync_once(answer_cob=0x180 + self.node_id)
+                # lockstep: waits for the node's answer; real time: the SYNC only
+                self.sync_once(answer_cob=0x180 + self.node_id if self.lockstep else None)
+                self.periodic_sent(restart=first)
+                first = False
                 nxt += period
                 delay = nxt - time.monotonic()
                 if delay > 0:
@@ -531,6 +587,7 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
         ctx.trace = []
         ctx.retries = []
         ctx.last_abort = None
+        ctx.stimulus_gap_s = 0.0
         t0 = time.monotonic()
         failure_type = ""
         try:
@@ -569,13 +626,17 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
         stopped = _run_stopped(ctx, chk, results)
         if stopped is not None:
             raise stopped
+        missed = ctx.stimulus_missed() if status == "fail" else None
+        if missed is not None:  # real time: not the node's failure when the master did not send its stimulus
+            ctx.note(f"failure not judged: {detail}")
+            status, detail, failure_type = "error", missed, "run"
         res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-40:]),
                      time.monotonic() - t0, list(ctx.retries), failure_type)
         results.append(res)
         ctx.frames.trim()
         if progress is not None:
             progress(res)
-        if status == "fail":
+        if status in ("fail", "error"):
             try:  # leave the node in a known state for the next check
                 ctx.disable()
                 boot(ctx)
