@@ -617,7 +617,7 @@ def run_diagnosis(
     timed("hybrid_s", t0)
     timing["total_s"] = time.perf_counter() - t_start
     calibrated, controller = calibrate(sel, chk)
-    report = build_report(cfg=cfg, loaded=loaded, check=chk, baseline=base, localisation=loc, selection=sel,
+    report = build_report(cfg=cfg, loaded=loaded, check=chk, base=base, localisation=loc, selection=sel,
                           verification=ver, hybrid=hyb, timing=timing)
     if controller:
         report["calibrated_controller"] = controller
@@ -654,13 +654,13 @@ def _rmse(m: dict) -> dict:
     return {ch: v["rmse"] for ch, v in m.items()}
 
 
-def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, baseline: Baseline,
+def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, base: Baseline,
                  localisation: Localisation, selection: Selection, verification: Verification, hybrid: dict | None,
                  timing: dict[str, float]) -> dict:
     """``report.json``'s content from the stages' results."""
     traces, tds, fit_idx, hold_idx = loaded.traces, loaded.tds, loaded.fit_idx, loaded.hold_idx
-    notes = loaded.notes + check.notes + baseline.notes
-    base_res, loc, sel, cumulative, hyb = baseline.residuals, localisation, selection, verification.cumulative, hybrid
+    notes = loaded.notes + check.notes + base.notes
+    base_res, loc, sel, cumulative, hyb = base.residuals, localisation, selection, verification.cumulative, hybrid
     base_fit = pooled_metrics([base_res[i] for i in fit_idx])
     base_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
     baseline = pooled_metrics(base_res)
@@ -769,7 +769,7 @@ def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, b
          "controller": [c["used"] for c in check.controller_checks],
          "feedforward_form": check.feedforward_form["used"] if check.feedforward_form else None},
         {"stage": "baseline", "seconds": timing.get("baseline_s"),
-         "alignment": [f["kind"] for f in baseline.alignment]},
+         "alignment": [f["kind"] for f in base.alignment]},
         {"stage": "localise", "seconds": timing.get("localise_s"),
          "where": {ch: v[0] for ch, v in summary.items() if v}},
         *sel.trail,
@@ -817,8 +817,8 @@ def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, b
         "stages": stages,
         "controller_check": check.controller_checks,
         "feedforward_form": check.feedforward_form,
-        "alignment": baseline.alignment,
-        "contour": contour_report(tds, {"nominal": baseline.preds, "calibrated": verification.final_preds}),
+        "alignment": base.alignment,
+        "contour": contour_report(tds, {"nominal": base.preds, "calibrated": verification.final_preds}),
     }
 
 
