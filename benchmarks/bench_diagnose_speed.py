@@ -58,9 +58,10 @@ def main() -> None:
     simulate_command(cfg.replace(friction={"coulomb_n": 41.0}), t, pos)
     one_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rep = run_diagnosis(cfg, paths, [], jobs=a.jobs)
+    result = run_diagnosis(cfg, paths, [], jobs=a.jobs)
     wall = time.perf_counter() - t0
-    write_outputs(rep, out / "diagnosis")
+    write_outputs(result, out / "diagnosis")
+    rep = result.report
     tm = rep["timing"]
     print(f"six 20 s traces at 1 kHz, whole library ({len(rep['effects'])} applicable effects), jobs={a.jobs}")
     print(f"conclusion: {rep['conclusion']}")

@@ -64,7 +64,7 @@ def main() -> int:
         for with_check in (True, False):
             pipeline.check_controllers = check if with_check else (lambda *args, **kwargs: [])
             t0 = time.perf_counter()
-            rep = pipeline.run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False)
+            rep = pipeline.run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False).report
             dt = time.perf_counter() - t0
             before, after = rep["baseline_heldout"], rep["final"]["heldout"]
             shr = ", ".join(f"{ch} {before[ch]['rmse']:.4g} -> {after[ch]['rmse']:.4g}" for ch in sorted(after))

@@ -114,10 +114,11 @@ def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effec
     controller difference is a 'gap'; with it the clean case has no effect and the withheld Coulomb friction
     is found."""
     cfg = load_axis_config(RIGID)
-    clean = run_diagnosis(cfg, pp_traces["clean"][:2], pp_traces["clean"][2:], jobs=1, hybrid=False)
+    clean = run_diagnosis(cfg, pp_traces["clean"][:2], pp_traces["clean"][2:], jobs=1, hybrid=False).report
     assert [c["used"] for c in clean["controller_check"]] == ["identified"] * 3
     assert clean["accepted"] == []
-    coul = run_diagnosis(cfg, pp_traces["coulomb"][:2], pp_traces["coulomb"][2:], jobs=1, hybrid=False)
+    result = run_diagnosis(cfg, pp_traces["coulomb"][:2], pp_traces["coulomb"][2:], jobs=1, hybrid=False)
+    coul = result.report
     assert all(c["used"] == "identified" for c in coul["controller_check"])
     assert coul["accepted"][:1] == ["coulomb_friction"]
     fc = next(e for e in coul["effects"] if e["name"] == "coulomb_friction")["params"]["coulomb_n"]["value"]
@@ -126,7 +127,7 @@ def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effec
     assert hold < 0.4
     assert any("identified controller used" in w for tr in coul["traces"] for w in tr["warnings"])
     # one controller ran all traces: the calibrated axis runs it (and keeps the found friction)
-    cal = coul["_calibrated_cfg"].control
+    cal = result.calibrated.control
     assert cal.kv_1_per_s == pytest.approx(25.0, rel=0.03) and cal.speed_ti_s == 0.0
     assert cal.velocity_kp_n_s_per_m == pytest.approx(5000.0, rel=0.05)
     assert coul["calibrated_controller"]["kv_per_s"] == cal.kv_per_s
@@ -166,7 +167,7 @@ def test_a_speed_loop_at_the_traces_rate_is_recognised_from_the_configs_own_gain
     chk = check_controller(cfg, tr.name, tr.t, tr.pos_cmd, tr.columns)
     assert chk.used == "identified" and chk.overrides["control"] == {"speed_cycle_s": cfg.control.position_cycle_s}
     assert chk.identified_gains["speed_loop"] == "at the trace's rate"
-    rep = run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False)
+    rep = run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False).report
     assert rep["accepted"] == []
     assert any(c["used"] == "identified" for c in rep["controller_check"])
 
@@ -190,7 +191,7 @@ def test_identified_laws_that_disagree_across_traces_are_not_taken_for_the_contr
         p = tmp_path / f"F{int(feed)}.csv"
         write_trace(p, pp_cascade_trace(feed, 4.0, kv=kv, seed=k))
         paths.append(str(p))
-    rep = run_diagnosis(load_axis_config(RIGID), paths[:2], paths[2:], jobs=1, hybrid=False)
+    rep = run_diagnosis(load_axis_config(RIGID), paths[:2], paths[2:], jobs=1, hybrid=False).report
     checks = rep["controller_check"]
     assert checks and all(c["used"] == "config" for c in checks), [c["used"] for c in checks]
     assert all(c["closed_loop"]["disagree"].startswith("kv_per_s") for c in checks), checks[0]["closed_loop"]

@@ -83,6 +83,36 @@ def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_runs
     assert "\r" in tty_out and re.search(r"screening 3 candidates: +100%", tty_out), tty_out
 
 
+def test_the_report_shows_each_stage_of_the_diagnosis_in_order(pair_runs):
+    """report.json["stages"]: load -> check -> baseline -> localise -> per round screen, refine, judge (and the
+    pair or refit that accepted) -> verify -> report, each with what it decided; nothing private in the file."""
+    rc, _, log_err, d = pair_runs["log"]
+    assert rc == 0, log_err
+    rep = json.loads((d / "report.json").read_text())
+    stages = rep["stages"]
+    names = [s["stage"] for s in stages]
+    assert names[:4] == ["load", "check", "baseline", "localise"], names
+    assert names[-2:] == ["verify", "report"], names
+    assert names[4:7] == ["screen", "refine", "judge"], names
+    assert stages[0]["fit"] == [t["name"] for t in rep["traces"] if t["role"] == "fit"]
+    assert stages[0]["holdout"] == [t["name"] for t in rep["traces"] if t["role"] == "holdout"]
+    screen1 = stages[4]
+    assert screen1["round"] == 1
+    assert set(screen1["candidates"]) == {"coulomb_friction", "viscous_friction", "mass_error"}
+    # every round's stages carry its number, rounds in order
+    rounds = [s["round"] for s in stages if "round" in s]
+    assert rounds == sorted(rounds) and rounds[0] == 1
+    # each accepted effect was chosen by a stage: a judgement's best, a pair, or a joint refit kept
+    chosen = ({s["best"] for s in stages if s["stage"] == "judge"}
+              | {e for s in stages if s["stage"] == "pair" for e in s["accepted"]}
+              | {s["effect"] for s in stages if s["stage"] == "joint_refit" and s["kept"]})
+    assert set(rep["accepted"]) <= chosen, stages
+    refits = [s for s in stages if s["stage"] == "refit"]
+    assert all(set(s["effects"]) <= set(rep["accepted"]) | set(s["removed"]) for s in refits), refits
+    assert stages[-1]["conclusion"] == rep["conclusion"]
+    assert not [k for k in rep if k.startswith("_")]
+
+
 def test_the_report_reads_in_engineering_units_and_edits_only_the_fitted_values(pair_case, pair_runs):
     rc, out, err, d = pair_runs["log"]
     assert rc == 0, err

@@ -101,7 +101,7 @@ def test_the_gain_a_sensor_can_resolve():
     by the rms it removes in those units: a 20 nm grid with 40 nm white noise (a linear scale) -> 40.4 nm; a residual
     of 30 nm rms cut to 10 nm removes 28 nm (< 1: not resolved), one of 300 nm cut to 100 nm removes 283 nm (7x)."""
     from virtualaxis.diagnosis.data import Weights, weighted_ssr
-    from virtualaxis.diagnosis.fit import MIN_RESOLVED_REMOVAL
+    from virtualaxis.diagnosis.selection import MIN_RESOLVED_REMOVAL
 
     rng = np.random.default_rng(0)
     n = 20000

@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir(args.out, args.force, OUT_NAMES, inputs=inputs)
     progress = StageProgress()
     try:
-        report = run_diagnosis(cfg, args.traces, args.holdout, jobs=args.jobs, scheduler=args.scheduler,
+        result = run_diagnosis(cfg, args.traces, args.holdout, jobs=args.jobs, scheduler=args.scheduler,
                                settings=FitSettings(method=args.method), effect_names=names, progress=progress,
                                hybrid=not args.no_hybrid)
     except ImportError as exc:
@@ -141,7 +141,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     with staged_dir(args.out) as stage:
-        staged = write_outputs(report, stage)
+        staged = write_outputs(result, stage)
+    report = result.report
     paths = {k: Path(args.out) / Path(v).name for k, v in staged.items()}
     for w in report.get("warnings", []):  # repairs, plausibility findings, split notes: never silent
         print(f"warning: {w.replace('plausibility: ', '')}", file=sys.stderr)

@@ -1,13 +1,14 @@
 """Sim-to-real gap diagnosis: where the gap lies, which unmodelled effect causes it, how far it shrinks.
 
 Modules: :mod:`trace` (reading/validating measured traces), :mod:`where` (residual localisation),
-:mod:`effects` (the candidate-effect library), :mod:`fit` (fitting and forward selection),
-:mod:`hybrid` (data-driven residual models), :mod:`pipeline` (the whole diagnosis), :mod:`report`
+:mod:`effects` (the candidate-effect library), :mod:`fit` (fitting one candidate), :mod:`selection` (forward
+selection as stages), :mod:`hybrid` (data-driven residual models), :mod:`pipeline` (the whole diagnosis as
+stages), :mod:`report`
 (report.json / report.html / calibrated.toml) and :mod:`bench` (withheld-effect gap bench).
 """
 
 from virtualaxis.diagnosis.effects import EFFECTS
-from virtualaxis.diagnosis.pipeline import NO_EFFECT, run_diagnosis, write_outputs
+from virtualaxis.diagnosis.pipeline import NO_EFFECT, DiagnosisResult, run_diagnosis, write_outputs
 from virtualaxis.diagnosis.trace import Trace, read_trace
 
-__all__ = ["EFFECTS", "NO_EFFECT", "Trace", "read_trace", "run_diagnosis", "write_outputs"]
+__all__ = ["EFFECTS", "NO_EFFECT", "DiagnosisResult", "Trace", "read_trace", "run_diagnosis", "write_outputs"]

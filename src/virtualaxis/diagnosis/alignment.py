@@ -24,69 +24,18 @@ import math
 import numpy as np
 
 from virtualaxis.diagnosis.data import TraceData, correlation_time
+from virtualaxis.diagnosis.recording import (
+    apply_post,
+    estimate_velocity,
+    position_for_velocity,
+    shift_samples,
+)
 
 #: an estimator form replaces the model's velocity state when it leaves at most this share of the residual
 ESTIMATOR_RATIO = 0.8
 #: channels that may be shifted: controller outputs and velocity (positions: a lag is a dead time, an effect)
 SHIFTABLE = ("force_drive", "torque_meas", "current_q", "vel_meas")
 ESTIMATORS = ("one_sample", "two_sample")
-
-
-def _shift(x: np.ndarray, s: int) -> np.ndarray:
-    """``y[k] = x[k - s]`` (edges held)."""
-    if s == 0:
-        return x
-    y = np.empty_like(x)
-    if s > 0:
-        y[s:] = x[:-s]
-        y[:s] = x[0]
-    else:
-        y[:s] = x[-s:]
-        y[s:] = x[-1]
-    return y
-
-
-def _estimate(pos: np.ndarray, dt: float, form: str) -> np.ndarray:
-    if form == "one_sample":
-        v = np.diff(pos, prepend=pos[0]) / dt
-    else:  # two_sample
-        v = np.empty_like(pos)
-        v[2:] = (pos[2:] - pos[:-2]) / (2 * dt)
-        v[:2] = (pos[1] - pos[0]) / dt if pos.size > 1 else 0.0
-    return v
-
-
-def apply_post(td: TraceData, pred: dict[str, np.ndarray], lead_m: float = 0.0) -> dict[str, np.ndarray]:
-    """The prediction as the trace records it (``td.post``: ``velocity`` estimator form, ``shift`` per channel,
-    ``exclude_start`` samples replaced by the measurement so they cost nothing)."""
-    post = td.post
-    if not post:
-        return pred
-    out = dict(pred)
-    form = post.get("velocity")
-    if form and "vel_meas" in out:
-        p = _position_for_velocity(out, lead_m)
-        if p is not None:
-            out["vel_meas"] = _estimate(p, float(td.t[1] - td.t[0]), form)
-    for ch, s in post.get("shift", {}).items():
-        if ch in out:
-            out[ch] = _shift(out[ch], int(s))
-    n0 = int(post.get("exclude_start", 0))
-    if n0 > 0:
-        for ch in out:
-            if ch in td.measured:
-                out[ch] = out[ch].copy()
-                out[ch][:n0] = td.measured[ch][:n0]
-    return out
-
-
-def _position_for_velocity(pred: dict[str, np.ndarray], lead_m: float) -> np.ndarray | None:
-    for ch in ("pos_meas", "pos_fb"):
-        if ch in pred:
-            return pred[ch]
-    if "motor_pos" in pred and lead_m > 0:
-        return pred["motor_pos"] * lead_m / (2 * math.pi)
-    return None
 
 
 def _rms(x: np.ndarray) -> float:
@@ -105,10 +54,10 @@ def find_alignment(tds: list[TraceData], preds: list[dict[str, np.ndarray]], lea
         for form in ESTIMATORS:
             parts = []
             for td, p in with_vel:
-                pos = _position_for_velocity(p, lead_m)
+                pos = position_for_velocity(p, lead_m)
                 if pos is None:
                     break
-                parts.append(td.measured["vel_meas"] - _estimate(pos, float(td.t[1] - td.t[0]), form))
+                parts.append(td.measured["vel_meas"] - estimate_velocity(pos, float(td.t[1] - td.t[0]), form))
             else:
                 r = _rms(np.concatenate(parts))
                 if r < best_r * (ESTIMATOR_RATIO if best is None else 1.0):
@@ -157,12 +106,12 @@ def _best_shift(tds: list[TraceData], preds: list[dict[str, np.ndarray]], ch: st
             continue
         m, x = td.measured[ch][4:-4], p[ch]
         for k in ssr:
-            r = m - _shift(x, k)[4:-4]
+            r = m - shift_samples(x, k)[4:-4]
             ssr[k] += float(r @ r)
             if k == 0:
                 taus.append(correlation_time(r))
         for k in dd:
-            d = _shift(x, k)[4:-4] - x[4:-4]
+            d = shift_samples(x, k)[4:-4] - x[4:-4]
             dd[k] += float(d @ d)
         n += m.size
     if n < 100:

@@ -346,10 +346,11 @@ def run_bench(out_dir: Path, seed: int = 0, case_names: list[str] | None = None,
                                        cdir / "diagnosis", jobs=jobs, hybrid=not quick)
         else:
             cfg = load_axis_config(cdir / "nominal.toml")
-            rep = run_diagnosis(cfg, meta["files"]["fit"], meta["files"]["holdout"],
+            result = run_diagnosis(cfg, meta["files"]["fit"], meta["files"]["holdout"],
                                 simulate=simulate or default_simulate, jobs=jobs, settings=FitSettings(),
                                 hybrid=not quick)
-            write_outputs(rep, cdir / "diagnosis")
+            write_outputs(result, cdir / "diagnosis")
+            rep = result.report
         ev = evaluate_case(meta, rep, truth_model_metrics(case, meta, simulate))
         ev["door"] = rep.get("_door", {"door": "library"})
         results.append(ev)

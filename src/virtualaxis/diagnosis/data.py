@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from virtualaxis.config import AxisConfig
+from virtualaxis.diagnosis.recording import apply_post
 from virtualaxis.diagnosis.trace import Trace
 
 SimulateFn = Callable[..., dict]
@@ -51,7 +52,7 @@ class TraceData:
     force_ext: np.ndarray | None
     measured: dict[str, np.ndarray]
     overrides: dict = field(default_factory=dict)  # config sections overridden for this trace
-    post: dict = field(default_factory=dict)  # how the trace records the model's channels (alignment.apply_post)
+    post: dict = field(default_factory=dict)  # how the trace records the model's channels (recording.apply_post)
 
     @classmethod
     def from_trace(cls, tr: Trace, overrides: dict | None = None) -> TraceData:
@@ -99,8 +100,6 @@ def simulate_trace(cfg: AxisConfig, td: TraceData, simulate: SimulateFn) -> dict
         if x.shape == td.t.shape and np.isfinite(x).all():
             pred[ch] = x
     if td.post:
-        from virtualaxis.diagnosis.alignment import apply_post
-
         pred = apply_post(td, pred, c.mechanics.lead_m)
     return pred
 

@@ -1,4 +1,6 @@
-"""The whole diagnosis: traces in, report dict and calibrated config out."""
+"""The whole diagnosis as stages, each a function returning a small typed result: load -> check -> baseline ->
+localise -> select (:mod:`virtualaxis.diagnosis.selection`: screen, refine, judge, refit per round) -> verify ->
+hybrid -> report. :func:`run_diagnosis` runs them and returns a :class:`DiagnosisResult`."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,13 +30,14 @@ from virtualaxis.diagnosis.data import (
     simulate_trace,
     split_by_condition,
 )
-from virtualaxis.diagnosis.fit import FitSettings, Runner, select_effects
+from virtualaxis.diagnosis.fit import FitSettings, Runner
 from virtualaxis.diagnosis.hybrid import fit_hybrid
 from virtualaxis.diagnosis.plausibility import check_baseline
 from virtualaxis.diagnosis.progress import ProgressEvent, ProgressFn
+from virtualaxis.diagnosis.selection import Selection, select_effects
 from virtualaxis.diagnosis.trace import CHANNEL_UNITS, Trace, check_units, read_trace
 from virtualaxis.diagnosis.verdict import channel_verdict
-from virtualaxis.diagnosis.where import localise
+from virtualaxis.diagnosis.where import Localisation, localise
 
 NO_EFFECT = "no significant effect"
 _CONTROL_KEYS = {f.name for f in dataclasses.fields(ControlParams)}
@@ -341,21 +345,21 @@ def _closed_loop_ratio(cfg: AxisConfig, a: list[TraceData], b: list[TraceData], 
     return (float(math.exp(np.mean(logs))) if logs else 1.0), verdict
 
 
-def with_identified_controller(cfg: AxisConfig, checks: list[dict], report: dict) -> AxisConfig:
+def with_identified_controller(cfg: AxisConfig, checks: list[dict]) -> tuple[AxisConfig, dict]:
     """The calibrated config gets the identified controller when every checked trace used it and their gains
     agree within 10 % (one controller ran them all, and it is not the config's): the virtual axis then runs
-    the real axis' controller. Traces with different sidecar controllers, or a mix, leave the config's."""
+    the real axis' controller. Traces with different sidecar controllers, or a mix, leave the config's.
+    Returns the config and the ``control.*`` values set (empty: none)."""
     if not checks or any(c["used"] != "identified" for c in checks):
-        return cfg
+        return cfg, {}
     ov = [c["overrides"] for c in checks]
     keys = sorted(set(ov[0]))
     if any(sorted(o) != keys for o in ov):
-        return cfg
+        return cfg, {}
     if _disagreeing_gain(ov, 1.1):  # P and PI speed loops mixed, or gains more than 10 % apart
-        return cfg
+        return cfg, {}
     merged = {k: float(np.median([float(o[k]) for o in ov])) for k in keys}
-    report["calibrated_controller"] = merged
-    return cfg.replace(control=merged)
+    return cfg.replace(control=merged), merged
 
 
 def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray]) -> None:
@@ -382,6 +386,181 @@ def _hints(cfg: AxisConfig, traces: list[TraceData]) -> Callable:
     return hint_fn
 
 
+# ------------------------------------------------------------------------------------------- stages
+@dataclass(frozen=True)
+class LoadedTraces:
+    """Stage ``load``: the traces read and checked, what the fits work on, and the fit / held-out split."""
+
+    traces: list[Trace]
+    tds: list[TraceData]
+    fit_idx: list[int]
+    hold_idx: list[int]
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """Stage ``check``: the controller each trace is simulated with (``report.json["controller_check"]``) and
+    the speed feed-forward form (``report.json["feedforward_form"]``; None without feed-forward)."""
+
+    controller_checks: list[dict]
+    feedforward_form: dict | None
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """Stage ``baseline``: the nominal model's prediction of every trace (as the trace records it), its residual,
+    and how the trace records the model's channels (``report.json["alignment"]``)."""
+
+    preds: list[dict[str, np.ndarray]]
+    residuals: list[dict[str, np.ndarray]]
+    alignment: list[dict]
+    notes: list[str]
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The full model step by step after each accepted effect (``report.json["cumulative"]``)."""
+
+    cumulative: list[dict]
+    final_residuals: list[dict[str, np.ndarray]]
+    final_preds: list[dict[str, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class Plots:
+    """The arrays the report's plots are drawn from."""
+
+    tds: list[TraceData]
+    base_res: list[dict[str, np.ndarray]]
+    final_res: list[dict[str, np.ndarray]]
+    loc: Localisation
+    fit_idx: list[int]
+    hold_idx: list[int]
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """What :func:`run_diagnosis` returns: the report (``report.json``'s content), the calibrated config
+    (``calibrated.toml``), the nominal config it started from, and the plots' arrays; plus each stage's result."""
+
+    report: dict
+    calibrated: AxisConfig
+    nominal: AxisConfig
+    plots: Plots
+    check: CheckResult
+    baseline: Baseline
+    localisation: Localisation
+    selection: Selection
+    verification: Verification
+
+
+def load(cfg: AxisConfig, fit_paths: list[str], holdout_paths: list[str],
+         effect_names: list[str] | None = None) -> LoadedTraces:
+    """Read and check every trace and its sidecar; decide the fit / held-out split."""
+    traces, fit_idx, hold_idx, notes = load_traces(cfg, fit_paths, holdout_paths)
+    if effect_names:
+        unknown = [n for n in effect_names if n not in fx.EFFECTS]
+        if unknown:
+            raise InputError("--effects", f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECTS)}")
+    tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
+    return LoadedTraces(traces, tds, fit_idx, hold_idx, notes)
+
+
+def check(cfg: AxisConfig, loaded: LoadedTraces, simulate: SimulateFn) -> CheckResult:
+    """The controller each trace ran (replayed, judged closed-loop) and the speed feed-forward form; a different
+    one is set on the traces' overrides for every later simulation."""
+    controller_checks = check_controllers(cfg, loaded.traces, loaded.tds, simulate, loaded.fit_idx, loaded.hold_idx)
+    ff_form = check_feedforward_form(cfg, loaded.tds, simulate, loaded.fit_idx, loaded.hold_idx)
+    notes = [ff_form["note"]] if ff_form and ff_form["used"] != ff_form["config_form"] else []
+    return CheckResult(controller_checks, ff_form, notes)
+
+
+def baseline(cfg: AxisConfig, loaded: LoadedTraces, simulate: SimulateFn) -> Baseline:
+    """The nominal model on every trace; channels it does not produce dropped; how the trace records its
+    channels (sample alignment, speed estimator, start transient); the baseline's plausibility."""
+    tds, traces = loaded.tds, loaded.traces
+    preds = [simulate_trace(cfg, td, simulate) for td in tds]
+    for td, tr, p in zip(tds, traces, preds, strict=True):
+        _align_motor_angle(td, tr, p)
+        missing = [c for c in td.measured if c not in p]
+        if missing:
+            tr.warnings.append(f"channels not produced by the model of this axis, ignored: {', '.join(missing)}")
+            for c in missing:
+                td.measured.pop(c)
+        if not td.measured:
+            raise InputError(tr.path, "none of its channels can be compared with the model of this axis")
+    alignment = find_alignment(tds, preds, cfg.mechanics.lead_m)
+    for td, p in zip(tds, preds, strict=True):
+        st = find_start_transient(td, p)
+        if st:
+            alignment.append(st)
+    notes = [f["note"] if f["kind"] != "start_transient" else f"{f['trace']}: {f['note']}" for f in alignment]
+    preds = [apply_post(td, p, cfg.mechanics.lead_m) if td.post else p for td, p in zip(tds, preds, strict=True)]
+    res = [residuals(td, p) for td, p in zip(tds, preds, strict=True)]
+    # the nominal model must follow the measured motion at all before any effect is fitted to the difference
+    check_baseline(cfg, tds, preds)
+    return Baseline(preds, res, alignment, notes)
+
+
+def localise_residual(loaded: LoadedTraces, base: Baseline) -> Localisation:
+    """Where the nominal residual lies: phase, direction, speed, position, time, frequency."""
+    return localise([(td.name, td.t, td.pos_cmd, r) for td, r in zip(loaded.tds, base.residuals, strict=True)])
+
+
+def select(cfg: AxisConfig, loaded: LoadedTraces, simulate: SimulateFn, *, jobs: int, scheduler: str | None,
+           settings: FitSettings | None, effect_names: list[str] | None, progress: ProgressFn | None) -> Selection:
+    """The selection rounds (:mod:`virtualaxis.diagnosis.selection`) on a process pool or Dask cluster."""
+    runner = Runner(jobs=jobs, scheduler=scheduler)
+    try:
+        return select_effects(cfg, loaded.tds, loaded.fit_idx, loaded.hold_idx, simulate, runner, settings,
+                              effect_names, progress, hint_fn=_hints(cfg, loaded.tds))
+    except BaseException:  # an interrupt or error: running fits are killed, not waited for
+        runner.abort()
+        raise
+    finally:
+        runner.close()
+
+
+def verify(loaded: LoadedTraces, base: Baseline, sel: Selection, simulate: SimulateFn) -> Verification:
+    """Cumulative metrics with the full model, step by step."""
+    fit_idx, hold_idx, tds = loaded.fit_idx, loaded.hold_idx, loaded.tds
+    cumulative = []
+    prev_fit = pooled_metrics([base.residuals[i] for i in fit_idx])
+    prev_hold = pooled_metrics([base.residuals[i] for i in hold_idx]) if hold_idx else {}
+    final_res, final_pred = base.residuals, base.preds
+    for step in sel.accepted:
+        preds = [simulate_trace(step.cfg, td, simulate) for td in tds]
+        res = [residuals(td, p) for td, p in zip(tds, preds, strict=True)]
+        fm = pooled_metrics([res[i] for i in fit_idx])
+        hm = pooled_metrics([res[i] for i in hold_idx]) if hold_idx else {}
+        cumulative.append({"after": step.effect, "fit_before": prev_fit, "fit_after": fm,
+                           "heldout_before": prev_hold, "heldout_after": hm})
+        prev_fit, prev_hold = fm, hm
+        final_res, final_pred = res, preds
+    return Verification(cumulative, final_res, final_pred)
+
+
+def hybrid_models(loaded: LoadedTraces, ver: Verification) -> dict | None:
+    """Data-driven residual models on top of the calibrated physics."""
+    chans = sorted({c for r in ver.final_residuals for c in r})
+    items = [(td.t, td.pos_cmd, p, r) for td, p, r in zip(loaded.tds, ver.final_preds, ver.final_residuals,
+                                                           strict=True)]
+    return fit_hybrid([items[i] for i in loaded.fit_idx], [items[i] for i in loaded.hold_idx], chans)
+
+
+def calibrate(sel: Selection, chk: CheckResult) -> tuple[AxisConfig, dict]:
+    """The calibrated config: the accepted effects, the identified controller when one ran every trace, the
+    speed feed-forward form; and the controller keys it sets (``report.json["calibrated_controller"]``)."""
+    calibrated, controller = with_identified_controller(sel.final_cfg, chk.controller_checks)
+    ff = chk.feedforward_form
+    if ff and ff["used"] != ff["config_form"]:
+        calibrated = calibrated.replace(control={"velocity_ff_form": ff["used"]})
+        controller = {**controller, "velocity_ff_form": ff["used"]}
+    return calibrated, controller
+
+
 def run_diagnosis(
     cfg: AxisConfig,
     fit_paths: list[str],
@@ -394,116 +573,56 @@ def run_diagnosis(
     effect_names: list[str] | None = None,
     progress: ProgressFn | None = None,
     hybrid: bool = True,
-) -> dict:
-    """Run the diagnosis. Returns the report dict; ``report["_calibrated_cfg"]`` is the calibrated config
-    and ``report["_plots"]`` arrays for the plots (both removed before writing JSON). ``progress`` receives a
+) -> DiagnosisResult:
+    """Run the diagnosis, stage by stage: load -> check -> baseline -> localise -> select (screen, refine, judge,
+    refit, per round) -> verify -> hybrid -> report. ``progress`` receives a
     :class:`~virtualaxis.diagnosis.progress.ProgressEvent` as each stage starts and each candidate fit ends."""
     def stage(name: str) -> None:
         if progress:
             progress(ProgressEvent(name))
 
     timing: dict[str, float] = {}
+
+    def timed(key: str, t0: float) -> None:
+        timing[key] = time.perf_counter() - t0
+
     t_start = time.perf_counter()
     stage("read")
-    traces, fit_idx, hold_idx, notes = load_traces(cfg, fit_paths, holdout_paths or [])
-    if effect_names:
-        unknown = [n for n in effect_names if n not in fx.EFFECTS]
-        if unknown:
-            raise InputError("--effects", f"unknown effect(s) {', '.join(unknown)}; known: {', '.join(fx.EFFECTS)}")
-    tds = [TraceData.from_trace(tr, trace_overrides(tr)) for tr in traces]
-    timing["read_s"] = time.perf_counter() - t_start
+    loaded = load(cfg, fit_paths, holdout_paths or [], effect_names)
+    timed("read_s", t_start)
     t0 = time.perf_counter()
     stage("controller_check")
-    controller_checks = check_controllers(cfg, traces, tds, simulate, fit_idx, hold_idx)
-    ff_form = check_feedforward_form(cfg, tds, simulate, fit_idx, hold_idx)
-    if ff_form and ff_form["used"] != ff_form["config_form"]:
-        notes.append(ff_form["note"])
-    timing["controller_check_s"] = time.perf_counter() - t0
-    # baseline
+    chk = check(cfg, loaded, simulate)
+    timed("controller_check_s", t0)
     t0 = time.perf_counter()
     stage("baseline")
-    base_pred = [simulate_trace(cfg, td, simulate) for td in tds]
-    for td, tr, p in zip(tds, traces, base_pred, strict=True):
-        _align_motor_angle(td, tr, p)
-        missing = [c for c in td.measured if c not in p]
-        if missing:
-            tr.warnings.append(f"channels not produced by the model of this axis, ignored: {', '.join(missing)}")
-            for c in missing:
-                td.measured.pop(c)
-        if not td.measured:
-            raise InputError(tr.path, "none of its channels can be compared with the model of this axis")
-    # how the trace records the model's channels: speed estimator, one-sample shifts, a start transient
-    alignment = find_alignment(tds, base_pred, cfg.mechanics.lead_m)
-    for td, p in zip(tds, base_pred, strict=True):
-        st = find_start_transient(td, p)
-        if st:
-            alignment.append(st)
-    for f in alignment:
-        notes.append(f["note"] if f["kind"] != "start_transient" else f"{f['trace']}: {f['note']}")
-    base_pred = [apply_post(td, p, cfg.mechanics.lead_m) if td.post else p for td, p in zip(tds, base_pred,
-                                                                                           strict=True)]
-    base_res = [residuals(td, p) for td, p in zip(tds, base_pred, strict=True)]
-    # the nominal model must follow the measured motion at all before any effect is fitted to the difference
-    check_baseline(cfg, tds, base_pred)
-    timing["baseline_s"] = time.perf_counter() - t0
+    base = baseline(cfg, loaded, simulate)
+    timed("baseline_s", t0)
     t0 = time.perf_counter()
     stage("localise")
-    loc = localise([(td.name, td.t, td.pos_cmd, r) for td, r in zip(tds, base_res, strict=True)])
-    timing["localise_s"] = time.perf_counter() - t0
-    # selection
-    runner = Runner(jobs=jobs, scheduler=scheduler)
-    try:
-        sel = select_effects(cfg, tds, fit_idx, hold_idx, simulate, runner, settings, effect_names, progress,
-                             hint_fn=_hints(cfg, tds))
-    except BaseException:  # an interrupt or error: running fits are killed, not waited for
-        runner.abort()
-        raise
-    finally:
-        runner.close()
+    loc = localise_residual(loaded, base)
+    timed("localise_s", t0)
+    sel = select(cfg, loaded, simulate, jobs=jobs, scheduler=scheduler, settings=settings,
+                 effect_names=effect_names, progress=progress)
     timing["fitting_s"] = sel.seconds_fitting
-    # cumulative metrics with the full model, step by step
     t0 = time.perf_counter()
     stage("verify")
-    cumulative = []
-    prev_fit = pooled_metrics([base_res[i] for i in fit_idx])
-    prev_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
-    final_res = base_res
-    final_pred = base_pred
-    for step in sel.accepted:
-        preds = [simulate_trace(step.cfg, td, simulate) for td in tds]
-        res = [residuals(td, p) for td, p in zip(tds, preds, strict=True)]
-        fm = pooled_metrics([res[i] for i in fit_idx])
-        hm = pooled_metrics([res[i] for i in hold_idx]) if hold_idx else {}
-        cumulative.append({"after": step.effect, "fit_before": prev_fit, "fit_after": fm,
-                           "heldout_before": prev_hold, "heldout_after": hm})
-        prev_fit, prev_hold = fm, hm
-        final_res, final_pred = res, preds
-    timing["verify_s"] = time.perf_counter() - t0
-    # hybrid
+    ver = verify(loaded, base, sel, simulate)
+    timed("verify_s", t0)
     t0 = time.perf_counter()
     hyb = None
     if hybrid:
         stage("hybrid")
-        chans = sorted({c for r in final_res for c in r})
-        items = [(td.t, td.pos_cmd, p, r) for td, p, r in zip(tds, final_pred, final_res, strict=True)]
-        hyb = fit_hybrid([items[i] for i in fit_idx], [items[i] for i in hold_idx], chans)
-    timing["hybrid_s"] = time.perf_counter() - t0
+        hyb = hybrid_models(loaded, ver)
+    timed("hybrid_s", t0)
     timing["total_s"] = time.perf_counter() - t_start
-    report = build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing)
-    report["controller_check"] = controller_checks
-    report["feedforward_form"] = ff_form
-    report["alignment"] = alignment
-    report["contour"] = contour_report(tds, {"nominal": base_pred, "calibrated": final_pred})
-    calibrated = with_identified_controller(sel.final_cfg, controller_checks, report)
-    if ff_form and ff_form["used"] != ff_form["config_form"]:
-        calibrated = calibrated.replace(control={"velocity_ff_form": ff_form["used"]})
-        report["calibrated_controller"] = {**report.get("calibrated_controller", {}),
-                                           "velocity_ff_form": ff_form["used"]}
-    report["_calibrated_cfg"] = calibrated
-    report["_base_cfg"] = cfg
-    report["_plots"] = {"tds": tds, "base_res": base_res, "final_res": final_res, "loc": loc,
-                        "fit_idx": fit_idx, "hold_idx": hold_idx}
-    return report
+    calibrated, controller = calibrate(sel, chk)
+    report = build_report(cfg=cfg, loaded=loaded, check=chk, base=base, localisation=loc, selection=sel,
+                          verification=ver, hybrid=hyb, timing=timing)
+    if controller:
+        report["calibrated_controller"] = controller
+    plots = Plots(loaded.tds, base.residuals, ver.final_residuals, loc, loaded.fit_idx, loaded.hold_idx)
+    return DiagnosisResult(report, calibrated, cfg, plots, chk, base, loc, sel, ver)
 
 
 def _param_table(effect: str, cfg: AxisConfig, values: dict, stderr: dict) -> dict:
@@ -535,7 +654,13 @@ def _rmse(m: dict) -> dict:
     return {ch: v["rmse"] for ch, v in m.items()}
 
 
-def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel, cumulative, hyb, timing) -> dict:
+def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, base: Baseline,
+                 localisation: Localisation, selection: Selection, verification: Verification, hybrid: dict | None,
+                 timing: dict[str, float]) -> dict:
+    """``report.json``'s content from the stages' results."""
+    traces, tds, fit_idx, hold_idx = loaded.traces, loaded.tds, loaded.fit_idx, loaded.hold_idx
+    notes = loaded.notes + check.notes + base.notes
+    base_res, loc, sel, cumulative, hyb = base.residuals, localisation, selection, verification.cumulative, hybrid
     base_fit = pooled_metrics([base_res[i] for i in fit_idx])
     base_hold = pooled_metrics([base_res[i] for i in hold_idx]) if hold_idx else {}
     baseline = pooled_metrics(base_res)
@@ -546,7 +671,7 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
     entries: dict[str, dict] = {}
     for rnd, scored in enumerate(sel.rounds):
         for d in scored:
-            r, s = d["result"], d["score"]
+            r, s = d.result, d.score
             name = r.effect
             accepted_here = rnd < len(sel.accepted) and sel.accepted[rnd].effect == name
             if name in entries and not accepted_here:
@@ -567,18 +692,18 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                 "accepted": accepted_here,
                 "round": rnd + 1,
                 "fit": {"rmse_before": _rmse(fb), "rmse_after": _rmse(r.fit_metrics), "metrics_after": r.fit_metrics,
-                        "gain": s.get("fit_gain", 0.0)},
+                        "gain": s.fit_gain},
                 "heldout": {"rmse_before": _rmse(hb), "rmse_after": _rmse(r.holdout_metrics),
-                            "metrics_after": r.holdout_metrics, "gain": s["gain"],
-                            "gain_per_channel": s.get("gain_per_channel", {})},
-                "judged_on": s["judged_on"],
-                "ic_delta": s["ic_delta"],
-                "relative_change": s.get("relative_change"),
+                            "metrics_after": r.holdout_metrics, "gain": s.gain,
+                            "gain_per_channel": s.gain_per_channel},
+                "judged_on": s.judged_on.value,
+                "ic_delta": s.ic_delta,
+                "relative_change": s.relative_change,
                 "signature_overlap": r.signature_overlap,
-                "pays_its_way": d["pays"],
-                "implausible": s.get("implausible", []),  # why its values are no answer (empty: they are)
+                "pays_its_way": d.pays,
+                "implausible": list(s.implausible),  # why its values are no answer (empty: they are)
                 "stage": r.stage,
-                "screen_gain": d.get("screen_gain", 0.0),
+                "screen_gain": d.screen_gain,
                 "n_simulations": r.n_sims,
                 "seconds": r.seconds,
                 "error": r.error,
@@ -637,6 +762,20 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
     for e in entries.values():  # per-channel before/after of every candidate, held out (or on the fit traces)
         side = e["heldout"] if hold_idx else e["fit"]
         e["verdict"] = channel_verdict(side["rmse_before"], side["rmse_after"], n_eff)
+    stages = [
+        {"stage": "load", "seconds": timing.get("read_s"), "fit": [traces[i].name for i in fit_idx],
+         "holdout": [traces[i].name for i in hold_idx]},
+        {"stage": "check", "seconds": timing.get("controller_check_s"),
+         "controller": [c["used"] for c in check.controller_checks],
+         "feedforward_form": check.feedforward_form["used"] if check.feedforward_form else None},
+        {"stage": "baseline", "seconds": timing.get("baseline_s"),
+         "alignment": [f["kind"] for f in base.alignment]},
+        {"stage": "localise", "seconds": timing.get("localise_s"),
+         "where": {ch: v[0] for ch, v in summary.items() if v}},
+        *sel.trail,
+        {"stage": "verify", "seconds": timing.get("verify_s"), "after": [c["after"] for c in cumulative]},
+        {"stage": "report", "conclusion": conclusion},
+    ]
     return {
         "format": "virtualaxis-gap-diagnosis/1",
         "config": cfg.path,
@@ -675,13 +814,21 @@ def build_report(cfg, traces, tds, fit_idx, hold_idx, notes, base_res, loc, sel,
                                          for ch in final_hold if ch in base_hold}},
         "hybrid": hyb,
         "timing": {**timing, "simulations": sel.n_sims},
+        "stages": stages,
+        "controller_check": check.controller_checks,
+        "feedforward_form": check.feedforward_form,
+        "alignment": base.alignment,
+        "contour": contour_report(tds, {"nominal": base.preds, "calibrated": verification.final_preds}),
     }
 
 
-def write_outputs(report: dict, out_dir: str | Path) -> dict[str, Path]:
+def write_outputs(result: DiagnosisResult, out_dir: str | Path) -> dict[str, Path]:
+    """``report.json``, ``report.html``, ``calibrated.toml`` (and ``force_vs_speed.png``) into ``out_dir``."""
     from virtualaxis.diagnosis.report import write_report
 
-    paths = write_report(report, Path(out_dir))
+    report = result.report
+    paths = write_report(report, Path(out_dir), calibrated=result.calibrated, nominal=result.nominal,
+                         plots=result.plots)
     if report.get("force_vs_speed"):  # the plot of report.json["force_vs_speed"]
         png = Path(out_dir) / "force_vs_speed.png"
         png.write_bytes(friction_law.plot_png(report["force_vs_speed"]))

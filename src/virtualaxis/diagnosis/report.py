@@ -10,8 +10,13 @@ import io
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only
+    from virtualaxis.config import AxisConfig
+    from virtualaxis.diagnosis.pipeline import Plots
 
 #: keys every report.json carries (checked by the tests)
 REQUIRED_KEYS = ("baseline", "where", "effects", "hybrid", "conclusion")
@@ -46,20 +51,19 @@ def _png(fig) -> str:
     return base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _plots(report: dict) -> list[tuple[str, str]]:
+def _plots(report: dict, pl: Plots | None) -> list[tuple[str, str]]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out: list[tuple[str, str]] = []
-    pl = report.get("_plots")
-    if not pl:
+    if pl is None:
         return out
-    tds, base_res, final_res, loc = pl["tds"], pl["base_res"], pl["final_res"], pl["loc"]
+    tds, base_res, final_res, loc = pl.tds, pl.base_res, pl.final_res, pl.loc
     chans = sorted({c for r in base_res for c in r})
     # residual over time, before and after, per channel (first fit and first held-out trace)
-    show = [pl["fit_idx"][0]] + (pl["hold_idx"][:1] if pl["hold_idx"] else [])
+    show = [pl.fit_idx[0]] + (pl.hold_idx[:1] if pl.hold_idx else [])
     for i in show:
         td = tds[i]
         fig, axes = plt.subplots(len(chans), 1, figsize=(9, 1.9 * len(chans)), sharex=True, squeeze=False)
@@ -71,7 +75,7 @@ def _plots(report: dict) -> list[tuple[str, str]]:
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=8, loc="upper right")
         axes[-1, 0].set_xlabel("t [s]")
-        role = "fit" if i in pl["fit_idx"] else "held-out"
+        role = "fit" if i in pl.fit_idx else "held-out"
         fig.suptitle(f"residual measured - model: {td.name} ({role})", fontsize=10)
         out.append((f"Residual over time, {td.name}", _png(fig)))
     # where: shares per dimension for each channel
@@ -244,7 +248,7 @@ def _change(x: float | None) -> str:
     return "new" if x is None else f"{100 * x:.1f} %"
 
 
-def report_html(report: dict) -> str:
+def report_html(report: dict, plots: Plots | None = None) -> str:
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>Gap diagnosis</title><style>"
         "body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse;margin:8px 0}"
@@ -351,22 +355,20 @@ def report_html(report: dict) -> str:
                          rows, ["model", "channel", "RMSE physics only", "RMSE hybrid", "before / after", "verdict"])
                      + f"<p>best: {html.escape(str(hyb.get('model')))}; improves (no channel worse beyond its noise): "
                      f"{hyb.get('improves')}</p>")
-    for title, b64 in _plots(report):
+    for title, b64 in _plots(report, plots):
         parts.append(f"<h2>{html.escape(title)}</h2><img src='data:image/png;base64,{b64}'>")
     parts.append("<h2>Timing</h2>" + _table([[k, _g(v)] for k, v in report["timing"].items()], ["step", "value"]))
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def _calibrated_text(report: dict) -> str | None:
+def _calibrated_text(report: dict, cfg: AxisConfig | None, base: AxisConfig | None) -> str | None:
     """The calibrated config as text: the input file with only the changed values edited on their lines
     (:mod:`virtualaxis.diagnosis.calibrated`), checked by loading it again; when the input cannot be read or the
     edit does not load to the same values, the whole config written anew (``AxisConfig.to_toml``)."""
-    cfg = report.get("_calibrated_cfg")
     if cfg is None:
         return None
     srcs = dict(cfg.sources)
-    base = report.get("_base_cfg")
     changes: dict[str, object] = {}
     new_sources: dict[str, str] = {}
     if base is not None:
@@ -439,14 +441,17 @@ def _loads_to(text: str, original_path: Path, cfg) -> bool:
     return all(loaded.get(sec) == vals for sec, vals in want.items() if isinstance(vals, dict))
 
 
-def write_report(report: dict, out_dir: Path) -> dict[str, Path]:
+def write_report(report: dict, out_dir: Path, *, calibrated: AxisConfig | None = None,
+                 nominal: AxisConfig | None = None, plots: Plots | None = None) -> dict[str, Path]:
+    """``report.json``, ``report.html`` (with ``plots``) and ``calibrated.toml`` (``calibrated``, edited from
+    ``nominal``'s file) into ``out_dir``; the report gets its headline and calibrated changes."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"json": out_dir / "report.json", "html": out_dir / "report.html", "toml": out_dir / "calibrated.toml"}
     mark_unfitted(report)
-    toml_text = _calibrated_text(report)
+    toml_text = _calibrated_text(report, calibrated, nominal)
     report["headline"] = headline(report)
     paths["json"].write_text(report_json(report), encoding="utf-8")
-    paths["html"].write_text(report_html(report), encoding="utf-8")
+    paths["html"].write_text(report_html(report, plots), encoding="utf-8")
     if toml_text is not None:
         paths["toml"].write_text(toml_text, encoding="utf-8")
     return paths

@@ -233,8 +233,9 @@ def run_reference_bench(out_dir: Path, seed: int = 0, case_names: list[str] | No
                     progress(ev)
                 continue
         else:
-            rep = run_diagnosis(cfg, fit, hold, jobs=jobs, settings=FitSettings(), hybrid=not quick)
-            write_outputs(rep, cdir / "diagnosis")
+            result = run_diagnosis(cfg, fit, hold, jobs=jobs, settings=FitSettings(), hybrid=not quick)
+            write_outputs(result, cdir / "diagnosis")
+            rep = result.report
         ev = evaluate_reference_case(name, cf.truth, rep, _truth_metrics(cf, rep))
         ev["door"] = rep.get("_door", {"door": "library"})
         results.append(ev)
