@@ -16,6 +16,10 @@ import pythonfmu
 from pythonfmu.enums import Fmi2Causality, Fmi2Initial, Fmi2Status, Fmi2Variability
 
 from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
+from virtualaxis.fmu.binary_guards import guard_wrapper_calls, hold_namespace, release_state_at_exit
+
+# the FMU's binary releases a reference to this namespace each time it executes this script (binary_guards)
+hold_namespace(globals())
 
 #: inputs per interface: (name, unit, description); the first one is the set-point
 INTERFACE_INPUTS = {
@@ -87,6 +91,7 @@ def config_parameters(cfg) -> list[tuple[str, str, object]]:
     return out
 
 
+@guard_wrapper_calls
 class VirtualAxis(pythonfmu.Fmi2Slave):
     """The configured axis (config and interface from the FMU's resources)."""
 
@@ -104,6 +109,8 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
         self.force_actuator = cfg.actuator.kind == "force"
         self.author = "virtualaxis"
         self.modelName = model_identifier(cfg.axis.name, self.interface)
+        # the binary that runs this slave frees its interpreter state twice at process exit (binary_guards)
+        release_state_at_exit(res.parent / "binaries" / "linux64" / f"{self.modelName}.so")
         self.description = (f"virtualaxis axis '{cfg.axis.name}' ({self.config_source}), {self.interface} "
                             f"interface; position-loop cycle {cfg.control.position_cycle_s:g} s")
         self.default_experiment = pythonfmu.DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=self.step_s)
