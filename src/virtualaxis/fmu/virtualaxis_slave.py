@@ -15,8 +15,8 @@ from pathlib import Path
 import pythonfmu
 from pythonfmu.enums import Fmi2Causality, Fmi2Initial, Fmi2Status, Fmi2Variability
 
-from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
 from virtualaxis.fmu.binary_guards import guard_wrapper_calls, hold_namespace, release_state_at_exit
+from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
 
 # the FMU's binary releases a reference to this namespace each time it executes this script (binary_guards)
 hold_namespace(globals())
