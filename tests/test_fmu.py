@@ -123,6 +123,52 @@ def test_position_interface_matches_the_simulator(tmp_path):
     assert np.max(np.abs(ref["following_error"])) > 1e-5  # the axis moved and lagged: the comparison means something
 
 
+def test_a_step_of_current_cycles_matches_the_simulator(tmp_path):
+    """FMPy steps the position-interface FMU by 3 current-loop cycles (93.75 us; a position cycle is 32 of them):
+    at the position-loop instants the outputs are the simulator's; between them the axis state is the one the
+    kernel passes through (its feedback ring, recorded every current cycle) and the drive's channels hold the
+    sample of the cycle under way. The drive samples the set-points in force at each position-loop instant."""
+    cfg = load_axis_config(SEED000)
+    hc, cyc = cfg.control.current_cycle_s, cfg.control.position_cycle_s
+    per, k = round(cyc / hc), 3
+    fmu = export(tmp_path, SEED000, "position", "--step", repr(k * hc))
+    n_steps = 640  # 0.06 s
+    t = np.arange(n_steps + 1) * (k * hc)
+    pos = 1e-3 * np.sin(2 * np.pi * 25 * t) + np.where(t >= 0.03, 2e-4, 0.0)  # changes at every step
+    fext = np.where(t >= 0.02, 300.0, 0.0)
+    res = run_fmu(tmp_path, fmu, {"position_setpoint_m": pos, "external_force_n": fext}, t, k * hc)
+    assert len(res["time"]) == n_steps + 1
+    # the set-point the drive samples at position-loop instant j: the input of the last step that began by then
+    n_cyc = n_steps * k // per + 1
+    given = (np.arange(n_cyc) * per) // k
+    ref = simulate_command(cfg, np.arange(n_cyc) * cyc, pos[given], fext[given], extras=True)
+    ticks = np.arange(n_steps + 1) * k
+    cycle, within = ticks // per, ticks % per
+    at = within == 0
+    assert at.sum() >= 20 and (~at).sum() > 500
+    for col in ("pos_meas", "pos_fb", "motor_pos", "vel_meas", "torque_meas", "current_q"):
+        close(col, res[col][at], ref[col][cycle[at]])
+        close(f"{col} (held)", res[col][~at], ref[col][cycle[~at]])
+    close("table_position_m", res["table_position_m"][at], ref["table_true"][cycle[at]])
+    close("motor_speed_rad_s", res["motor_speed_rad_s"][at], ref["motor_speed"][cycle[at]])
+    close("current_d_a", res["current_d_a"][at], ref["current_d"][cycle[at]])
+    # between the instants: the table position and motor angle of each current cycle, as the kernel records them
+    sim = AxisSimulator(cfg, initial_position_m=float(pos[0]))
+    sim.enable(True)
+    table, angle = np.zeros((n_cyc, per)), np.zeros((n_cyc, per))
+    for j in range(n_cyc):
+        sim.set_position_setpoint(float(pos[given[j]]))
+        sim.set_external_force(float(fext[given[j]]))
+        table[j, 0], angle[j, 0] = sim.state.table_position_m, sim.state.motor_angle_rad
+        sim.advance(1)
+        last = int(sim.st[L.S_RING])
+        rows = (last - per + np.arange(1, per)) % L.RING_SIZE
+        table[j, 1:], angle[j, 1:] = sim.ring[rows, 1], sim.ring[rows, 0]
+    close("table_position_m (all)", res["table_position_m"], table[cycle, within])
+    close("motor_angle_rad (all)", res["motor_angle_rad"], angle[cycle, within])
+    assert np.ptp(table[:, 1:] - table[:, :1]) > 1e-7  # the table moves within a position cycle
+
+
 def reference_rows(config: Path, mode: ControlMode, aux: np.ndarray, fext: np.ndarray, x0_m: float) -> np.ndarray:
     """The simulator's batch run in velocity / torque mode on per-cycle set-points: output rows (layout.O_*)."""
     sim = AxisSimulator(load_axis_config(config), initial_position_m=x0_m)
@@ -195,7 +241,7 @@ def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_pat
 
 @pytest.mark.parametrize("args, says", [
     (["--interface", "current"], "invalid choice: 'current'"),
-    (["--step", "0.0015"], "--step: 0.0015 s is not a whole number of position-loop cycles"),
+    (["--step", "0.00101"], "--step: 0.00101 s is not a whole number of current-loop cycles"),
     (["--step", "nan"], "--step: must be a finite number > 0 s"),
 ])
 def test_bad_export_options_get_one_error_line(tmp_path, args, says):
@@ -230,7 +276,7 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
     parameter change is simulated."""
     fmu = export(tmp_path, SEED000, "position")
     cases = [
-        {"step_s": 0.0015},
+        {"step_s": 0.00101},
         {"step_s": 0.001, "inputs": {"position_setpoint_m": float("nan")}},
         {"step_s": 0.001, "parameters": {"mechanics.lead_m": -0.016}},
         # a parameter the config accepts: the FMU runs the changed axis
@@ -239,7 +285,7 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
     ]
     res = host(tmp_path, "refusals", fmu=str(fmu), cases=cases)
     assert str(res["failed0"]) == "doStep", res["log0"]
-    assert "0.0015 s is not a whole number of position-loop cycles" in str(res["log0"])
+    assert "0.00101 s is not a whole number of current-loop cycles" in str(res["log0"])
     assert str(res["failed1"]) == "setReal", res["log1"]
     assert "input position_setpoint_m must be finite (got nan)" in str(res["log1"]), res["log1"]
     assert str(res["failed2"]) == "exitInitializationMode" and "mechanics.lead_m" in str(res["log2"]), res["log2"]
