@@ -47,12 +47,27 @@ def host(tmp_path: Path, job: str, **kwargs) -> dict:
         return {k: data[k] for k in data.files}
 
 
-def export(tmp_path: Path, config: Path, interface: str, *extra: str) -> Path:
-    out = tmp_path / f"{config.stem}-{interface}.fmu"
+def export(folder: Path, config: Path, interface: str, *extra: str) -> Path:
+    """The CLI builds the FMU; FMPy's validation finds no problem in it."""
+    out = folder / f"{config.stem}-{interface}{''.join(extra).replace('-', '_')}.fmu"
     r = cli("fmu", "--config", str(config), "--out", str(out), "--interface", interface, *extra)
     assert r.returncode == 0, r.stderr
     assert validate_fmu(str(out)) == []
     return out
+
+
+@pytest.fixture(scope="session")
+def built(tmp_path_factory):
+    """``built(config, interface, *options)``: the FMU, built by the CLI once per test session."""
+    folder = tmp_path_factory.mktemp("fmus")
+    cache: dict[tuple, Path] = {}
+
+    def get(config: Path, interface: str, *extra: str) -> Path:
+        key = (str(config), interface, extra)
+        if key not in cache:
+            cache[key] = export(folder, config, interface, *extra)
+        return cache[key]
+    return get
 
 
 def held(values: np.ndarray, step_cycles: int, n_cycles: int) -> np.ndarray:
@@ -72,8 +87,8 @@ def run_fmu(tmp_path: Path, fmu: Path, signals: dict[str, np.ndarray], t: np.nda
                 inputs={k: np.asarray(v, float).tolist() for k, v in signals.items()}, **kwargs)
 
 
-def test_position_interface_matches_the_simulator(tmp_path):
-    fmu = export(tmp_path, SEED000, "position", "--step", "0.002")
+def test_position_interface_matches_the_simulator(tmp_path, built):
+    fmu = built(SEED000, "position", "--step", "0.002")
     md = fmpy.read_model_description(str(fmu), validate=True)
     assert md.fmiVersion == "2.0" and md.coSimulation is not None
     assert md.defaultExperiment.stepSize == "0.002"
@@ -123,7 +138,7 @@ def test_position_interface_matches_the_simulator(tmp_path):
     assert np.max(np.abs(ref["following_error"])) > 1e-5  # the axis moved and lagged: the comparison means something
 
 
-def test_a_step_of_current_cycles_matches_the_simulator(tmp_path):
+def test_a_step_of_current_cycles_matches_the_simulator(tmp_path, built):
     """FMPy steps the position-interface FMU by 3 current-loop cycles (93.75 us; a position cycle is 32 of them):
     at the position-loop instants the outputs are the simulator's; between them the axis state is the one the
     kernel passes through (its feedback ring, recorded every current cycle) and the drive's channels hold the
@@ -131,7 +146,7 @@ def test_a_step_of_current_cycles_matches_the_simulator(tmp_path):
     cfg = load_axis_config(SEED000)
     hc, cyc = cfg.control.current_cycle_s, cfg.control.position_cycle_s
     per, k = round(cyc / hc), 3
-    fmu = export(tmp_path, SEED000, "position", "--step", repr(k * hc))
+    fmu = built(SEED000, "position", "--step", repr(k * hc))
     n_steps = 640  # 0.06 s
     t = np.arange(n_steps + 1) * (k * hc)
     pos = 1e-3 * np.sin(2 * np.pi * 25 * t) + np.where(t >= 0.03, 2e-4, 0.0)  # changes at every step
@@ -188,9 +203,9 @@ SAMPLED = {"pos_meas": L.O_POS_MEAS, "pos_fb": L.O_POS_FB, "motor_pos": L.O_MOTO
     ("speed", "velocity_setpoint_m_s", ControlMode.VELOCITY),
     ("torque", "torque_setpoint_nm", ControlMode.TORQUE),
 ])
-def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, interface, setpoint, mode):
+def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, built, interface, setpoint, mode):
     """On an axis with scale and current noise: the FMU draws the simulator's noise stream."""
-    fmu = export(tmp_path, NOISY, interface)
+    fmu = built(NOISY, interface)
     md = fmpy.read_model_description(str(fmu), validate=True)
     names = {v.name for v in md.modelVariables}
     assert {n for n in names if n.endswith(("_setpoint_m", "_feedforward_m_s"))} == set()  # no position loop input
@@ -216,11 +231,11 @@ def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, interface, se
     assert np.ptp(ref[:, L.O_TABLE_TRUE]) > 1e-4  # the axis moved
 
 
-def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_path):
+def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_path, built):
     """Co-simulation: FMPy steps the speed-interface FMU one position cycle at a time; the position controller is
     here (P on the position feedback the FMU outputs, with speed feed-forward); the table follows as under the
     drive's own position loop (simulate_command on the same command)."""
-    fmu = export(tmp_path, SEED000, "speed")
+    fmu = built(SEED000, "speed")
     cfg = load_axis_config(SEED000)
     kv_1_per_s, kff = cfg.control.kv_1_per_s, cfg.control.velocity_ff_factor
     assert cfg.control.torque_ff_factor == 0.0  # the speed interface has no torque feed-forward input
@@ -270,11 +285,11 @@ def test_without_pythonfmu_the_command_says_what_to_install(tmp_path):
     assert r.returncode == 2 and "pip install 'virtualaxis[fmu]'" in r.stderr, r.stderr
 
 
-def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
+def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path, built):
     """At run time: a communication step that is not whole position cycles, a non-finite input and a parameter
     the config refuses are errors reported to the importing tool, not a wrong or silent result; a valid
     parameter change is simulated."""
-    fmu = export(tmp_path, SEED000, "position")
+    fmu = built(SEED000, "position")
     cases = [
         {"step_s": 0.00101},
         {"step_s": 0.001, "inputs": {"position_setpoint_m": float("nan")}},
@@ -303,23 +318,23 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
 
 
 @pytest.mark.slow
-def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path):
+def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path, built):
     """configs/*.toml and configs/examples/*.toml, the interfaces in turn: the CLI builds each FMU, FMPy validates
     its model description and runs it for 10 communication steps."""
     from virtualaxis.fmu.export import INTERFACES
 
     configs = sorted((ROOT / "configs").glob("*.toml")) + sorted((ROOT / "configs" / "examples").glob("*.toml"))
     assert len(configs) >= 5
-    fmus = [str(export(tmp_path, cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
+    fmus = [str(built(cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
     res = host(tmp_path, "smoke", fmus=fmus, stop_s=0.01)
     for k, cfg in enumerate(configs):
         assert str(res[f"problems{k}"]) == "" and bool(res[f"finite{k}"]) and int(res[f"rows{k}"]) == 11, cfg
 
 
-def test_an_fmpy_script_exits_cleanly(tmp_path):
+def test_an_fmpy_script_exits_cleanly(tmp_path, built):
     """FMPy as in a user's script (simulate_fmu instantiates, frees and unloads the FMU; output to files): the
     process exits with status 0, run after run (no heap corruption at exit)."""
-    fmu = export(tmp_path, SEED000, "position")
+    fmu = built(SEED000, "position")
     script = ("import sys, fmpy; r = fmpy.simulate_fmu(sys.argv[1], stop_time=0.02, step_size=0.001); "
               "print(len(r), r['pos_fb'][-1])")
     for run in range(3):
