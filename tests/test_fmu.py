@@ -365,3 +365,28 @@ def test_preview_is_the_row_the_next_cycle_records_and_changes_nothing():
         assert (sim.state, sim.time_s) == before
         np.testing.assert_array_equal(first, want[j])
         sim.advance(1)
+
+
+def test_state_within_cycle_is_the_state_the_cycle_passes_through():
+    """AxisSimulator.state_within_cycle(m): the state m current-loop cycles into the next position cycle, as the
+    kernel records it while it runs that cycle (its feedback ring: table position and motor angle per current
+    cycle), without advancing the axis."""
+    cfg = load_axis_config(NOISY)
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    per, hc = sim.current_cycles_per_cycle, cfg.control.current_cycle_s
+    assert per == round(cfg.control.position_cycle_s / hc) > 1
+    for j in range(6):
+        sim.set_position_setpoint(2e-4 * j)
+        sim.set_external_force(100.0 * (j % 2))
+        before = (sim.state, sim.time_s)
+        probes = [sim.state_within_cycle(m) for m in range(per)]
+        assert (sim.state, sim.time_s) == before and probes[0] == before[0]
+        sim.advance(1)
+        rows = (int(sim.st[L.S_RING]) - per + np.arange(1, per)) % L.RING_SIZE
+        np.testing.assert_array_equal([p.table_position_m for p in probes[1:]], sim.ring[rows, 1])
+        np.testing.assert_array_equal([p.motor_angle_rad for p in probes[1:]], sim.ring[rows, 0])
+        np.testing.assert_allclose([p.time_s for p in probes], before[1] + np.arange(per) * hc, rtol=0, atol=1e-12)
+    assert np.ptp([p.table_position_m for p in probes]) > 0  # the table moved within the cycle
+    with pytest.raises(ValueError, match="current_cycles must be in"):
+        sim.state_within_cycle(per)

@@ -213,6 +213,8 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
     def _state_getter(self, field: str):
         def getter():
             if self.state_now is None:
+                if self.within:  # the cycle under way runs on the inputs sampled at its start
+                    self._apply_inputs(self.cycle_inputs)
                 self.state_now = self._simulator().state_within_cycle(self.within)
             return getattr(self.state_now, field)
         return getter
