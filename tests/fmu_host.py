@@ -1,9 +1,7 @@
 """FMPy as the FMI host of tests/test_fmu.py, in a child process: ``python tests/fmu_host.py JOB.json``.
 
-A process that has unloaded a pythonfmu 0.7 FMU's binary after reading its outputs may abort at exit
-("corrupted double-linked list", mostly when it started a subprocess afterwards: docs/fmu.md). So the FMU runs
-here, this process starts no subprocess, and it keeps the FMU binaries loaded (FMPy's freeInstance frees the
-instance; the library stays until the process ends). The job (JSON) names what to run; results go to
+The FMU runs in a process of its own, as in a user's script (FMPy loads and unloads the FMU's binary as it does
+by default), so that the test sees the host's exit status. The job (JSON) names what to run; results go to
 ``job["out"]`` (.npz).
 """
 
@@ -23,8 +21,6 @@ from fmpy.fmi2 import (
     fmi2CallbackFunctions,
     fmi2CallbackLoggerTYPE,
 )
-
-FMU2Slave.freeLibrary = lambda self: None  # keep the binaries loaded (see above)
 
 #: the callbacks of the instances made here (module level: ctypes callbacks must outlive the instances)
 CALLBACKS: list = []

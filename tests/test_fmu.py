@@ -23,11 +23,6 @@ from virtualaxis.sim.simulator import AxisSimulator, ControlMode
 
 ROOT = Path(__file__).resolve().parents[1]
 HOST = Path(__file__).with_name("fmu_host.py")
-#: FMPy running a pythonfmu 0.7.0 FMU sometimes corrupts the host process' heap ("corrupted double-linked list"
-#: at exit, or a segmentation fault) although the library stays loaded: an open defect of the binary (docs/fmu.md);
-#: the FMPy-hosted checks count when their host survives
-FMPY_HEAP = pytest.mark.xfail(strict=False, reason="FMPy host process killed by heap corruption in pythonfmu 0.7.0's "
-                              "binary (SIGABRT / SIGSEGV); open defect, docs/fmu.md")
 SEED000 = ROOT / "configs" / "seed000-hust.toml"
 #: a config with scale and current noise (the noise stream must be the simulator's)
 NOISY = ROOT / "configs" / "examples" / "gap-bench-ballscrew.toml"
@@ -52,12 +47,27 @@ def host(tmp_path: Path, job: str, **kwargs) -> dict:
         return {k: data[k] for k in data.files}
 
 
-def export(tmp_path: Path, config: Path, interface: str, *extra: str) -> Path:
-    out = tmp_path / f"{config.stem}-{interface}.fmu"
+def export(folder: Path, config: Path, interface: str, *extra: str) -> Path:
+    """The CLI builds the FMU; FMPy's validation finds no problem in it."""
+    out = folder / f"{config.stem}-{interface}{''.join(extra).replace('-', '_')}.fmu"
     r = cli("fmu", "--config", str(config), "--out", str(out), "--interface", interface, *extra)
     assert r.returncode == 0, r.stderr
     assert validate_fmu(str(out)) == []
     return out
+
+
+@pytest.fixture(scope="session")
+def built(tmp_path_factory):
+    """``built(config, interface, *options)``: the FMU, built by the CLI once per test session."""
+    folder = tmp_path_factory.mktemp("fmus")
+    cache: dict[tuple, Path] = {}
+
+    def get(config: Path, interface: str, *extra: str) -> Path:
+        key = (str(config), interface, extra)
+        if key not in cache:
+            cache[key] = export(folder, config, interface, *extra)
+        return cache[key]
+    return get
 
 
 def held(values: np.ndarray, step_cycles: int, n_cycles: int) -> np.ndarray:
@@ -77,9 +87,8 @@ def run_fmu(tmp_path: Path, fmu: Path, signals: dict[str, np.ndarray], t: np.nda
                 inputs={k: np.asarray(v, float).tolist() for k, v in signals.items()}, **kwargs)
 
 
-@FMPY_HEAP
-def test_position_interface_matches_the_simulator(tmp_path):
-    fmu = export(tmp_path, SEED000, "position", "--step", "0.002")
+def test_position_interface_matches_the_simulator(tmp_path, built):
+    fmu = built(SEED000, "position", "--step", "0.002")
     md = fmpy.read_model_description(str(fmu), validate=True)
     assert md.fmiVersion == "2.0" and md.coSimulation is not None
     assert md.defaultExperiment.stepSize == "0.002"
@@ -129,6 +138,52 @@ def test_position_interface_matches_the_simulator(tmp_path):
     assert np.max(np.abs(ref["following_error"])) > 1e-5  # the axis moved and lagged: the comparison means something
 
 
+def test_a_step_of_current_cycles_matches_the_simulator(tmp_path, built):
+    """FMPy steps the position-interface FMU by 3 current-loop cycles (93.75 us; a position cycle is 32 of them):
+    at the position-loop instants the outputs are the simulator's; between them the axis state is the one the
+    kernel passes through (its feedback ring, recorded every current cycle) and the drive's channels hold the
+    sample of the cycle under way. The drive samples the set-points in force at each position-loop instant."""
+    cfg = load_axis_config(SEED000)
+    hc, cyc = cfg.control.current_cycle_s, cfg.control.position_cycle_s
+    per, k = round(cyc / hc), 3
+    fmu = built(SEED000, "position", "--step", repr(k * hc))
+    n_steps = 640  # 0.06 s
+    t = np.arange(n_steps + 1) * (k * hc)
+    pos = 1e-3 * np.sin(2 * np.pi * 25 * t) + np.where(t >= 0.03, 2e-4, 0.0)  # changes at every step
+    fext = np.where(t >= 0.02, 300.0, 0.0)
+    res = run_fmu(tmp_path, fmu, {"position_setpoint_m": pos, "external_force_n": fext}, t, k * hc)
+    assert len(res["time"]) == n_steps + 1
+    # the set-point the drive samples at position-loop instant j: the input of the last step that began by then
+    n_cyc = n_steps * k // per + 1
+    given = (np.arange(n_cyc) * per) // k
+    ref = simulate_command(cfg, np.arange(n_cyc) * cyc, pos[given], fext[given], extras=True)
+    ticks = np.arange(n_steps + 1) * k
+    cycle, within = ticks // per, ticks % per
+    at = within == 0
+    assert at.sum() >= 20 and (~at).sum() > 500
+    for col in ("pos_meas", "pos_fb", "motor_pos", "vel_meas", "torque_meas", "current_q"):
+        close(col, res[col][at], ref[col][cycle[at]])
+        close(f"{col} (held)", res[col][~at], ref[col][cycle[~at]])
+    close("table_position_m", res["table_position_m"][at], ref["table_true"][cycle[at]])
+    close("motor_speed_rad_s", res["motor_speed_rad_s"][at], ref["motor_speed"][cycle[at]])
+    close("current_d_a", res["current_d_a"][at], ref["current_d"][cycle[at]])
+    # between the instants: the table position and motor angle of each current cycle, as the kernel records them
+    sim = AxisSimulator(cfg, initial_position_m=float(pos[0]))
+    sim.enable(True)
+    table, angle = np.zeros((n_cyc, per)), np.zeros((n_cyc, per))
+    for j in range(n_cyc):
+        sim.set_position_setpoint(float(pos[given[j]]))
+        sim.set_external_force(float(fext[given[j]]))
+        table[j, 0], angle[j, 0] = sim.state.table_position_m, sim.state.motor_angle_rad
+        sim.advance(1)
+        last = int(sim.st[L.S_RING])
+        rows = (last - per + np.arange(1, per)) % L.RING_SIZE
+        table[j, 1:], angle[j, 1:] = sim.ring[rows, 1], sim.ring[rows, 0]
+    close("table_position_m (all)", res["table_position_m"], table[cycle, within])
+    close("motor_angle_rad (all)", res["motor_angle_rad"], angle[cycle, within])
+    assert np.ptp(table[:, 1:] - table[:, :1]) > 1e-7  # the table moves within a position cycle
+
+
 def reference_rows(config: Path, mode: ControlMode, aux: np.ndarray, fext: np.ndarray, x0_m: float) -> np.ndarray:
     """The simulator's batch run in velocity / torque mode on per-cycle set-points: output rows (layout.O_*)."""
     sim = AxisSimulator(load_axis_config(config), initial_position_m=x0_m)
@@ -144,14 +199,13 @@ SAMPLED = {"pos_meas": L.O_POS_MEAS, "pos_fb": L.O_POS_FB, "motor_pos": L.O_MOTO
            "motor_torque_nm": L.O_AIRGAP}
 
 
-@FMPY_HEAP
 @pytest.mark.parametrize("interface, setpoint, mode", [
     ("speed", "velocity_setpoint_m_s", ControlMode.VELOCITY),
     ("torque", "torque_setpoint_nm", ControlMode.TORQUE),
 ])
-def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, interface, setpoint, mode):
+def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, built, interface, setpoint, mode):
     """On an axis with scale and current noise: the FMU draws the simulator's noise stream."""
-    fmu = export(tmp_path, NOISY, interface)
+    fmu = built(NOISY, interface)
     md = fmpy.read_model_description(str(fmu), validate=True)
     names = {v.name for v in md.modelVariables}
     assert {n for n in names if n.endswith(("_setpoint_m", "_feedforward_m_s"))} == set()  # no position loop input
@@ -177,12 +231,11 @@ def test_speed_and_torque_interfaces_match_the_simulator(tmp_path, interface, se
     assert np.ptp(ref[:, L.O_TABLE_TRUE]) > 1e-4  # the axis moved
 
 
-@FMPY_HEAP
-def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_path):
+def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_path, built):
     """Co-simulation: FMPy steps the speed-interface FMU one position cycle at a time; the position controller is
     here (P on the position feedback the FMU outputs, with speed feed-forward); the table follows as under the
     drive's own position loop (simulate_command on the same command)."""
-    fmu = export(tmp_path, SEED000, "speed")
+    fmu = built(SEED000, "speed")
     cfg = load_axis_config(SEED000)
     kv_1_per_s, kff = cfg.control.kv_1_per_s, cfg.control.velocity_ff_factor
     assert cfg.control.torque_ff_factor == 0.0  # the speed interface has no torque feed-forward input
@@ -203,7 +256,7 @@ def test_position_loop_in_the_importing_tool_matches_the_drives_own_loop(tmp_pat
 
 @pytest.mark.parametrize("args, says", [
     (["--interface", "current"], "invalid choice: 'current'"),
-    (["--step", "0.0015"], "--step: 0.0015 s is not a whole number of position-loop cycles"),
+    (["--step", "0.00101"], "--step: 0.00101 s is not a whole number of current-loop cycles"),
     (["--step", "nan"], "--step: must be a finite number > 0 s"),
 ])
 def test_bad_export_options_get_one_error_line(tmp_path, args, says):
@@ -232,14 +285,13 @@ def test_without_pythonfmu_the_command_says_what_to_install(tmp_path):
     assert r.returncode == 2 and "pip install 'virtualaxis[fmu]'" in r.stderr, r.stderr
 
 
-@FMPY_HEAP
-def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
+def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path, built):
     """At run time: a communication step that is not whole position cycles, a non-finite input and a parameter
     the config refuses are errors reported to the importing tool, not a wrong or silent result; a valid
     parameter change is simulated."""
-    fmu = export(tmp_path, SEED000, "position")
+    fmu = built(SEED000, "position")
     cases = [
-        {"step_s": 0.0015},
+        {"step_s": 0.00101},
         {"step_s": 0.001, "inputs": {"position_setpoint_m": float("nan")}},
         {"step_s": 0.001, "parameters": {"mechanics.lead_m": -0.016}},
         # a parameter the config accepts: the FMU runs the changed axis
@@ -248,7 +300,7 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
     ]
     res = host(tmp_path, "refusals", fmu=str(fmu), cases=cases)
     assert str(res["failed0"]) == "doStep", res["log0"]
-    assert "0.0015 s is not a whole number of position-loop cycles" in str(res["log0"])
+    assert "0.00101 s is not a whole number of current-loop cycles" in str(res["log0"])
     assert str(res["failed1"]) == "setReal", res["log1"]
     assert "input position_setpoint_m must be finite (got nan)" in str(res["log1"]), res["log1"]
     assert str(res["failed2"]) == "exitInitializationMode" and "mechanics.lead_m" in str(res["log2"]), res["log2"]
@@ -266,18 +318,32 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path):
 
 
 @pytest.mark.slow
-@FMPY_HEAP
-def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path):
+def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path, built):
     """configs/*.toml and configs/examples/*.toml, the interfaces in turn: the CLI builds each FMU, FMPy validates
     its model description and runs it for 10 communication steps."""
     from virtualaxis.fmu.export import INTERFACES
 
     configs = sorted((ROOT / "configs").glob("*.toml")) + sorted((ROOT / "configs" / "examples").glob("*.toml"))
     assert len(configs) >= 5
-    fmus = [str(export(tmp_path, cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
+    fmus = [str(built(cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
     res = host(tmp_path, "smoke", fmus=fmus, stop_s=0.01)
     for k, cfg in enumerate(configs):
         assert str(res[f"problems{k}"]) == "" and bool(res[f"finite{k}"]) and int(res[f"rows{k}"]) == 11, cfg
+
+
+def test_an_fmpy_script_exits_cleanly(tmp_path, built):
+    """FMPy as in a user's script (simulate_fmu instantiates, frees and unloads the FMU; output to files): the
+    process exits with status 0, run after run (no heap corruption at exit)."""
+    fmu = built(SEED000, "position")
+    script = ("import sys, fmpy; r = fmpy.simulate_fmu(sys.argv[1], stop_time=0.02, step_size=0.001); "
+              "print(len(r), r['pos_fb'][-1])")
+    for run in range(3):
+        out, err = tmp_path / f"out{run}.txt", tmp_path / f"err{run}.txt"
+        with out.open("w") as fout, err.open("w") as ferr:
+            rc = subprocess.run([sys.executable, "-c", script, str(fmu)], stdout=fout, stderr=ferr,
+                                timeout=300).returncode
+        assert rc == 0, f"run {run}: exit status {rc}: {err.read_text()[-2000:]}"
+        assert out.read_text().startswith("21 ")
 
 
 def test_preview_is_the_row_the_next_cycle_records_and_changes_nothing():
@@ -299,3 +365,28 @@ def test_preview_is_the_row_the_next_cycle_records_and_changes_nothing():
         assert (sim.state, sim.time_s) == before
         np.testing.assert_array_equal(first, want[j])
         sim.advance(1)
+
+
+def test_state_within_cycle_is_the_state_the_cycle_passes_through():
+    """AxisSimulator.state_within_cycle(m): the state m current-loop cycles into the next position cycle, as the
+    kernel records it while it runs that cycle (its feedback ring: table position and motor angle per current
+    cycle), without advancing the axis."""
+    cfg = load_axis_config(NOISY)
+    sim = AxisSimulator(cfg)
+    sim.enable(True)
+    per, hc = sim.current_cycles_per_cycle, cfg.control.current_cycle_s
+    assert per == round(cfg.control.position_cycle_s / hc) > 1
+    for j in range(6):
+        sim.set_position_setpoint(2e-4 * j)
+        sim.set_external_force(100.0 * (j % 2))
+        before = (sim.state, sim.time_s)
+        probes = [sim.state_within_cycle(m) for m in range(per)]
+        assert (sim.state, sim.time_s) == before and probes[0] == before[0]
+        sim.advance(1)
+        rows = (int(sim.st[L.S_RING]) - per + np.arange(1, per)) % L.RING_SIZE
+        np.testing.assert_array_equal([p.table_position_m for p in probes[1:]], sim.ring[rows, 1])
+        np.testing.assert_array_equal([p.motor_angle_rad for p in probes[1:]], sim.ring[rows, 0])
+        np.testing.assert_allclose([p.time_s for p in probes], before[1] + np.arange(per) * hc, rtol=0, atol=1e-12)
+    assert np.ptp([p.table_position_m for p in probes]) > 0  # the table moved within the cycle
+    with pytest.raises(ValueError, match="current_cycles must be in"):
+        sim.state_within_cycle(per)

@@ -20,8 +20,8 @@ def register(sub) -> None:
                         "speed set-point (it runs the position loop) or position set-point (default; the "
                         "drive's cascade inside)")
     p.add_argument("--step", type=float, default=None,
-                   help="default communication step [s] written into the FMU: a whole number of position-loop "
-                        "cycles (default: one cycle)")
+                   help="default communication step [s] written into the FMU: a whole number of current-loop "
+                        "cycles (default: one position-loop cycle)")
     add_force_argument(p)
     p.set_defaults(func=run)
 
@@ -46,6 +46,6 @@ def run(args) -> int:
     with atomic_path(out) as tmp:
         build_fmu(args.config, tmp, args.interface, step)
     print(f"{out}: FMI 2.0 co-simulation FMU of '{cfg.axis.name}', {args.interface} interface, communication step "
-          f"{step:g} s (a multiple of the {cfg.control.position_cycle_s:g} s position cycle); needs a Python with "
+          f"{step:g} s (a multiple of the {cfg.control.current_cycle_s:g} s current cycle); needs a Python with "
           "virtualaxis installed (docs/fmu.md)")
     return 0

@@ -26,18 +26,18 @@ class FmuExportError(InputError):
 
 
 def check_step(cfg: AxisConfig, step_s: float | None) -> float:
-    """The communication step [s]: the position-loop cycle by default, else a whole number of them."""
-    cyc = cfg.control.position_cycle_s
+    """The communication step [s]: the position-loop cycle by default, else a whole number of current-loop
+    cycles (the kernel's unit of time)."""
     if step_s is None:
-        return cyc
+        return cfg.control.position_cycle_s
     if not (math.isfinite(step_s) and step_s > 0):
         raise FmuExportError("--step", f"must be a finite number > 0 s (got {step_s:g})")
-    n = round(step_s / cyc)
-    if n < 1 or abs(step_s / cyc - n) > STEP_TOLERANCE_CYCLES:
-        raise FmuExportError("--step", f"{step_s:g} s is not a whole number of position-loop cycles "
-                                       f"({cyc:g} s, control.position_cycle_s of {cfg.path}): the drive samples its "
-                                       "set-points and sensors once per position cycle")
-    return n * cyc
+    hc = cfg.control.current_cycle_s
+    n = round(step_s / hc)
+    if n < 1 or abs(step_s / hc - n) > STEP_TOLERANCE_CYCLES:
+        raise FmuExportError("--step", f"{step_s:g} s is not a whole number of current-loop cycles "
+                                       f"({hc:g} s, control.current_cycle_s of {cfg.path})")
+    return float(step_s)
 
 
 def build_fmu(config: str | Path, out: str | Path, interface: str = "position", step_s: float | None = None) -> Path:

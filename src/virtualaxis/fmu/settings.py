@@ -8,7 +8,7 @@ import re
 SETTINGS_FILE = "fmu.json"
 #: the axis config embedded in the FMU's resources
 CONFIG_FILE = "axis.toml"
-#: a communication step is a whole number of position-loop cycles to within this fraction of a cycle
+#: a communication step is a whole number of current-loop cycles to within this fraction of a cycle
 STEP_TOLERANCE_CYCLES = 1e-6
 
 

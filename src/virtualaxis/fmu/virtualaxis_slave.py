@@ -2,8 +2,9 @@
 
 This file is copied into the FMU's ``resources/`` with the axis config (``axis.toml``) and the export settings
 (``fmu.json``); the FMU's binary imports it by name in the importing tool's Python, where ``virtualaxis`` must be
-importable. One FMU step runs whole position-loop cycles of :class:`~virtualaxis.sim.simulator.AxisSimulator`
-(the compiled kernel) with the inputs held over the step.
+importable. One FMU step runs a whole number of current-loop cycles of
+:class:`~virtualaxis.sim.simulator.AxisSimulator` (the compiled kernel) with the inputs held over the step; the
+drive samples them at its position-loop instants.
 """
 
 from __future__ import annotations
@@ -15,7 +16,11 @@ from pathlib import Path
 import pythonfmu
 from pythonfmu.enums import Fmi2Causality, Fmi2Initial, Fmi2Status, Fmi2Variability
 
+from virtualaxis.fmu.binary_guards import guard_wrapper_calls, hold_namespace, release_state_at_exit
 from virtualaxis.fmu.settings import CONFIG_FILE, SETTINGS_FILE, STEP_TOLERANCE_CYCLES, model_identifier
+
+# the FMU's binary releases a reference to this namespace each time it executes this script (binary_guards)
+hold_namespace(globals())
 
 #: inputs per interface: (name, unit, description); the first one is the set-point
 INTERFACE_INPUTS = {
@@ -87,6 +92,7 @@ def config_parameters(cfg) -> list[tuple[str, str, object]]:
     return out
 
 
+@guard_wrapper_calls
 class VirtualAxis(pythonfmu.Fmi2Slave):
     """The configured axis (config and interface from the FMU's resources)."""
 
@@ -104,15 +110,20 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
         self.force_actuator = cfg.actuator.kind == "force"
         self.author = "virtualaxis"
         self.modelName = model_identifier(cfg.axis.name, self.interface)
+        # the binary that runs this slave frees its interpreter state twice at process exit (binary_guards)
+        release_state_at_exit(res.parent / "binaries" / "linux64" / f"{self.modelName}.so")
         self.description = (f"virtualaxis axis '{cfg.axis.name}' ({self.config_source}), {self.interface} "
-                            f"interface; position-loop cycle {cfg.control.position_cycle_s:g} s")
+                            f"interface; position-loop cycle {cfg.control.position_cycle_s:g} s, current-loop cycle "
+                            f"{cfg.control.current_cycle_s:g} s")
         self.default_experiment = pythonfmu.DefaultExperiment(start_time=0.0, stop_time=1.0, step_size=self.step_s)
         self.units: dict[str, str] = {}
         self.sim = None
         self.row = None  # the drive's sample at the present instant (None: to be computed)
         self.state_now = None  # the axis state at the present instant (None: to be read)
         self.t0_s = 0.0
-        self.cycles = 0
+        self.ticks = 0  # current-loop cycles run since the start
+        self.within = 0  # current-loop cycles into the position-loop cycle under way (0: at its start)
+        self.cycle_inputs: dict[str, float] = {}  # the inputs the drive sampled at the start of that cycle
         self.error = ""
         self.overrides: dict[str, dict] = {}
         self.values: dict[str, object] = {}
@@ -185,7 +196,8 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
             if not math.isfinite(value):  # refused where it is given (the axis state stays valid)
                 raise ValueError(f"input {name} must be finite (got {value!r})")
             self.values[name] = value
-            self.row = None
+            if self.within == 0:  # at a position-loop instant the drive samples the inputs now set
+                self.row = None
         return setter
 
     def _parameter_setter(self, key: str):
@@ -201,14 +213,16 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
     def _state_getter(self, field: str):
         def getter():
             if self.state_now is None:
-                self.state_now = self._simulator().state
+                if self.within:  # the cycle under way runs on the inputs sampled at its start
+                    self._apply_inputs(self.cycle_inputs)
+                self.state_now = self._simulator().state_within_cycle(self.within)
             return getattr(self.state_now, field)
         return getter
 
     def _row_getter(self, index: int):
         def getter():
-            if self.row is None:
-                self._apply_inputs()
+            if self.row is None:  # (within a position-loop cycle: its sample, taken at its start)
+                self._apply_inputs(self.cycle_inputs if self.within else self.values)
                 self.row = self._simulator().preview()
             return float(self.row[index])
         return getter
@@ -253,13 +267,14 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
                           "torque": ControlMode.TORQUE}[self.interface])
             sim.enable(True)
             self.sim = sim
-            self.cycles = 0
+            self.ticks = 0
+            self.within = 0
             self.row = None
             self.state_now = None
         return self.sim
 
-    def _apply_inputs(self) -> None:
-        sim, v = self._simulator(), self.values
+    def _apply_inputs(self, v: dict) -> None:
+        sim = self._simulator()
         if self.interface == "position":
             sim.set_position_setpoint(v["position_setpoint_m"], v["velocity_feedforward_m_s"],
                                       v["acceleration_feedforward_m_s2"])
@@ -287,18 +302,33 @@ class VirtualAxis(pythonfmu.Fmi2Slave):
     def do_step(self, current_time: float, step_size: float) -> bool:
         try:
             sim = self._simulator()
-            cyc = sim.cycle_s
-            n = round(step_size / cyc)
-            if not (math.isfinite(step_size) and n >= 1 and abs(step_size / cyc - n) <= STEP_TOLERANCE_CYCLES):
-                return self._fail(f"communication step {step_size!r} s is not a whole number of position-loop "
-                                  f"cycles ({cyc:g} s): the drive samples its set-points and sensors once per cycle")
-            here = self.t0_s + self.cycles * cyc
-            if abs(current_time - here) > STEP_TOLERANCE_CYCLES * cyc:
+            hc = self.base_cfg.control.current_cycle_s
+            per = sim.current_cycles_per_cycle
+            k = round(step_size / hc) if math.isfinite(step_size) else 0
+            if not (k >= 1 and abs(step_size / hc - k) <= STEP_TOLERANCE_CYCLES):
+                return self._fail(f"communication step {step_size!r} s is not a whole number of current-loop "
+                                  f"cycles ({hc:g} s, control.current_cycle_s): the kernel's unit of time")
+            here = self.t0_s + self.ticks * hc
+            if abs(current_time - here) > STEP_TOLERANCE_CYCLES * hc:
                 return self._fail(f"doStep at t = {current_time!r} s, but the axis is at t = {here!r} s (the FMU "
                                   "steps forward only; it cannot go back or skip time)")
-            self._apply_inputs()
-            sim.advance(n)
-            self.cycles += n
+            left = k
+            if self.within:  # finish the position-loop cycle under way (its inputs sampled at its start)
+                if self.within + left < per:
+                    self.within += left
+                    left = 0
+                else:
+                    self._apply_inputs(self.cycle_inputs)
+                    sim.advance(1)
+                    left -= per - self.within
+                    self.within = 0
+            if left:  # the cycles that start in this step sample the inputs set for it
+                self._apply_inputs(self.values)
+                whole, self.within = divmod(left, per)
+                sim.advance(whole)
+                if self.within:
+                    self.cycle_inputs = dict(self.values)
+            self.ticks += k
             self.row = None
             self.state_now = None
             return True

@@ -509,8 +509,43 @@ class AxisSimulator:
         return r
 
     @property
+    def current_cycles_per_cycle(self) -> int:
+        """Current-loop cycles per position-loop cycle."""
+        return int(self.pr[L.P_NPOS])
+
+    def state_within_cycle(self, current_cycles: int) -> AxisState:
+        """The axis state ``current_cycles`` current-loop cycles into the next position-loop cycle (0 <= it <
+        :attr:`current_cycles_per_cycle`), with the present set-points. Nothing advances: the kernel runs that
+        cycle's position-loop sample and its first ``current_cycles`` current-loop cycles on copies of the state,
+        exactly as :meth:`advance` runs them (the set-points and the external force are sampled at the start of
+        a position-loop cycle)."""
+        if not 0 <= current_cycles < self.current_cycles_per_cycle:
+            raise ValueError(f"current_cycles must be in [0, {self.current_cycles_per_cycle}) "
+                             f"(got {current_cycles!r})")
+        if current_cycles == 0:
+            return self.state
+        mode = self.st[L.S_MODE]
+        self._aux1[0] = self._torque_setpoint if mode == L.MODE_TORQUE else self._velocity_setpoint
+        if mode != L.MODE_POSITION:
+            self._pos1[0] = self._last[L.O_POS_FB]
+        st = self.st.copy()
+        pr = self.pr.copy()
+        pr[L.P_NPOS] = current_cycles  # the cycle ends after these current cycles (only its power and ripple
+        # averages, not returned here, divide by the count)
+        out = np.zeros((1, L.N_OUT))
+        d = self.dm
+        self._step_kernel(st, pr, self._adt, self._bdt, d.table_k_row, d.table_c_row, d.table_g_row,
+                          d.contact_vector, d.motor_angle_vector, self.ring.copy(), self.wat, self.wbt, self.wk,
+                          self.wc, self.ztmp, self._pos1, self._vel1, self._acc1, self._aux1, self._fext1,
+                          self._noise1, out)
+        return self._state_of(st)
+
+    @property
     def state(self) -> AxisState:
-        st = self.st.tolist()  # one conversion; plain floats from here on
+        return self._state_of(self.st)
+
+    def _state_of(self, state_vector: np.ndarray) -> AxisState:
+        st = state_vector.tolist()  # one conversion; plain floats from here on
         n, tb = self.dm.n, self.dm.table_body
         force = self._force_actuator
         z0 = L.Z0
