@@ -99,8 +99,12 @@ def test_tpdo_samples_before_the_same_syncs_rpdo_for_every_axis(three_axes):
     # SYNC k's TPDO carries the target of SYNC k-1 (0 before the first RPDO), for every axis
     for node in nodes:
         assert received.values[node.id] == [0] + [1000 * k + node.id for k in range(1, 4)], received.values
-    # and the drive holds the latest target once the SYNC's RPDOs are applied
+    # and the drive holds the latest target once the SYNC's RPDOs are applied (in the cycle after its TPDOs
+    # went out: the master may see the TPDO before the runtime thread has applied the RPDO)
     for ax, node in zip(axes, nodes, strict=True):
+        end = time.monotonic() + 5.0
+        while ax.drive.read_object(0x607A) != 4000 + node.id and time.monotonic() < end:
+            time.sleep(0.005)
         assert ax.drive.read_object(0x607A) == 4000 + node.id
     assert rt.healthy
 
