@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 
+from virtualaxis.services import listen
 from virtualaxis.services.register_image import DEFAULT_PERIOD_S
 from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
@@ -53,40 +54,13 @@ _REQ = struct.Struct(">IBBBHH")
 
 def parse_host_port(text: str | None) -> tuple[str, int]:
     """``HOST:PORT`` (or ``[v6]:PORT``, ``HOST``, ``:PORT``) for --modbus; default 127.0.0.1:5020."""
-    if not text:
-        return DEFAULT_ADDRESS
-    host, port = text, str(DEFAULT_ADDRESS[1])
-    if text.startswith("["):
-        host, _, rest = text[1:].partition("]")
-        if rest.startswith(":"):
-            port = rest[1:]
-    elif text.count(":") == 1:
-        host, port = text.split(":")
-    if not host:
-        host = DEFAULT_ADDRESS[0]
-    try:
-        p = int(port)
-    except ValueError:
-        raise ValueError(f"--modbus {text!r}: port {port!r} is not a number") from None
-    if not 0 <= p <= 65535:
-        raise ValueError(f"--modbus {text!r}: port must be 0..65535")
-    return host, p
+    return listen.parse_host_port(text, option="--modbus", default=DEFAULT_ADDRESS)
 
 
 def check_listen(host: str, port: int) -> None:
-    """Raise ValueError naming ``--modbus`` and the cause (host unknown, address in use or not local, ...) if a
-    server could not listen on ``host:port``: pymodbus' own message hides it ("please check address")."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        raise ValueError(f"--modbus {host}:{port}: cannot resolve {host!r} ({exc.strerror})") from None
-    for family, kind, proto, _, address in infos:
-        with socket.socket(family, kind, proto) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # (as asyncio's server does)
-            try:
-                s.bind(address)
-            except OSError as exc:
-                raise ValueError(f"--modbus {host}:{port}: cannot listen ({exc.strerror})") from None
+    """Raise ValueError naming ``--modbus`` and the cause if a server could not listen on ``host:port``:
+    pymodbus' own message hides it ("please check address")."""
+    listen.check_listen(host, port, option="--modbus")
 
 
 # ============================================================================================ serve side

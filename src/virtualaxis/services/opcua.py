@@ -33,7 +33,6 @@ import contextlib
 import hmac
 import ipaddress
 import math
-import socket
 import threading
 import time
 from collections import deque
@@ -42,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from virtualaxis.services import listen
 from virtualaxis.services.threads import short_gil_slices
 
 if TYPE_CHECKING:
@@ -126,23 +126,7 @@ class OpcuaSettings:
 
 def parse_address(text: str | None, option: str = "--opcua") -> tuple[str, int]:
     """``HOST:PORT`` (or ``[v6]:PORT``, ``HOST``, ``:PORT``); default 127.0.0.1:4840."""
-    if not text:
-        return DEFAULT_ADDRESS
-    host, port = text, str(DEFAULT_ADDRESS[1])
-    if text.startswith("["):
-        host, _, rest = text[1:].partition("]")
-        if rest.startswith(":"):
-            port = rest[1:]
-    elif text.count(":") == 1:
-        host, port = text.split(":")
-    host = host or DEFAULT_ADDRESS[0]
-    try:
-        p = int(port)
-    except ValueError:
-        raise OpcuaSettingsError(f"{option} {text!r}: port {port!r} is not a number") from None
-    if not 0 <= p <= 65535:
-        raise OpcuaSettingsError(f"{option} {text!r}: port must be 0..65535")
-    return host, p
+    return listen.parse_host_port(text, option=option, default=DEFAULT_ADDRESS, error=OpcuaSettingsError)
 
 
 def is_loopback(host: str) -> bool:
@@ -156,17 +140,7 @@ def is_loopback(host: str) -> bool:
 
 def check_listen(host: str, port: int) -> None:
     """Raise :class:`OpcuaSettingsError` naming ``--opcua`` if a server could not listen on ``host:port``."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        raise OpcuaSettingsError(f"--opcua {host}:{port}: cannot resolve {host!r} ({exc.strerror})") from None
-    for family, kind, proto, _, address in infos:
-        with socket.socket(family, kind, proto) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            try:
-                s.bind(address)
-            except OSError as exc:
-                raise OpcuaSettingsError(f"--opcua {host}:{port}: cannot listen ({exc.strerror})") from None
+    listen.check_listen(host, port, option="--opcua", error=OpcuaSettingsError)
 
 
 def load_users(path: str) -> dict[str, str]:

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from virtualaxis.services import listen
 from virtualaxis.services.http.frames import FrameLog
 from virtualaxis.services.http.ring import COLUMNS, RecordingError, SampleRing
 
@@ -119,18 +120,9 @@ def parse_host_port(text: str) -> tuple[str, int]:
 
 
 def check_listen(host: str, port: int) -> None:
-    """ValueError naming ``--http`` and the cause if the page could not listen on ``host:port``."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as exc:
-        raise ValueError(f"--http {host}:{port}: cannot resolve {host!r} ({exc.strerror})") from None
-    family, kind, proto, _, address = infos[0]
-    with socket.socket(family, kind, proto) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(address)
-        except OSError as exc:
-            raise ValueError(f"--http {host}:{port}: cannot listen ({exc.strerror})") from None
+    """ValueError naming ``--http`` and the cause if the page could not listen on ``host:port`` (its
+    ``socketserver`` server binds the first address ``host`` resolves to)."""
+    listen.check_listen(host, port, option="--http", every_address=False)
 
 
 def eds_notes(eds_path: str | Path) -> dict[int, str]:
