@@ -23,6 +23,8 @@ import time
 
 import can
 
+from virtualaxis.services.wrapped_bus import WrappedBus
+
 PDO_TX_COBS = range(0x180, 0x500)
 DEFAULT_WAIT_S = 0.002  # longest wait for a PDO before a due job runs anyway [s]
 DEFAULT_SETTLE_S = 1e-4  # a PDO burst (all axes at one SYNC) is over when none followed for this long [s]
@@ -68,34 +70,14 @@ class CycleGate:
         return {"pdos_marked": self.marks, "job_waits": self.waits, "job_waits_timed_out": self.timeouts}
 
 
-class GateBus(can.BusABC):
+class GateBus(WrappedBus):
     """A bus wrapper that marks ``gate`` after every PDO it sends (everything else passes through)."""
 
     def __init__(self, inner: can.BusABC, gate: CycleGate):
-        self.inner = inner
         self.gate = gate
-        self.channel_info = getattr(inner, "channel_info", "bus")
-        super().__init__(channel=None)
+        super().__init__(inner)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.inner.send(msg, timeout)
         if msg.arbitration_id in PDO_TX_COBS and not msg.is_extended_id:
             self.gate.mark()
-
-    def recv(self, timeout: float | None = None) -> can.Message | None:
-        return self.inner.recv(timeout)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.inner.recv(timeout), False
-
-    def fileno(self) -> int:
-        return self.inner.fileno()
-
-    def __getattr__(self, name: str):  # stats(), write() etc. of the wrapped bus
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-    def shutdown(self) -> None:
-        self.inner.shutdown()
-        super().shutdown()

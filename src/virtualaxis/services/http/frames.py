@@ -7,6 +7,8 @@ import time
 
 import can
 
+from virtualaxis.services.wrapped_bus import WrappedBus
+
 EMCY_COBS = range(0x81, 0x100)
 SDO_TX_COBS = range(0x581, 0x600)
 SDO_ABORT_CCS = 0x80
@@ -47,35 +49,15 @@ class FrameLog:
         return out
 
 
-class FrameLogBus(can.BusABC):
+class FrameLogBus(WrappedBus):
     """A bus wrapper that notes the EMCY frames and SDO aborts sent through it (everything passes through)."""
 
     def __init__(self, inner: can.BusABC, log: FrameLog):
-        self.inner = inner
         self.log = log
-        self.channel_info = getattr(inner, "channel_info", "bus")
-        super().__init__(channel=None)
+        super().__init__(inner)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self.inner.send(msg, timeout)
         cob = msg.arbitration_id
         if 0x80 < cob < 0x600 and not msg.is_extended_id and (cob < 0x100 or cob > 0x580):
             self.log.note(cob, msg.data)
-
-    def recv(self, timeout: float | None = None) -> can.Message | None:
-        return self.inner.recv(timeout)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.inner.recv(timeout), False
-
-    def fileno(self) -> int:
-        return self.inner.fileno()
-
-    def __getattr__(self, name: str):  # stats(), write() etc. of the wrapped bus
-        if name == "inner":
-            raise AttributeError(name)
-        return getattr(self.inner, name)
-
-    def shutdown(self) -> None:
-        self.inner.shutdown()
-        super().shutdown()
