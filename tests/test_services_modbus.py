@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import socket
 import struct
+import time
 from pathlib import Path
 
 import pytest
@@ -415,6 +416,41 @@ def test_reads_are_answered_from_the_published_image_without_serve(server):
     server.svc.sync()
     w = server.client.read_holding_registers(40376 - 40001, count=2, device_id=1).registers
     assert (w[0] << 16 | w[1]) == cycles_now
+
+
+def test_a_publication_longer_than_the_period_leaves_the_drive_lock_to_others(monkeypatch):
+    """On a loaded machine an image build can outlast the publication period. The publisher must then rest
+    (at least as long as the build took) instead of publishing back to back: the drive's lock is not fair, and a
+    publisher that re-takes it at once starves the runtime's cycle and every reader (a 900 s hang in CI)."""
+    import virtualaxis.services.register_image as ri
+
+    drive = make_drive()
+    link = AxisLink(drive, 1)
+    build = ri.build_image
+
+    def slow_build(lk: AxisLink) -> bytes:  # a build twice the period, the drive's lock held throughout
+        with lk.drive.lock:
+            time.sleep(0.020)
+            return build(lk)
+
+    monkeypatch.setattr(ri, "build_image", slow_build)
+    publisher = ri.ImagePublisher({1: link}, period_s=0.010).start()
+    try:
+        builds0 = publisher.builds
+        waits = []
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            t0 = time.monotonic()
+            with drive.lock:
+                pass
+            waits.append(time.monotonic() - t0)
+            time.sleep(0.002)
+        builds = publisher.builds - builds0
+    finally:
+        publisher.close()
+    # 1 s of 20 ms builds each followed by >= 20 ms of rest: at most 25 (back to back would be 50)
+    assert 5 <= builds <= 27, f"{builds} publications in 1 s of 20 ms builds"
+    assert max(waits) < 0.2, f"the drive's lock was held from a reader for {max(waits) * 1e3:.0f} ms"
 
 
 def _eds_limits_read_apart(eds: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:

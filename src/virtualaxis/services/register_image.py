@@ -127,20 +127,28 @@ class ImagePublisher:
         return self
 
     def _run(self) -> None:
+        """Publish every ``period_s``; a late publication is skipped, never caught up in a burst, and after each
+        one the thread rests at least as long as the publication took. Without that rest a loaded machine, where
+        a build outlasts the period, publishes back to back and starves every other user of the drive's lock
+        (the runtime's cycle, the bridge's writes, a reader): the lock is not fair, and the publisher releases
+        and re-takes it within one switch interval."""
         next_t = time.monotonic()
+        build_s = 0.0
         while not self._stop.is_set():
             next_t += self.period_s
-            delay = next_t - time.monotonic()
-            if delay < 0:  # late (loaded machine): skip, never catch up in a burst
-                next_t = time.monotonic()
-            elif self._stop.wait(delay):
+            now = time.monotonic()
+            if next_t - now < build_s:  # late, or too soon after a long build
+                next_t = now + build_s
+            if self._stop.wait(next_t - now):
                 return
             if self.gate is not None:
                 self.gate.wait_next()
+            t0 = time.monotonic()
             try:
                 self.publish_all()
             except Exception:  # noqa: BLE001 - a drive mid-reconfiguration: keep the old image
                 pass
+            build_s = time.monotonic() - t0
 
     def close(self) -> None:
         self._stop.set()
