@@ -13,14 +13,23 @@ Address space (namespace :data:`NAMESPACE_URI`, string node ids ``VirtualAxis.<a
                         LastWriteResult
         Methods/        InjectFault(Kind, Duty, PeriodS, Magnitude), ClearFault(Kind)  (--allow-fault-injection)
 
-Where the work runs: a **sampler thread** takes one ``drive.state`` per axis every :data:`SAMPLE_PERIOD_S`
-(in the gap after a SYNC's PDOs when a cycle gate is given, see cycle_gate.py) and hands the snapshot to the
-**server thread**, which runs the asyncio loop of the asyncua server and writes the node values (the
-subscriptions sample those). A snapshot the server thread has not taken up yet is replaced by the next one
-(counted: ``samples_replaced``): the drive never waits for the server. Fault events come from a drive observer
-(cheap, under the drive's lock) through the sampler.
+Where the work runs: the asyncua server is a **server process** of its own (:class:`ServerProcess`, a child
+interpreter of serve joined by a socket pair; it imports neither the drive nor numba), so that its clients cost
+that process the CPU and the interpreter lock, not serve's. In serve (:class:`OpcuaService`):
 
-Client writes go only to ``Parameters/*`` and only with ``writable``: each is checked and applied by
+- a **sampler thread** takes one ``drive.state`` per axis every :data:`SAMPLE_PERIOD_S` (in the gap after a
+  SYNC's PDOs when a cycle gate is given, see cycle_gate.py) and sends the node values as one compact batch
+  (plain tuples; a batch equal to the last one is not sent), the parameters and ranges every
+  :data:`PARAMETER_PERIOD_S`; the server process applies the newest batch and replaces one it has not taken up
+  yet (counted: ``samples_replaced``): the drive never waits for the server;
+- fault events come from a drive observer (cheap, under the drive's lock) as plain records in the next batch;
+  the server process emits the OPC UA events;
+- a **bridge thread** applies the writes and method calls the server process forwards, and takes its counters.
+
+The server process ends on the socket's EOF, i.e. with serve even if serve is killed; if it ends on its own,
+serve prints one warning line and goes on serving CANopen (``server_process`` in the stats).
+
+Client writes go only to ``Parameters/*`` and only with ``writable``: each is checked and applied (in serve) by
 ``Drive.set_parameter`` (the checks of an SDO download); a refusal answers the SDO abort code's OPC UA status
 (:data:`STATUS_OF_ABORT`) and leaves the value unchanged. Every other node of the namespace is read-only
 (``BadNotWritable``).
