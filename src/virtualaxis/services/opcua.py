@@ -638,7 +638,10 @@ class OpcuaService:
 # ============================================================================================== server process
 def server_child(fd: int) -> None:
     """Entry of the OPC UA server process (``python -c``): the inherited socket ``fd`` joins it to serve."""
+    import signal
+
     conn = Connection(fd)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops serve, which stops this process
     leave_realtime()  # clients are not the drive: never compete with it at real-time priority
     try:
         _, settings, layout = conn.recv()
