@@ -23,7 +23,9 @@ Phases (``--phases``, alternated ``--rounds`` times so that drifting machine loa
   every MQTT phase Sparkplug B.
 - ``opcua``: ``serve --opcua`` and one OPC UA subscriber (asyncua, a process of its own) monitoring
   :data:`OPCUA_ITEMS` (10 nodes of the axis) in a subscription of 100 ms publishing interval;
-- ``all``: the ``load`` phase plus the ``opcua`` one.
+- ``all``: the ``load`` phase plus the ``opcua`` one;
+- ``PHASE@ref`` (with ``--ref-src DIR``): PHASE with the ``serve`` of another virtualaxis source tree (e.g. a
+  checkout of the main branch), for an A/B of two versions in the same run.
 
 Priorities (``--rt-priority N``): ``serve`` **and the master** run at SCHED_FIFO N -- the master at the drive's
 priority, so that it measures the drive and not its own starvation. The load side (clients, serve's Modbus
@@ -45,6 +47,8 @@ master's ``time.time()`` before ``send`` -> its SYNC on the wire (not part of th
     python benchmarks/bench_side_channels.py --seconds 5 --rounds 3 --rt-priority 20 --modbus-client raw --json F
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --rt-priority 20 --phases off,load,load-spb
     python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --phases off,opcua,load,all
+    python benchmarks/bench_side_channels.py --seconds 10 --rounds 2 --rt-priority 20 \
+        --phases off,opcua,opcua@ref,all --ref-src ../main/src
 
 ``--modbus-client raw``: the ten clients pack their FC03 requests with ``struct`` on a plain socket (and check every
 answer) instead of using pymodbus' client, which on a slow host costs 2.5x the CPU per request: the clients of a
@@ -382,8 +386,9 @@ def hops(probe_file: Path, wire_sync: np.ndarray, user_sync: np.ndarray, tpdo: n
 
 # ------------------------------------------------------------------------------------ one phase
 def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | None, opts, tmp: Path) -> dict:
-    phase = phase_name.removesuffix("-spb")
-    sparkplug = opts.sparkplug or phase_name.endswith("-spb")  # MQTT as Sparkplug B
+    base, _, ref = phase_name.partition("@")  # PHASE@ref: serve of --ref-src (an A/B in the same run)
+    phase = base.removesuffix("-spb")
+    sparkplug = opts.sparkplug or base.endswith("-spb")  # MQTT as Sparkplug B
     modbus_on = phase in ("load", "modbus", "idle", "all")
     external = phase == "ext"  # the Modbus clients poll a server that is not serve's (machine load only)
     mqtt_on = phase in ("load", "mqtt", "idle", "all")
@@ -415,8 +420,10 @@ def run_phase(phase_name: str, seconds: float, port: int, broker: Mosquitto | No
                                   str(opts.load_priority)])
         wait_port(mb_port, 30.0)
         set_affinity(dummy.pid, opts.load_cpus)
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if ref:
+        env["PYTHONPATH"] = opts.ref_src
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     line = proc.stdout.readline()
     if not line.startswith("ready:"):
         proc.kill()
@@ -593,6 +600,9 @@ def main() -> int:
                     "fraction of pymodbus'")
     ap.add_argument("--sparkplug", action="store_true",
                     help="MQTT as Sparkplug B (serve --sparkplug bench); the subscriber counts DDATA Position values")
+    ap.add_argument("--ref-src", default=None, metavar="DIR",
+                    help="the src folder of another virtualaxis (e.g. a checkout of the main branch): a phase "
+                    "PHASE@ref (e.g. opcua@ref) runs that serve, for an A/B in the same run")
     ap.add_argument("--json", default=str(REPO / "benchmarks" / "bench_side_channels.json"))
     ap.add_argument("--raw", default=None, metavar="DIR", help="also save every phase's timestamps (.npz) in DIR")
     ap.add_argument("--load-start", type=float, default=0.0, help=argparse.SUPPRESS)
@@ -618,7 +628,9 @@ def main() -> int:
         return 0
     phases = [p.strip() for p in args.phases.split(",") if p.strip()]
     known = ("off", "load", "modbus", "mqtt", "ext", "idle", "opcua", "all", "load-spb", "mqtt-spb", "idle-spb")
-    bad = [p for p in phases if p not in known]
+    bad = [p for p in phases if p.partition("@")[0] not in known or p.partition("@")[2] not in ("", "ref")]
+    if any(p.endswith("@ref") for p in phases) and not args.ref_src:
+        ap.error("--phases: a PHASE@ref phase needs --ref-src DIR")
     if bad:
         ap.error(f"--phases: unknown phase(s) {bad} ({', '.join(known)}; -spb: MQTT as Sparkplug B)")
     args.drive_cpus = args.load_cpus = None

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -208,3 +209,139 @@ def test_without_asyncua_one_error_line_naming_the_extra(tmp_path):
     assert p.returncode == 2, (p.stdout, p.stderr)
     assert p.stderr.strip().splitlines() == [
         "error: --opcua needs the asyncua package, not installed here (pip install 'virtualaxis[opcua]')"], p.stderr
+
+
+# ------------------------------------------------------------------------------ the server's process
+def _listener_pid(port: int) -> int | None:
+    """The process listening on TCP ``port`` (from /proc/net/tcp* and the processes' socket descriptors)."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                parts = line.split()
+                if parts[3] == "0A" and int(parts[1].rsplit(":", 1)[1], 16) == port:  # 0A: LISTEN
+                    inodes.add(f"socket:[{parts[9]}]")
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if any(os.readlink(f"/proc/{pid}/fd/{fd}") in inodes for fd in os.listdir(f"/proc/{pid}/fd")):
+                return int(pid)
+        except OSError:
+            continue
+    return None
+
+
+def _stat(pid: int) -> list[str]:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (all its threads) [s]."""
+    fields = _stat(pid)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return _stat(pid)[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_server_is_a_child_process_its_clients_cost_serve_little_and_its_end_leaves_canopen_served(tmp_path):
+    """The OPC UA server listens in a child process of serve; a client reading back to back costs that process
+    the CPU, not serve's; when the server process is killed, serve says so once and keeps serving CANopen."""
+    Client = pytest.importorskip("opcua").Client  # noqa: N806 - the class
+
+    port = free_port()
+    stats = tmp_path / "stats.json"
+    with served("--lockstep", "--opcua", f"127.0.0.1:{port}", "--json", str(stats)) as srv:
+        _opcua_line(srv)
+        server = _listener_pid(port)
+        assert server is not None and server != srv.proc.pid, (server, srv.proc.pid)
+        assert int(_stat(server)[1]) == srv.proc.pid  # its parent is serve
+        c = Client(f"opc.tcp://127.0.0.1:{port}/virtualaxis", timeout=30)
+        c.connect()
+        try:
+            idx = c.get_namespace_index("urn:virtualaxis:opcua")
+            axis = c.get_objects_node().get_child(f"{idx}:VirtualAxis").get_children()[0]
+            position = axis.get_child([f"{idx}:ActualValues", f"{idx}:Position"])
+            t0, serve0 = time.monotonic(), _cpu_s(srv.proc.pid)  # serve's own CPU rate with nobody reading
+            time.sleep(2.0)
+            t1, serve1, server1 = time.monotonic(), _cpu_s(srv.proc.pid), _cpu_s(server)
+            values = {position.get_value() for _ in range(800)}
+            t2, serve2, server2 = time.monotonic(), _cpu_s(srv.proc.pid), _cpu_s(server)
+        finally:
+            c.disconnect()
+        assert len(values) == 1  # (lockstep, no SYNC: the drive stands still)
+        server_cpu_s = server2 - server1
+        serve_extra_cpu_s = (serve2 - serve1) - (serve1 - serve0) / (t1 - t0) * (t2 - t1)
+        assert server_cpu_s >= 0.1, server_cpu_s  # the reads were answered there
+        assert serve_extra_cpu_s < server_cpu_s / 3, (serve2 - serve1, serve1 - serve0, t1 - t0, t2 - t1,
+                                                      server_cpu_s)
+
+        os.kill(server, 9)
+        net = connect(srv.spec)
+        try:
+            with LockstepMaster(net, 1, mode="csp") as m:
+                x0 = m.position_m(1)
+                trace = m.run(np.full(50, x0 + 1e-4))
+        finally:
+            net.disconnect()
+        assert abs(float(trace.position_m[-1, 0]) - (x0 + 1e-4)) < 5e-5
+    assert srv.returncode == 0, srv.stderr[-3000:]
+    warnings = [ln for ln in srv.stderr.splitlines() if "OPC UA server process ended" in ln]
+    assert len(warnings) == 1 and warnings[0].startswith("warning: --opcua:"), srv.stderr[-3000:]
+    assert "Traceback" not in srv.stderr, srv.stderr[-3000:]
+    st = json.loads(stats.read_text())["opcua"]
+    assert st["server_process"] == "ended (exit code -9)" and st["server_pid"] == server, st
+
+
+def test_independent_client_browse_units_subscription_fault_event_and_no_orphan():
+    """python-opcua (not asyncua) against the server: the tree, a value with its EUInformation and EURange, data
+    changes while a canopen master in another process moves the drive, a fault event; serve killed with SIGKILL
+    takes its server process with it."""
+    pytest.importorskip("opcua")
+    port = free_port()
+    with served("--lockstep", "--opcua", f"127.0.0.1:{port}", "--allow-fault-injection") as srv:
+        _opcua_line(srv)
+        client = subprocess.Popen([sys.executable, str(Path(__file__).with_name("opcua_legacy_client.py")),
+                                   f"opc.tcp://127.0.0.1:{port}/virtualaxis"], stdin=subprocess.PIPE,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+        assert client.stdout.readline().strip() == "subscribed", client.stderr.read() if client.poll() else ""
+        net = connect(srv.spec)
+        try:
+            with LockstepMaster(net, 1, mode="csp") as m:
+                x0 = m.position_m(1)
+                ramp = x0 + np.clip(0.02 * (np.arange(300) * 0.001 - 0.02), 0.0, None)
+                trace = m.run(np.concatenate([ramp, np.full(50, ramp[-1])]))
+                x_end = float(trace.position_m[-1, 0])
+        finally:
+            net.disconnect()
+        client.stdin.write("moved\n")
+        client.stdin.flush()
+        r = _result(client)
+        server = _listener_pid(port)
+        assert server is not None and server != srv.proc.pid
+        srv.proc.kill()
+        srv.stop()
+        deadline = time.monotonic() + 10.0
+        while _alive(server) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(server), "the OPC UA server process outlived serve"
+
+    assert len(r["axes"]) == 1
+    assert set(r["tree"]) >= {"State", "ActualValues", "Faults", "Parameters", "Methods"}, r["tree"]
+    assert r["tree"]["ActualValues"][0] == "Position"
+    p = r["position"]
+    assert (p["unit_id"], p["display"], p["type_definition"]) == (MTR, "m", ANALOG_ITEM_TYPE), p
+    assert p["namespace"] == "http://www.opcfoundation.org/UA/units/un/cefact"
+    assert p["range"][0] < p["value"] < p["range"][1]
+    moving = {v for v in r["changes"] if x0 + 1e-6 < v < x_end - 1e-6}
+    assert len(moving) >= 3, r["changes"]
+    assert abs(r["changes"][-1] - x_end) <= 2e-6, (r["changes"][-1], x_end)
+    assert r["inject_active"] == ["encoder_loss"]
+    faults = [e for e in r["events"] if e["kind"] == "fault"]
+    assert faults and faults[0]["emcy"] == 0x7305 and faults[0]["injected"] is True, r["events"]
+    assert "0x7305" in faults[0]["message"] and faults[0]["severity"] >= 700
+    assert r["fault_codes"][0] == 0x7305

@@ -13,14 +13,23 @@ Address space (namespace :data:`NAMESPACE_URI`, string node ids ``VirtualAxis.<a
                         LastWriteResult
         Methods/        InjectFault(Kind, Duty, PeriodS, Magnitude), ClearFault(Kind)  (--allow-fault-injection)
 
-Where the work runs: a **sampler thread** takes one ``drive.state`` per axis every :data:`SAMPLE_PERIOD_S`
-(in the gap after a SYNC's PDOs when a cycle gate is given, see cycle_gate.py) and hands the snapshot to the
-**server thread**, which runs the asyncio loop of the asyncua server and writes the node values (the
-subscriptions sample those). A snapshot the server thread has not taken up yet is replaced by the next one
-(counted: ``samples_replaced``): the drive never waits for the server. Fault events come from a drive observer
-(cheap, under the drive's lock) through the sampler.
+Where the work runs: the asyncua server is a **server process** of its own (:class:`ServerProcess`, a child
+interpreter of serve joined by a socket pair; it imports neither the drive nor numba), so that its clients cost
+that process the CPU and the interpreter lock, not serve's. In serve (:class:`OpcuaService`):
 
-Client writes go only to ``Parameters/*`` and only with ``writable``: each is checked and applied by
+- a **sampler thread** takes one ``drive.state`` per axis every :data:`SAMPLE_PERIOD_S` (in the gap after a
+  SYNC's PDOs when a cycle gate is given, see cycle_gate.py) and sends the node values as one compact batch
+  (plain tuples; a batch equal to the last one is not sent), the parameters and ranges every
+  :data:`PARAMETER_PERIOD_S`; the server process applies the newest batch and replaces one it has not taken up
+  yet (counted: ``samples_replaced``): the drive never waits for the server;
+- fault events come from a drive observer (cheap, under the drive's lock) as plain records in the next batch;
+  the server process emits the OPC UA events;
+- a **bridge thread** applies the writes and method calls the server process forwards, and takes its counters.
+
+The server process ends on the socket's EOF, i.e. with serve even if serve is killed; if it ends on its own,
+serve prints one warning line and goes on serving CANopen (``server_process`` in the stats).
+
+Client writes go only to ``Parameters/*`` and only with ``writable``: each is checked and applied (in serve) by
 ``Drive.set_parameter`` (the checks of an SDO download); a refusal answers the SDO abort code's OPC UA status
 (:data:`STATUS_OF_ABORT`) and leaves the value unchanged. Every other node of the namespace is read-only
 (``BadNotWritable``).
@@ -32,17 +41,23 @@ import asyncio
 import contextlib
 import hmac
 import ipaddress
+import itertools
 import math
+import os
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from virtualaxis.services import listen
-from virtualaxis.services.threads import short_gil_slices
+from virtualaxis.services.threads import leave_realtime, short_gil_slices
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
@@ -305,39 +320,119 @@ def fault_line(f) -> str:
             f"({'acknowledged' if f.acknowledged else 'active'})")
 
 
+def state_values(s, nmt: str) -> tuple:
+    """The values of :data:`STATE_VARS` (in order) of a DriveState."""
+    return (s.cia402_state, s.statusword, s.controlword, s.mode, s.mode_name, nmt, bool(s.homed),
+            bool(s.target_reached), bool(s.warning), float(s.time_s))
+
+
+def actual_values(s) -> tuple:
+    """The values of :data:`ACTUAL_VARS` (in order) of a DriveState."""
+    return tuple(float(getattr(s, attr)) for _name, _unit, attr, _desc in ACTUAL_VARS)
+
+
+def fault_values(s) -> tuple:
+    """The values of :data:`FAULT_VARS` (in order) of a DriveState."""
+    active = [f for f in s.faults if not f.acknowledged] if s.fault_active else []
+    text = f"0x{active[0].emcy_code:04X} F{active[0].fault_number:05d} {active[0].text}" if active else ""
+    return (bool(s.fault_active), int(s.error_code), text, int(s.alarm_number), [fault_line(f) for f in s.faults],
+            [int(f.emcy_code) for f in s.faults])
+
+
+def actual_ranges(params: dict[str, float]) -> list[tuple[float, float]]:
+    """The EURange of each of :data:`ACTUAL_VARS` (in order) from the drive's parameters."""
+    return [tuple(float(v) for v in ACTUAL_RANGES[name](params)) for name, *_ in ACTUAL_VARS]
+
+
+def parameter_node_value(value: float, vt: str):
+    return value if vt == "Double" else int(round(value))
+
+
+def event_record(kind: str, s, rec) -> dict:
+    """A fault / alarm event of a DriveState as the plain fields of a DriveFaultEventType event."""
+    if kind.startswith("alarm"):
+        number = s.alarm_number if kind == "alarm" else int(rec or 0)
+        emcy, fnum, fval, injected = 0, int(number), 0, False
+        text = f"alarm A{number:05d} " + ("raised" if kind == "alarm" else "gone")
+    else:
+        emcy = int(rec.emcy_code if rec else s.error_code)
+        fnum = int(rec.fault_number) if rec else 0
+        fval = int(rec.value) if rec else 0
+        injected = bool(rec.injected) if rec else False
+        what = f"0x{emcy:04X} F{fnum:05d} {rec.text if rec else ''}".rstrip()
+        text = f"fault {what}" if kind == "fault" else f"fault acknowledged: {what}"
+    return {"kind": kind, "emcy": emcy, "number": fnum, "value": fval, "injected": injected,
+            "state": str(s.cia402_state), "severity": EVENT_SEVERITY[kind], "message": text}
+
+
+def drive_parameters(drive: Drive) -> dict[str, float]:
+    """All parameters of ``drive`` at one instant (SI units)."""
+    with drive.lock:
+        return {name: drive.get_parameter(name) for name in drive.parameter_names()}
+
+
+SERVER_STATS_PERIOD_S = 0.5  # the server process reports its counters to serve this often
+REQUEST_TIMEOUT_S = 10.0  # a write / method call forwarded to serve that got no answer in this time: BadTimeout
+
+
 class OpcuaService:
-    """The OPC UA server of ``axes`` (:class:`AxisSource`): a server thread and a sampler thread (module doc)."""
+    """The OPC UA server of ``axes`` (:class:`AxisSource`): serve's side (sampler and bridge threads) of the
+    server process (module doc)."""
 
     def __init__(self, settings: OpcuaSettings, axes: list[AxisSource], gate=None):
         self.settings = settings
         self.axes = axes
         self.gate = gate
         self.bound_port: int | None = None
-        self.counters = {"samples": 0, "samples_replaced": 0, "events": 0, "writes_accepted": 0,
-                         "writes_refused": 0, "method_calls": 0, "sampler_late": 0, "update_errors": 0}
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._ready = threading.Event()
+        self.counters = {"samples": 0, "samples_unchanged": 0, "sampler_late": 0, "writes_accepted": 0,
+                         "writes_refused": 0}
+        self.server_counters = {"samples_replaced": 0, "events": 0, "writes_refused": 0, "method_calls": 0,
+                                "update_errors": 0}  # as last reported by the server process
+        self.server_process = "not started"  # running, stopped, or ended (exit code N)
+        self._proc: subprocess.Popen | None = None
+        self._conn: Connection | None = None
+        self._send_lock = threading.Lock()
         self._stop = threading.Event()
-        self._error: BaseException | None = None
-        self._thread: threading.Thread | None = None
+        self._gone = threading.Event()  # the server process ended (or was stopped)
+        self._bridge: threading.Thread | None = None
         self._sampler: threading.Thread | None = None
-        self._pending: list | None = None  # the newest snapshot not yet taken up by the server thread
-        self._pending_lock = threading.Lock()
-        self._wake: asyncio.Event | None = None
         self._observers: list[tuple[Any, Callable]] = []
         self._last_alarm: dict[str, int] = {}
 
     # ------------------------------------------------------------------------------------ lifecycle
     def start(self, timeout_s: float = 60.0) -> OpcuaService:
-        short_gil_slices()
-        self._thread = threading.Thread(target=self._run, name="virtualaxis-opcua", daemon=True)
-        self._thread.start()
-        if not self._ready.wait(timeout_s) and self._error is None:
-            self._error = TimeoutError(f"the OPC UA server did not start in {timeout_s:g} s")
-        if self._error is not None:
+        """Start the server process, then the bridge and the sampler; returns once the server listens (OSError
+        naming ``--opcua`` if it cannot)."""
+        short_gil_slices()  # the bridge and the sampler never hold the drive's runtime thread for a 5 ms slice
+        where = f"--opcua {self.settings.host}:{self.settings.port}"
+        layout = [self._layout(ax) for ax in self.axes]
+        # a plain child interpreter (not multiprocessing's spawn, which would re-run the caller's __main__)
+        # joined by a socket pair; its EOF tells the server process that serve is gone
+        ours, theirs = socket.socketpair()
+        src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+        code = "import sys; from virtualaxis.services.opcua import server_child; server_child(int(sys.argv[1]))"
+        self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())],
+                                      pass_fds=(theirs.fileno(),), env=env)
+        theirs.close()
+        self._conn = Connection(ours.detach())
+        try:
+            self._conn.send(("init", self.settings, layout))
+            if not self._conn.poll(timeout_s):
+                raise OSError(f"{where}: the OPC UA server did not start in {timeout_s:g} s")
+            kind, value = self._conn.recv()
+        except (EOFError, OSError) as exc:
             self.stop()
-            err = self._error
-            raise OSError(f"--opcua {self.settings.host}:{self.settings.port}: {type(err).__name__}: {err}")
+            if isinstance(exc, OSError) and str(exc).startswith(where):
+                raise
+            raise OSError(f"{where}: the OPC UA server process ended while starting") from None
+        if kind != "ready":
+            self.stop()
+            raise OSError(f"{where}: {value}")
+        self.bound_port = int(value)
+        self.server_process = "running"
+        self._bridge = threading.Thread(target=self._serve_bridge, name="virtualaxis-opcua-bridge", daemon=True)
+        self._bridge.start()
         for ax in self.axes:
             cb = self._observer(ax)
             ax.drive.add_observer(cb)
@@ -353,14 +448,34 @@ class OpcuaService:
         self._observers.clear()
         if self._sampler is not None:
             self._sampler.join(timeout_s)
-        if self._loop is not None and self._wake is not None:
-            with contextlib.suppress(RuntimeError):  # (the loop already ended)
-                self._loop.call_soon_threadsafe(self._wake.set)
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        if self._proc is not None:
+            self._send(("stop",))
+            try:
+                self._proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(timeout=timeout_s)
+            if self.server_process == "running":
+                self.server_process = "stopped"
+        if self._bridge is not None:
+            self._bridge.join(timeout_s)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    @property
+    def server_pid(self) -> int | None:
+        """The process id of the OPC UA server process (None before start)."""
+        return self._proc.pid if self._proc is not None else None
 
     def stats(self) -> dict:
-        return dict(self.counters, events_dropped=sum(a.events_dropped for a in self.axes))
+        out = dict(self.counters)
+        srv = dict(self.server_counters)
+        out["writes_refused"] += srv.pop("writes_refused", 0)
+        out.update(srv)
+        out.update(events_dropped=sum(a.events_dropped for a in self.axes), server_pid=self.server_pid,
+                   server_process=self.server_process)
+        return out
 
     @property
     def url(self) -> str:
@@ -368,12 +483,31 @@ class OpcuaService:
         return f"opc.tcp://{host}:{self.bound_port}{ENDPOINT_PATH}"
 
     # ------------------------------------------------------------------------------------ drive side
+    def _layout(self, ax: AxisSource) -> dict:
+        """What the server process needs to build the axis' nodes (plain data: it imports no drive)."""
+        from virtualaxis.drive.injection import KINDS
+        from virtualaxis.drive.objects import SPECS
+        from virtualaxis.drive.snapshot import PARAMETERS
+
+        s, nmt = ax.drive.state, ax.nmt()
+        params = drive_parameters(ax.drive)
+        limits = _eds_limits(self.settings.eds_path)
+        plist = []
+        for name in ax.drive.parameter_names():
+            spec = PARAMETERS[name]
+            dtype = SPECS[(spec.index, spec.sub)].dtype
+            vt = "Double" if spec.scale != "raw" else DTYPE_VARIANT[dtype]
+            plist.append((name, vt, parameter_node_value(params[name], vt), f"0x{spec.index:04X}:{spec.sub} {spec.doc}",
+                          parameter_unit(name, spec.doc), _parameter_range(ax.drive, spec, dtype, limits)))
+        return {"name": ax.name, "node_id": ax.node_id, "state": state_values(s, nmt), "actual": actual_values(s),
+                "ranges": actual_ranges(params), "faults": fault_values(s), "parameters": plist,
+                "methods": bool(self.settings.allow_fault_injection and ax.injector is not None),
+                "kinds": ", ".join(KINDS)}
+
     def _observer(self, ax: AxisSource) -> Callable:
         def on_event(event: str, state) -> None:  # under the drive's lock: cheap and non-blocking only
-            if event == "fault":
-                self._event(ax, "fault", state, state.faults[0] if state.faults else None)
-            elif event == "fault_cleared":
-                self._event(ax, "fault_cleared", state, state.faults[0] if state.faults else None)
+            if event in ("fault", "fault_cleared"):
+                self._event(ax, event, state, state.faults[0] if state.faults else None)
 
         return on_event
 
@@ -383,10 +517,26 @@ class OpcuaService:
             ax.events_dropped += 1
         ax.events.append((kind, state, rec))
 
+    def _send(self, msg: tuple) -> bool:
+        conn = self._conn
+        if conn is None or self._gone.is_set():
+            return False
+        try:
+            with self._send_lock:
+                conn.send(msg)
+        except (EOFError, OSError, ValueError):
+            return False
+        return True
+
     def _sample_loop(self) -> None:
+        """One compact batch of every axis' node values every SAMPLE_PERIOD_S (in the cycle's gap), parameters
+        and ranges every PARAMETER_PERIOD_S; a batch equal to the last one sent is not sent."""
         period = SAMPLE_PERIOD_S
         nxt = time.perf_counter()
-        while not self._stop.is_set():
+        next_params = 0.0
+        last: list | None = None
+        last_params: list | None = None
+        while not self._stop.is_set() and not self._gone.is_set():
             now = time.perf_counter()
             if now < nxt:
                 self._stop.wait(nxt - now)
@@ -395,6 +545,7 @@ class OpcuaService:
             if late:
                 self.counters["sampler_late"] += late
                 nxt += late * period
+            nxt += period
             if self.gate is not None:
                 self.gate.wait_next()
             batch = []
@@ -406,81 +557,226 @@ class OpcuaService:
                     self._last_alarm[ax.name] = s.alarm_number
                 events = []
                 while ax.events:
-                    events.append(ax.events.popleft())
-                batch.append((s, ax.nmt(), events))
-            self._hand_over(batch)
-            nxt += period
+                    events.append(event_record(*ax.events.popleft()))
+                batch.append((state_values(s, ax.nmt()), actual_values(s), fault_values(s), events))
+            params = None
+            if now >= next_params:
+                next_params = now + PARAMETER_PERIOD_S
+                params = []
+                for ax in self.axes:
+                    p = drive_parameters(ax.drive)
+                    params.append(([p[name] for name in ax.drive.parameter_names()], actual_ranges(p)))
+                if params == last_params:
+                    params = None
+                else:
+                    last_params = params
+            if batch == last and params is None:
+                self.counters["samples_unchanged"] += 1
+                continue
+            last = batch
+            if not self._send(("sample", batch, params)):
+                return
+            self.counters["samples"] += 1
 
-    def _hand_over(self, batch: list) -> None:
-        with self._pending_lock:
-            if self._pending is not None:  # not taken up yet: its events go with the newer snapshot
-                self.counters["samples_replaced"] += 1
-                for old, new in zip(self._pending, batch, strict=True):
-                    new[2][:0] = old[2]
-            self._pending = batch
-        self.counters["samples"] += 1
-        loop, wake = self._loop, self._wake
-        if loop is not None and wake is not None:
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(wake.set)
+    def _serve_bridge(self) -> None:
+        """Answer the server process' writes and method calls on the live drives; take its counters."""
+        conn = self._conn
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            kind = msg[0]
+            if kind == "stats":
+                self.server_counters = msg[1]
+            elif kind == "error":
+                self.server_process = f"failed ({msg[1]})"
+            elif kind in ("write", "call"):
+                try:
+                    reply = self._write(*msg[2:]) if kind == "write" else self._call(*msg[2:])
+                except Exception as exc:  # noqa: BLE001 - the client gets a status, serve goes on
+                    reply = ("BadUnexpectedError", f"{type(exc).__name__}: {exc}", None)
+                self._send(("reply", msg[1], reply))
+        self._gone.set()
+        if not self._stop.is_set():  # the server process ended on its own: say so once, keep serving CANopen
+            try:
+                code = self._proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                code = None
+            why = self.server_process[len("failed "):] if self.server_process.startswith("failed") else ""
+            self.server_process = f"ended (exit code {code})"
+            print(f"warning: --opcua: the OPC UA server process ended (exit code {code}){' ' + why if why else ''}; "
+                  "serving CANopen goes on without OPC UA", file=sys.stderr, flush=True)
 
-    # ------------------------------------------------------------------------------------ server thread
-    def _run(self) -> None:
+    def _write(self, axis: int, name: str, value) -> tuple[str, str, Any]:
+        """A client's write of parameter ``name`` of axis number ``axis``: (status name, reason, value now)."""
+        from virtualaxis.drive.core import ObjectAccessError
+
+        drive = self.axes[axis].drive
+        status, why = "Good", ""
         try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # noqa: BLE001 - reported by start() or counted; serve goes on
-            if not self._ready.is_set():
-                self._error = exc
-                self._ready.set()
-            else:
-                import logging
+            drive.set_parameter(name, value)
+        except ObjectAccessError as exc:
+            status, why = STATUS_OF_ABORT.get(exc.code, "BadUnexpectedError"), f"0x{exc.code:08X}: {exc}"
+        self.counters["writes_accepted" if status == "Good" else "writes_refused"] += 1
+        return status, why, drive.get_parameter(name)
 
-                logging.getLogger("virtualaxis").exception("OPC UA server stopped")
+    def _call(self, axis: int, action: str, kind: str | None, options: dict) -> tuple[str, str, Any]:
+        """A client's InjectFault / ClearFault on axis number ``axis``: (status name, reason, active kinds)."""
+        from virtualaxis.drive.injection import KINDS, InjectionRefused
 
-    async def _main(self) -> None:
+        ax = self.axes[axis]
+        if ax.injector is None or not self.settings.allow_fault_injection:
+            return "BadNotExecutable", "fault injection is off", None
+        try:
+            ax.injector.command(action, kind, **options)
+        except InjectionRefused as exc:
+            return ("BadInvalidState" if exc.code == 0x08000022 else "BadInvalidArgument"), str(exc), None
+        return "Good", "", sorted(ax.injector.active, key=lambda k: KINDS.get(k, 99))
+
+
+# ============================================================================================== server process
+def server_child(fd: int) -> None:
+    """Entry of the OPC UA server process (``python -c``): the inherited socket ``fd`` joins it to serve."""
+    import signal
+
+    conn = Connection(fd)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops serve, which stops this process
+    leave_realtime()  # clients are not the drive: never compete with it at real-time priority
+    try:
+        _, settings, layout = conn.recv()
+    except (EOFError, OSError):
+        return
+    proc = ServerProcess(conn, settings, layout)
+    try:
+        asyncio.run(proc.main())
+    except Exception as exc:  # noqa: BLE001 - reported to serve (a start-up error, or why the server ended)
+        proc.send(("error", f"{type(exc).__name__}: {exc}"))
+        raise SystemExit(1) from None
+
+
+class ServerProcess:
+    """The asyncua server in its own process: node values from serve's batches, writes and method calls
+    forwarded to serve (:class:`OpcuaService`), fault events emitted from serve's records."""
+
+    def __init__(self, conn: Connection, settings: OpcuaSettings, layout: list[dict]):
+        self.conn = conn
+        self.settings = settings
+        self.layout = layout
+        self.counters = {"samples_replaced": 0, "events": 0, "writes_refused": 0, "method_calls": 0,
+                         "update_errors": 0}
+        self._send_lock = threading.Lock()
+        self._pending: tuple | None = None  # the newest batch not yet applied
+        self._pending_lock = threading.Lock()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake: asyncio.Event | None = None
+        self._stopping = False
+        self._futures: dict[int, asyncio.Future] = {}
+        self._ids = itertools.count(1)
+
+    def send(self, msg: tuple) -> None:
+        try:
+            with self._send_lock:
+                self.conn.send(msg)
+        except (EOFError, OSError, ValueError):
+            pass
+
+    async def request(self, *msg) -> tuple:
+        """A write / method call answered by serve: (status name, reason, value)."""
+        rid = next(self._ids)
+        fut = self._loop.create_future()
+        self._futures[rid] = fut
+        self.send((msg[0], rid, *msg[1:]))
+        try:
+            return await asyncio.wait_for(fut, REQUEST_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            return "BadTimeout", f"serve did not answer in {REQUEST_TIMEOUT_S:g} s", None
+        finally:
+            self._futures.pop(rid, None)
+
+    async def main(self) -> None:
         space = AddressSpace(self)
         await space.build()
         self._loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
-        self.bound_port = space.bound_port
-        self._ready.set()
-        next_params = 0.0
+        self.send(("ready", space.bound_port))
+        threading.Thread(target=self._read, name="virtualaxis-opcua-reader", daemon=True).start()
+        next_stats = 0.0
         try:
-            while not self._stop.is_set():
-                await self._wake.wait()
+            while not self._stopping:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), SERVER_STATS_PERIOD_S)
                 self._wake.clear()
                 with self._pending_lock:
                     batch, self._pending = self._pending, None
-                try:
-                    if batch is not None:
-                        await space.update(batch)
-                    if time.monotonic() >= next_params:
-                        next_params = time.monotonic() + PARAMETER_PERIOD_S
-                        await space.refresh_parameters()
-                except Exception:  # noqa: BLE001 - counted and logged once; the server goes on serving
-                    self.counters["update_errors"] += 1
-                    if self.counters["update_errors"] == 1:
-                        import logging
+                if batch is not None:
+                    try:
+                        await space.update(*batch)
+                    except Exception:  # noqa: BLE001 - counted and logged once; the server goes on serving
+                        self.counters["update_errors"] += 1
+                        if self.counters["update_errors"] == 1:
+                            import logging
 
-                        logging.getLogger("virtualaxis").exception("OPC UA node update failed")
+                            logging.getLogger("virtualaxis").exception("OPC UA node update failed")
+                if time.monotonic() >= next_stats:
+                    next_stats = time.monotonic() + SERVER_STATS_PERIOD_S
+                    self.send(("stats", dict(self.counters)))
         finally:
             await space.stop()
+            self.send(("stats", dict(self.counters)))
+
+    def _read(self) -> None:
+        """serve's messages: batches (a batch not applied yet is replaced by the next, its events kept), replies,
+        stop. EOF: serve is gone, and so is this process at once."""
+        loop = self._loop
+        try:
+            while True:
+                msg = self.conn.recv()
+                kind = msg[0]
+                if kind == "sample":
+                    self._take(msg[1], msg[2])
+                    loop.call_soon_threadsafe(self._wake.set)
+                elif kind == "reply":
+                    loop.call_soon_threadsafe(self._resolve, msg[1], msg[2])
+                elif kind == "stop":
+                    break
+        except (EOFError, OSError):
+            os._exit(0)  # never outlive serve
+        self._stopping = True
+        loop.call_soon_threadsafe(self._wake.set)
+
+    def _take(self, axes: list, params: list | None) -> None:
+        with self._pending_lock:
+            if self._pending is not None:
+                self.counters["samples_replaced"] += 1
+                old_axes, old_params = self._pending
+                for old, new in zip(old_axes, axes, strict=True):
+                    new[3][:0] = old[3]
+                if params is None:
+                    params = old_params
+            self._pending = (axes, params)
+
+    def _resolve(self, rid: int, reply: tuple) -> None:
+        fut = self._futures.get(rid)
+        if fut is not None and not fut.done():
+            fut.set_result(reply)
 
 
 class AddressSpace:
-    """The nodes of the served axes in one asyncua server (built and updated in the server thread)."""
+    """The nodes of the served axes in one asyncua server (built and updated in the server process)."""
 
-    def __init__(self, service: OpcuaService):
-        self.service = service
-        self.settings = service.settings
+    def __init__(self, proc: ServerProcess):
+        self.proc = proc
+        self.settings = proc.settings
+        self.layout = proc.layout
         self.server = None
         self.idx = 0
         self.bound_port: int | None = None
         self.nodes: dict[str, dict[str, Any]] = {}  # axis -> var name -> node id
         self.values: dict[Any, Any] = {}  # node id -> value last written
-        self.writers: dict[Any, tuple[AxisSource, str, str]] = {}  # parameter node id -> (axis, name, vtype)
+        self.writers: dict[Any, tuple[int, str, str]] = {}  # parameter node id -> (axis number, name, vtype)
         self.own: set = set()  # node ids of our namespace
-        self.events: dict[str, Any] = {}  # axis -> EventGenerator
+        self.events: dict[str, Any] = {}  # axis -> EventGenerators
         self.ranges: dict[Any, tuple[float, float]] = {}  # EURange node id -> (low, high) last written
         self.last_result: dict[str, Any] = {}  # axis -> LastWriteResult node id
 
@@ -505,7 +801,7 @@ class AddressSpace:
         self.idx = await server.register_namespace(NAMESPACE_URI)
         self.server = server
         iserver = server.iserver
-        service = self
+        space = self
 
         class Attributes(AttributeService):  # client writes: parameters through the drive, the rest refused
             async def write(self, params, user=None):
@@ -516,8 +812,8 @@ class AddressSpace:
                     return await super().write(params, user)
                 out = []
                 for wv in params.NodesToWrite:
-                    if wv.NodeId in service.own:
-                        out.append(await service.client_write(wv))
+                    if wv.NodeId in space.own:
+                        out.append(await space.client_write(wv))
                     else:
                         out.extend(await super().write(ua.WriteParameters(NodesToWrite=[wv]), user))
                 return out
@@ -528,8 +824,8 @@ class AddressSpace:
             [(name, getattr(ua.VariantType, vt)) for name, vt in EVENT_FIELDS])
         root = await server.nodes.objects.add_folder(self._nid("VirtualAxis"), ua.QualifiedName("VirtualAxis",
                                                                                               self.idx))
-        for ax in self.service.axes:
-            await self._build_axis(root, ax)
+        for i, ax in enumerate(self.layout):
+            await self._build_axis(root, i, ax)
         await server.start()
         self.bound_port = server.bserver.port if server.bserver is not None else st.port
 
@@ -589,62 +885,48 @@ class AddressSpace:
             self.own.add(e.nodeid)
         return node
 
-    async def _build_axis(self, root, ax: AxisSource) -> None:
+
+    async def _build_axis(self, root, axis: int, ax: dict) -> None:
         from asyncua import ua
 
-        from virtualaxis.drive.objects import SPECS
-        from virtualaxis.drive.snapshot import PARAMETERS
-
-        idx, base = self.idx, f"VirtualAxis.{ax.name}"
-        obj = await root.add_object(self._nid(base), ua.QualifiedName(ax.name, idx))
+        idx, name_, base = self.idx, ax["name"], f"VirtualAxis.{ax['name']}"
+        obj = await root.add_object(self._nid(base), ua.QualifiedName(name_, idx))
         self.own.add(obj.nodeid)
-        p = await obj.add_property(self._nid(f"{base}.NodeId"), ua.QualifiedName("NodeId", idx), ax.node_id,
+        p = await obj.add_property(self._nid(f"{base}.NodeId"), ua.QualifiedName("NodeId", idx), ax["node_id"],
                                    ua.VariantType.Byte)
         self.own.add(p.nodeid)
-        nodes = self.nodes[ax.name] = {}
-        s, nmt = ax.drive.state, ax.nmt()
+        nodes = self.nodes[name_] = {}
         folder = await obj.add_object(self._nid(f"{base}.State"), ua.QualifiedName("State", idx))
-        for name, vt, desc in STATE_VARS:
-            node = await self._var(folder, f"{base}.State", name, _state_value(name, s, nmt), vt, desc)
+        for (name, vt, desc), value in zip(STATE_VARS, ax["state"], strict=True):
+            node = await self._var(folder, f"{base}.State", name, value, vt, desc)
             nodes[name] = node.nodeid
-        params = self._parameters(ax)
         folder = await obj.add_object(self._nid(f"{base}.ActualValues"), ua.QualifiedName("ActualValues", idx))
-        for name, unit, attr, desc in ACTUAL_VARS:
-            node = await self._analog(folder, f"{base}.ActualValues", name, float(getattr(s, attr)), "Double", desc,
-                                      unit, ACTUAL_RANGES[name](params))
+        for (name, unit, _attr, desc), value, rng in zip(ACTUAL_VARS, ax["actual"], ax["ranges"], strict=True):
+            node = await self._analog(folder, f"{base}.ActualValues", name, value, "Double", desc, unit, rng)
             nodes[name] = node.nodeid
         folder = await obj.add_object(self._nid(f"{base}.Faults"), ua.QualifiedName("Faults", idx))
-        for name, vt, desc in FAULT_VARS:
-            node = await self._var(folder, f"{base}.Faults", name, _fault_value(name, s), vt, desc)
+        for (name, vt, desc), value in zip(FAULT_VARS, ax["faults"], strict=True):
+            node = await self._var(folder, f"{base}.Faults", name, value, vt, desc)
             nodes[name] = node.nodeid
         folder = await obj.add_object(self._nid(f"{base}.Parameters"), ua.QualifiedName("Parameters", idx))
-        limits = _eds_limits(self.settings.eds_path)
-        for name in ax.drive.parameter_names():
-            spec = PARAMETERS[name]
-            dtype = SPECS[(spec.index, spec.sub)].dtype
-            vt = "Double" if spec.scale != "raw" else DTYPE_VARIANT[dtype]
-            value = params[name] if vt == "Double" else int(round(params[name]))
-            rng = _parameter_range(ax.drive, spec, dtype, limits)
-            node = await self._analog(folder, f"{base}.Parameters", name, value, vt,
-                                      f"0x{spec.index:04X}:{spec.sub} {spec.doc}", parameter_unit(name, spec.doc),
-                                      rng, writable=self.settings.writable)
+        for name, vt, value, desc, unit, rng in ax["parameters"]:
+            node = await self._analog(folder, f"{base}.Parameters", name, value, vt, desc, unit, rng,
+                                      writable=self.settings.writable)
             nodes[f"param:{name}"] = node.nodeid
-            self.writers[node.nodeid] = (ax, name, vt)
+            self.writers[node.nodeid] = (axis, name, vt)
         node = await self._var(folder, f"{base}.Parameters", "LastWriteResult", "", "String",
                                "the last parameter write of a client: accepted, or refused with the reason")
-        self.last_result[ax.name] = node.nodeid
-        if self.settings.allow_fault_injection and ax.injector is not None:
-            await self._methods(obj, base, ax)
+        self.last_result[name_] = node.nodeid
+        if ax["methods"]:
+            await self._methods(obj, base, axis, ax["kinds"])
         # the events go to subscribers of the axis object and of the Server object (source: the axis)
         gens = [await self.server.get_event_generator(self.etype, obj.nodeid),
                 await self.server.get_event_generator(self.etype, ua.ObjectIds.Server)]
-        gens[1].event.SourceNode, gens[1].event.SourceName = obj.nodeid, ax.name
-        self.events[ax.name] = gens
+        gens[1].event.SourceNode, gens[1].event.SourceName = obj.nodeid, name_
+        self.events[name_] = gens
 
-    async def _methods(self, obj, base: str, ax: AxisSource) -> None:
+    async def _methods(self, obj, base: str, axis: int, kinds: str) -> None:
         from asyncua import ua
-
-        from virtualaxis.drive.injection import KINDS
 
         def arg(name: str, vt, desc: str) -> ua.Argument:
             return ua.Argument(Name=name, DataType=ua.NodeId(vt.value), ValueRank=ua.ValueRank.Scalar,
@@ -652,13 +934,12 @@ class AddressSpace:
 
         folder = await obj.add_object(self._nid(f"{base}.Methods"), ua.QualifiedName("Methods", self.idx))
         self.own.add(folder.nodeid)
-        kinds = ", ".join(KINDS)
         active = ua.Argument(Name="Active", DataType=ua.NodeId(ua.ObjectIds.String),
                              ValueRank=ua.ValueRank.OneDimension, ArrayDimensions=[0],
                              Description=ua.LocalizedText("the injected kinds now active"))
         m = await folder.add_method(
             self._nid(f"{base}.Methods.InjectFault"), ua.QualifiedName("InjectFault", self.idx),
-            self._method(ax, "inject"),
+            self._method(axis, "inject"),
             [arg("Kind", ua.VariantType.String, f"fault kind: {kinds}"),
              arg("Duty", ua.VariantType.Double, "fraction of each period the fault is present, (0, 1]; 1 permanent"),
              arg("PeriodS", ua.VariantType.Double, "period of an intermittent fault [s], 0.002..3600"),
@@ -667,20 +948,19 @@ class AddressSpace:
         self.own.add(m.nodeid)
         m = await folder.add_method(
             self._nid(f"{base}.Methods.ClearFault"), ua.QualifiedName("ClearFault", self.idx),
-            self._method(ax, "clear"),
+            self._method(axis, "clear"),
             [arg("Kind", ua.VariantType.String, "fault kind to clear, '' for all (the fault itself stays until "
                                                 "the master resets it)")], [active])
         self.own.add(m.nodeid)
 
-    def _method(self, ax: AxisSource, action: str) -> Callable:
-        from asyncua import ua
 
-        from virtualaxis.drive.injection import KINDS, InjectionRefused
+    def _method(self, axis: int, action: str) -> Callable:
+        from asyncua import ua
 
         want = [ua.VariantType.String] + ([ua.VariantType.Double] * 3 if action == "inject" else [])
 
         async def call(_parent, *args):
-            self.service.counters["method_calls"] += 1
+            self.proc.counters["method_calls"] += 1
             if len(args) < len(want):
                 return ua.StatusCode(ua.StatusCodes.BadArgumentsMissing)
             if len(args) > len(want):
@@ -692,49 +972,40 @@ class AddressSpace:
             if action == "inject":
                 duty, period_s, magnitude = (a.Value for a in args[1:])
                 options = {"duty": duty, "period_s": period_s, "magnitude": magnitude or None}
-            try:
-                ax.injector.command(action, kind, **options)
-            except InjectionRefused as exc:
-                bad = "BadInvalidState" if exc.code == 0x08000022 else "BadInvalidArgument"
-                return ua.StatusCode(getattr(ua.StatusCodes, bad))
-            active = sorted(ax.injector.active, key=lambda k: KINDS.get(k, 99))
+            status, _why, active = await self.proc.request("call", axis, action, kind, options)
+            if status != "Good":
+                return ua.StatusCode(getattr(ua.StatusCodes, status))
             return [ua.Variant(active, ua.VariantType.String)]
 
         return call
 
     # ---------------------------------------------------------------- client writes
     async def client_write(self, wv):
+        """A client's write of a node of our namespace: parameters checked and applied by serve (the drive's SDO
+        checks), everything else refused."""
         from asyncua import ua
-
-        from virtualaxis.drive.core import ObjectAccessError
 
         writer = self.writers.get(wv.NodeId)
         if writer is None or wv.AttributeId != ua.AttributeIds.Value or not self.settings.writable:
-            self.service.counters["writes_refused"] += 1
+            self.proc.counters["writes_refused"] += 1
             return ua.StatusCode(ua.StatusCodes.BadNotWritable)
-        ax, name, vt = writer
+        axis, name, vt = writer
         v = wv.Value.Value if wv.Value is not None else None
-        status, why = "Good", ""
+        now = None
         if v is None or v.VariantType != getattr(ua.VariantType, vt) or isinstance(v.Value, (list, tuple)):
             status, why = "BadTypeMismatch", f"{name} takes a {vt}"
         elif vt == "Double" and not math.isfinite(v.Value):
             status, why = "BadOutOfRange", f"{name}: {v.Value} is not a finite number"
         else:
-            try:
-                ax.drive.set_parameter(name, v.Value)
-            except ObjectAccessError as exc:
-                status, why = STATUS_OF_ABORT.get(exc.code, "BadUnexpectedError"), f"0x{exc.code:08X}: {exc}"
+            status, why, now = await self.proc.request("write", axis, name, v.Value)
         ok = status == "Good"
-        self.service.counters["writes_accepted" if ok else "writes_refused"] += 1
+        if now is None:  # refused here: serve never saw it
+            self.proc.counters["writes_refused"] += 1
         text = f"{name} = {v.Value!r}: accepted" if ok else f"{name}: refused {status} ({why})"
-        await self._write(self.last_result[ax.name], text, ua.VariantType.String)
-        await self._write(wv.NodeId, self._param_value(ax, name, vt), getattr(ua.VariantType, vt), force=True)
+        await self._write(self.last_result[self.layout[axis]["name"]], text, ua.VariantType.String)
+        if now is not None:
+            await self._write(wv.NodeId, parameter_node_value(now, vt), getattr(ua.VariantType, vt), force=True)
         return ua.StatusCode(getattr(ua.StatusCodes, status))
-
-    @staticmethod
-    def _param_value(ax: AxisSource, name: str, vt: str):
-        v = ax.drive.get_parameter(name)
-        return v if vt == "Double" else int(round(v))
 
     # ---------------------------------------------------------------- updates
     async def _write(self, nid, value, vt, *, force: bool = False) -> None:
@@ -745,99 +1016,56 @@ class AddressSpace:
         self.values[nid] = value
         await self.server.write_attribute_value(nid, ua.DataValue(ua.Variant(value, vt)))
 
-    async def update(self, batch: list) -> None:
+    async def update(self, axes: list, params: list | None) -> None:
+        """One batch of serve: per axis (state values, actual values, fault values, event records), and the
+        parameters with the actual values' ranges (or None: unchanged)."""
         from asyncua import ua
 
         VT = ua.VariantType
-        for ax, (s, nmt, events) in zip(self.service.axes, batch, strict=True):
-            n = self.nodes[ax.name]
-            for name, vt, _ in STATE_VARS:
-                await self._write(n[name], _state_value(name, s, nmt), getattr(VT, vt))
-            for name, _unit, attr, _ in ACTUAL_VARS:
-                await self._write(n[name], float(getattr(s, attr)), VT.Double)
-            for name, vt, _ in FAULT_VARS:
-                await self._write(n[name], _fault_value(name, s), getattr(VT, vt.rstrip("[]")))
-            for kind, es, rec in events:
-                await self._emit(ax, kind, es, rec)
+        for ax, (state, actual, faults, events) in zip(self.layout, axes, strict=True):
+            n = self.nodes[ax["name"]]
+            for (name, vt, _), value in zip(STATE_VARS, state, strict=True):
+                await self._write(n[name], value, getattr(VT, vt))
+            for (name, *_), value in zip(ACTUAL_VARS, actual, strict=True):
+                await self._write(n[name], value, VT.Double)
+            for (name, vt, _), value in zip(FAULT_VARS, faults, strict=True):
+                await self._write(n[name], value, getattr(VT, vt.rstrip("[]")))
+            for record in events:
+                await self._emit(ax["name"], record)
+        if params is not None:
+            await self._parameters(params)
 
-    async def _emit(self, ax: AxisSource, kind: str, s, rec) -> None:
-        for gen in self.events[ax.name]:
-            self._fill(gen.event, ax, kind, s, rec)
-            await gen.trigger(message=gen.event.Message.Text)
-        self.service.counters["events"] += 1
-
-    @staticmethod
-    def _fill(ev, ax: AxisSource, kind: str, s, rec) -> None:
+    async def _emit(self, axis_name: str, record: dict) -> None:
         from asyncua import ua
 
-        if kind.startswith("alarm"):
-            number = s.alarm_number if kind == "alarm" else int(rec or 0)
-            ev.EmcyCode, ev.FaultNumber, ev.FaultValue, ev.Injected = 0, number, 0, False
-            text = f"alarm A{number:05d} " + ("raised" if kind == "alarm" else "gone")
-        else:
-            ev.EmcyCode = rec.emcy_code if rec else s.error_code
-            ev.FaultNumber = rec.fault_number if rec else 0
-            ev.FaultValue = int(rec.value) if rec else 0
-            ev.Injected = bool(rec.injected) if rec else False
-            what = f"0x{ev.EmcyCode:04X} F{ev.FaultNumber:05d} {rec.text if rec else ''}".rstrip()
-            text = f"fault {what}" if kind == "fault" else f"fault acknowledged: {what}"
-        ev.Axis, ev.Kind, ev.CiA402State = ax.name, kind, s.cia402_state
-        ev.Severity = EVENT_SEVERITY[kind]
-        ev.Message = ua.LocalizedText(text)
+        for gen in self.events[axis_name]:
+            ev = gen.event
+            ev.Axis, ev.Kind, ev.CiA402State = axis_name, record["kind"], record["state"]
+            ev.EmcyCode, ev.FaultNumber = record["emcy"], record["number"]
+            ev.FaultValue, ev.Injected = record["value"], record["injected"]
+            ev.Severity = record["severity"]
+            ev.Message = ua.LocalizedText(record["message"])
+            await gen.trigger(message=ev.Message.Text)
+        self.proc.counters["events"] += 1
 
-    async def refresh_parameters(self) -> None:
+    async def _parameters(self, params: list) -> None:
         from asyncua import ua
 
-        for ax in self.service.axes:
-            params = self._parameters(ax)
-            n = self.nodes[ax.name]
-            for name, value in params.items():
-                nid = n.get(f"param:{name}")
-                if nid is None:
-                    continue
-                vt = self.writers[nid][2]
-                await self._write(nid, value if vt == "Double" else int(round(value)), getattr(ua.VariantType, vt))
-            for name, *_ in ACTUAL_VARS:
-                rid = self._nid(f"VirtualAxis.{ax.name}.ActualValues.{name}.EURange")
-                lo, hi = ACTUAL_RANGES[name](params)
+        for ax, (values, ranges) in zip(self.layout, params, strict=True):
+            n = self.nodes[ax["name"]]
+            for (name, vt, *_), value in zip(ax["parameters"], values, strict=True):
+                await self._write(n[f"param:{name}"], parameter_node_value(value, vt), getattr(ua.VariantType, vt))
+            for (name, *_), (lo, hi) in zip(ACTUAL_VARS, ranges, strict=True):
+                rid = self._nid(f"VirtualAxis.{ax['name']}.ActualValues.{name}.EURange")
                 if self.ranges.get(rid) != (lo, hi):
                     self.ranges[rid] = (lo, hi)
                     await self.server.write_attribute_value(rid, ua.DataValue(ua.Variant(
                         ua.Range(Low=float(lo), High=float(hi)), ua.VariantType.ExtensionObject)))
 
-    @staticmethod
-    def _parameters(ax: AxisSource) -> dict[str, float]:
-        d = ax.drive
-        with d.lock:  # one instant
-            return {name: d.get_parameter(name) for name in d.parameter_names()}
-
     async def stop(self) -> None:
         if self.server is not None:
             with contextlib.suppress(Exception):
                 await self.server.stop()
-
-
-def _state_value(name: str, s, nmt: str):
-    return {
-        "CiA402State": s.cia402_state, "Statusword": s.statusword, "Controlword": s.controlword,
-        "ModeOfOperation": s.mode, "ModeName": s.mode_name, "NmtState": nmt, "Homed": bool(s.homed),
-        "TargetReached": bool(s.target_reached), "Warning": bool(s.warning), "DriveTime": float(s.time_s),
-    }[name]
-
-
-def _fault_value(name: str, s):
-    if name == "FaultActive":
-        return bool(s.fault_active)
-    if name == "ErrorCode":
-        return int(s.error_code)
-    if name == "ActiveFault":
-        active = [f for f in s.faults if not f.acknowledged] if s.fault_active else []
-        return f"0x{active[0].emcy_code:04X} F{active[0].fault_number:05d} {active[0].text}" if active else ""
-    if name == "AlarmNumber":
-        return int(s.alarm_number)
-    if name == "FaultBuffer":
-        return [fault_line(f) for f in s.faults]
-    return [int(f.emcy_code) for f in s.faults]  # FaultCodes
 
 
 def _eds_limits(eds_path: str | None) -> dict:
