@@ -37,7 +37,6 @@ import math
 import struct
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 from virtualaxis.config import AxisConfig
@@ -48,9 +47,11 @@ from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
+from virtualaxis.drive.mode_context import ModeContext
 from virtualaxis.drive.object_table import ObjectAccessError, ObjectTable
 from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, clamp_to_dtype, eds_defaults, eds_limits
 from virtualaxis.drive.opmodes import SUPPORTED_MODE_BITS, TORQUE_MODES, OperationMode
+from virtualaxis.drive.parameters import PARAMETER_INDICES, DriveParameters, drive_parameters
 from virtualaxis.drive.profiles import SpeedZeroDetector, WindowTimer
 from virtualaxis.drive.setpoints import SetpointChannel
 from virtualaxis.drive.settings import drive_settings
@@ -84,38 +85,6 @@ ABORT_NO_OBJECT = 0x06020000
 
 PP, PV, PT, HM, CSP, CSV, CST = (OperationMode.PP, OperationMode.PV, OperationMode.PT, OperationMode.HM,
                                  OperationMode.CSP, OperationMode.CSV, OperationMode.CST)
-# torque modes: bit 11 while the torque pushes the axis at this share of 0x6080 or faster (the plant's speed
-# limiter acts there; chosen: above the P limiter's droop at the bench axes' friction, ~1 %)
-SPEED_LIMIT_SHARE = 0.97
-
-# objects whose change recomputes the cached monitoring parameters (_refresh_params)
-_MONITOR_PARAMETER_INDICES = frozenset(
-    {
-        0x6065,
-        0x6066,
-        0x6072,
-        0x2006,
-        0x2007,
-        0x6067,
-        0x6068,
-        0x606D,
-        0x606E,
-        0x606F,
-        0x6070,
-        0x200A,
-        0x200B,
-        0x6075,
-        0x6076,
-        0x607F,
-        0x6080,
-        0x608F,
-        0x6091,
-        0x6092,
-        0x607D,
-        0x60C2,
-    }
-)
-
 # objects that are two names for one value (manufacturer alias -> CiA 402 object)
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
@@ -373,20 +342,15 @@ class Drive:
                 f"0x6091:{sub} gear ratio {motor}:{shaft} (motor:shaft revolutions) is not this axis' {m}:{s} "
                 "(the motor drives the screw directly)")
 
-    def _lag_m(self, v_m_s: float) -> float:
-        """Steady following error of the position loop at velocity ``v`` [m]: v (1 - k_ff) / Kv. A position
-        demand placed this far ahead of the actual position takes over a moving axis bumplessly (the speed
-        set-point equals the actual speed)."""
-        o = self.objects
-        kv = float(o[(0x2000, 0)]) * 1000.0 / 60.0
-        kff = float(o[(0x2001, 0)]) if int(o[(0x2002, 0)]) >= 1 else 0.0
-        return v_m_s * (1.0 - kff) / kv if kv > 0 else 0.0
-
     def _inside_stroke(self, x_plant_m: float) -> float:
         """A plant position moved inside the stroke, clear of the limit switches [m]."""
         half = self.cfg.axis.stroke_m / 2 - self.settings.limit_switch_inset_m - 1e-3
         half = max(half, 0.0)
         return min(max(x_plant_m, -half), half)
+
+    def _set_axis(self, ax) -> None:
+        """The axis reading the drive, its set-point channel and its modes see from now on."""
+        self._axis = self.ctx.axis = self.setpoints.axis = ax
 
     @property
     def actual_velocity_m_s(self) -> float:
@@ -426,8 +390,18 @@ class Drive:
             values.update(self.derived_objects())
             #: the objects' values (the object table's dict: every object and alias, kept for the drive's life)
             self.objects: dict[tuple[int, int], int | float] = self.object_table.reset(values)
-            #: demand, zero offset (the plant position that reads as 0, shifted by homing), the plant's loop
-            self.setpoints = SetpointChannel(self.sim)
+            self._switch_monitor = mon.LimitSwitchMonitor()  # 0x60FD bits 0/1 as last monitored
+            self._range_monitor = mon.PositionRangeMonitor()
+            #: demand, zero offset (the plant position that reads as 0, shifted by homing), the plant's loop and
+            #: the set-point limiters
+            self.setpoints = SetpointChannel(self.sim, self.cycle_s, self._switch_monitor, self._homing_owns_switches,
+                                             self._params, self._store, self._target_outside)
+            #: what the modes of operation and the stop ramps see of this drive
+            self.ctx = ModeContext(
+                objects=self.objects, setpoints=self.setpoints, cycle_s=self.cycle_s, params=self._params,
+                switches=self._switches, travel_room_m=self.travel_room_m, refuse_setpoint=self.refuse_setpoint,
+                accept_setpoint=self.accept_setpoint, on_homed=lambda: self._notify("homed"),
+                stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
             self._faults: list[FaultRecord] = []
             self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
             self._fault_pending_reset = False
@@ -439,16 +413,11 @@ class Drive:
             self.setpoints.demand_m = self.sim.state.position_m
             self.setpoints.demand_v = 0.0
             self.setpoints.last_vff = 0.0
-            self._target_reached = False
-            self._internal_limit = False
             self._warning = False
             self._alarm = 0
             self._temperature_alarm = 0
             self._warnings.clear()
             self._motor_rise_k = 0.0
-            self._fe_timer = WindowTimer()
-            self._fe_exceeded = False
-            self._tr_timer = WindowTimer()
             self._vz_timer = SpeedZeroDetector()
             self._ss_timer = WindowTimer()
             self._rest_timer = WindowTimer()
@@ -458,10 +427,8 @@ class Drive:
             self._gen = self._modes[0].gen  # the profile generator of no mode / PP / HM
             self._hm: modes.Homing = self._modes[HM]
             self._csp: modes.CyclicPosition = self._modes[CSP]
-            self._prev_actual_m = self.setpoints.demand_m
+            self.ctx.prev_position_m = self.setpoints.demand_m
             self._fe_m = 0.0
-            self._switch_monitor = mon.LimitSwitchMonitor()  # 0x60FD bits 0/1 as last monitored
-            self._range_monitor = mon.PositionRangeMonitor()
             self._index_seen_m: float | None = None
             self._update_scaling()
             self._apply_gains()
@@ -469,7 +436,7 @@ class Drive:
             self.setpoints.control = self.sim.mode
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
-            self._axis = self.sim.state
+            self._set_axis(self.sim.state)
             self._refresh_params()
             # transition 0 + 1 (self-test done): switch on disabled
             self._set_state(S.SWITCH_ON_DISABLED)
@@ -489,7 +456,7 @@ class Drive:
             else:
                 x = self._inside_stroke(0.0)
             self.sim.reset(x, keep_time=True)
-            self._axis = self.sim.state
+            self._set_axis(self.sim.state)
             self._reset_all()
 
     @property
@@ -554,7 +521,7 @@ class Drive:
             key = self.object_table.key(index, sub)
             value = float(value) if SPECS[key].dtype == "f32" else int(value)
             self.object_table.store(key, value)
-            if key[0] in _MONITOR_PARAMETER_INDICES:
+            if key[0] in PARAMETER_INDICES:
                 self._params_dirty = True
             self._refused_setpoint = None
             self._react(key, value)
@@ -577,7 +544,7 @@ class Drive:
                 key = aliases.get(key, key)
                 value = float(value) if SPECS[key].dtype == "f32" else int(value)
                 store(key, value)
-                if key[0] in _MONITOR_PARAMETER_INDICES:
+                if key[0] in PARAMETER_INDICES:
                     self._params_dirty = True
                 keyed.append((key, value))
             if len(keyed) > 1:
@@ -641,9 +608,9 @@ class Drive:
         elif index == 0x6060:
             self._on_mode(int(value))
         elif index == 0x607A:
-            self._mode_obj.on_target_position(self, int(value))
+            self._mode_obj.on_target_position(self.ctx, int(value))
         elif index in (0x60FF, 0x60B1):
-            self._mode_obj.on_target_velocity(self)
+            self._mode_obj.on_target_velocity(self.ctx)
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -667,8 +634,9 @@ class Drive:
             gear_motor_revs=int(o[(0x6091, 1)]),
             gear_shaft_revs=int(o[(0x6091, 2)]),
         )
-        self._u = self.scaling.metres_per_unit
+        self._u = self.ctx.u = self.scaling.metres_per_unit
         self._inc_per_m = self.scaling.increments_per_metre
+        self.ctx.motor_rev_travel_m = self.scaling.motor_rev_travel_m
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
@@ -700,13 +668,14 @@ class Drive:
     def _set_state(self, new: Cia402State) -> None:
         old = self._state
         self._state = new
+        self.ctx.enabled = new is S.OPERATION_ENABLED
         if new != old:
             self._update_statusword()
             self._notify("state")
 
     def _on_controlword(self, cw: int) -> None:
         old_cw = self._cw
-        self._cw = cw
+        self._cw = self.ctx.cw = cw
         # fault reset: rising edge of bit 7
         if cw & 0x80 and not old_cw & 0x80:
             if self._state == S.FAULT:
@@ -731,6 +700,7 @@ class Drive:
         target = TARGET_STATE[tr]
         if tr in (TRANSITION.T4, TRANSITION.T3_4, TRANSITION.T16):
             self._stop = None
+            self.ctx.stopping = False
             if not self._power:
                 self._power_on()
             self._enter_mode(self._mode)
@@ -775,12 +745,13 @@ class Drive:
         self.setpoints.set_control(CONTROL_MODE.POSITION)
         self.setpoints.send_position(self.setpoints.demand_m, 0.0, 0.0)
         self.sim.enable(True)
-        self._power = True
+        self._power = self.ctx.powered = True
 
     def _power_off(self) -> None:
         self.sim.enable(False)
-        self._power = False
+        self._power = self.ctx.powered = False
         self._stop = None
+        self.ctx.stopping = False
         self.setpoints.demand_v = 0.0
         self._hm.run = None
 
@@ -793,11 +764,8 @@ class Drive:
                 self._set_state(then)
             return
         self._hm.run = None  # a stop interrupts a homing run
-        self._stop = rx.StopRamp.start(self, kind, then)
-
-    def note_internal_limit(self) -> None:
-        """A mode limited its target this cycle (0x607F / 0x6080, software limits): statusword bit 11."""
-        self._internal_limit = True
+        self._stop = rx.StopRamp.start(self.ctx, kind, then)
+        self.ctx.stopping = True
 
     def _travel_monitors(self, ax) -> None:
         """Position range, overspeed and limit switches: each monitor returns its event, applied here."""
@@ -818,7 +786,7 @@ class Drive:
             armed = (self._power and self._state is S.OPERATION_ENABLED and self._stop is None
                      and not self._homing_owns_switches())
             event = self._switch_monitor.check(neg, pos, ax.velocity_m_s, self.setpoints.demand_v,
-                                               rx.standstill_threshold_m_s(self), armed,
+                                               rx.standstill_threshold_m_s(self.ctx), armed,
                                                int(self._obj(0x2013)) == 1)
             if event is not None:
                 self._apply_monitor_event(event)
@@ -829,7 +797,7 @@ class Drive:
         """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
         unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
         switch fault must not overtake."""
-        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self))
+        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self.ctx))
 
     def _apply_monitor_event(self, event: mon.Event) -> None:
         """A monitor's event: a fault (with its persistent cause), a cause gone, or a limit switch reached
@@ -843,12 +811,12 @@ class Drive:
             self._raise_fault(event.code, event.switches)
         else:
             self.set_warning(event.code, True)
-            self._internal_limit = True
+            self.setpoints.internal_limit = True
             self._start_stop("quick", then="resume")
 
     def _run_stop(self) -> None:
         s = self._stop
-        outcome = rx.run_stop(self, s)
+        outcome = rx.run_stop(self.ctx, s)
         if outcome is rx.StopOutcome.DONE:
             self._finish_stop(s)
         elif outcome is rx.StopOutcome.FAILED:
@@ -857,6 +825,7 @@ class Drive:
     def _braking_failed(self) -> None:
         """The axis is not at standstill within the stop's bound: fault 0x8400 (F07900), pulses off (OFF2)."""
         self._stop = None
+        self.ctx.stopping = False
         v = self._axis.velocity_m_s
         self._raise_fault(0x8400, int(round(v * self._pc.inv_u)) if math.isfinite(v) else 0)
         self._power_off()
@@ -866,6 +835,7 @@ class Drive:
     def _finish_stop(self, s: rx.StopRamp) -> None:
         """Stopped and held: the state change the stop was for."""
         self._stop = None
+        self.ctx.stopping = False
         self._enter_mode_idle_hold()
         then = s.then
         if self._state is S.FAULT_REACTION_ACTIVE:
@@ -931,8 +901,8 @@ class Drive:
         self._faults = [
             FaultRecord(f.emcy_code, f.fault_number, f.value, f.text, f.time_s, f.injected, True) for f in self._faults
         ]
-        self._fe_timer = WindowTimer()
-        self._fe_exceeded = False
+        self.ctx.fe_timer = WindowTimer()
+        self.ctx.fe_exceeded = False
         self._store((0x603F, 0), 0)
         if self.emcy_reset_sink is not None:
             self.emcy_reset_sink()
@@ -1016,109 +986,25 @@ class Drive:
         self.setpoints.last_vff = 0.0
         self._gen.reset(p)
         for m in self._modes.values():  # every mode's own state at rest (PP handshake, homing run, CSP)
-            m.reset(self, p)
-        self._restart_target_window()
-        self._mode_obj.enter(self)
+            m.reset(self.ctx, p)
+        self.ctx.restart_target_window()
+        self._mode_obj.enter(self.ctx)
 
-    def _restart_target_window(self) -> None:
-        """Target reached (bit 10) false and its 0x6068 window timer restarted (new set-point / mode)."""
-        self._target_reached = False
-        self._tr_timer = WindowTimer()
-
-    def _state_enabled(self) -> bool:
-        return self._state is S.OPERATION_ENABLED
-
-    def _interp_cycles(self) -> int:
-        """Drive cycles per interpolation period 0x60C2 (at least 1); cached with the parameters."""
-        return self._params().interp_cycles
-
-    def _limits_m(self) -> tuple[float, float] | None:
-        """Software position limits 0x607D [m], None when min >= max (off); cached with the parameters."""
-        return self._params().travel_limits_m
-
-    def _interp_cycles_from_objects(self) -> int:
-        value = int(self._obj(0x60C2, 1))
-        exp = int(self._obj(0x60C2, 2))
-        period = value * 10.0**exp
-        return max(1, int(round(period / self.cycle_s)))
-
-    def _limits_m_from_objects(self) -> tuple[float, float] | None:
-        lo, hi = int(self._obj(0x607D, 1)), int(self._obj(0x607D, 2))
-        if lo >= hi:
-            return None
-        return lo * self._u, hi * self._u
-
-    def _check_limit(self, target_m: float, raw_value: int) -> float | None:
-        """Apply 0x607D to a target: clamped target (bit 11), or None after a fault (0x2012 = 1)."""
-        lim = self._limits_m()
-        if lim is None or lim[0] <= target_m <= lim[1]:
-            self._internal_limit = False
-            return target_m
+    def _target_outside(self, raw_value: int) -> bool:
+        """A target beyond the software limits 0x607D: counted; with 0x2012 = 1 fault 0x8612 (the target is
+        refused: True), else clamped by the set-point channel (False)."""
         self.counters["targets_clamped"] += 1
         self._store((0x2110, 3), clamp_to_dtype(self.counters["targets_clamped"], "u32"))
         if int(self._obj(0x2012)) == 1:
             self._raise_fault(0x8612, raw_value)
-            return None
-        self._internal_limit = True
-        return min(max(target_m, lim[0]), lim[1])
+            return True
+        return False
 
     def _mode_controlword(self, old_cw: int, cw: int) -> None:
         """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt): the mode object's,
         in OPERATION ENABLED without a stop running."""
         if self._state == S.OPERATION_ENABLED and self._stop is None:
-            self._mode_obj.controlword(self, old_cw, cw)
-
-    def _clamp_velocity(self, v: float) -> float:
-        """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
-        vmax = self._params().max_velocity_m_s
-        return max(-vmax, min(vmax, v))
-
-    def _apply_torque(self, t_nm: float, rated_nm: float, requested_nm: float | None = None) -> None:
-        """Torque modes: limit by 0x6072, stop pushing outward beyond a software limit; the plant's speed
-        limiter (0x6080, see :meth:`AxisSimulator.set_loop_gains`) caps the torque near the maximum speed;
-        bit 11 while any limit acts; 0x6074 = the torque demanded of the motor."""
-        t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
-        requested = t_nm if requested_nm is None else requested_nm
-        limited = abs(requested) > t_max
-        t = max(-t_max, min(t_max, t_nm))
-        if t != 0.0 and self._velocity_limit(math.copysign(1.0, t)) == 0.0:
-            t, limited = 0.0, True
-        v = self._axis.velocity_m_s
-        if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._params().max_speed_m_s:
-            limited = True
-        self._internal_limit = limited
-        self.setpoints.send_torque(t)
-        self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
-
-    def _velocity_limit(self, v: float) -> float:
-        """Velocity modes: no motion outward beyond a software limit or toward an active limit switch
-        (bit 11)."""
-        switches = self._switch_monitor
-        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
-        if blocked and v * blocked > 0.0:
-            self._internal_limit = True
-            return 0.0
-        lim = self._limits_m()
-        if lim is None:
-            return v
-        x = self._axis.position_m - self.setpoints.zero_m
-        if (x >= lim[1] and v > 0) or (x <= lim[0] and v < 0):
-            self._internal_limit = True
-            return 0.0
-        if self._mode in (PV, CSV):
-            self._internal_limit = False
-        return v
-
-    def _set_position(self, p: float, vff: float) -> None:
-        switches = self._switch_monitor
-        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
-        if blocked and (p - self.setpoints.demand_m) * blocked > 0.0:  # no further toward an active limit switch
-            p, vff = self.setpoints.demand_m, 0.0
-            self._internal_limit = True
-        acc = (vff - self.setpoints.last_vff) / self.cycle_s
-        self.setpoints.last_vff = vff
-        self.setpoints.demand_m, self.setpoints.demand_v = p, vff
-        self.setpoints.send_position(p, vff, acc)
+            self._mode_obj.controlword(self.ctx, old_cw, cw)
 
     # ================================================================================ homing
     # ================================================================================ switches
@@ -1171,7 +1057,7 @@ class Drive:
         try:
             self._power_off()
             self._restore_plant_if_not_finite()
-            self._axis = self.sim.state
+            self._set_axis(self.sim.state)
             if self._state is not S.FAULT or not self._faults or self._faults[0].emcy_code != 0x6100:
                 self._raise_fault(0x6100, n)
             self._publish_outputs()
@@ -1186,7 +1072,7 @@ class Drive:
         st = self.sim.st
         if all(math.isfinite(x) for x in st.tolist()):
             return
-        x = self._prev_actual_m if math.isfinite(self._prev_actual_m) else 0.0
+        x = self.ctx.prev_position_m if math.isfinite(self.ctx.prev_position_m) else 0.0
         self.sim.reset(self._inside_stroke(x), keep_time=True)
 
     # ================================================================================ fault injection API
@@ -1278,13 +1164,15 @@ class Drive:
             if self._stop is not None:
                 self._run_stop()
             elif self._state == S.OPERATION_ENABLED:
-                self._mode_obj.cycle(self)
+                self._mode_obj.cycle(self.ctx)
             elif self._state == S.QUICK_STOP_ACTIVE:
                 self.setpoints.set_control(CONTROL_MODE.POSITION)
-                self._set_position(self.setpoints.demand_m, 0.0)
+                self.setpoints.position(self.setpoints.demand_m, 0.0)
         self.sim.advance(1)
-        self._prev_actual_m = self._axis.position_m
-        ax = self._axis = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
+        self.ctx.prev_position_m = self._axis.position_m
+        ax = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
+        if ax is not self._axis:
+            self._set_axis(ax)
         self.counters["cycles"] += 1
         if not math.isfinite(ax.position_m + ax.velocity_m_s + ax.table_position_m + ax.current_q_a) and not (
                 math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
@@ -1300,7 +1188,7 @@ class Drive:
         self._monitor(ax, dt)
         self._publish_outputs()
 
-    def _params(self) -> _Params:
+    def _params(self) -> DriveParameters:
         """The cached parameters, recomputed first if an object they come from was written."""
         if self._params_dirty:
             self._refresh_params()
@@ -1308,42 +1196,12 @@ class Drive:
 
     def _refresh_params(self) -> None:
         """Monitoring parameters and limits in SI, recomputed only after an object write (not every cycle)."""
-        o, u, mot = self.objects, self._u, self.cfg.motor
-        vdc_nom = self.cfg.inverter.dc_link_v
-        window = int(o[(0x6065, 0)])
-        max_speed = self._max_speed_m_s()
-        self._pc = _Params(
-            fe_window_m=math.inf if window == 0xFFFFFFFF else window * u,
-            fe_time_s=int(o[(0x6066, 0)]) / 1000.0,
-            standstill_window_m=int(o[(0x2006, 0)]) * u,
-            standstill_time_s=int(o[(0x2007, 0)]) / 1000.0,
-            position_window_m=int(o[(0x6067, 0)]) * u,
-            position_time_s=int(o[(0x6068, 0)]) / 1000.0,
-            velocity_window_m_s=int(o[(0x606D, 0)]) * u,
-            velocity_time_s=int(o[(0x606E, 0)]) / 1000.0,
-            velocity_threshold_m_s=int(o[(0x606F, 0)]) * u,
-            velocity_threshold_time_s=int(o[(0x6070, 0)]) / 1000.0,
-            temperature_alarm_c=float(o[(0x200A, 0)]),
-            temperature_fault_c=float(o[(0x200B, 0)]),
-            dc_over_v=self.settings.dc_link_overvoltage_v or 1.25 * vdc_nom,
-            dc_under_v=self.settings.dc_link_undervoltage_v or 0.70 * vdc_nom,
-            rated_current_a=self.cfg.motor.rated_current_a,
-            pmsm=self.cfg.actuator.kind == "pmsm",
-            inv_u=1.0 / u,
-            rated_nm=float(o[(0x6076, 0)]) / 1000.0,
-            rated_a=float(o[(0x6075, 0)]) / 1000.0,
-            max_speed_m_s=max_speed,
-            max_velocity_m_s=min(float(o[(0x607F, 0)]) * u, max_speed),
-            kt_nm_per_a=mot.kt_nm_per_a,
-            reluctance_nm_per_a2=1.5 * mot.pole_pairs * (mot.ld_h - mot.lq_h),
-            max_torque_nm=float(o[(0x6072, 0)]) / 1000.0 * float(o[(0x6076, 0)]) / 1000.0,
-            travel_limits_m=self._limits_m_from_objects(),
-            interp_cycles=self._interp_cycles_from_objects(),
-        )
+        self._pc = drive_parameters(self.objects, self._u, self._max_speed_m_s(), self.cfg, self.settings,
+                                    self.cycle_s)
         self._params_dirty = False
 
     def _monitor(self, ax, dt: float) -> None:
-        pc = self._pc
+        pc, ctx = self._pc, self.ctx
         fe_m = ax.following_error_m
         in_position_control = (
             self._power
@@ -1352,11 +1210,11 @@ class Drive:
         )
         # following error 0x6065 / 0x6066 (position control only)
         if in_position_control:
-            self._fe_exceeded = self._fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
-            if self._fe_exceeded:
+            ctx.fe_exceeded = ctx.fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
+            if ctx.fe_exceeded:
                 self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
-        elif self._fe_timer.held_s:
-            self._fe_timer.held_s = 0.0
+        elif ctx.fe_timer.held_s:
+            ctx.fe_timer.held_s = 0.0
         # standstill monitoring (p2542/p2543): demand at rest for 0x2007 ms, |FE| > 0x2006 -> following error
         if in_position_control and self.setpoints.demand_v == 0.0 and self._stop is None:
             at_rest = self._rest_timer.update(True, dt, pc.standstill_time_s)
@@ -1365,8 +1223,8 @@ class Drive:
         elif self._rest_timer.held_s:
             self._rest_timer.held_s = 0.0
         # target reached / velocity reached (the mode object's definition of bit 10)
-        self._target_reached = self._mode_obj.target_reached(self, ax, dt)
-        self._speed_zero = self._vz_timer.update(
+        ctx.target_reached = self._mode_obj.target_reached(ctx, ax, dt)
+        ctx.speed_zero = self._vz_timer.update(
             ax.velocity_m_s, dt, pc.velocity_threshold_m_s, pc.velocity_threshold_time_s
         )
         # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
@@ -1396,25 +1254,23 @@ class Drive:
         sw = _STATE_SW[self._state._value_]  # state bits + voltage enabled + remote
         if self._warning or self._alarm:
             sw |= 0x80
-        if self._target_reached:
+        ctx = self.ctx
+        if ctx.target_reached:
             sw |= 0x400
-        if self._internal_limit or (self._power and self._axis.current_limited):
+        if self.setpoints.internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
         if self._state == S.OPERATION_ENABLED:
             mode = self._mode_obj  # bits 12 / 13 (HM: 10 too): the mode's status_mask
-            sw = (sw & ~mode.status_mask) | mode.status_bits(self)
+            sw = (sw & ~mode.status_mask) | mode.status_bits(ctx)
         elif self._state is S.QUICK_STOP_ACTIVE:
             # CiA 402 bit 10: set once the quick stop (options 5..8) has finished and the drive is halted, in
             # every mode; bit 12 only where it tells the actual motion (PV / CSV "speed = 0")
             sw = (sw & ~0x400) | (0x400 if self._stop is None else 0)
-            sw |= self._mode_obj.quick_stop_bits(self)
+            sw |= self._mode_obj.quick_stop_bits(ctx)
         elif ((self._state is S.FAULT or self._state is S.FAULT_REACTION_ACTIVE) and self._faults
               and self._faults[0].emcy_code == 0x8611):
             sw |= 0x2000  # following error (bit 13) from the timeout 0x6066 on: through the fault reaction, in FAULT
         self._store((0x6041, 0), sw)
-
-    def _speed_zero_flag(self) -> bool:
-        return bool(getattr(self, "_speed_zero", False))
 
     def _torque_actual_nm(self, ax) -> float:
         """Torque actual value [N m] as a drive computes it: from the measured dq currents (k_t i_q plus the
@@ -1597,36 +1453,6 @@ class Drive:
 
     def set_controlword(self, cw: int) -> None:
         self.write_object(0x6040, 0, cw)
-
-
-@dataclass(frozen=True, slots=True)
-class _Params:
-    fe_window_m: float
-    fe_time_s: float
-    standstill_window_m: float
-    standstill_time_s: float
-    position_window_m: float
-    position_time_s: float
-    velocity_window_m_s: float
-    velocity_time_s: float
-    velocity_threshold_m_s: float
-    velocity_threshold_time_s: float
-    temperature_alarm_c: float
-    temperature_fault_c: float
-    dc_over_v: float
-    dc_under_v: float
-    rated_current_a: float
-    pmsm: bool
-    inv_u: float
-    rated_nm: float
-    rated_a: float
-    max_speed_m_s: float  # 0x6080 as table speed
-    max_velocity_m_s: float  # velocity targets' limit: 0x607F and 0x6080
-    kt_nm_per_a: float  # torque constant (0x6077 from the currents)
-    reluctance_nm_per_a2: float  # 1.5 p (L_d - L_q)
-    max_torque_nm: float  # 0x6072 as torque
-    travel_limits_m: tuple[float, float] | None  # 0x607D in m (None: min >= max, no limits)
-    interp_cycles: int  # 0x60C2 in drive cycles
 
 
 def _reaction_rank(item: tuple[tuple[int, int], int | float]) -> int:
