@@ -1,5 +1,7 @@
 """The drive parameters in SI units, computed from the objects once after a write (not every cycle):
-monitoring windows and times, ratings, speed and travel limits, the interpolation period."""
+monitoring windows and times, ratings, speed and travel limits, the interpolation period; the plant's loop
+gains and current limit from the objects; the named parameters (:data:`~virtualaxis.drive.snapshot.PARAMETERS`)
+and their scaling to SI units."""
 
 from __future__ import annotations
 
@@ -7,9 +9,15 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from virtualaxis.drive.snapshot import PARAMETERS
+
 if TYPE_CHECKING:
     from virtualaxis.config import AxisConfig
     from virtualaxis.drive.settings import DriveSettings
+
+#: the current limit sent to the plant for a torque / current limit 0x6072 / 0x6073 of 0 [A or N]: the plant's
+#: "no limit" is 0, a zero limit is zero torque (chosen: 1e-9, no torque a measurement can resolve)
+ZERO_CURRENT_LIMIT = 1e-9
 
 #: objects whose change recomputes the parameters (:func:`drive_parameters`)
 PARAMETER_INDICES = frozenset({
@@ -97,3 +105,59 @@ def drive_parameters(objects: dict, u: float, max_speed_m_s: float, cfg: AxisCon
         travel_limits_m=travel_limits_m(o, u),
         interp_cycles=interp_cycles(o, cycle_s),
     )
+
+
+def loop_gains(objects: dict, cfg: AxisConfig, max_speed_m_s: float) -> dict[str, float | None]:
+    """The plant's loop parameters from 0x2000 - 0x2004 (``AxisSimulator.set_loop_gains`` arguments)."""
+    o = objects
+    mode = int(o[(0x2002, 0)])
+    kp = float(o[(0x2003, 0)])
+    return {
+        "kv_per_s": float(o[(0x2000, 0)]) * 1000.0 / 60.0,
+        "velocity_ff_factor": float(o[(0x2001, 0)]) if mode >= 1 else 0.0,
+        "torque_ff_factor": (cfg.control.torque_ff_factor or 1.0) if mode == 2 else 0.0,
+        "speed_kp": kp if kp > 0 else None,
+        "speed_ti_s": float(o[(0x2004, 0)]) / 1000.0,
+        "speed_limit_m_s": max_speed_m_s,
+    }
+
+
+def current_limit(objects: dict, cfg: AxisConfig, kt_nm_per_a: float, power_unit_limit: float) -> float:
+    """The plant's current limit [A] (a force actuator: force [N]) from 0x6072 / 0x6073 / 0x6075 / 0x6076, never
+    beyond the power unit's ``power_unit_limit``; a limit of 0 is zero torque (:data:`ZERO_CURRENT_LIMIT`)."""
+    o = objects
+    rated_nm = float(o[(0x6076, 0)]) / 1000.0
+    if cfg.actuator.kind == "pmsm":
+        rated_a = float(o[(0x6075, 0)]) / 1000.0
+        lim_current = float(o[(0x6073, 0)]) / 1000.0 * rated_a
+        kt = kt_nm_per_a
+        lim_torque_as_current = float(o[(0x6072, 0)]) / 1000.0 * rated_nm / kt if kt > 0 else lim_current
+        limit = min(lim_current, lim_torque_as_current)
+    else:  # force actuator: 0x6072 per mille of the rated force 0x6076 [N]
+        limit = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
+    limit = min(limit, power_unit_limit)  # 0x6075 / 0x6076 are writable: never beyond the hardware
+    # a limit of 0 is zero torque: the plant reads 0 as "no limit", so it gets the smallest positive one
+    return max(limit, ZERO_CURRENT_LIMIT)
+
+
+def named_parameter(name: str):
+    """The spec of the named parameter ``name`` (:data:`~virtualaxis.drive.snapshot.PARAMETERS`); KeyError with
+    the closest name for an unknown one."""
+    spec = PARAMETERS.get(name)
+    if spec is None:
+        import difflib
+
+        hint = difflib.get_close_matches(name, list(PARAMETERS), n=1)
+        raise KeyError(f"unknown drive parameter {name!r}" + (f" (did you mean {hint[0]}?)" if hint else ""))
+    return spec
+
+
+def parameter_scale(spec, objects: dict, u: float) -> float:
+    """SI units per raw unit of a named parameter (``u``: metres per position unit)."""
+    if spec.scale == "pos":
+        return u
+    if spec.scale == "torque_nm":
+        return float(objects[(0x6076, 0)]) / 1e6  # per mille of rated mN m -> N m
+    if spec.scale == "current_a":
+        return float(objects[(0x6075, 0)]) / 1e6
+    return 1.0
