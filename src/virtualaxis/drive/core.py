@@ -2,24 +2,25 @@
 
 Data path of one cycle (what to read, in order):
 
-1. RPDO -> every mapped object stored, then the reactions (:meth:`Drive.write_objects`; an SDO write is
-   :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
+1. RPDO -> every mapped object stored in the object table (:mod:`~virtualaxis.drive.object_table`; write
+   rules :mod:`~virtualaxis.drive.commissioning`), then the reactions (:meth:`Drive.write_objects`; an SDO
+   write is :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
    0x6060 -> mode object;
 2. :meth:`Drive.step`: cycle hooks (fault injection), then the active stop (:mod:`~virtualaxis.drive.reactions`,
    always from the actual motion) or the mode object's ``cycle`` (:mod:`~virtualaxis.drive.modes`, one module
-   per mode: PP, PV, PT, HM, CSP, CSV, CST) -> set-point limiters -> set-point channel
+   per mode: PP, PV, PT, HM, CSP, CSV, CST), both on the drive's
+   :class:`~virtualaxis.drive.mode_context.ModeContext` -> the set-point channel with its limiters
    (:mod:`~virtualaxis.drive.setpoints`) -> plant (``AxisSimulator.advance``);
 3. monitors: travel (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed) and
    ``Drive._monitor`` (following error, standstill, target reached via the mode object, temperature,
-   DC link) -> faults (:mod:`~virtualaxis.drive.faults`, reaction class per fault);
+   DC link) -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F, causes, warnings,
+   EMCY) and the state machine's fault reaction (reaction class per fault, :mod:`~virtualaxis.drive.faults`);
 4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
    application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
 
-:class:`Drive` runs the power drive state machine, the object access, the set-point limiters and the
-orchestration of one position-loop cycle; the modes of operation (PP, PV, PT, HM, CSP, CSV, CST) are objects
-that own their set-point state (:mod:`~virtualaxis.drive.modes`), stops are :mod:`~virtualaxis.drive.reactions`,
-travel monitors :mod:`~virtualaxis.drive.monitoring`; following error, standstill, target/velocity reached,
-motor temperature, DC link and the fault handling (EMCY, fault buffer) are here.
+:class:`Drive` runs the power drive state machine, the object access and the orchestration of one
+position-loop cycle, and keeps the following-error, standstill, temperature and DC-link monitors; the
+parameters in SI units are :mod:`~virtualaxis.drive.parameters`.
 Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
 (:mod:`virtualaxis.drive.canopen_app`) mirrors them into the slave's object dictionary, and services
 (Modbus, MQTT, conformance, fault injection) use the named API: :attr:`Drive.state`,
@@ -969,7 +970,10 @@ class Drive:
         temp = MOTOR_AMBIENT_C + self._motor_rise_k
         fm = self.fault_manager
         causes = fm.causes
-        fm.temperature_alarm = MOTOR_TEMPERATURE_ALARM if temp >= pc.temperature_alarm_c else 0
+        alarm = MOTOR_TEMPERATURE_ALARM if temp >= pc.temperature_alarm_c else 0
+        if alarm != fm.temperature_alarm:  # (a warning's change updates the alarm itself)
+            fm.temperature_alarm = alarm
+            fm.update_alarm()
         if temp >= pc.temperature_fault_c:
             if 0x4310 not in causes:
                 self._raise_fault(0x4310, int(temp * 10), cause="motor temperature")
@@ -983,7 +987,6 @@ class Drive:
                     self._raise_fault(code, int(vdc * 1000), cause="dc link")
                 elif not bad and causes.get(code) == "dc link":
                     del causes[code]
-        fm.update_alarm()
 
     # ================================================================================ outputs
     def _update_statusword(self) -> None:
