@@ -136,7 +136,7 @@ def test_fault_reset_on_rising_edge_only_and_not_while_the_cause_persists(rig): 
     rig.drive.inject_fault(0x8611)
     rig.drive.clear_fault()  # clears the injected cause and acknowledges
     rig.drive.inject_fault(0x7320)
-    rig.drive._causes.clear()  # the encoder came back (cause gone) - only the fault state remains
+    rig.drive.clear_cause("injected")  # the encoder came back (cause gone) - only the fault state remains
     node.sdo[0x6040].raw = 0x80  # bit 7 was already 1: no edge
     assert rig.sw() & 0x4F == 0x08
     node.sdo[0x6040].raw = 0x00

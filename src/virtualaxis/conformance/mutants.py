@@ -230,19 +230,9 @@ def _sync_rpdo_at_once() -> None:
 @mutant("homing_offset_ignored", "homing on the current position sets 0x6064 to 0, not to the home offset 0x607C",
         only="402-HM-1")
 def _homing_offset_ignored() -> None:
-    from virtualaxis.drive import modes
+    from virtualaxis.drive.mode_context import ModeContext
 
-    original = modes.Homing.finish
-
-    def finish(self, d) -> None:
-        read = d._obj
-        d._obj = lambda index, sub=0: 0 if index == 0x607C else read(index, sub)  # (0x607C read as 0)
-        try:
-            original(self, d)
-        finally:
-            del d._obj
-
-    modes.Homing.finish = finish
+    ModeContext.home_offset_m = lambda self: 0.0  # (0x607C read as 0 when the home point is set)
 
 
 def main(argv: list[str] | None = None) -> int:

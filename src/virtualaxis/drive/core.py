@@ -2,24 +2,25 @@
 
 Data path of one cycle (what to read, in order):
 
-1. RPDO -> every mapped object stored, then the reactions (:meth:`Drive.write_objects`; an SDO write is
-   :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
+1. RPDO -> every mapped object stored in the object table (:mod:`~virtualaxis.drive.object_table`; write
+   rules :mod:`~virtualaxis.drive.commissioning`), then the reactions (:meth:`Drive.write_objects`; an SDO
+   write is :meth:`Drive.write_object`): controlword -> state machine (:mod:`~virtualaxis.drive.statemachine`),
    0x6060 -> mode object;
 2. :meth:`Drive.step`: cycle hooks (fault injection), then the active stop (:mod:`~virtualaxis.drive.reactions`,
    always from the actual motion) or the mode object's ``cycle`` (:mod:`~virtualaxis.drive.modes`, one module
-   per mode: PP, PV, PT, HM, CSP, CSV, CST) -> set-point limiters -> set-point channel
+   per mode: PP, PV, PT, HM, CSP, CSV, CST), both on the drive's
+   :class:`~virtualaxis.drive.mode_context.ModeContext` -> the set-point channel with its limiters
    (:mod:`~virtualaxis.drive.setpoints`) -> plant (``AxisSimulator.advance``);
 3. monitors: travel (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed) and
    ``Drive._monitor`` (following error, standstill, target reached via the mode object, temperature,
-   DC link) -> faults (:mod:`~virtualaxis.drive.faults`, reaction class per fault);
+   DC link) -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F, causes, warnings,
+   EMCY) and the state machine's fault reaction (reaction class per fault, :mod:`~virtualaxis.drive.faults`);
 4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
    application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
 
-:class:`Drive` runs the power drive state machine, the object access, the set-point limiters and the
-orchestration of one position-loop cycle; the modes of operation (PP, PV, PT, HM, CSP, CSV, CST) are objects
-that own their set-point state (:mod:`~virtualaxis.drive.modes`), stops are :mod:`~virtualaxis.drive.reactions`,
-travel monitors :mod:`~virtualaxis.drive.monitoring`; following error, standstill, target/velocity reached,
-motor temperature, DC link and the fault handling (EMCY, fault buffer) are here.
+:class:`Drive` runs the power drive state machine, the object access and the orchestration of one
+position-loop cycle, and keeps the following-error, standstill, temperature and DC-link monitors; the
+parameters in SI units are :mod:`~virtualaxis.drive.parameters`.
 Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
 (:mod:`virtualaxis.drive.canopen_app`) mirrors them into the slave's object dictionary, and services
 (Modbus, MQTT, conformance, fault injection) use the named API: :attr:`Drive.state`,
@@ -37,20 +38,43 @@ import math
 import struct
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 from virtualaxis.config import AxisConfig
-from virtualaxis.config.axis import max_table_speed_m_s
-from virtualaxis.drive import homing as hm
 from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
-from virtualaxis.drive.faults import FAULT_BUFFER_LENGTH, FAULT_TABLE, FaultRecord, fault_info
+from virtualaxis.drive.commissioning import (
+    ABORT_DEVICE_STATE,
+    ABORT_NO_OBJECT,
+    ABORT_READ_ONLY,
+    ABORT_VALUE_INVALID,
+    ABORT_VALUE_TOO_HIGH,
+    ABORT_VALUE_TOO_LOW,
+    check_write_rules,
+    derived_objects,
+    gain_ranges,
+    lead_m,
+    plain_int_keys,
+    power_unit_limit,
+    value_ranges,
+)
+from virtualaxis.drive.fault_manager import MOTOR_TEMPERATURE_ALARM, FaultManager
+from virtualaxis.drive.faults import COMMUNICATION_FAULTS, FaultRecord
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
+from virtualaxis.drive.mode_context import ModeContext
 from virtualaxis.drive.object_table import ObjectAccessError, ObjectTable
-from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, clamp_to_dtype, eds_defaults, eds_limits
-from virtualaxis.drive.opmodes import SUPPORTED_MODE_BITS, TORQUE_MODES, OperationMode
+from virtualaxis.drive.objects import SPECS, clamp_to_dtype, eds_defaults, eds_limits
+from virtualaxis.drive.opmodes import TORQUE_MODES, OperationMode
+from virtualaxis.drive.parameters import (
+    PARAMETER_INDICES,
+    DriveParameters,
+    current_limit,
+    drive_parameters,
+    loop_gains,
+    named_parameter,
+    parameter_scale,
+)
 from virtualaxis.drive.profiles import SpeedZeroDetector, WindowTimer
 from virtualaxis.drive.setpoints import SetpointChannel
 from virtualaxis.drive.settings import drive_settings
@@ -71,51 +95,14 @@ from virtualaxis.sim import CONTROL_MODE, AxisSimulator
 from virtualaxis.sim.simulator import end_stops
 
 S = STATE  # (the members as plain attributes; Cia402State is the type)
+#: the SDO abort codes of the drive's write checks (:mod:`~virtualaxis.drive.commissioning`), also named here
+WRITE_ABORT_CODES = (ABORT_DEVICE_STATE, ABORT_NO_OBJECT, ABORT_READ_ONLY, ABORT_VALUE_INVALID, ABORT_VALUE_TOO_HIGH,
+                     ABORT_VALUE_TOO_LOW)
 log = logging.getLogger("virtualaxis.drive")
 DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
-# SDO abort codes used by the drive's own checks
-ABORT_READ_ONLY = 0x06010002
-ABORT_VALUE_INVALID = 0x06090030
-ABORT_VALUE_TOO_HIGH = 0x06090031
-ABORT_VALUE_TOO_LOW = 0x06090032
-ABORT_DEVICE_STATE = 0x08000022
-ABORT_NO_OBJECT = 0x06020000
-
 PP, PV, PT, HM, CSP, CSV, CST = (OperationMode.PP, OperationMode.PV, OperationMode.PT, OperationMode.HM,
                                  OperationMode.CSP, OperationMode.CSV, OperationMode.CST)
-# torque modes: bit 11 while the torque pushes the axis at this share of 0x6080 or faster (the plant's speed
-# limiter acts there; chosen: above the P limiter's droop at the bench axes' friction, ~1 %)
-SPEED_LIMIT_SHARE = 0.97
-
-# objects whose change recomputes the cached monitoring parameters (_refresh_params)
-_MONITOR_PARAMETER_INDICES = frozenset(
-    {
-        0x6065,
-        0x6066,
-        0x6072,
-        0x2006,
-        0x2007,
-        0x6067,
-        0x6068,
-        0x606D,
-        0x606E,
-        0x606F,
-        0x6070,
-        0x200A,
-        0x200B,
-        0x6075,
-        0x6076,
-        0x607F,
-        0x6080,
-        0x608F,
-        0x6091,
-        0x6092,
-        0x607D,
-        0x60C2,
-    }
-)
-
 # objects that are two names for one value (manufacturer alias -> CiA 402 object)
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
@@ -130,69 +117,11 @@ assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
 #: string value: hashing a str is cheaper than an Enum member, and this runs every cycle)
 _STATE_SW = {state.value: bits | 0x10 | 0x200 for state, bits in STATE_BITS.items()}
 
-#: commissioned following-error window = margin x steady lag at the maximum speed + EDS default (chosen: 1.5,
-#: the usual MD36400 setting of "lag plus half again")
-FE_WINDOW_MARGIN = 1.5
-#: 0x2011 external force limit [N] (chosen: 1 MN, the EDS's limit of 0x2011, beyond any machine-tool axis; larger
-#: values only drive the integration out of the range where the end-stop contact holds the table)
-MAX_EXTERNAL_FORCE_N = 1e6
 MOTOR_AMBIENT_C = 20.0
-#: default software limits this far inside the hardware limit switches [m] (chosen: 1 mm, far more than the
-#: position loop's overshoot at a target, less than any stroke worth the name)
-SOFT_LIMIT_INSIDE_SWITCH_M = 0.001
 MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
 #: warning EMCY of a set-point that cannot be planned (CiA 301 0x6320 parameter error; see refuse_setpoint)
 SETPOINT_REFUSED_EMCY = 0x6320
-#: the current limit sent to the plant for a torque / current limit 0x6072 / 0x6073 of 0 [A or N]: the plant's
-#: "no limit" is 0, a zero limit is zero torque (chosen: 1e-9, no torque a measurement can resolve)
-ZERO_CURRENT_LIMIT = 1e-9
-#: the simulated machine's gear (motor revolutions, screw revolutions): the plant's motor drives the screw
-MACHINE_GEAR = (1, 1)
-
-
-#: option codes and other objects with a narrower range than their data type: key -> (min, max)
-_VALUE_RANGES = {
-    (0x605A, 0): (0, 8),
-    (0x605B, 0): (0, 1),
-    (0x605C, 0): (0, 1),
-    (0x605D, 0): (1, 3),
-    (0x605E, 0): (0, 4),  # 3 current limit, 4 voltage limit (both: the current-limit stop)
-    (0x6007, 0): (0, 3),
-    (0x2002, 0): (0, 2),
-    (0x2012, 0): (0, 1),
-    (0x2013, 0): (0, 1),
-    (0x60C2, 2): (-6, 0),
-    (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
-    # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
-    # running at speed); refused as SDO does from the EDS's LowLimit 1
-    **{(index, 0): (1, DTYPE_RANGES["u32"][1]) for index in (0x6083, 0x6084, 0x6085, 0x609A)},
-    # homing speeds: 0 would be a search that never moves and never ends
-    (0x6099, 1): (1, DTYPE_RANGES["u32"][1]),
-    (0x6099, 2): (1, DTYPE_RANGES["u32"][1]),
-}
-#: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
-#: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_object_write (the
-#: fast path of an RPDO's controlword and targets; anything else, and any value outside, takes the full check)
-_OWN_RULES = frozenset({0x6060, 0x607E, 0x6088, 0x6086, 0x6098, 0x608F, 0x6091, 0x6092, 0x2000, 0x2001, 0x2003,
-                        0x2004, 0x200A, 0x200B, 0x2011, 0x2010})
-
-
-def _value_ranges(limits: dict[tuple[int, int], tuple[float | None, float | None]]) -> dict:
-    """:data:`_VALUE_RANGES` narrowed further by ``limits`` (the EDS's LowLimit / HighLimit): key -> (min, max)."""
-    out = dict(_VALUE_RANGES)
-    for key, (low, high) in limits.items():
-        lo, hi = out.get(key, DTYPE_RANGES[SPECS[key].dtype])
-        out[key] = (lo if low is None else max(lo, low), hi if high is None else min(hi, high))
-    return out
-
-
-def _plain_int_keys() -> frozenset[tuple[int, int]]:
-    """The writable integer objects without a rule of their own in :meth:`Drive.check_object_write`."""
-    return frozenset(key for key, spec in SPECS.items()
-                     if spec.access != "ro" and spec.dtype != "f32" and key[0] not in _OWN_RULES)
-
-
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
 _REACTION_ORDER = {0x6060: 0, 0x6040: 2}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
@@ -228,26 +157,13 @@ class Drive:
         self._eds_defaults = eds_defaults(eds_path) if has_eds else {}
         #: value ranges of the objects (option codes, and the EDS's LowLimit / HighLimit): every write path
         #: refuses what an SDO download refuses
-        self._value_ranges = _value_ranges(eds_limits(eds_path) if has_eds else {})
+        self._value_ranges = value_ranges(eds_limits(eds_path) if has_eds else {})
         #: the loop gains this axis' cascade follows (speed Kp 0x2003, Kv 0x2000): larger ones are refused
         self.gain_bounds = loop_gain_bounds(cfg)
-        b = self.gain_bounds
-        self._range_reasons = {
-            (0x2003, 0): (f" (this axis' bound: speed-loop crossover Kp / J <= {b.speed_crossover_max_rad_s:.0f} "
-                          f"rad/s, half of min(current-loop bandwidth {b.current_bandwidth_rad_s:.0f} rad/s, "
-                          f"speed-cycle Nyquist), J = {b.inertia:.4g})"),
-            (0x2000, 0): (f" (this axis' bound: Kv <= {b.kv_max_per_s:.0f} 1/s, a quarter of min(speed-loop "
-                          "crossover bound, position-cycle Nyquist))"),
-        }
-        for key, high in (((0x2003, 0), b.speed_kp_max), ((0x2000, 0), b.kv_max_1000_per_min)):
-            lo, hi = self._value_ranges.get(key, DTYPE_RANGES[SPECS[key].dtype])
-            if high < hi:
-                self._value_ranges[key] = (lo, high)
-            else:
-                del self._range_reasons[key]
+        self._range_reasons = gain_ranges(self._value_ranges, self.gain_bounds)
         #: the objects' values, aliases, changed set, shared write checks and per-cycle outputs
         self.object_table = ObjectTable(ALIASES, _OUTPUT_KEYS, self._value_ranges, self._range_reasons,
-                                  _plain_int_keys())
+                                  plain_int_keys())
         #: set an object (and its alias) without reaction, marked changed (the table's store, bound once: the
         #: statusword and counters go through it every cycle)
         self._store: Callable[[tuple[int, int], int | float], None] = self.object_table.store
@@ -267,126 +183,28 @@ class Drive:
         self._refused_setpoint: str | None = None  # why the set-point of the write in progress was refused
         self._cycle_hooks: list[Callable[[Drive], None]] = []
         self._switch_input: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None = None  # set_switch_input
-        self._warnings: dict[int, int] = {}  # active warnings (set_warning): EMCY code -> alarm number
+        #: fault buffer, 0x603F, persistent causes, warnings and their EMCY
+        self.fault_manager = FaultManager(self._store, self.counters, self._emcy, self._emcy_reset)
         self._reset_all()
 
     # ================================================================================ object table
-    def _commissioned_travel_m(self) -> tuple[float, float]:
-        """The default software limits 0x607D [m]: the config's ``limits.travel_*_m``, kept
-        :data:`SOFT_LIMIT_INSIDE_SWITCH_M` inside the hardware limit switches (a commissioned axis reaches
-        every target 0x607D allows without tripping a switch; seed 000's config has +-300 mm, its switches act
-        at +-298 mm)."""
-        lo, hi = self.cfg.limits.travel_min_m, self.cfg.limits.travel_max_m
-        neg, pos, _ = self._switch_at_m
-        lo2, hi2 = max(lo, neg + SOFT_LIMIT_INSIDE_SWITCH_M), min(hi, pos - SOFT_LIMIT_INSIDE_SWITCH_M)
-        return (lo2, hi2) if lo2 < hi2 else (lo, hi)
-
     def derived_objects(self) -> dict[tuple[int, int], int | float]:
         """Objects whose values come from the axis config (written at boot and on NMT reset node)."""
-        cfg, st = self.cfg, self.settings
-        c, mot = cfg.control, cfg.motor
-        force = cfg.actuator.kind == "force"
-        lead = self._lead_m()
-        unit = st.position_unit_m
-        rated_torque = mot.rated_torque_nm or (mot.torque_constant_nm_per_a * mot.rated_current_a)
-        if force:
-            rated_torque = cfg.actuator.force_limit_n / 3 if cfg.actuator.force_limit_n > 0 else 1000.0
-        i_lim = c.current_limit_a if c.current_limit_a > 0 else 3.0 * mot.rated_current_a
-        ff_mode = 2 if c.torque_ff_factor > 0 else (1 if c.velocity_ff_factor > 0 else 0)
-        enc = cfg.sensors.motor_encoder_counts_per_rev or (1 << 20)
-        travel_min_m, travel_max_m = self._commissioned_travel_m()
-        out: dict[tuple[int, int], int | float] = {
-            (0x2000, 0): c.kv_1_per_s * 60.0 / 1000.0,
-            (0x2001, 0): float(c.velocity_ff_factor),
-            (0x2002, 0): ff_mode,
-            (0x2003, 0): float(c.velocity_kp_n_s_per_m if force else c.speed_kp_nm_s_per_rad),
-            (0x2004, 0): c.speed_ti_s * 1000.0,
-            (0x2012, 0): 1 if st.software_limit_reaction == "fault" else 0,
-            (0x6075, 0): int(round(mot.rated_current_a * 1000)),
-            (0x6076, 0): int(round(rated_torque * 1000)),
-            (0x6073, 0): clamp_to_dtype(i_lim / mot.rated_current_a * 1000, "u16"),
-            (0x6072, 0): clamp_to_dtype(i_lim / mot.rated_current_a * 1000, "u16"),
-            (0x608F, 1): int(enc),
-            (0x608F, 2): 1,
-            (0x6091, 1): 1,
-            (0x6091, 2): 1,
-            (0x6092, 1): int(round(lead / unit)),
-            (0x6092, 2): 1,
-            (0x607D, 1): clamp_to_dtype(travel_min_m / unit, "i32"),
-            (0x607D, 2): clamp_to_dtype(travel_max_m / unit, "i32"),
-            (0x607F, 0): clamp_to_dtype(cfg.limits.max_velocity_m_s / unit, "u32"),
-            (0x6080, 0): self._default_max_motor_speed_rpm(),
-            (0x6502, 0): sum(SUPPORTED_MODE_BITS.values()),
-        }
-        if st.following_error_tolerance_m is not None:
-            out[(0x6065, 0)] = clamp_to_dtype(st.following_error_tolerance_m / unit, "u32")
-        else:
-            out[(0x6065, 0)] = clamp_to_dtype(self._commissioned_fe_window_m(out) / unit, "u32")
-        if st.following_error_time_ms is not None:
-            out[(0x6066, 0)] = st.following_error_time_ms
-        if st.positioning_window_m is not None:
-            out[(0x6067, 0)] = clamp_to_dtype(st.positioning_window_m / unit, "u32")
-        if st.positioning_time_ms is not None:
-            out[(0x6068, 0)] = st.positioning_time_ms
-        return out
-
-    def _commissioned_fe_window_m(self, derived: dict) -> float:
-        """The following-error window a commissioning engineer sets (0x6065 at boot unless ``[drive]
-        following_error_tolerance_m`` is given) [m]: the steady lag at the fastest speed the defaults permit
-        (0x607F limited by 0x6080) with the position-loop gain and the speed feed-forward share,
-        v (1 - k_ff) / Kv, times :data:`FE_WINDOW_MARGIN`, plus the EDS default as a floor for the
-        acceleration transient; so that no speed the defaults allow faults."""
-        c, st = self.cfg.control, self.settings
-        kv = max(c.kv_1_per_s, 1e-3)
-        kff = c.velocity_ff_factor if c.velocity_ff_factor > 0 else 0.0
-        v_max = min(self.cfg.limits.max_velocity_m_s,
-                    float(derived[(0x6080, 0)]) / 60.0 * self._lead_m())
-        lag = v_max * abs(1.0 - kff) / kv
-        floor = float(self._eds_defaults.get((0x6065, 0), 1000)) * st.position_unit_m
-        return FE_WINDOW_MARGIN * lag + floor
-
-    def _default_max_motor_speed_rpm(self) -> int:
-        """0x6080 at boot: the config's speed limit ``control.speed_limit_rpm``, else
-        :func:`~virtualaxis.config.axis.max_table_speed_m_s` (1.1 x ``limits.max_velocity_m_s``) in (virtual)
-        motor revolutions, as a commissioned drive has it (SINAMICS p1082 = the machine's maximum). The plant's
-        end stops are sized for that speed (before: 1.5 x rated speed, which an end stop sized for
-        ``limits.max_velocity_m_s`` alone did not stop in time)."""
-        cfg = self.cfg
-        if cfg.control.speed_limit_rpm > 0:
-            return int(round(cfg.control.speed_limit_rpm))
-        return int(math.ceil(max_table_speed_m_s(cfg) / self._lead_m() * 60.0))
+        return derived_objects(self.cfg, self.settings, self._eds_defaults, self._switch_at_m)
 
     def _max_speed_m_s(self) -> float:
         """0x6080 max motor speed as table speed [m/s] (motor revolutions through the gear 0x6091)."""
         return float(self._obj(0x6080)) / 60.0 * self.scaling.motor_rev_travel_m
-
-    def check_gear_ratio(self, sub: int, value: int) -> None:
-        """0x6091 describes the machine: the simulated axis' motor drives the screw directly (one motor
-        revolution per screw revolution, :data:`MACHINE_GEAR`), so only that ratio is accepted (another one
-        would count motor revolutions, index pulses and 0x6080 against a gear the plant does not have)."""
-        motor = value if sub == 1 else int(self.objects[(0x6091, 1)])
-        shaft = value if sub == 2 else int(self.objects[(0x6091, 2)])
-        m, s = MACHINE_GEAR
-        if motor * s != shaft * m:
-            raise ObjectAccessError(
-                ABORT_VALUE_INVALID,
-                f"0x6091:{sub} gear ratio {motor}:{shaft} (motor:shaft revolutions) is not this axis' {m}:{s} "
-                "(the motor drives the screw directly)")
-
-    def _lag_m(self, v_m_s: float) -> float:
-        """Steady following error of the position loop at velocity ``v`` [m]: v (1 - k_ff) / Kv. A position
-        demand placed this far ahead of the actual position takes over a moving axis bumplessly (the speed
-        set-point equals the actual speed)."""
-        o = self.objects
-        kv = float(o[(0x2000, 0)]) * 1000.0 / 60.0
-        kff = float(o[(0x2001, 0)]) if int(o[(0x2002, 0)]) >= 1 else 0.0
-        return v_m_s * (1.0 - kff) / kv if kv > 0 else 0.0
 
     def _inside_stroke(self, x_plant_m: float) -> float:
         """A plant position moved inside the stroke, clear of the limit switches [m]."""
         half = self.cfg.axis.stroke_m / 2 - self.settings.limit_switch_inset_m - 1e-3
         half = max(half, 0.0)
         return min(max(x_plant_m, -half), half)
+
+    def _set_axis(self, ax) -> None:
+        """The axis reading the drive, its set-point channel and its modes see from now on."""
+        self._axis = self.ctx.axis = self.setpoints.axis = ax
 
     @property
     def actual_velocity_m_s(self) -> float:
@@ -404,20 +222,6 @@ class Drive:
                 return pos - x, hi - x
             return x - neg, x - lo
 
-    def _power_unit_limit(self) -> float:
-        """The largest current the power unit gives [A] (a force actuator: force [N]): the config's
-        ``control.current_limit_a`` (else 3 x rated current; a force actuator's ``actuator.force_limit_n``, else
-        none), whatever 0x6072 / 0x6073 / 0x6075 / 0x6076 hold."""
-        cfg = self.cfg
-        if cfg.actuator.kind == "force":
-            return cfg.actuator.force_limit_n if cfg.actuator.force_limit_n > 0 else math.inf
-        c = cfg.control
-        return c.current_limit_a if c.current_limit_a > 0 else 3.0 * cfg.motor.rated_current_a
-
-    def _lead_m(self) -> float:
-        """Table travel per driving-shaft revolution (a direct drive uses a virtual 10 mm 'revolution')."""
-        return self.cfg.mechanics.lead_m if self.cfg.mechanics.lead_m > 0 else 0.01
-
     def _reset_all(self) -> None:
         """Power-on state: objects to defaults (spec <- EDS <- config), state machine to SWITCH ON DISABLED."""
         with self._lock:
@@ -426,11 +230,19 @@ class Drive:
             values.update(self.derived_objects())
             #: the objects' values (the object table's dict: every object and alias, kept for the drive's life)
             self.objects: dict[tuple[int, int], int | float] = self.object_table.reset(values)
-            #: demand, zero offset (the plant position that reads as 0, shifted by homing), the plant's loop
-            self.setpoints = SetpointChannel(self.sim)
-            self._faults: list[FaultRecord] = []
-            self._causes: dict[int, str] = {}  # persistent fault causes: code -> "injected" / monitor name
-            self._fault_pending_reset = False
+            self._switch_monitor = mon.LimitSwitchMonitor()  # 0x60FD bits 0/1 as last monitored
+            self._range_monitor = mon.PositionRangeMonitor()
+            #: demand, zero offset (the plant position that reads as 0, shifted by homing), the plant's loop and
+            #: the set-point limiters
+            self.setpoints = SetpointChannel(self.sim, self.cycle_s, self._switch_monitor, self._homing_owns_switches,
+                                             self._params, self._store, self._target_outside)
+            #: what the modes of operation and the stop ramps see of this drive
+            self.ctx = ModeContext(
+                objects=self.objects, setpoints=self.setpoints, cycle_s=self.cycle_s, params=self._params,
+                switches=self._switches, travel_room_m=self.travel_room_m, refuse_setpoint=self.refuse_setpoint,
+                accept_setpoint=self.accept_setpoint, on_homed=lambda: self._notify("homed"),
+                stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
+            self.fault_manager.reset()
             self._state = S.NOT_READY_TO_SWITCH_ON
             self._cw = 0
             self._mode = 0
@@ -439,16 +251,7 @@ class Drive:
             self.setpoints.demand_m = self.sim.state.position_m
             self.setpoints.demand_v = 0.0
             self.setpoints.last_vff = 0.0
-            self._target_reached = False
-            self._internal_limit = False
-            self._warning = False
-            self._alarm = 0
-            self._temperature_alarm = 0
-            self._warnings.clear()
             self._motor_rise_k = 0.0
-            self._fe_timer = WindowTimer()
-            self._fe_exceeded = False
-            self._tr_timer = WindowTimer()
             self._vz_timer = SpeedZeroDetector()
             self._ss_timer = WindowTimer()
             self._rest_timer = WindowTimer()
@@ -458,10 +261,8 @@ class Drive:
             self._gen = self._modes[0].gen  # the profile generator of no mode / PP / HM
             self._hm: modes.Homing = self._modes[HM]
             self._csp: modes.CyclicPosition = self._modes[CSP]
-            self._prev_actual_m = self.setpoints.demand_m
+            self.ctx.prev_position_m = self.setpoints.demand_m
             self._fe_m = 0.0
-            self._switch_monitor = mon.LimitSwitchMonitor()  # 0x60FD bits 0/1 as last monitored
-            self._range_monitor = mon.PositionRangeMonitor()
             self._index_seen_m: float | None = None
             self._update_scaling()
             self._apply_gains()
@@ -469,7 +270,7 @@ class Drive:
             self.setpoints.control = self.sim.mode
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
-            self._axis = self.sim.state
+            self._set_axis(self.sim.state)
             self._refresh_params()
             # transition 0 + 1 (self-test done): switch on disabled
             self._set_state(S.SWITCH_ON_DISABLED)
@@ -489,7 +290,7 @@ class Drive:
             else:
                 x = self._inside_stroke(0.0)
             self.sim.reset(x, keep_time=True)
-            self._axis = self.sim.state
+            self._set_axis(self.sim.state)
             self._reset_all()
 
     @property
@@ -505,46 +306,10 @@ class Drive:
     def check_object_write(self, index: int, sub: int, value) -> None:
         """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
         spec = self.object_table.check_write(index, sub, value)  # existence, access, type, value ranges
-        if spec is None:
-            return  # (an integer object without rules of its own, value in range)
-        key = spec.key
-        if (
-            key == (0x6060, 0)
-            and value != 0
-            and (value not in SUPPORTED_MODE_BITS or not SUPPORTED_MODE_BITS[value] & self.objects[(0x6502, 0)])
-        ):
-            raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
-        if key == (0x607E, 0) and value != 0:
-            raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: inversion is not offered, only 0")
-        if key == (0x6088, 0) and value != 0:
-            raise ObjectAccessError(ABORT_VALUE_INVALID, "torque profile type must be 0 (linear)")
-        if key == (0x6086, 0) and value not in (0, 3):
-            raise ObjectAccessError(ABORT_VALUE_INVALID, "motion profile type must be 0 (trapezoid) or 3 (jerk)")
-        if key == (0x6098, 0):
-            if value not in hm.SUPPORTED_METHODS:
-                raise ObjectAccessError(ABORT_VALUE_INVALID, f"homing method {value} is not supported")
-            if self._hm.in_progress():
-                raise ObjectAccessError(ABORT_DEVICE_STATE, "homing method cannot change while homing")
-        if key[0] in (0x608F, 0x6091, 0x6092):
-            if value <= 0:
-                raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be > 0")
-            if self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE):
-                raise ObjectAccessError(ABORT_DEVICE_STATE, "position factor cannot change in operation")
-            if key[0] == 0x6091:
-                self.check_gear_ratio(sub, value)
-        if key in ((0x2000, 0), (0x2001, 0), (0x2003, 0), (0x2004, 0), (0x200A, 0), (0x200B, 0)) and value < 0:
-            raise ObjectAccessError(ABORT_VALUE_TOO_LOW, f"0x{index:04X}:{sub} must be >= 0")
-        if key == (0x2004, 0) and 0 < value < self.gain_bounds.speed_tn_min_s * 1000.0:
-            b = self.gain_bounds
-            raise ObjectAccessError(
-                ABORT_VALUE_TOO_LOW,
-                f"0x2004:0 speed controller Tn {value:g} ms < {b.speed_tn_min_s * 1000.0:.4g} ms (this axis' bound: "
-                f"Tn >= 4 / {b.speed_crossover_max_rad_s:.0f} rad/s, the fastest speed-loop crossover; 0 = P only)")
-        if key == (0x2011, 0) and abs(value) > MAX_EXTERNAL_FORCE_N:
-            code = ABORT_VALUE_TOO_HIGH if value > 0 else ABORT_VALUE_TOO_LOW
-            raise ObjectAccessError(code, f"0x2011 external force {value:g} N beyond +-{MAX_EXTERNAL_FORCE_N:g} N")
-        if key == (0x2010, 0) and value != 0 and value not in FAULT_TABLE:
-            raise ObjectAccessError(ABORT_VALUE_INVALID, f"0x{value:04X} is not a known fault code")
+        if spec is not None:  # (None: an integer object without rules of its own, value in range)
+            check_write_rules(spec.key, index, sub, value, self.objects, self.gain_bounds,
+                              homing=self._hm.in_progress(),
+                              in_operation=self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE))
 
     def write_object(self, index: int, sub: int, value, *, checked: bool = False) -> None:
         """Write an object as a master would (checked, then applied with its reaction)."""
@@ -554,7 +319,7 @@ class Drive:
             key = self.object_table.key(index, sub)
             value = float(value) if SPECS[key].dtype == "f32" else int(value)
             self.object_table.store(key, value)
-            if key[0] in _MONITOR_PARAMETER_INDICES:
+            if key[0] in PARAMETER_INDICES:
                 self._params_dirty = True
             self._refused_setpoint = None
             self._react(key, value)
@@ -577,7 +342,7 @@ class Drive:
                 key = aliases.get(key, key)
                 value = float(value) if SPECS[key].dtype == "f32" else int(value)
                 store(key, value)
-                if key[0] in _MONITOR_PARAMETER_INDICES:
+                if key[0] in PARAMETER_INDICES:
                     self._params_dirty = True
                 keyed.append((key, value))
             if len(keyed) > 1:
@@ -641,9 +406,9 @@ class Drive:
         elif index == 0x6060:
             self._on_mode(int(value))
         elif index == 0x607A:
-            self._mode_obj.on_target_position(self, int(value))
+            self._mode_obj.on_target_position(self.ctx, int(value))
         elif index in (0x60FF, 0x60B1):
-            self._mode_obj.on_target_velocity(self)
+            self._mode_obj.on_target_velocity(self.ctx)
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -659,7 +424,7 @@ class Drive:
     def _update_scaling(self) -> None:
         o = self.objects
         self.scaling = PositionScaling(
-            lead_m=self._lead_m(),
+            lead_m=lead_m(self.cfg),
             feed_units=int(o[(0x6092, 1)]),
             feed_shaft_revs=int(o[(0x6092, 2)]),
             encoder_increments=int(o[(0x608F, 1)]),
@@ -667,46 +432,28 @@ class Drive:
             gear_motor_revs=int(o[(0x6091, 1)]),
             gear_shaft_revs=int(o[(0x6091, 2)]),
         )
-        self._u = self.scaling.metres_per_unit
+        self._u = self.ctx.u = self.scaling.metres_per_unit
         self._inc_per_m = self.scaling.increments_per_metre
+        self.ctx.motor_rev_travel_m = self.scaling.motor_rev_travel_m
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
-        o, c = self.objects, self.cfg.control
-        mode = int(o[(0x2002, 0)])
-        kp = float(o[(0x2003, 0)])
-        self.sim.set_loop_gains(
-            kv_per_s=float(o[(0x2000, 0)]) * 1000.0 / 60.0,
-            velocity_ff_factor=float(o[(0x2001, 0)]) if mode >= 1 else 0.0,
-            torque_ff_factor=(c.torque_ff_factor or 1.0) if mode == 2 else 0.0,
-            speed_kp=kp if kp > 0 else None,
-            speed_ti_s=float(o[(0x2004, 0)]) / 1000.0,
-            speed_limit_m_s=self._max_speed_m_s(),
-        )
-        rated_nm = float(o[(0x6076, 0)]) / 1000.0
-        if self.cfg.actuator.kind == "pmsm":
-            rated_a = float(o[(0x6075, 0)]) / 1000.0
-            lim_current = float(o[(0x6073, 0)]) / 1000.0 * rated_a
-            kt = self.sim.torque_constant_nm_per_a
-            lim_torque_as_current = float(o[(0x6072, 0)]) / 1000.0 * rated_nm / kt if kt > 0 else lim_current
-            limit = min(lim_current, lim_torque_as_current)
-        else:  # force actuator: 0x6072 per mille of the rated force 0x6076 [N]
-            limit = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
-        limit = min(limit, self._power_unit_limit())  # 0x6075 / 0x6076 are writable: never beyond the hardware
-        # a limit of 0 is zero torque: the plant reads 0 as "no limit", so it gets the smallest positive one
-        self.sim.set_loop_gains(current_limit=max(limit, ZERO_CURRENT_LIMIT))
+        self.sim.set_loop_gains(**loop_gains(self.objects, self.cfg, self._max_speed_m_s()))
+        self.sim.set_loop_gains(current_limit=current_limit(self.objects, self.cfg, self.sim.torque_constant_nm_per_a,
+                                                            power_unit_limit(self.cfg)))
 
     # ================================================================================ state machine
     def _set_state(self, new: Cia402State) -> None:
         old = self._state
         self._state = new
+        self.ctx.enabled = new is S.OPERATION_ENABLED
         if new != old:
             self._update_statusword()
             self._notify("state")
 
     def _on_controlword(self, cw: int) -> None:
         old_cw = self._cw
-        self._cw = cw
+        self._cw = self.ctx.cw = cw
         # fault reset: rising edge of bit 7
         if cw & 0x80 and not old_cw & 0x80:
             if self._state == S.FAULT:
@@ -731,6 +478,7 @@ class Drive:
         target = TARGET_STATE[tr]
         if tr in (TRANSITION.T4, TRANSITION.T3_4, TRANSITION.T16):
             self._stop = None
+            self.ctx.stopping = False
             if not self._power:
                 self._power_on()
             self._enter_mode(self._mode)
@@ -775,12 +523,13 @@ class Drive:
         self.setpoints.set_control(CONTROL_MODE.POSITION)
         self.setpoints.send_position(self.setpoints.demand_m, 0.0, 0.0)
         self.sim.enable(True)
-        self._power = True
+        self._power = self.ctx.powered = True
 
     def _power_off(self) -> None:
         self.sim.enable(False)
-        self._power = False
+        self._power = self.ctx.powered = False
         self._stop = None
+        self.ctx.stopping = False
         self.setpoints.demand_v = 0.0
         self._hm.run = None
 
@@ -793,11 +542,8 @@ class Drive:
                 self._set_state(then)
             return
         self._hm.run = None  # a stop interrupts a homing run
-        self._stop = rx.StopRamp.start(self, kind, then)
-
-    def note_internal_limit(self) -> None:
-        """A mode limited its target this cycle (0x607F / 0x6080, software limits): statusword bit 11."""
-        self._internal_limit = True
+        self._stop = rx.StopRamp.start(self.ctx, kind, then)
+        self.ctx.stopping = True
 
     def _travel_monitors(self, ax) -> None:
         """Position range, overspeed and limit switches: each monitor returns its event, applied here."""
@@ -806,19 +552,20 @@ class Drive:
         if event is not None:
             self._apply_monitor_event(event)
         event = mon.OverspeedMonitor.check(ax.velocity_m_s, pc.max_speed_m_s, pc.inv_u, self._power,
-                                           self._causes.get(0x8401))
+                                           self.fault_manager.causes.get(0x8401))
         if event is not None:
             self._apply_monitor_event(event)
         neg, pos, _ = self._switches(ax.position_m)
-        if self._warnings:
+        warnings = self.fault_manager.warnings
+        if warnings:
             for code, active in zip(mon.LIMIT_CODES, (neg, pos), strict=True):
-                if not active and code in self._warnings:
+                if not active and code in warnings:
                     self.set_warning(code, False)
         if neg or pos:
             armed = (self._power and self._state is S.OPERATION_ENABLED and self._stop is None
                      and not self._homing_owns_switches())
             event = self._switch_monitor.check(neg, pos, ax.velocity_m_s, self.setpoints.demand_v,
-                                               rx.standstill_threshold_m_s(self), armed,
+                                               rx.standstill_threshold_m_s(self.ctx), armed,
                                                int(self._obj(0x2013)) == 1)
             if event is not None:
                 self._apply_monitor_event(event)
@@ -829,7 +576,7 @@ class Drive:
         """A homing run in progress searches the limit switches itself (methods 1, 2, 17, 18) and answers an
         unexpected one with a homing error (statusword bits 13/12 = 1/0) and its own braking, which the limit
         switch fault must not overtake."""
-        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self))
+        return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self.ctx))
 
     def _apply_monitor_event(self, event: mon.Event) -> None:
         """A monitor's event: a fault (with its persistent cause), a cause gone, or a limit switch reached
@@ -837,18 +584,17 @@ class Drive:
         if isinstance(event, mon.FaultEvent):
             self._raise_fault(event.code, event.value, cause=event.cause)
         elif isinstance(event, mon.CauseCleared):
-            if self._causes.get(event.code) == event.cause:
-                del self._causes[event.code]
+            self.fault_manager.clear_cause(event.code, event.cause)
         elif event.fault:
             self._raise_fault(event.code, event.switches)
         else:
             self.set_warning(event.code, True)
-            self._internal_limit = True
+            self.setpoints.internal_limit = True
             self._start_stop("quick", then="resume")
 
     def _run_stop(self) -> None:
         s = self._stop
-        outcome = rx.run_stop(self, s)
+        outcome = rx.run_stop(self.ctx, s)
         if outcome is rx.StopOutcome.DONE:
             self._finish_stop(s)
         elif outcome is rx.StopOutcome.FAILED:
@@ -857,6 +603,7 @@ class Drive:
     def _braking_failed(self) -> None:
         """The axis is not at standstill within the stop's bound: fault 0x8400 (F07900), pulses off (OFF2)."""
         self._stop = None
+        self.ctx.stopping = False
         v = self._axis.velocity_m_s
         self._raise_fault(0x8400, int(round(v * self._pc.inv_u)) if math.isfinite(v) else 0)
         self._power_off()
@@ -866,6 +613,7 @@ class Drive:
     def _finish_stop(self, s: rx.StopRamp) -> None:
         """Stopped and held: the state change the stop was for."""
         self._stop = None
+        self.ctx.stopping = False
         self._enter_mode_idle_hold()
         then = s.then
         if self._state is S.FAULT_REACTION_ACTIVE:
@@ -889,18 +637,9 @@ class Drive:
     def _raise_fault(
         self, code: int, value: int = 0, *, injected: bool = False, cause: str = "", emit: bool = True
     ) -> None:
-        info = fault_info(code)
-        rec = FaultRecord(code, info.fault_number, int(value), info.text, self.sim.time_s, injected)
-        self._faults.insert(0, rec)
-        del self._faults[FAULT_BUFFER_LENGTH:]
-        self.counters["faults_raised"] += 1
-        self._store((0x2110, 4), clamp_to_dtype(self.counters["faults_raised"], "u32"))
-        self._publish_fault_buffer()
-        if cause:
-            self._causes[code] = cause
-        self._store((0x603F, 0), code)
-        if emit and self.emcy_sink is not None:
-            self.emcy_sink(code, info.register_bits, struct.pack("<i", clamp_to_dtype(value, "i32"))[:4] + b"\x00")
+        """A fault: recorded by the fault manager (buffer, 0x603F, cause, EMCY), then the state machine's reaction:
+        its class (coast, quick, or 0x605E) from the actual motion."""
+        info = self.fault_manager.record(code, value, self.sim.time_s, injected=injected, cause=cause, emit=emit)
         kind = rx.fault_reaction_kind(info.reaction, int(self._obj(0x605E)))
         if self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
             was_moving = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
@@ -917,25 +656,11 @@ class Drive:
             self._set_state(S.FAULT)
         self._notify("fault")  # after the reaction has started: the snapshot shows the fault state
 
-    def _publish_fault_buffer(self) -> None:
-        for i in range(FAULT_BUFFER_LENGTH):
-            rec = self._faults[i] if i < len(self._faults) else None
-            self._store((0x2030, i + 1), rec.fault_number if rec else 0)
-            self._store((0x2032, i + 1), rec.emcy_code if rec else 0)
-            self._store((0x2033, i + 1), clamp_to_dtype(rec.value, "i32") if rec else 0)
-
     def _fault_reset(self) -> None:
-        if self._causes:
-            self.counters["fault_resets_refused"] += 1
+        if not self.fault_manager.acknowledge():  # (refused while a cause persists)
             return
-        self._faults = [
-            FaultRecord(f.emcy_code, f.fault_number, f.value, f.text, f.time_s, f.injected, True) for f in self._faults
-        ]
-        self._fe_timer = WindowTimer()
-        self._fe_exceeded = False
-        self._store((0x603F, 0), 0)
-        if self.emcy_reset_sink is not None:
-            self.emcy_reset_sink()
+        self.ctx.fe_timer = WindowTimer()
+        self.ctx.fe_exceeded = False
         self._set_state(S.SWITCH_ON_DISABLED)
         self._notify("fault_cleared")
 
@@ -950,14 +675,14 @@ class Drive:
         """Remove injected causes and acknowledge (like CW bit 7): FAULT -> SWITCH ON DISABLED if no cause
         remains."""
         with self._lock:
-            self._causes = {k: v for k, v in self._causes.items() if v != "injected"}
+            self.fault_manager.clear_causes("injected")
             if self._state == S.FAULT:
                 self._fault_reset()
 
     @property
     def faults(self) -> tuple[FaultRecord, ...]:
         with self._lock:
-            return tuple(self._faults)
+            return tuple(self.fault_manager.records)
 
     def communication_error(self, kind: str, detail: int = 0) -> None:
         """Loss of control: react per 0x6007 abort connection option (0 none, 1 fault, 2 disable voltage,
@@ -968,15 +693,7 @@ class Drive:
         lockstep, where the plant waits for the SYNC). NMT events and SYNC loss count only while the drive
         is enabled (a master resetting communication at start-up must not fault a disabled drive)."""
         with self._lock:
-            code, stack_sent_emcy = {
-                "heartbeat_lost": (0x8130, True),
-                "life_guarding": (0x8130, True),
-                "rpdo_timeout": (0x8250, True),
-                "bus_off": (0x8140, True),
-                "sync_loss": (0x8100, True),
-                "nmt_stopped": (0x8131, False),
-                "nmt_reset_communication": (0x8131, False),
-            }.get(kind, (None, True))
+            code, stack_sent_emcy = COMMUNICATION_FAULTS.get(kind, (None, True))
             if code is None:
                 return
             enabled = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
@@ -1016,109 +733,25 @@ class Drive:
         self.setpoints.last_vff = 0.0
         self._gen.reset(p)
         for m in self._modes.values():  # every mode's own state at rest (PP handshake, homing run, CSP)
-            m.reset(self, p)
-        self._restart_target_window()
-        self._mode_obj.enter(self)
+            m.reset(self.ctx, p)
+        self.ctx.restart_target_window()
+        self._mode_obj.enter(self.ctx)
 
-    def _restart_target_window(self) -> None:
-        """Target reached (bit 10) false and its 0x6068 window timer restarted (new set-point / mode)."""
-        self._target_reached = False
-        self._tr_timer = WindowTimer()
-
-    def _state_enabled(self) -> bool:
-        return self._state is S.OPERATION_ENABLED
-
-    def _interp_cycles(self) -> int:
-        """Drive cycles per interpolation period 0x60C2 (at least 1); cached with the parameters."""
-        return self._params().interp_cycles
-
-    def _limits_m(self) -> tuple[float, float] | None:
-        """Software position limits 0x607D [m], None when min >= max (off); cached with the parameters."""
-        return self._params().travel_limits_m
-
-    def _interp_cycles_from_objects(self) -> int:
-        value = int(self._obj(0x60C2, 1))
-        exp = int(self._obj(0x60C2, 2))
-        period = value * 10.0**exp
-        return max(1, int(round(period / self.cycle_s)))
-
-    def _limits_m_from_objects(self) -> tuple[float, float] | None:
-        lo, hi = int(self._obj(0x607D, 1)), int(self._obj(0x607D, 2))
-        if lo >= hi:
-            return None
-        return lo * self._u, hi * self._u
-
-    def _check_limit(self, target_m: float, raw_value: int) -> float | None:
-        """Apply 0x607D to a target: clamped target (bit 11), or None after a fault (0x2012 = 1)."""
-        lim = self._limits_m()
-        if lim is None or lim[0] <= target_m <= lim[1]:
-            self._internal_limit = False
-            return target_m
+    def _target_outside(self, raw_value: int) -> bool:
+        """A target beyond the software limits 0x607D: counted; with 0x2012 = 1 fault 0x8612 (the target is
+        refused: True), else clamped by the set-point channel (False)."""
         self.counters["targets_clamped"] += 1
         self._store((0x2110, 3), clamp_to_dtype(self.counters["targets_clamped"], "u32"))
         if int(self._obj(0x2012)) == 1:
             self._raise_fault(0x8612, raw_value)
-            return None
-        self._internal_limit = True
-        return min(max(target_m, lim[0]), lim[1])
+            return True
+        return False
 
     def _mode_controlword(self, old_cw: int, cw: int) -> None:
         """Mode-specific controlword bits 4 (new set-point / start homing), 5, 6, 8 (halt): the mode object's,
         in OPERATION ENABLED without a stop running."""
         if self._state == S.OPERATION_ENABLED and self._stop is None:
-            self._mode_obj.controlword(self, old_cw, cw)
-
-    def _clamp_velocity(self, v: float) -> float:
-        """A velocity target limited by 0x607F max profile velocity and 0x6080 max motor speed [m/s]."""
-        vmax = self._params().max_velocity_m_s
-        return max(-vmax, min(vmax, v))
-
-    def _apply_torque(self, t_nm: float, rated_nm: float, requested_nm: float | None = None) -> None:
-        """Torque modes: limit by 0x6072, stop pushing outward beyond a software limit; the plant's speed
-        limiter (0x6080, see :meth:`AxisSimulator.set_loop_gains`) caps the torque near the maximum speed;
-        bit 11 while any limit acts; 0x6074 = the torque demanded of the motor."""
-        t_max = float(self._obj(0x6072)) / 1000.0 * rated_nm
-        requested = t_nm if requested_nm is None else requested_nm
-        limited = abs(requested) > t_max
-        t = max(-t_max, min(t_max, t_nm))
-        if t != 0.0 and self._velocity_limit(math.copysign(1.0, t)) == 0.0:
-            t, limited = 0.0, True
-        v = self._axis.velocity_m_s
-        if t * v > 0.0 and abs(v) >= SPEED_LIMIT_SHARE * self._params().max_speed_m_s:
-            limited = True
-        self._internal_limit = limited
-        self.setpoints.send_torque(t)
-        self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
-
-    def _velocity_limit(self, v: float) -> float:
-        """Velocity modes: no motion outward beyond a software limit or toward an active limit switch
-        (bit 11)."""
-        switches = self._switch_monitor
-        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
-        if blocked and v * blocked > 0.0:
-            self._internal_limit = True
-            return 0.0
-        lim = self._limits_m()
-        if lim is None:
-            return v
-        x = self._axis.position_m - self.setpoints.zero_m
-        if (x >= lim[1] and v > 0) or (x <= lim[0] and v < 0):
-            self._internal_limit = True
-            return 0.0
-        if self._mode in (PV, CSV):
-            self._internal_limit = False
-        return v
-
-    def _set_position(self, p: float, vff: float) -> None:
-        switches = self._switch_monitor
-        blocked = switches.blocked_direction(self._homing_owns_switches()) if switches.switches else 0
-        if blocked and (p - self.setpoints.demand_m) * blocked > 0.0:  # no further toward an active limit switch
-            p, vff = self.setpoints.demand_m, 0.0
-            self._internal_limit = True
-        acc = (vff - self.setpoints.last_vff) / self.cycle_s
-        self.setpoints.last_vff = vff
-        self.setpoints.demand_m, self.setpoints.demand_v = p, vff
-        self.setpoints.send_position(p, vff, acc)
+            self._mode_obj.controlword(self.ctx, old_cw, cw)
 
     # ================================================================================ homing
     # ================================================================================ switches
@@ -1171,8 +804,8 @@ class Drive:
         try:
             self._power_off()
             self._restore_plant_if_not_finite()
-            self._axis = self.sim.state
-            if self._state is not S.FAULT or not self._faults or self._faults[0].emcy_code != 0x6100:
+            self._set_axis(self.sim.state)
+            if self._state is not S.FAULT or self.fault_manager.latest_code() != 0x6100:
                 self._raise_fault(0x6100, n)
             self._publish_outputs()
         except Exception:  # noqa: BLE001 - the fault path itself failed: keep the statusword consistent
@@ -1186,7 +819,7 @@ class Drive:
         st = self.sim.st
         if all(math.isfinite(x) for x in st.tolist()):
             return
-        x = self._prev_actual_m if math.isfinite(self._prev_actual_m) else 0.0
+        x = self.ctx.prev_position_m if math.isfinite(self.ctx.prev_position_m) else 0.0
         self.sim.reset(self._inside_stroke(x), keep_time=True)
 
     # ================================================================================ fault injection API
@@ -1225,13 +858,13 @@ class Drive:
         """Remove a named persistent fault cause (see :meth:`raise_fault`); the fault itself stays until a
         fault reset."""
         with self._lock:
-            self._causes = {k: v for k, v in self._causes.items() if v != cause}
+            self.fault_manager.clear_causes(cause)
 
     @property
     def causes(self) -> dict[int, str]:
         """Persistent fault causes: EMCY code -> cause name."""
         with self._lock:
-            return dict(self._causes)
+            return dict(self.fault_manager.causes)
 
     def set_warning(self, code: int, active: bool, *, alarm_number: int | None = None) -> None:
         """Set or clear a warning (CiA 402 statusword bit 7; SINAMICS alarm number in 0x2031).
@@ -1242,35 +875,23 @@ class Drive:
         with self._lock:
             if isinstance(code, bool) or not isinstance(code, int) or not 0 < code <= 0xFFFF:
                 raise ValueError(f"warning code must be an integer 0x0001..0xFFFF (got {code!r})")
-            info = fault_info(code)
-            if active:
-                if code in self._warnings:
-                    return
-                self._warnings[code] = int(alarm_number if alarm_number is not None else info.fault_number)
-                if self.emcy_sink is not None:
-                    self.emcy_sink(code, info.register_bits, b"\x00\x00\x00\x00\x00")
-            else:
-                if self._warnings.pop(code, None) is None:
-                    return
-                if not self._warnings and self._state not in (S.FAULT, S.FAULT_REACTION_ACTIVE):
-                    if self.emcy_reset_sink is not None:
-                        self.emcy_reset_sink()
-            self._update_alarm()
-            self._update_statusword()
+            fault_active = self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE)
+            if self.fault_manager.set_warning(code, active, alarm_number, fault_active):
+                self._update_statusword()
 
     @property
     def warnings(self) -> dict[int, int]:
         """Active warnings: EMCY code -> alarm number."""
         with self._lock:
-            return dict(self._warnings)
+            return dict(self.fault_manager.warnings)
 
-    def _update_alarm(self) -> None:
-        """0x2031 = the motor-temperature alarm, else the newest warning's alarm number; bit 7 follows."""
-        alarm = self._temperature_alarm
-        if not alarm and self._warnings:
-            alarm = next(reversed(self._warnings.values()))
-        self._alarm = alarm
-        self._warning = alarm != 0 or bool(self._warnings)
+    def _emcy(self, code: int, register_bits: int, data: bytes) -> None:
+        if self.emcy_sink is not None:
+            self.emcy_sink(code, register_bits, data)
+
+    def _emcy_reset(self) -> None:
+        if self.emcy_reset_sink is not None:
+            self.emcy_reset_sink()
 
     def _cycle(self) -> None:
         dt = self.cycle_s
@@ -1278,13 +899,15 @@ class Drive:
             if self._stop is not None:
                 self._run_stop()
             elif self._state == S.OPERATION_ENABLED:
-                self._mode_obj.cycle(self)
+                self._mode_obj.cycle(self.ctx)
             elif self._state == S.QUICK_STOP_ACTIVE:
                 self.setpoints.set_control(CONTROL_MODE.POSITION)
-                self._set_position(self.setpoints.demand_m, 0.0)
+                self.setpoints.position(self.setpoints.demand_m, 0.0)
         self.sim.advance(1)
-        self._prev_actual_m = self._axis.position_m
-        ax = self._axis = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
+        self.ctx.prev_position_m = self._axis.position_m
+        ax = self.sim.observe()  # the same object every cycle, refreshed (see AxisSimulator.observe)
+        if ax is not self._axis:
+            self._set_axis(ax)
         self.counters["cycles"] += 1
         if not math.isfinite(ax.position_m + ax.velocity_m_s + ax.table_position_m + ax.current_q_a) and not (
                 math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
@@ -1300,7 +923,7 @@ class Drive:
         self._monitor(ax, dt)
         self._publish_outputs()
 
-    def _params(self) -> _Params:
+    def _params(self) -> DriveParameters:
         """The cached parameters, recomputed first if an object they come from was written."""
         if self._params_dirty:
             self._refresh_params()
@@ -1308,42 +931,12 @@ class Drive:
 
     def _refresh_params(self) -> None:
         """Monitoring parameters and limits in SI, recomputed only after an object write (not every cycle)."""
-        o, u, mot = self.objects, self._u, self.cfg.motor
-        vdc_nom = self.cfg.inverter.dc_link_v
-        window = int(o[(0x6065, 0)])
-        max_speed = self._max_speed_m_s()
-        self._pc = _Params(
-            fe_window_m=math.inf if window == 0xFFFFFFFF else window * u,
-            fe_time_s=int(o[(0x6066, 0)]) / 1000.0,
-            standstill_window_m=int(o[(0x2006, 0)]) * u,
-            standstill_time_s=int(o[(0x2007, 0)]) / 1000.0,
-            position_window_m=int(o[(0x6067, 0)]) * u,
-            position_time_s=int(o[(0x6068, 0)]) / 1000.0,
-            velocity_window_m_s=int(o[(0x606D, 0)]) * u,
-            velocity_time_s=int(o[(0x606E, 0)]) / 1000.0,
-            velocity_threshold_m_s=int(o[(0x606F, 0)]) * u,
-            velocity_threshold_time_s=int(o[(0x6070, 0)]) / 1000.0,
-            temperature_alarm_c=float(o[(0x200A, 0)]),
-            temperature_fault_c=float(o[(0x200B, 0)]),
-            dc_over_v=self.settings.dc_link_overvoltage_v or 1.25 * vdc_nom,
-            dc_under_v=self.settings.dc_link_undervoltage_v or 0.70 * vdc_nom,
-            rated_current_a=self.cfg.motor.rated_current_a,
-            pmsm=self.cfg.actuator.kind == "pmsm",
-            inv_u=1.0 / u,
-            rated_nm=float(o[(0x6076, 0)]) / 1000.0,
-            rated_a=float(o[(0x6075, 0)]) / 1000.0,
-            max_speed_m_s=max_speed,
-            max_velocity_m_s=min(float(o[(0x607F, 0)]) * u, max_speed),
-            kt_nm_per_a=mot.kt_nm_per_a,
-            reluctance_nm_per_a2=1.5 * mot.pole_pairs * (mot.ld_h - mot.lq_h),
-            max_torque_nm=float(o[(0x6072, 0)]) / 1000.0 * float(o[(0x6076, 0)]) / 1000.0,
-            travel_limits_m=self._limits_m_from_objects(),
-            interp_cycles=self._interp_cycles_from_objects(),
-        )
+        self._pc = drive_parameters(self.objects, self._u, self._max_speed_m_s(), self.cfg, self.settings,
+                                    self.cycle_s)
         self._params_dirty = False
 
     def _monitor(self, ax, dt: float) -> None:
-        pc = self._pc
+        pc, ctx = self._pc, self.ctx
         fe_m = ax.following_error_m
         in_position_control = (
             self._power
@@ -1352,11 +945,11 @@ class Drive:
         )
         # following error 0x6065 / 0x6066 (position control only)
         if in_position_control:
-            self._fe_exceeded = self._fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
-            if self._fe_exceeded:
+            ctx.fe_exceeded = ctx.fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
+            if ctx.fe_exceeded:
                 self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
-        elif self._fe_timer.held_s:
-            self._fe_timer.held_s = 0.0
+        elif ctx.fe_timer.held_s:
+            ctx.fe_timer.held_s = 0.0
         # standstill monitoring (p2542/p2543): demand at rest for 0x2007 ms, |FE| > 0x2006 -> following error
         if in_position_control and self.setpoints.demand_v == 0.0 and self._stop is None:
             at_rest = self._rest_timer.update(True, dt, pc.standstill_time_s)
@@ -1365,8 +958,8 @@ class Drive:
         elif self._rest_timer.held_s:
             self._rest_timer.held_s = 0.0
         # target reached / velocity reached (the mode object's definition of bit 10)
-        self._target_reached = self._mode_obj.target_reached(self, ax, dt)
-        self._speed_zero = self._vz_timer.update(
+        ctx.target_reached = self._mode_obj.target_reached(ctx, ax, dt)
+        ctx.speed_zero = self._vz_timer.update(
             ax.velocity_m_s, dt, pc.velocity_threshold_m_s, pc.velocity_threshold_time_s
         )
         # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
@@ -1375,46 +968,49 @@ class Drive:
             rise_ss = MOTOR_RISE_AT_RATED_K * i2 / (pc.rated_current_a * pc.rated_current_a)
             self._motor_rise_k += dt / MOTOR_THERMAL_TAU_S * (rise_ss - self._motor_rise_k)
         temp = MOTOR_AMBIENT_C + self._motor_rise_k
-        self._temperature_alarm = 7910 if temp >= pc.temperature_alarm_c else 0
+        fm = self.fault_manager
+        causes = fm.causes
+        alarm = MOTOR_TEMPERATURE_ALARM if temp >= pc.temperature_alarm_c else 0
+        if alarm != fm.temperature_alarm:  # (a warning's change updates the alarm itself)
+            fm.temperature_alarm = alarm
+            fm.update_alarm()
         if temp >= pc.temperature_fault_c:
-            if 0x4310 not in self._causes:
+            if 0x4310 not in causes:
                 self._raise_fault(0x4310, int(temp * 10), cause="motor temperature")
-        elif self._causes.get(0x4310) == "motor temperature":
-            del self._causes[0x4310]
+        elif causes.get(0x4310) == "motor temperature":
+            del causes[0x4310]
         # DC link
         vdc = ax.dc_link_v
-        if vdc > pc.dc_over_v or vdc < pc.dc_under_v or self._causes:
+        if vdc > pc.dc_over_v or vdc < pc.dc_under_v or causes:
             for code, bad in ((0x3210, vdc > pc.dc_over_v), (0x3220, vdc < pc.dc_under_v)):
-                if bad and code not in self._causes:
+                if bad and code not in causes:
                     self._raise_fault(code, int(vdc * 1000), cause="dc link")
-                elif not bad and self._causes.get(code) == "dc link":
-                    del self._causes[code]
-        self._update_alarm()
+                elif not bad and causes.get(code) == "dc link":
+                    del causes[code]
 
     # ================================================================================ outputs
     def _update_statusword(self) -> None:
         sw = _STATE_SW[self._state._value_]  # state bits + voltage enabled + remote
-        if self._warning or self._alarm:
+        fm = self.fault_manager
+        if fm.warning or fm.alarm:
             sw |= 0x80
-        if self._target_reached:
+        ctx = self.ctx
+        if ctx.target_reached:
             sw |= 0x400
-        if self._internal_limit or (self._power and self._axis.current_limited):
+        if self.setpoints.internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
         if self._state == S.OPERATION_ENABLED:
             mode = self._mode_obj  # bits 12 / 13 (HM: 10 too): the mode's status_mask
-            sw = (sw & ~mode.status_mask) | mode.status_bits(self)
+            sw = (sw & ~mode.status_mask) | mode.status_bits(ctx)
         elif self._state is S.QUICK_STOP_ACTIVE:
             # CiA 402 bit 10: set once the quick stop (options 5..8) has finished and the drive is halted, in
             # every mode; bit 12 only where it tells the actual motion (PV / CSV "speed = 0")
             sw = (sw & ~0x400) | (0x400 if self._stop is None else 0)
-            sw |= self._mode_obj.quick_stop_bits(self)
-        elif ((self._state is S.FAULT or self._state is S.FAULT_REACTION_ACTIVE) and self._faults
-              and self._faults[0].emcy_code == 0x8611):
+            sw |= self._mode_obj.quick_stop_bits(ctx)
+        elif ((self._state is S.FAULT or self._state is S.FAULT_REACTION_ACTIVE)
+              and fm.latest_code() == 0x8611):
             sw |= 0x2000  # following error (bit 13) from the timeout 0x6066 on: through the fault reaction, in FAULT
         self._store((0x6041, 0), sw)
-
-    def _speed_zero_flag(self) -> bool:
-        return bool(getattr(self, "_speed_zero", False))
 
     def _torque_actual_nm(self, ax) -> float:
         """Torque actual value [N m] as a drive computes it: from the measured dq currents (k_t i_q plus the
@@ -1467,7 +1063,7 @@ class Drive:
             fe_u,
             (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
-            self._alarm,
+            self.fault_manager.alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
             o[(0x6074, 0)] if self._mode in TORQUE_MODES else torque_pm,  # torque demand (torque modes: theirs)
         )
@@ -1514,44 +1110,26 @@ class Drive:
                 digital_inputs=int(o[(0x60FD, 0)]),
                 fault_active=self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE),
                 error_code=int(o[(0x603F, 0)]),
-                faults=tuple(self._faults),
-                alarm_number=self._alarm,
+                faults=tuple(self.fault_manager.records),
+                alarm_number=self.fault_manager.alarm,
             )
 
     def parameter_names(self) -> list[str]:
         return sorted(PARAMETERS)
 
-    def _param(self, name: str):
-        spec = PARAMETERS.get(name)
-        if spec is None:
-            import difflib
-
-            hint = difflib.get_close_matches(name, list(PARAMETERS), n=1)
-            raise KeyError(f"unknown drive parameter {name!r}" + (f" (did you mean {hint[0]}?)" if hint else ""))
-        return spec
-
-    def _scale(self, spec) -> float:
-        if spec.scale == "pos":
-            return self._u
-        if spec.scale == "torque_nm":
-            return float(self.objects[(0x6076, 0)]) / 1e6  # per mille of rated mN m -> N m
-        if spec.scale == "current_a":
-            return float(self.objects[(0x6075, 0)]) / 1e6
-        return 1.0
-
     def get_parameter(self, name: str) -> float:
         """A named parameter in SI units (see :data:`virtualaxis.drive.snapshot.PARAMETERS`)."""
         with self._lock:
-            spec = self._param(name)
-            return float(self.objects[(spec.index, spec.sub)]) * self._scale(spec)
+            spec = named_parameter(name)
+            return float(self.objects[(spec.index, spec.sub)]) * parameter_scale(spec, self.objects, self._u)
 
     def set_parameter(self, name: str, value: float) -> None:
         """Set a named parameter (SI units); refused values raise :class:`ObjectAccessError`."""
         with self._lock:
-            spec = self._param(name)
+            spec = named_parameter(name)
             if name == "software_limit_reaction" and isinstance(value, str):
                 value = {"clamp": 0, "fault": 1}.get(value, -1)
-            raw = float(value) / self._scale(spec)
+            raw = float(value) / parameter_scale(spec, self.objects, self._u)
             dtype = SPECS[(spec.index, spec.sub)].dtype
             if dtype != "f32":
                 raw = int(round(raw))
@@ -1583,50 +1161,19 @@ class Drive:
         with self._lock:
             n = self.counters["setpoints_refused"] = self.counters["setpoints_refused"] + 1
             self._refused_setpoint = reason
-            if SETPOINT_REFUSED_EMCY not in self._warnings:
+            if SETPOINT_REFUSED_EMCY not in self.fault_manager.warnings:
                 self.set_warning(SETPOINT_REFUSED_EMCY, True)
-            elif self.emcy_sink is not None:
-                info = fault_info(SETPOINT_REFUSED_EMCY)
-                self.emcy_sink(SETPOINT_REFUSED_EMCY, info.register_bits, struct.pack("<I", n & 0xFFFFFFFF) + b"\x00")
+            else:
+                self.fault_manager.repeat_warning(SETPOINT_REFUSED_EMCY, struct.pack("<I", n & 0xFFFFFFFF) + b"\x00")
 
     def accept_setpoint(self) -> None:
         """A set-point was taken: the warning of a refused one (if any) is cleared."""
         with self._lock:
-            if SETPOINT_REFUSED_EMCY in self._warnings:
+            if SETPOINT_REFUSED_EMCY in self.fault_manager.warnings:
                 self.set_warning(SETPOINT_REFUSED_EMCY, False)
 
     def set_controlword(self, cw: int) -> None:
         self.write_object(0x6040, 0, cw)
-
-
-@dataclass(frozen=True, slots=True)
-class _Params:
-    fe_window_m: float
-    fe_time_s: float
-    standstill_window_m: float
-    standstill_time_s: float
-    position_window_m: float
-    position_time_s: float
-    velocity_window_m_s: float
-    velocity_time_s: float
-    velocity_threshold_m_s: float
-    velocity_threshold_time_s: float
-    temperature_alarm_c: float
-    temperature_fault_c: float
-    dc_over_v: float
-    dc_under_v: float
-    rated_current_a: float
-    pmsm: bool
-    inv_u: float
-    rated_nm: float
-    rated_a: float
-    max_speed_m_s: float  # 0x6080 as table speed
-    max_velocity_m_s: float  # velocity targets' limit: 0x607F and 0x6080
-    kt_nm_per_a: float  # torque constant (0x6077 from the currents)
-    reluctance_nm_per_a2: float  # 1.5 p (L_d - L_q)
-    max_torque_nm: float  # 0x6072 as torque
-    travel_limits_m: tuple[float, float] | None  # 0x607D in m (None: min >= max, no limits)
-    interp_cycles: int  # 0x60C2 in drive cycles
 
 
 def _reaction_rank(item: tuple[tuple[int, int], int | float]) -> int:

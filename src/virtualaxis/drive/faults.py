@@ -57,6 +57,17 @@ FAULT_TABLE: dict[int, FaultInfo] = {
 
 FAULT_BUFFER_LENGTH = 8
 
+#: loss of control (``Drive.communication_error``): kind -> (EMCY code, whether the CANopen stack sent the EMCY)
+COMMUNICATION_FAULTS: dict[str, tuple[int, bool]] = {
+    "heartbeat_lost": (0x8130, True),
+    "life_guarding": (0x8130, True),
+    "rpdo_timeout": (0x8250, True),
+    "bus_off": (0x8140, True),
+    "sync_loss": (0x8100, True),
+    "nmt_stopped": (0x8131, False),
+    "nmt_reset_communication": (0x8131, False),
+}
+
 
 def fault_info(emcy_code: int) -> FaultInfo:
     """The table entry for a code; unknown codes are accepted as generic manufacturer faults."""

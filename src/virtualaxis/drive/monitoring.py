@@ -14,7 +14,7 @@
   inverter switches off, as SINAMICS does.)
 - **Position objects**: 0x6064 / 0x6062 are 32-bit; a position beyond their range saturates (never wraps)
   and raises fault 0x8600 (F07493) once.
-- (Following error, standstill, target reached, temperature and DC link are still in ``Drive._monitor``.)
+- (Following error, standstill, target reached, temperature and DC link are in ``Drive._monitor``.)
 
 Each monitor is a small object whose ``check`` returns an event (:class:`FaultEvent`, :class:`CauseCleared`,
 :class:`LimitSwitchEvent`) or None; the drive applies the events (``Drive._apply_monitor_event``).

@@ -17,7 +17,8 @@ Once the ramp is at zero the drive waits for standstill (|v| below 0x606F), hold
 :data:`HOLD_S` (SINAMICS p1228 pulse suppression delay) and only then changes the state (switch on disabled,
 fault, ...). If the axis is not at standstill within :func:`brake_bound_s` of the start, braking has failed:
 fault 0x8400 (F07900) is raised and the pulses are switched off. :func:`run_stop` steps one cycle and returns
-its :class:`StopOutcome`; the state change or the fault is the drive's (``Drive._run_stop``).
+its :class:`StopOutcome`; the state change or the fault is the drive's to apply. A stop sees the drive
+through the modes' :class:`~virtualaxis.drive.mode_context.ModeContext`.
 
 Whatever 0x6084 / 0x6085 hold, a stop is bounded in time and distance (:func:`bounded_decel_m_s2`): the ramp
 takes at most :data:`MAX_STOP_RAMP_S` and ends before the limit switch ahead (once past it, before the end
@@ -37,7 +38,7 @@ from virtualaxis.drive.statemachine import Cia402State
 from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 #: hold at standstill before the pulses are switched off [s] (SINAMICS p1228 default 0.01 s... chosen 20 ms,
 #: two speed-controller settling times of the bench axes)
@@ -87,7 +88,7 @@ def brake_bound_s(v0_m_s: float, decel_m_s2: float, kind: str) -> float:
 
 @dataclass
 class StopRamp:
-    """One running stop (``Drive._stop``)."""
+    """One running stop (the drive holds it while it runs)."""
 
     kind: str  # "slow" | "quick" | "current"
     then: Cia402State | str | None  # state once stopped; None: keep holding; "resume": re-enter the mode
@@ -106,30 +107,30 @@ class StopRamp:
     room_to_switch_m: float = 0.0  # room to the limit switch ahead at the start (<= 0: on or past it) [m]
 
     @classmethod
-    def start(cls, drive: Drive, kind: str, then: Cia402State | str | None) -> StopRamp:
-        ax = drive._axis
+    def start(cls, ctx: ModeContext, kind: str, then: Cia402State | str | None) -> StopRamp:
+        ax = ctx.axis
         v0 = ax.velocity_m_s
-        p0 = ax.position_m - drive.setpoints.zero_m + drive._lag_m(v0)  # bumpless: the speed set-point = actual speed
+        p0 = ax.position_m - ctx.setpoints.zero_m + ctx.lag_m(v0)  # bumpless: the speed set-point = actual speed
         decel_obj = 0x6084 if kind == "slow" else 0x6085
-        decel = float(drive._obj(decel_obj)) * drive._u
+        decel = float(ctx.obj(decel_obj)) * ctx.u
         if kind in ("slow", "quick"):
-            decel, kind = bounded_decel_m_s2(drive, v0, decel, kind)
+            decel, kind = bounded_decel_m_s2(ctx, v0, decel, kind)
         decel = max(decel, 1e-6)
         velocity_control = True  # OFF1/OFF3 ramp on the speed set-point, from the actual speed
-        drive.setpoints.set_control(CONTROL_MODE.VELOCITY)
+        ctx.setpoints.set_control(CONTROL_MODE.VELOCITY)
         ramp = cls(kind, then, decel, v0, p0, velocity_control, brake_bound_s(v0, decel, kind), v0_m_s=v0,
-                   vramp=VelocityRamp(drive.cycle_s))
+                   vramp=VelocityRamp(ctx.cycle_s))
         ramp.vramp.velocity_m_s = v0
-        ramp.room_to_switch_m = drive.travel_room_m(v0)[0]
-        if at_standstill(drive):  # nothing to brake: hold where it is, the state change in the next cycle
+        ramp.room_to_switch_m = ctx.travel_room_m(v0)[0]
+        if at_standstill(ctx):  # nothing to brake: hold where it is, the state change in the next cycle
             ramp.v_m_s, ramp.stopped_s, ramp.hold_s, ramp.kind = 0.0, 0.0, 0.0, "hold"
             if velocity_control:
-                drive.setpoints.set_control(CONTROL_MODE.POSITION)
+                ctx.setpoints.set_control(CONTROL_MODE.POSITION)
                 ramp.velocity_control = False
         return ramp
 
 
-def bounded_decel_m_s2(drive: Drive, v0_m_s: float, decel_m_s2: float, kind: str) -> tuple[float, str]:
+def bounded_decel_m_s2(ctx: ModeContext, v0_m_s: float, decel_m_s2: float, kind: str) -> tuple[float, str]:
     """The deceleration of a ramp stop from ``v0_m_s`` [m/s^2] and its kind: the configured ``decel_m_s2``,
     steepened so that the ramp takes at most :data:`MAX_STOP_RAMP_S` and ends within :data:`STOP_ROOM_SHARE`
     of the room ahead (before the limit switch; once past it, before the end stop). No room left: the
@@ -137,7 +138,7 @@ def bounded_decel_m_s2(drive: Drive, v0_m_s: float, decel_m_s2: float, kind: str
     v = abs(v0_m_s)
     if v == 0.0:
         return decel_m_s2, kind
-    to_switch_m, to_end_m = drive.travel_room_m(v0_m_s)
+    to_switch_m, to_end_m = ctx.travel_room_m(v0_m_s)
     room_m = to_switch_m if to_switch_m > 0.0 else to_end_m
     if room_m <= 0.0:
         return decel_m_s2, "current"
@@ -145,13 +146,13 @@ def bounded_decel_m_s2(drive: Drive, v0_m_s: float, decel_m_s2: float, kind: str
     return max(decel_m_s2, needed), kind
 
 
-def standstill_threshold_m_s(drive: Drive) -> float:
+def standstill_threshold_m_s(ctx: ModeContext) -> float:
     """|v| below this is standstill: 0x606F velocity threshold, at least :data:`MIN_STANDSTILL_M_S` [m/s]."""
-    return max(float(drive._obj(0x606F)) * drive._u, MIN_STANDSTILL_M_S)
+    return max(float(ctx.obj(0x606F)) * ctx.u, MIN_STANDSTILL_M_S)
 
 
-def at_standstill(drive: Drive) -> bool:
-    return abs(drive._axis.velocity_m_s) < standstill_threshold_m_s(drive)
+def at_standstill(ctx: ModeContext) -> bool:
+    return abs(ctx.axis.velocity_m_s) < standstill_threshold_m_s(ctx)
 
 
 class StopOutcome(enum.Enum):
@@ -163,40 +164,40 @@ class StopOutcome(enum.Enum):
     FAILED = "failed"  # not at standstill within the bound: fault 0x8400, pulses off
 
 
-def run_stop(drive: Drive, s: StopRamp) -> StopOutcome:
+def run_stop(ctx: ModeContext, s: StopRamp) -> StopOutcome:
     """One cycle of the stop ``s``: ramp, standstill, hold; returns the outcome (the state change, or the
     braking-failed fault, is the drive's)."""
-    s.t_s += drive.cycle_s
-    ax = drive._axis
-    threshold = standstill_threshold_m_s(drive)
+    s.t_s += ctx.cycle_s
+    ax = ctx.axis
+    threshold = standstill_threshold_m_s(ctx)
     outcome = StopOutcome.RUNNING
     if s.kind == "hold":
-        drive._set_position(s.p_m, 0.0)
+        ctx.setpoints.position(s.p_m, 0.0)
         ramp_done = True
     elif s.kind == "current":
-        drive.setpoints.send_velocity(0.0)
-        drive.setpoints.demand_v = 0.0
+        ctx.setpoints.send_velocity(0.0)
+        ctx.setpoints.demand_v = 0.0
         ramp_done = True
     else:  # OFF1 / OFF3: the speed set-point ramps down from the actual speed
         v = s.vramp.step(0.0, s.decel_m_s2, s.decel_m_s2)
-        drive.setpoints.demand_v = v
-        drive.setpoints.send_velocity(v)
+        ctx.setpoints.demand_v = v
+        ctx.setpoints.send_velocity(v)
         ramp_done = v == 0.0
-        if ramp_not_followed(drive, s, v, threshold):  # monitored ramp: fall back to the current limit
+        if ramp_not_followed(ctx, s, v, threshold):  # monitored ramp: fall back to the current limit
             s.kind = "current"
             s.bound_s = s.t_s + CURRENT_STOP_BOUND_S
-            drive.setpoints.send_velocity(0.0)
-            drive.setpoints.demand_v = 0.0
+            ctx.setpoints.send_velocity(0.0)
+            ctx.setpoints.demand_v = 0.0
             outcome = StopOutcome.FALLBACK
     if ramp_done and s.stopped_s < 0.0 and abs(ax.velocity_m_s) < threshold:
         s.stopped_s = s.t_s
         if s.velocity_control:  # hold the position where the axis came to rest
-            drive.setpoints.demand_m = ax.position_m - drive.setpoints.zero_m
-            drive.setpoints.set_control(CONTROL_MODE.POSITION)
-            drive._set_position(drive.setpoints.demand_m, 0.0)
+            ctx.setpoints.demand_m = ax.position_m - ctx.setpoints.zero_m
+            ctx.setpoints.set_control(CONTROL_MODE.POSITION)
+            ctx.setpoints.position(ctx.setpoints.demand_m, 0.0)
             s.velocity_control = False
             s.kind = "hold"
-            s.v_m_s, s.p_m = 0.0, drive.setpoints.demand_m
+            s.v_m_s, s.p_m = 0.0, ctx.setpoints.demand_m
     if s.stopped_s < 0.0:
         return StopOutcome.FAILED if s.t_s > s.bound_s else outcome
     if s.t_s - s.stopped_s < s.hold_s - 1e-12:
@@ -204,19 +205,19 @@ def run_stop(drive: Drive, s: StopRamp) -> StopOutcome:
     return StopOutcome.DONE
 
 
-def ramp_not_followed(drive: Drive, s: StopRamp, v_ramp_m_s: float, threshold_m_s: float) -> bool:
+def ramp_not_followed(ctx: ModeContext, s: StopRamp, v_ramp_m_s: float, threshold_m_s: float) -> bool:
     """Ramp monitoring of a ramp stop: the actual speed above the ramp by more than the tolerance for
     :data:`RAMP_MONITOR_S`, or the axis still moving onto the limit switch ahead (the ramp was planned to
     end before it) or into the end stop."""
-    v_act = drive.actual_velocity_m_s
+    v_act = ctx.axis.velocity_m_s
     if abs(v_act) > abs(v_ramp_m_s) + RAMP_TOLERANCE_SHARE * abs(s.v0_m_s) + threshold_m_s:
-        s.ramp_exceeded_s += drive.cycle_s
+        s.ramp_exceeded_s += ctx.cycle_s
     else:
         s.ramp_exceeded_s = 0.0
     if s.ramp_exceeded_s >= RAMP_MONITOR_S - 1e-12:
         return True
     if abs(v_act) < threshold_m_s:
         return False
-    to_switch_m, to_end_m = drive.travel_room_m(v_act)
+    to_switch_m, to_end_m = ctx.travel_room_m(v_act)
     started_before_switch = s.room_to_switch_m > 0.0
     return (to_switch_m <= 0.0 and started_before_switch) or to_end_m <= 0.0

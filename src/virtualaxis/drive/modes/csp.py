@@ -11,7 +11,7 @@ from virtualaxis.drive.profiles import LinearInterpolator
 from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 
 @register
@@ -26,39 +26,39 @@ class CyclicPosition(OperatingMode):
         self.interp = LinearInterpolator()
         self.interp.reset(gen.target_m)
 
-    def reset(self, d: Drive, p_m: float) -> None:
+    def reset(self, ctx: ModeContext, p_m: float) -> None:
         self.interp.reset(p_m)
 
-    def enter(self, d: Drive) -> None:
+    def enter(self, ctx: ModeContext) -> None:
         # the master's next target takes over; until then the demand is the actual position (+ lag)
-        moving = d._power and not rx.at_standstill(d)
-        v_act = d._axis.velocity_m_s if moving else 0.0
-        if moving and d.setpoints.control != CONTROL_MODE.POSITION:
-            d.setpoints.demand_m += d._lag_m(v_act)
-            self.interp.reset(d.setpoints.demand_m)
-        d.setpoints.set_control(CONTROL_MODE.POSITION)
-        d.setpoints.send_position(d.setpoints.demand_m, v_act, 0.0)
+        moving = ctx.powered and not rx.at_standstill(ctx)
+        v_act = ctx.axis.velocity_m_s if moving else 0.0
+        if moving and ctx.setpoints.control != CONTROL_MODE.POSITION:
+            ctx.setpoints.demand_m += ctx.lag_m(v_act)
+            self.interp.reset(ctx.setpoints.demand_m)
+        ctx.setpoints.set_control(CONTROL_MODE.POSITION)
+        ctx.setpoints.send_position(ctx.setpoints.demand_m, v_act, 0.0)
 
-    def on_target_position(self, d: Drive, value: int) -> None:
-        if d._state_enabled() and d._stop is None:
-            target = d._check_limit(value * d._u, value)
+    def on_target_position(self, ctx: ModeContext, value: int) -> None:
+        if ctx.enabled and not ctx.stopping:
+            target = ctx.setpoints.check_limit(value * ctx.u, value)
             if target is not None:
-                self.interp.new_target(target, d._interp_cycles())
+                self.interp.new_target(target, ctx.params().interp_cycles)
 
-    def cycle(self, d: Drive) -> None:
+    def cycle(self, ctx: ModeContext) -> None:
         p, slope = self.interp.step()
-        d._set_position(p, slope / d.cycle_s + int(d.objects[(0x60B1, 0)]) * d._u)
+        ctx.setpoints.position(p, slope / ctx.cycle_s + int(ctx.objects[(0x60B1, 0)]) * ctx.u)
 
-    def stop(self, d: Drive, decel_m_s2: float) -> None:
-        self.interp.reset(d.setpoints.demand_m)  # no further targets: hold (a CS mode follows the master)
+    def stop(self, ctx: ModeContext, decel_m_s2: float) -> None:
+        self.interp.reset(ctx.setpoints.demand_m)  # no further targets: hold (a CS mode follows the master)
 
-    def target_reached(self, d: Drive, ax, dt: float) -> bool:
-        pc = d._pc
-        x = ax.position_m - d.setpoints.zero_m
+    def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
+        pc = ctx.params()
+        x = ax.position_m - ctx.setpoints.zero_m
         it = self.interp
         cond = abs(it.end - x) <= pc.position_window_m and it.i >= it.n
-        return d._tr_timer.update(cond, dt, pc.position_time_s)
+        return ctx.target_timer.update(cond, dt, pc.position_time_s)
 
-    def status_bits(self, d: Drive) -> int:
+    def status_bits(self, ctx: ModeContext) -> int:
         # bit 12: the drive follows the command value (not while a shutdown / disable-operation ramp runs)
-        return (0x1000 if d._stop is None else 0) | (0x2000 if d._fe_exceeded else 0)
+        return (0x1000 if not ctx.stopping else 0) | (0x2000 if ctx.fe_exceeded else 0)

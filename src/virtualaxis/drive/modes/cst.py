@@ -9,7 +9,7 @@ from virtualaxis.drive.modes.pt import ProfileTorque
 from virtualaxis.drive.opmodes import OperationMode
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 
 @register
@@ -18,13 +18,14 @@ class CyclicTorque(ProfileTorque):
 
     number = OperationMode.CST
 
-    def cycle(self, d: Drive) -> None:
-        o = d.objects
+    def cycle(self, ctx: ModeContext) -> None:
+        o = ctx.objects
         rated_nm = float(o[(0x6076, 0)]) / 1000.0
-        d._apply_torque((int(o[(0x6071, 0)]) + int(o[(0x60B2, 0)])) / 1000.0 * rated_nm, rated_nm)
+        t_max = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
+        ctx.setpoints.torque((int(o[(0x6071, 0)]) + int(o[(0x60B2, 0)])) / 1000.0 * rated_nm, rated_nm, t_max)
 
-    def target_reached(self, d: Drive, ax, dt: float) -> bool:
+    def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         return False
 
-    def status_bits(self, d: Drive) -> int:
-        return 0x1000 if d._stop is None else 0  # bit 12: follows the command value (not while stopping)
+    def status_bits(self, ctx: ModeContext) -> int:
+        return 0x1000 if not ctx.stopping else 0  # bit 12: follows the command value (not while stopping)

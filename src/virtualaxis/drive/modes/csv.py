@@ -9,7 +9,7 @@ from virtualaxis.drive.modes.pv import ProfileVelocity
 from virtualaxis.drive.opmodes import OperationMode
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 
 @register
@@ -18,30 +18,30 @@ class CyclicVelocity(ProfileVelocity):
 
     number = OperationMode.CSV
 
-    def enter(self, d: Drive) -> None:
-        super().enter(d)
-        self.on_target_velocity(d)
+    def enter(self, ctx: ModeContext) -> None:
+        super().enter(ctx)
+        self.on_target_velocity(ctx)
 
-    def on_target_velocity(self, d: Drive) -> None:
-        if d._state_enabled() and d._stop is None:
-            v = (int(d._obj(0x60FF)) + int(d._obj(0x60B1))) * d._u
-            self.interp_v.new_target(d._clamp_velocity(v), d._interp_cycles())
+    def on_target_velocity(self, ctx: ModeContext) -> None:
+        if ctx.enabled and not ctx.stopping:
+            v = (int(ctx.obj(0x60FF)) + int(ctx.obj(0x60B1))) * ctx.u
+            self.interp_v.new_target(ctx.setpoints.clamp_velocity(v), ctx.params().interp_cycles)
 
-    def cycle(self, d: Drive) -> None:
+    def cycle(self, ctx: ModeContext) -> None:
         v, _ = self.interp_v.step()
-        v = d._velocity_limit(v)
-        o = d.objects
-        requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * d._u
-        if d._clamp_velocity(requested) != requested:
-            d.note_internal_limit()
-        d.setpoints.demand_v = v
-        d.setpoints.send_velocity(v)
+        v = ctx.setpoints.velocity_limit(v)
+        o = ctx.objects
+        requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * ctx.u
+        if ctx.setpoints.clamp_velocity(requested) != requested:
+            ctx.setpoints.internal_limit = True
+        ctx.setpoints.demand_v = v
+        ctx.setpoints.send_velocity(v)
 
-    def target_reached(self, d: Drive, ax, dt: float) -> bool:
+    def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         return False
 
-    def status_bits(self, d: Drive) -> int:
-        return 0x1000 if d._stop is None else 0  # bit 12: follows the command value (not while stopping)
+    def status_bits(self, ctx: ModeContext) -> int:
+        return 0x1000 if not ctx.stopping else 0  # bit 12: follows the command value (not while stopping)
 
-    def quick_stop_bits(self, d: Drive) -> int:
+    def quick_stop_bits(self, ctx: ModeContext) -> int:
         return 0  # bit 12 is "follows the command value" here, not PV's "speed = 0"

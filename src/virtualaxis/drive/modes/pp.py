@@ -10,7 +10,7 @@ from virtualaxis.drive.opmodes import OperationMode
 from virtualaxis.drive.profiles import MAX_JERK_FILTER_CYCLES
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 
 @register
@@ -25,79 +25,79 @@ class ProfilePosition(OperatingMode):
         self.pending_m: float | None = None  # buffered set-point (single set-point, not change immediately)
         self.halting = False  # the halt's braking profile is planned (once, when bit 8 rises)
 
-    def reset(self, d: Drive, p_m: float) -> None:
-        super().reset(d, p_m)
+    def reset(self, ctx: ModeContext, p_m: float) -> None:
+        super().reset(ctx, p_m)
         self.ack = False
         self.pending_m = None
         self.halting = False
 
-    def entry_decel_m_s2(self, d: Drive) -> float:
-        return float(d._obj(0x6084)) * d._u
+    def entry_decel_m_s2(self, ctx: ModeContext) -> float:
+        return float(ctx.obj(0x6084)) * ctx.u
 
-    def limits(self, d: Drive) -> tuple[float, float, float]:
+    def limits(self, ctx: ModeContext) -> tuple[float, float, float]:
         """Profile velocity (0x6081 limited by 0x607F and 0x6080), acceleration 0x6083, deceleration 0x6084
         [m/s, m/s^2, m/s^2]."""
-        o, u = d.objects, d._u
+        o, u = ctx.objects, ctx.u
         v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
-        return min(v, d._params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+        return min(v, ctx.params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
 
-    def cycle(self, d: Drive) -> None:
+    def cycle(self, ctx: ModeContext) -> None:
         gen = self.gen
-        halt = bool(d._cw & 0x100)
-        v, a, dec = self.limits(d)
+        halt = bool(ctx.cw & 0x100)
+        v, a, dec = self.limits(ctx)
         if halt:
-            decel = self.halt_decel_m_s2(d)
+            decel = self.halt_decel_m_s2(ctx)
             if math.isinf(decel) or self.current_halt is not None:
-                self.halt_on_current_limit(d)
+                self.halt_on_current_limit(ctx)
                 return
             if not self.halting:  # planned once: re-planned every cycle it braked at about half of 0x6084
                 gen.brake(a, decel)
                 self.halting = True
         else:
             if self.current_halt is not None:
-                self.release_current_halt(d)
+                self.release_current_halt(ctx)
             self.halting = False
             gen.profile.set_target(gen.target_m, v, a, dec)
-        p = self._profile_step(d)
+        p = self._profile_step(ctx)
         if not halt and self.pending_m is not None and gen.profile.done and gen.jerk.settled(p):
             gen.target_m = self.pending_m
             self.pending_m = None
-            self.start_move(d)
-            if not d._cw & 0x10:
+            self.start_move(ctx)
+            if not ctx.cw & 0x10:
                 self.ack = False
 
     @staticmethod
-    def jerk_cycles(d: Drive) -> int:
+    def jerk_cycles(ctx: ModeContext) -> int:
         """Length of the jerk filter a set-point gets now [drive cycles]: T_j = 0x6083 / 0x60A4 with 0x6086 = 3,
         else 1 (may exceed :data:`MAX_JERK_FILTER_CYCLES`: such a set-point cannot be planned)."""
-        o = d.objects
+        o = ctx.objects
         jerk = float(o[(0x60A4, 1)])
         if int(o[(0x6086, 0)]) != 3 or jerk <= 0:
             return 1
-        cycles = float(o[(0x6083, 0)]) / jerk / d.cycle_s
+        cycles = float(o[(0x6083, 0)]) / jerk / ctx.cycle_s
         return MAX_JERK_FILTER_CYCLES + 1 if cycles > MAX_JERK_FILTER_CYCLES else max(1, int(round(cycles)))
 
-    def plannable(self, d: Drive) -> bool:
+    def plannable(self, ctx: ModeContext) -> bool:
         """Whether a set-point can be planned with the present profile objects; if not, it is refused
-        (:meth:`Drive.refuse_setpoint`: warning EMCY, SDO abort) and the axis stays where the profile is."""
-        n = self.jerk_cycles(d)
+        (``ctx.refuse_setpoint``: warning EMCY, SDO abort) and the axis stays where the profile is."""
+        n = self.jerk_cycles(ctx)
         if n <= MAX_JERK_FILTER_CYCLES:
             return True
-        acc, jerk = int(d.objects[(0x6083, 0)]), int(d.objects[(0x60A4, 1)])
-        d.refuse_setpoint(
+        acc, jerk = int(ctx.objects[(0x6083, 0)]), int(ctx.objects[(0x60A4, 1)])
+        ctx.refuse_setpoint(
             f"set-point not planned: jerk time T_j = 0x6083 / 0x60A4 = {acc} / {jerk} = {acc / jerk:g} s is longer "
-            f"than {MAX_JERK_FILTER_CYCLES} drive cycles ({MAX_JERK_FILTER_CYCLES * d.cycle_s:g} s)")
+            f"than {MAX_JERK_FILTER_CYCLES} drive cycles ({MAX_JERK_FILTER_CYCLES * ctx.cycle_s:g} s)")
         return False
 
-    def start_move(self, d: Drive) -> None:
+    def start_move(self, ctx: ModeContext) -> None:
         """A new set-point takes effect: the jerk filter length from 0x6086 / 0x60A4 (only when at rest). One
         that cannot be planned (the profile objects changed since it was accepted) is refused: the profile
         stops where it is."""
         gen = self.gen
         pr = gen.profile
-        n = self.jerk_cycles(d)
+        n = self.jerk_cycles(ctx)
         if n > MAX_JERK_FILTER_CYCLES:
-            self.plannable(d)
+            self.plannable(ctx)
             gen.target_m = pr.position_m if pr.done else gen.target_m
             return
         if n > 1 and gen.jerk.settled(pr.position_m) and pr.done:
@@ -105,42 +105,42 @@ class ProfilePosition(OperatingMode):
         elif n == 1 and gen.jerk.n != 1 and gen.jerk.settled(pr.position_m):
             gen.jerk.reset(pr.position_m, 1)
 
-    def controlword(self, d: Drive, old_cw: int, cw: int) -> None:
+    def controlword(self, ctx: ModeContext, old_cw: int, cw: int) -> None:
         """Set-point handshake: rising bit 4 takes 0x607A (bit 6 relative, bit 5 change immediately)."""
         if cw & 0x10 and not old_cw & 0x10:
             if not self.ack or cw & 0x20:
-                value = int(d._obj(0x607A))
+                value = int(ctx.obj(0x607A))
                 base = self.pending_m if self.pending_m is not None else self.gen.target_m
-                target = base + value * d._u if cw & 0x40 else value * d._u
-                target_l = d._check_limit(target, value) if self.plannable(d) else None
+                target = base + value * ctx.u if cw & 0x40 else value * ctx.u
+                target_l = ctx.setpoints.check_limit(target, value) if self.plannable(ctx) else None
                 if target_l is not None:
-                    d.accept_setpoint()
+                    ctx.accept_setpoint()
                     if cw & 0x20 or self.gen.settled():
                         self.gen.target_m = target_l
                         self.pending_m = None
-                        self.start_move(d)
+                        self.start_move(ctx)
                     else:
                         self.pending_m = target_l
                     self.ack = True
-                    d._restart_target_window()
+                    ctx.restart_target_window()
         elif not cw & 0x10 and self.pending_m is None:
             self.ack = False
 
-    def target_reached(self, d: Drive, ax, dt: float) -> bool:
-        pc = d._pc
+    def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
+        pc = ctx.params()
         gen = self.gen
         pr = gen.profile
-        if d._cw & 0x100 and pr.velocity_m_s == 0.0:  # halted
+        if ctx.cw & 0x100 and pr.velocity_m_s == 0.0:  # halted
             return True
-        x = ax.position_m - d.setpoints.zero_m
+        x = ax.position_m - ctx.setpoints.zero_m
         cond = (
             pr.done
             and self.pending_m is None
             and gen.jerk.settled(pr.position_m)
             and abs(gen.target_m - x) <= pc.position_window_m
         )
-        return d._tr_timer.update(cond, dt, pc.position_time_s)
+        return ctx.target_timer.update(cond, dt, pc.position_time_s)
 
-    def status_bits(self, d: Drive) -> int:
+    def status_bits(self, ctx: ModeContext) -> int:
         sw = 0x1000 if self.ack else 0
-        return sw | (0x2000 if d._fe_timer.held_s > 0 and d._fe_exceeded else 0)
+        return sw | (0x2000 if ctx.fe_timer.held_s > 0 and ctx.fe_exceeded else 0)

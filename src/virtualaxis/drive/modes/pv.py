@@ -11,7 +11,7 @@ from virtualaxis.drive.profiles import LinearInterpolator, VelocityRamp
 from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
-    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.mode_context import ModeContext
 
 
 @register
@@ -26,46 +26,46 @@ class ProfileVelocity(OperatingMode):
         self.vramp = VelocityRamp(gen.profile.dt_s)
         self.interp_v = LinearInterpolator()  # CSV: the cyclic velocity targets
 
-    def enter(self, d: Drive) -> None:
-        self.vramp.velocity_m_s = d._axis.velocity_m_s if d._power else 0.0
+    def enter(self, ctx: ModeContext) -> None:
+        self.vramp.velocity_m_s = ctx.axis.velocity_m_s if ctx.powered else 0.0
         self.interp_v = LinearInterpolator()
         self.interp_v.reset(self.vramp.velocity_m_s)
-        d.setpoints.set_control(CONTROL_MODE.VELOCITY)
-        d.setpoints.send_velocity(self.vramp.velocity_m_s)
+        ctx.setpoints.set_control(CONTROL_MODE.VELOCITY)
+        ctx.setpoints.send_velocity(self.vramp.velocity_m_s)
 
-    def cycle(self, d: Drive) -> None:
-        o, u = d.objects, d._u
+    def cycle(self, ctx: ModeContext) -> None:
+        o, u = ctx.objects, ctx.u
         requested = int(o[(0x60FF, 0)]) * u
-        clamped = d._clamp_velocity(requested)
-        target = d._velocity_limit(clamped)
+        clamped = ctx.setpoints.clamp_velocity(requested)
+        target = ctx.setpoints.velocity_limit(clamped)
         if clamped != requested:
-            d.note_internal_limit()
-        if d._cw & 0x100:
-            decel = self.halt_decel_m_s2(d)
+            ctx.setpoints.internal_limit = True
+        if ctx.cw & 0x100:
+            decel = self.halt_decel_m_s2(ctx)
             if math.isinf(decel):
                 self.current_halt = "braking"  # speed set-point 0: the speed controller brakes at the limit
-            self.stop(d, decel)
+            self.stop(ctx, decel)
             return
         if self.current_halt is not None:  # released: the ramp goes on from the actual speed
-            self.vramp.velocity_m_s = d._axis.velocity_m_s
+            self.vramp.velocity_m_s = ctx.axis.velocity_m_s
             self.current_halt = None
         v = self.vramp.step(target, float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u)
-        d.setpoints.demand_v = v
-        d.setpoints.send_velocity(v)
+        ctx.setpoints.demand_v = v
+        ctx.setpoints.send_velocity(v)
 
-    def stop(self, d: Drive, decel_m_s2: float) -> None:
+    def stop(self, ctx: ModeContext, decel_m_s2: float) -> None:
         v = self.vramp.step(0.0, decel_m_s2, decel_m_s2)
-        d.setpoints.demand_v = v
-        d.setpoints.send_velocity(v)
+        ctx.setpoints.demand_v = v
+        ctx.setpoints.send_velocity(v)
 
-    def target_reached(self, d: Drive, ax, dt: float) -> bool:
-        pc = d._pc
-        target = d._clamp_velocity(int(d.objects[(0x60FF, 0)]) * d._u) if not d._cw & 0x100 else 0.0
+    def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
+        pc = ctx.params()
+        target = ctx.setpoints.clamp_velocity(int(ctx.objects[(0x60FF, 0)]) * ctx.u) if not ctx.cw & 0x100 else 0.0
         cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
-        return d._tr_timer.update(cond, dt, pc.velocity_time_s)
+        return ctx.target_timer.update(cond, dt, pc.velocity_time_s)
 
-    def status_bits(self, d: Drive) -> int:
-        return 0x1000 if d._speed_zero_flag() else 0  # bit 12: speed = 0
+    def status_bits(self, ctx: ModeContext) -> int:
+        return 0x1000 if ctx.speed_zero else 0  # bit 12: speed = 0
 
-    def quick_stop_bits(self, d: Drive) -> int:
-        return 0x1000 if d._speed_zero_flag() else 0  # speed = 0 tells the actual motion in any state
+    def quick_stop_bits(self, ctx: ModeContext) -> int:
+        return 0x1000 if ctx.speed_zero else 0  # speed = 0 tells the actual motion in any state
