@@ -81,13 +81,14 @@ def test_page_in_chromium_follows_enable_csp_move_fault_and_records_a_trace(tmp_
                     tab.wait_for("document.querySelector('#cia402-state').textContent === 'OPERATION ENABLED'")
                     assert tab.text("#nmt-state") == "OPERATIONAL"
                     assert tab.evaluate("document.querySelector('#sw-bits li[data-bit=\"2\"]').className") == "on"
-                    _move_and_record(tab, m, downloads)
+                    rec = _move_and_record(tab, m, downloads)
+                    _pause_zoom_and_cursors(tab, m, url, rec)
                     _trigger_on_injected_fault(tab, m)
         finally:
             net.disconnect()
 
 
-def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
+def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> dict:
     x0 = m.position_m(NODE)
     n_move, n_hold, stroke_m = 600, 150, 0.010
     ramp = (1 - np.cos(np.pi * np.arange(n_move) / (n_move - 1))) / 2
@@ -123,7 +124,7 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
     rec = tab.evaluate("window.livePage.rec")
     assert rec["from"] == seq_before and rec["to"] - rec["from"] >= n_move + n_hold
     tab.click("#rec-download")
-    path = wait_for_file(downloads, ".csv")
+    path = wait_for_file(downloads, ".csv", timeout_s=120)  # (the trace formatter compiles on its first use)
     from virtualaxis.diagnosis.trace import read_trace
 
     diag = subprocess.run([*CLI, "diagnose", "--config", CONFIG, str(path), "--out", str(downloads / "report"),
@@ -141,6 +142,86 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
     demand = data["pos_cmd"]
     moving = demand[(demand > x0 + 1e-6) & (demand < x0 + stroke_m - 1e-6)]
     assert len(moving) >= n_move - 30 and np.all(np.diff(moving) >= -1e-9)
+    return rec
+
+
+def _plot_box(tab, chart: int = 0) -> list[float]:
+    """[left, top, width, height] of a plot's drawing area in the viewport [CSS px], scrolled into view."""
+    return tab.evaluate(f"(() => {{ const o = window.livePage.charts[{chart}].over; o.scrollIntoView({{block: "
+                        "'center'}); const r = o.getBoundingClientRect(); "
+                        "return [r.left, r.top, r.width, r.height]; })()")
+
+
+def _x_of_sample(tab, seq: int, chart: int = 0) -> float:
+    """The plot's x position [CSS px, from its drawing area's left] of sample ``seq`` (its time from the
+    received scope messages)."""
+    return tab.evaluate(f"(() => {{ const s = {seq}, c = window.livePage.chunks.find((c) => s >= c.seq0 && s < "
+                        f"c.seq0 + c.n); return window.livePage.charts[{chart}].valToPos(c.t0 + (s - c.seq0) * c.dt, "
+                        "'x'); })()")
+
+
+def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None:
+    """Pause holds the view while samples arrive; a drag zooms every plot to the samples of the dragged time
+    window; two clicks place cursors A and B on samples, and the page's Δt / Δy are those of the server's
+    recording of the same samples; a double click returns; Run follows the drive again."""
+    last_t = "window.livePage.charts[0].data[0][window.livePage.charts[0].data[0].length - 1]"
+    tab.click("#pause")
+    assert tab.evaluate("window.livePage.paused") is True and tab.text("#pause") == "Run"
+    shown_t, seq = tab.evaluate(f"[{last_t}, window.livePage.lastSeq]")
+    for _ in range(100):
+        m.step_raw()
+    tab.wait_for(f"window.livePage.lastSeq >= {seq + 100}")
+    time.sleep(0.2)  # (a few animation frames)
+    assert tab.evaluate(last_t) == shown_t  # held
+    full = tab.evaluate("[window.livePage.charts[0].scales.x.min, window.livePage.charts[0].scales.x.max]")
+    # zoom: drag across the position plot from sample a to sample b of the move
+    left, top, width, height = _plot_box(tab)
+    a, b = rec["from"] + 200, rec["from"] + 420
+    y = top + height / 2
+    tab.drag(left + _x_of_sample(tab, a), y, left + _x_of_sample(tab, b), y)
+    tab.wait_for("window.livePage.zoomed === true")
+    zoom = tab.evaluate("window.livePage.charts.map((u) => [u.scales.x.min, u.scales.x.max, u.data[0].length])")
+    view = tab.evaluate("window.livePage.view")
+    times = tab.evaluate(f"(() => {{ const r = []; for (let s = {view[0]}; s < {view[1]}; s++) {{ const c = window."
+                         "livePage.chunks.find((c) => s >= c.seq0 && s < c.seq0 + c.n); r.push(c.t0 + (s - c.seq0) * "
+                         "c.dt); } return r; })()")
+    assert abs(view[0] - a) <= 2 and abs(view[1] - 1 - b) <= 2, (view, a, b)  # the dragged window ...
+    for x_min, x_max, n in zoom:  # ... on every plot: its x axis spans the window's samples, each one drawn
+        assert (x_min, x_max, n) == pytest.approx((times[0], times[-1], len(times)), abs=1e-9)
+    assert times[-1] - times[0] < 0.5 * (full[1] - full[0])
+    # cursors: a click on sample ca, then on sample cb
+    ca, cb = a + 40, a + 150
+    left, top, width, height = _plot_box(tab)
+    tab.click_at(left + _x_of_sample(tab, ca), y)
+    tab.click_at(left + _x_of_sample(tab, cb), y)
+    readout = tab.evaluate("window.livePage.cursorReadout")
+    assert (readout["a"]["seq"], readout["b"]["seq"]) == (ca, cb)
+    shown = tab.text("#cursor-info")
+    dt_ms = float(re.search(r"Δt = (-?[\d.]+) ms", shown).group(1))
+    dy = {name: float(v) for name, v in re.findall(r"(position demand|position actual|following error) "
+                                                     r"(-?[\d.e+-]+) (?:mm|um)", shown)}
+    st, csv = request(url + f"api/axes/{AXIS}/recording.csv?from={ca}&to={cb + 1}")
+    assert st == 200
+    lines = csv.strip().splitlines()
+    head = lines[0].split(",")
+    first, last = (dict(zip(head, map(float, row.split(",")), strict=True)) for row in (lines[1], lines[-1]))
+    assert dt_ms == pytest.approx((last["t"] - first["t"]) * 1e3, abs=1e-3)
+    assert dt_ms == pytest.approx((cb - ca) * 1.0, abs=1e-3)  # one sample per 1 ms drive cycle
+    assert dy["position demand"] == pytest.approx((last["pos_cmd"] - first["pos_cmd"]) * 1e3, abs=1e-4)
+    assert dy["position actual"] == pytest.approx((last["pos_fb"] - first["pos_fb"]) * 1e3, abs=1e-4)
+    assert dy["following error"] == pytest.approx(
+        (last["following_error"] - first["following_error"]) * 1e6, abs=1e-2)
+    assert abs(dy["position demand"]) > 1.0  # (the window is inside the move)
+    # a double click returns to the whole view; Run follows the drive again
+    tab.click_at(left + width / 2, y, clicks=2)
+    tab.wait_for("window.livePage.zoomed === false")
+    back = tab.evaluate("[window.livePage.charts[0].scales.x.min, window.livePage.charts[0].scales.x.max]")
+    assert back == pytest.approx(full, abs=1e-9)
+    tab.click("#pause")
+    seq = tab.evaluate("window.livePage.lastSeq")
+    for _ in range(50):
+        m.step_raw()
+    tab.wait_for(f"window.livePage.lastSeq >= {seq + 50} && {last_t} > {back[1]}")
 
 
 def _trigger_on_injected_fault(tab, m: LockstepMaster) -> None:
