@@ -10,10 +10,10 @@ on every SYNC).
 - ``streams``: ``serve --http`` and **10 WebSocket clients** in processes of their own, each reading
   ``/api/axes/NAME/live`` of one axis (X, Y, Z, X, ...) exactly as the page's script does (every message parsed
   as JSON, every scope message's samples decoded from base64 to float32, the sequence numbers checked for gaps);
-  the clients run at SCHED_IDLE and nice 19 on the last CPU, as a browser on another PC would take no CPU from
-  the drive: this phase measures the page's server in serve;
+  the clients run at nice 19 (``--sched-idle``: SCHED_IDLE) on the last CPU, so that they take as little CPU from
+  the drive as a browser on another PC would: this phase measures the page's server in serve;
 - ``browser``: ``serve --http`` and one headless Chromium with the page of axis X drawing at its frame rate
-  (at most 60 fps), also SCHED_IDLE / nice 19 on the last CPU;
+  (at most 60 fps), also at nice 19 (SCHED_IDLE) on the last CPU;
 - ``page10`` (with ``--phases``): 10 Chromium windows at normal priority on any CPU -- on a 2-core host this
   measures the browsers' rendering beside the drive, not the server.
 

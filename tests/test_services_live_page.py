@@ -123,6 +123,9 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> dict:
     tab.click("#rec")
     rec = tab.evaluate("window.livePage.rec")
     assert rec["from"] == seq_before and rec["to"] - rec["from"] >= n_move + n_hold
+    href = tab.evaluate("document.querySelector('#rec-download').href")
+    st, body = request(href)
+    assert st == 200, body  # (what the link downloads)
     tab.click("#rec-download")
     path = wait_for_file(downloads, ".csv", timeout_s=120)  # (the trace formatter compiles on its first use)
     from virtualaxis.diagnosis.trace import read_trace
