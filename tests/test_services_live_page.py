@@ -83,6 +83,7 @@ def test_page_in_chromium_follows_enable_csp_move_fault_and_records_a_trace(tmp_
                     assert tab.evaluate("document.querySelector('#sw-bits li[data-bit=\"2\"]').className") == "on"
                     rec = _move_and_record(tab, m, downloads)
                     _pause_zoom_and_cursors(tab, m, url, rec)
+                    _trigger_on_threshold_and_statusword_bit(tab, m, url)
                     _trigger_on_injected_fault(tab, m)
         finally:
             net.disconnect()
@@ -185,10 +186,10 @@ def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None
     tab.wait_for("window.livePage.zoomed === true")
     zoom = tab.evaluate("window.livePage.charts.map((u) => [u.scales.x.min, u.scales.x.max, u.data[0].length])")
     view = tab.evaluate("window.livePage.view")
+    assert abs(view[0] - a) <= 2 and abs(view[1] - 1 - b) <= 2, (view, a, b)  # the dragged window ...
     times = tab.evaluate(f"(() => {{ const r = []; for (let s = {view[0]}; s < {view[1]}; s++) {{ const c = window."
                          "livePage.chunks.find((c) => s >= c.seq0 && s < c.seq0 + c.n); r.push(c.t0 + (s - c.seq0) * "
                          "c.dt); } return r; })()")
-    assert abs(view[0] - a) <= 2 and abs(view[1] - 1 - b) <= 2, (view, a, b)  # the dragged window ...
     for x_min, x_max, n in zoom:  # ... on every plot: its x axis spans the window's samples, each one drawn
         assert (x_min, x_max, n) == pytest.approx((times[0], times[-1], len(times)), abs=1e-9)
     assert times[-1] - times[0] < 0.5 * (full[1] - full[0])
@@ -225,6 +226,54 @@ def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None
     for _ in range(50):
         m.step_raw()
     tab.wait_for(f"window.livePage.lastSeq >= {seq + 50} && {last_t} > {back[1]}")
+
+
+def _recorded(url: str, first: int, end: int) -> dict[str, np.ndarray]:
+    """Samples first..end-1 as the server's recording gives them (a trace CSV), by column."""
+    st, csv = request(url + f"api/axes/{AXIS}/recording.csv?from={first}&to={end}")
+    assert st == 200, csv
+    lines = csv.strip().splitlines()
+    rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    return {c: rows[:, j] for j, c in enumerate(lines[0].split(","))}
+
+
+def _arm(tab, mode: str, **fields: str) -> None:
+    """Choose a trigger on the page (span 0.5 s) and arm it."""
+    sets = "".join(f"document.querySelector('#{k.replace('_', '-')}').value = {json.dumps(v)};"
+                   for k, v in fields.items())
+    tab.evaluate(f"document.querySelector('#span').value = '0.5'; document.querySelector('#trig-mode').value = "
+                 f"'{mode}'; document.querySelector('#trig-mode').onchange(); {sets}")
+    tab.click("#trig-arm")
+    assert tab.text("#trigger-status") == f"armed ({mode})"
+
+
+def _held_at(tab) -> int:
+    """The sample a fired trigger holds the view on (the page's ``triggered at ... (sample N)``)."""
+    tab.wait_for("window.livePage.paused === true", timeout_s=30)
+    assert tab.text("#trigger-status").startswith("triggered at")
+    return int(tab.evaluate("document.querySelector('#trigger-status').dataset.seq"))
+
+
+def _trigger_on_threshold_and_statusword_bit(tab, m: LockstepMaster, url: str) -> None:
+    """A threshold trigger holds on the first sample above the level, a statusword-bit trigger on the first with
+    the bit set, both read against the server's recording of the samples around it."""
+    x0 = m.position_m(NODE)
+    ramp = (1 - np.cos(np.pi * np.arange(300) / 299)) / 2
+    level_mm = x0 * 1e3 + 1.0137
+    _arm(tab, "threshold", trig_chan="pos_cmd", trig_level=str(level_mm))
+    m.run(x0 + 0.002 * np.concatenate([ramp, np.ones(400)]))
+    seq = _held_at(tab)
+    pos_cmd_mm = _recorded(url, seq - 1, seq + 1)["pos_cmd"] * 1e3
+    assert pos_cmd_mm[0] <= level_mm < pos_cmd_mm[1], (seq, pos_cmd_mm, level_mm)
+    # bit 10 (target reached): it falls while the axis moves back and rises once it has settled
+    _arm(tab, "bit", trig_bit="10")
+    first = tab.evaluate("window.livePage.lastSeq") + 1
+    m.run(x0 + 0.002 * np.concatenate([1 - ramp, np.zeros(700)]))
+    seq = _held_at(tab)
+    sw = _recorded(url, first, seq + 1)["statusword"].astype(int)
+    bit = (sw >> 10) & 1
+    assert bit[-2:].tolist() == [0, 1] and 0 in bit[:-1], (seq, bit)
+    assert not np.any((bit[1:-1] == 1) & (bit[:-2] == 0))  # no earlier rising edge
 
 
 def _trigger_on_injected_fault(tab, m: LockstepMaster) -> None:
