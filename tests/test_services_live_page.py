@@ -494,19 +494,43 @@ def _stream(url: str, seconds: float, out: dict) -> None:
     conn.close()
 
 
-def test_ten_streams_on_three_axes_get_every_cycle():
+def _live(url: str, axis: str, seconds: float, out: dict) -> None:
+    """Read one axis's WebSocket for ``seconds`` as the page does: scope sequence numbers (each message's samples
+    decoded) and state messages."""
+    import base64
+
+    sock = _ws_open(url, f"/api/axes/{axis}/live")
+    end = time.monotonic() + seconds
+    try:
+        while time.monotonic() < end:
+            op, data = _ws_read(sock)
+            msg = json.loads(data)
+            if msg["event"] == "scope":
+                d = msg["data"]
+                assert len(base64.b64decode(d["b64"])) == 4 * d["n"] * d["cols"]
+                out.setdefault("scope", []).append((d["seq0"], d["n"]))
+            elif msg["event"] == "state":
+                out["states"] = out.get("states", 0) + 1
+    finally:
+        sock.close()
+
+
+def test_ten_tabs_on_three_axes_get_every_cycle():
+    """Ten clients on three axes, eight on the page's WebSocket (as eight tabs), two on the event stream: each gets
+    every drive cycle's samples, in order, and the state messages."""
     axes = [f"--axis=X=1:{CONFIG}", f"--axis=Y=2:{CONFIG}", f"--axis=Z=3:{CONFIG}"]
     with served(*axes, "--http", "127.0.0.1:0") as s:
         url = page_url(s)
         outs = [{} for _ in range(10)]
-        threads = [threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
+        threads = [threading.Thread(target=_live, args=(url, "XYZ"[i % 3], 3.0, outs[i])) if i % 5 else
+                   threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
                    for i in range(10)]
         for t in threads:
             t.start()
         for t in threads:
             t.join(30)
         for i, out in enumerate(outs):
-            assert out["status"] == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
+            assert out.get("status", 200) == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
             chunks = out["scope"]
             assert all(a + n == b for (a, n), (b, _) in zip(chunks, chunks[1:], strict=False)), i  # contiguous
             assert sum(n for _, n in chunks) > 300, i  # (real time: ~1000 cycles/s on an idle host)
