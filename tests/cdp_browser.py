@@ -17,6 +17,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,27 @@ class Tab(_Session):
     def text(self, selector: str) -> str:
         return self.evaluate(f"document.querySelector({json.dumps(selector)}).textContent")
 
+    def mouse(self, kind: str, x: float, y: float, *, pressed: bool = False, clicks: int = 0) -> None:
+        """One mouse event at viewport position (x, y) [CSS px]: ``kind`` mouseMoved / mousePressed /
+        mouseReleased (left button)."""
+        self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left" if pressed or clicks else "none",
+                  buttons=1 if pressed else 0, clickCount=clicks)
+
+    def click_at(self, x: float, y: float, clicks: int = 1) -> None:
+        """A left click (``clicks=2``: a double click) at viewport position (x, y), as a user's mouse makes it."""
+        self.mouse("mouseMoved", x, y)
+        for n in range(1, clicks + 1):
+            self.mouse("mousePressed", x, y, pressed=True, clicks=n)
+            self.mouse("mouseReleased", x, y, clicks=n)
+
+    def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 8) -> None:
+        """Press the left button at (x0, y0), move to (x1, y1) in ``steps``, release."""
+        self.mouse("mouseMoved", x0, y0)
+        self.mouse("mousePressed", x0, y0, pressed=True, clicks=1)
+        for k in range(1, steps + 1):
+            self.mouse("mouseMoved", x0 + (x1 - x0) * k / steps, y0 + (y1 - y0) * k / steps, pressed=True)
+        self.mouse("mouseReleased", x1, y1, clicks=1)
+
     def screenshot(self, path: str | Path) -> Path:
         data = self.call("Page.captureScreenshot", format="png", captureBeyondViewport=False)["data"]
         Path(path).write_bytes(base64.b64decode(data))
@@ -95,7 +117,9 @@ class Browser:
 
     @classmethod
     def launch(cls, download_dir: str | Path | None = None, width: int = 1400, height: int = 1100,
-               extra_args: tuple[str, ...] = ()) -> Browser:
+               extra_args: tuple[str, ...] = (), preexec_fn: Callable[[], None] | None = None) -> Browser:
+        """Start Chromium (``preexec_fn``: run in its process before it starts, e.g. to lower its priority; its
+        child processes inherit the scheduling policy and CPU affinity)."""
         if CHROMIUM is None:
             raise CdpError("chromium is not installed")
         profile = tempfile.mkdtemp(prefix="virtualaxis-chromium-")
@@ -104,7 +128,7 @@ class Browser:
              "--no-first-run", "--no-default-browser-check", "--disable-extensions", "--mute-audio",
              "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1", f"--user-data-dir={profile}",
              f"--window-size={width},{height}", *extra_args, "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=preexec_fn)
         port_file = Path(profile) / "DevToolsActivePort"
         end = time.monotonic() + 60
         while time.monotonic() < end and not (port_file.exists() and len(port_file.read_text().split()) >= 2):

@@ -81,13 +81,15 @@ def test_page_in_chromium_follows_enable_csp_move_fault_and_records_a_trace(tmp_
                     tab.wait_for("document.querySelector('#cia402-state').textContent === 'OPERATION ENABLED'")
                     assert tab.text("#nmt-state") == "OPERATIONAL"
                     assert tab.evaluate("document.querySelector('#sw-bits li[data-bit=\"2\"]').className") == "on"
-                    _move_and_record(tab, m, downloads)
+                    rec = _move_and_record(tab, m, downloads)
+                    _pause_zoom_and_cursors(tab, m, url, rec)
+                    _trigger_on_threshold_and_statusword_bit(tab, m, url)
                     _trigger_on_injected_fault(tab, m)
         finally:
             net.disconnect()
 
 
-def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
+def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> dict:
     x0 = m.position_m(NODE)
     n_move, n_hold, stroke_m = 600, 150, 0.010
     ramp = (1 - np.cos(np.pi * np.arange(n_move) / (n_move - 1))) / 2
@@ -122,8 +124,11 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
     tab.click("#rec")
     rec = tab.evaluate("window.livePage.rec")
     assert rec["from"] == seq_before and rec["to"] - rec["from"] >= n_move + n_hold
+    href = tab.evaluate("document.querySelector('#rec-download').href")
+    st, body = request(href)
+    assert st == 200, body  # (what the link downloads)
     tab.click("#rec-download")
-    path = wait_for_file(downloads, ".csv")
+    path = wait_for_file(downloads, ".csv", timeout_s=120)  # (the trace formatter compiles on its first use)
     from virtualaxis.diagnosis.trace import read_trace
 
     diag = subprocess.run([*CLI, "diagnose", "--config", CONFIG, str(path), "--out", str(downloads / "report"),
@@ -141,6 +146,134 @@ def _move_and_record(tab, m: LockstepMaster, downloads: Path) -> None:
     demand = data["pos_cmd"]
     moving = demand[(demand > x0 + 1e-6) & (demand < x0 + stroke_m - 1e-6)]
     assert len(moving) >= n_move - 30 and np.all(np.diff(moving) >= -1e-9)
+    return rec
+
+
+def _plot_box(tab, chart: int = 0) -> list[float]:
+    """[left, top, width, height] of a plot's drawing area in the viewport [CSS px], scrolled into view."""
+    return tab.evaluate(f"(() => {{ const o = window.livePage.charts[{chart}].over; o.scrollIntoView({{block: "
+                        "'center'}); const r = o.getBoundingClientRect(); "
+                        "return [r.left, r.top, r.width, r.height]; })()")
+
+
+def _x_of_sample(tab, seq: int, chart: int = 0) -> float:
+    """The plot's x position [CSS px, from its drawing area's left] of sample ``seq`` (its time from the
+    received scope messages)."""
+    return tab.evaluate(f"(() => {{ const s = {seq}, c = window.livePage.chunks.find((c) => s >= c.seq0 && s < "
+                        f"c.seq0 + c.n); return window.livePage.charts[{chart}].valToPos(c.t0 + (s - c.seq0) * c.dt, "
+                        "'x'); })()")
+
+
+def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None:
+    """Pause holds the view while samples arrive; a drag zooms every plot to the samples of the dragged time
+    window; two clicks place cursors A and B on samples, and the page's Δt / Δy are those of the server's
+    recording of the same samples; a double click returns; Run follows the drive again."""
+    last_t = "window.livePage.charts[0].data[0][window.livePage.charts[0].data[0].length - 1]"
+    tab.click("#pause")
+    assert tab.evaluate("window.livePage.paused") is True and tab.text("#pause") == "Run"
+    shown_t, seq = tab.evaluate(f"[{last_t}, window.livePage.lastSeq]")
+    for _ in range(100):
+        m.step_raw()
+    tab.wait_for(f"window.livePage.lastSeq >= {seq + 100}")
+    time.sleep(0.2)  # (a few animation frames)
+    assert tab.evaluate(last_t) == shown_t  # held
+    full = tab.evaluate("[window.livePage.charts[0].scales.x.min, window.livePage.charts[0].scales.x.max]")
+    # zoom: drag across the position plot from sample a to sample b of the move
+    left, top, width, height = _plot_box(tab)
+    a, b = rec["from"] + 200, rec["from"] + 420
+    y = top + height / 2
+    tab.drag(left + _x_of_sample(tab, a), y, left + _x_of_sample(tab, b), y)
+    tab.wait_for("window.livePage.zoomed === true")
+    zoom = tab.evaluate("window.livePage.charts.map((u) => [u.scales.x.min, u.scales.x.max, u.data[0].length])")
+    view = tab.evaluate("window.livePage.view")
+    assert abs(view[0] - a) <= 2 and abs(view[1] - 1 - b) <= 2, (view, a, b)  # the dragged window ...
+    times = tab.evaluate(f"(() => {{ const r = []; for (let s = {view[0]}; s < {view[1]}; s++) {{ const c = window."
+                         "livePage.chunks.find((c) => s >= c.seq0 && s < c.seq0 + c.n); r.push(c.t0 + (s - c.seq0) * "
+                         "c.dt); } return r; })()")
+    for x_min, x_max, n in zoom:  # ... on every plot: its x axis spans the window's samples, each one drawn
+        assert (x_min, x_max, n) == pytest.approx((times[0], times[-1], len(times)), abs=1e-9)
+    assert times[-1] - times[0] < 0.5 * (full[1] - full[0])
+    # cursors: a click on sample ca, then on sample cb
+    ca, cb = a + 40, a + 150
+    left, top, width, height = _plot_box(tab)
+    tab.click_at(left + _x_of_sample(tab, ca), y)
+    tab.click_at(left + _x_of_sample(tab, cb), y)
+    readout = tab.evaluate("window.livePage.cursorReadout")
+    assert (readout["a"]["seq"], readout["b"]["seq"]) == (ca, cb)
+    shown = tab.text("#cursor-info")
+    dt_ms = float(re.search(r"Δt = (-?[\d.]+) ms", shown).group(1))
+    dy = {name: float(v) for name, v in re.findall(r"(position demand|position actual|following error) "
+                                                     r"(-?[\d.e+-]+) (?:mm|um)", shown)}
+    st, csv = request(url + f"api/axes/{AXIS}/recording.csv?from={ca}&to={cb + 1}")
+    assert st == 200
+    lines = csv.strip().splitlines()
+    head = lines[0].split(",")
+    first, last = (dict(zip(head, map(float, row.split(",")), strict=True)) for row in (lines[1], lines[-1]))
+    assert dt_ms == pytest.approx((last["t"] - first["t"]) * 1e3, abs=1e-3)
+    assert dt_ms == pytest.approx((cb - ca) * 1.0, abs=1e-3)  # one sample per 1 ms drive cycle
+    assert dy["position demand"] == pytest.approx((last["pos_cmd"] - first["pos_cmd"]) * 1e3, abs=1e-4)
+    assert dy["position actual"] == pytest.approx((last["pos_fb"] - first["pos_fb"]) * 1e3, abs=1e-4)
+    assert dy["following error"] == pytest.approx(
+        (last["following_error"] - first["following_error"]) * 1e6, abs=1e-2)
+    assert abs(dy["position demand"]) > 1.0  # (the window is inside the move)
+    # a double click returns to the whole view; Run follows the drive again
+    tab.click_at(left + width / 2, y, clicks=2)
+    tab.wait_for("window.livePage.zoomed === false")
+    back = tab.evaluate("[window.livePage.charts[0].scales.x.min, window.livePage.charts[0].scales.x.max]")
+    assert back == pytest.approx(full, abs=1e-9)
+    tab.click("#pause")
+    seq = tab.evaluate("window.livePage.lastSeq")
+    for _ in range(50):
+        m.step_raw()
+    tab.wait_for(f"window.livePage.lastSeq >= {seq + 50} && {last_t} > {back[1]}")
+
+
+def _recorded(url: str, first: int, end: int) -> dict[str, np.ndarray]:
+    """Samples first..end-1 as the server's recording gives them (a trace CSV), by column."""
+    st, csv = request(url + f"api/axes/{AXIS}/recording.csv?from={first}&to={end}")
+    assert st == 200, csv
+    lines = csv.strip().splitlines()
+    rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    return {c: rows[:, j] for j, c in enumerate(lines[0].split(","))}
+
+
+def _arm(tab, mode: str, **fields: str) -> None:
+    """Choose a trigger on the page (span 0.5 s) and arm it."""
+    sets = "".join(f"document.querySelector('#{k.replace('_', '-')}').value = {json.dumps(v)};"
+                   for k, v in fields.items())
+    tab.evaluate(f"document.querySelector('#span').value = '0.5'; document.querySelector('#trig-mode').value = "
+                 f"'{mode}'; document.querySelector('#trig-mode').onchange(); {sets}")
+    tab.click("#trig-arm")
+    assert tab.text("#trigger-status") == f"armed ({mode})"
+
+
+def _held_at(tab) -> int:
+    """The sample a fired trigger holds the view on (the page's ``triggered at ... (sample N)``)."""
+    tab.wait_for("window.livePage.paused === true", timeout_s=30)
+    assert tab.text("#trigger-status").startswith("triggered at")
+    return int(tab.evaluate("document.querySelector('#trigger-status').dataset.seq"))
+
+
+def _trigger_on_threshold_and_statusword_bit(tab, m: LockstepMaster, url: str) -> None:
+    """A threshold trigger holds on the first sample above the level, a statusword-bit trigger on the first with
+    the bit set, both read against the server's recording of the samples around it."""
+    x0 = m.position_m(NODE)
+    ramp = (1 - np.cos(np.pi * np.arange(300) / 299)) / 2
+    level_mm = x0 * 1e3 + 1.0137
+    _arm(tab, "threshold", trig_chan="pos_cmd", trig_level=str(level_mm))
+    m.run(x0 + 0.002 * np.concatenate([ramp, np.ones(400)]))
+    seq = _held_at(tab)
+    pos_cmd_mm = _recorded(url, seq - 1, seq + 1)["pos_cmd"] * 1e3
+    assert pos_cmd_mm[0] <= level_mm < pos_cmd_mm[1], (seq, pos_cmd_mm, level_mm)
+    # bit 10 (target reached): it falls while the axis moves back and rises once it has settled
+    _arm(tab, "bit", trig_bit="10")
+    first = tab.evaluate("window.livePage.lastSeq") + 1
+    m.run(x0 + 0.002 * np.concatenate([1 - ramp, np.zeros(700)]))
+    seq = _held_at(tab)
+    sw = _recorded(url, first, seq + 1)["statusword"].astype(int)
+    bit = (sw >> 10) & 1
+    assert bit[-2:].tolist() == [0, 1] and 0 in bit[:-1], (seq, bit)
+    assert not np.any((bit[1:-1] == 1) & (bit[:-2] == 0))  # no earlier rising edge
 
 
 def _trigger_on_injected_fault(tab, m: LockstepMaster) -> None:
@@ -361,19 +494,43 @@ def _stream(url: str, seconds: float, out: dict) -> None:
     conn.close()
 
 
-def test_ten_streams_on_three_axes_get_every_cycle():
+def _live(url: str, axis: str, seconds: float, out: dict) -> None:
+    """Read one axis's WebSocket for ``seconds`` as the page does: scope sequence numbers (each message's samples
+    decoded) and state messages."""
+    import base64
+
+    sock = _ws_open(url, f"/api/axes/{axis}/live")
+    end = time.monotonic() + seconds
+    try:
+        while time.monotonic() < end:
+            op, data = _ws_read(sock)
+            msg = json.loads(data)
+            if msg["event"] == "scope":
+                d = msg["data"]
+                assert len(base64.b64decode(d["b64"])) == 4 * d["n"] * d["cols"]
+                out.setdefault("scope", []).append((d["seq0"], d["n"]))
+            elif msg["event"] == "state":
+                out["states"] = out.get("states", 0) + 1
+    finally:
+        sock.close()
+
+
+def test_ten_tabs_on_three_axes_get_every_cycle():
+    """Ten clients on three axes, eight on the page's WebSocket (as eight tabs), two on the event stream: each gets
+    every drive cycle's samples, in order, and the state messages."""
     axes = [f"--axis=X=1:{CONFIG}", f"--axis=Y=2:{CONFIG}", f"--axis=Z=3:{CONFIG}"]
     with served(*axes, "--http", "127.0.0.1:0") as s:
         url = page_url(s)
         outs = [{} for _ in range(10)]
-        threads = [threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
+        threads = [threading.Thread(target=_live, args=(url, "XYZ"[i % 3], 3.0, outs[i])) if i % 5 else
+                   threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
                    for i in range(10)]
         for t in threads:
             t.start()
         for t in threads:
             t.join(30)
         for i, out in enumerate(outs):
-            assert out["status"] == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
+            assert out.get("status", 200) == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
             chunks = out["scope"]
             assert all(a + n == b for (a, n), (b, _) in zip(chunks, chunks[1:], strict=False)), i  # contiguous
             assert sum(n for _, n in chunks) > 300, i  # (real time: ~1000 cycles/s on an idle host)

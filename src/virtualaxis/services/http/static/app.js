@@ -16,7 +16,8 @@ const KEEP_S = 60;  // seconds of samples kept in the page (the server's ring ke
 const page = {  // (also read by the browser tests)
   info: null, axis: null, cols: [], chunks: [], kept: 0, lastSeq: -1, samplesReceived: 0, gaps: 0,
   paused: false, zoomed: false, dirty: false, charts: [], trigger: {mode: "none", armed: false, at: null},
-  rec: {from: null, to: null}, cursors: [], stateMessages: 0, lastState: null, view: null,
+  rec: {from: null, to: null}, cursors: [], cursorReadout: null, stateMessages: 0, lastState: null, view: null,
+  fullView: null,
 };
 window.livePage = page;
 
@@ -110,11 +111,11 @@ function setupScope() {
   const mk = (title, series, scales) => {
     const opts = {
       title, width, height: 190,
-      cursor: {sync: {key: sync.key}, drag: {x: true, y: false}},
+      cursor: {sync: {key: sync.key}, drag: {x: true, y: false, setScale: false}},
       scales: {x: {time: false}, ...scales},
       axes: [{label: "t [s]"}, ...series.filter((s) => s.axis).map((s) => s.axis)],
       series: [{label: "t [s]"}, ...series.map((s) => s.series)],
-      hooks: {setSelect: [() => { page.zoomed = true; }], draw: [drawCursors]},
+      hooks: {setSelect: [zoomToSelection], draw: [drawCursors]},
     };
     const u = new uPlot(opts, [[], ...series.map(() => [])], $("charts"));
     u.over.addEventListener("click", () => setCursor(u));
@@ -155,12 +156,41 @@ function setPaused(p) {
   if (!p) { page.zoomed = false; page.trigger.at = null; page.dirty = true; }
 }
 
-function unzoom() { page.zoomed = false; page.dirty = true; if (!page.paused) draw(); else drawView(page.view, true); }
+function unzoom() {
+  page.zoomed = false; page.dirty = true;
+  if (!page.paused) draw(); else drawView(page.fullView, true);
+}
+
+// a dragged time range: every plot shows the samples of that window (the x axis spans its first to its last sample)
+function zoomToSelection(u) {
+  const sel = u.select;
+  if (!(sel.width >= 3)) return;
+  const a = seqAtTime(u.posToVal(sel.left, "x"), Math.ceil), b = seqAtTime(u.posToVal(sel.left + sel.width, "x"), Math.floor);
+  u.setSelect({left: 0, top: 0, width: 0, height: 0}, false);
+  if (a === null || b === null || b <= a) return;
+  page.zoomed = true;
+  drawView([a, b + 1], true);
+}
 
 function sampleAt(seq) {  // [chunk, index] of a sequence number, or null
   for (const c of page.chunks) if (seq >= c.seq0 && seq < c.seq0 + c.n) return [c, seq - c.seq0];
   return null;
 }
+
+// the sequence number of the sample at time t (round: the nearest one), clamped to the samples kept; null if none
+function seqAtTime(t, round = Math.round) {
+  if (!page.chunks.length) return null;
+  const first = page.chunks[0], last = page.chunks[page.chunks.length - 1];
+  if (t <= first.t0) return first.seq0;
+  if (t >= last.t0 + (last.n - 1) * last.dt) return last.seq0 + last.n - 1;
+  for (let i = page.chunks.length - 1; i >= 0; i--) {
+    const c = page.chunks[i];
+    if (t >= c.t0) return c.seq0 + Math.min(c.n - 1, round((t - c.t0) / c.dt));
+  }
+  return first.seq0;
+}
+
+function timeOf(seq) { const s = sampleAt(seq); return s ? s[0].t0 + s[1] * s[0].dt : null; }
 
 // the samples of [seqFrom, seqTo) decimated to ~2 points per pixel (min and max of each bucket)
 function decimated(seqFrom, seqTo, pixels) {
@@ -228,7 +258,8 @@ function drawView(view, resetScales) {
 
 function draw() {
   if (page.lastSeq < 0) return;
-  drawView(currentView(), !page.zoomed);
+  page.fullView = currentView();
+  drawView(page.fullView, !page.zoomed);
 }
 
 function frame() {
@@ -237,40 +268,46 @@ function frame() {
 }
 
 // ------------------------------------------------------------------------------------------------ cursors
+// a click sets cursor A, the next B, the next A again; each sits on the sample nearest to the click
 function setCursor(u) {
-  const idx = u.cursor.idx;
-  if (idx == null) return;
-  const t = u.data[0][idx];
-  page.cursors = page.cursors.length >= 2 ? [t] : [...page.cursors, t];
+  if (u.cursor.left == null || u.cursor.left < 0) return;
+  const seq = seqAtTime(u.posToVal(u.cursor.left, "x"));
+  if (seq === null) return;
+  page.cursors = page.cursors.length >= 2 ? [seq] : [...page.cursors, seq];
   showCursors();
   page.charts.forEach((c) => c.redraw(false));
 }
 
-function valuesAt(t) {
-  const c0 = page.chunks.find((c) => t >= c.t0 && t < c.t0 + c.n * c.dt + 1e-12);
-  if (!c0) return null;
-  const i = Math.min(c0.n - 1, Math.round((t - c0.t0) / c0.dt));
-  const out = {};
-  page.cols.forEach((col, j) => { out[col] = c0.data[i * c0.cols + j] * CHANNELS[col][1]; });
+function valuesAt(seq) {  // the signals of sample seq in the shown units, or null
+  const s = sampleAt(seq);
+  if (!s) return null;
+  const [c, i] = s, out = {};
+  page.cols.forEach((col, j) => { out[col] = c.data[i * c.cols + j] * CHANNELS[col][1]; });
   return out;
 }
 
 function showCursors() {
   const [a, b] = page.cursors;
-  if (a === undefined) return;
-  if (b === undefined) { $("cursor-info").textContent = `A: t = ${a.toFixed(4)} s (click again for B)`; return; }
-  const va = valuesAt(a), vb = valuesAt(b);
-  let text = `A: ${a.toFixed(4)} s, B: ${b.toFixed(4)} s, dt = ${((b - a) * 1e3).toFixed(3)} ms`;
-  if (va && vb) {
-    text += "; dy: " + page.cols.filter((c) => c !== "statusword").map((c) =>
-      `${CHANNELS[c][0]} ${(vb[c] - va[c]).toPrecision(5)} ${CHANNELS[c][2]}`).join(", ");
+  const ta = timeOf(a), tb = b === undefined ? null : timeOf(b);
+  if (ta === null) return;
+  const at = (seq, t) => `${t.toFixed(4)} s (sample ${seq})`;
+  if (tb === null) {
+    page.cursorReadout = {a: {seq: a, t: ta}, b: null};
+    $("cursor-info").textContent = `A: ${at(a, ta)}; click again for B`;
+    return;
   }
-  $("cursor-info").textContent = text;
+  const va = valuesAt(a), vb = valuesAt(b), dy = {};
+  page.cols.filter((c) => c !== "statusword").forEach((c) => { dy[c] = vb[c] - va[c]; });
+  page.cursorReadout = {a: {seq: a, t: ta}, b: {seq: b, t: tb}, dt_s: tb - ta, dy};
+  $("cursor-info").textContent = `A: ${at(a, ta)}, B: ${at(b, tb)}; Δt = ${((tb - ta) * 1e3).toFixed(3)} ms; Δy: ` +
+    Object.entries(dy).map(([c, v]) => `${CHANNELS[c][0]} ${v.toPrecision(6)} ${CHANNELS[c][2]}`).join(", ");
 }
 
 function drawCursors(u) {
   const ctx = u.ctx;
-  page.cursors.forEach((t, i) => {
+  page.cursors.forEach((seq, i) => {
+    const t = timeOf(seq);
+    if (t === null) return;
     const x = u.valToPos(t, "x", true);
     if (!(x >= u.bbox.left && x <= u.bbox.left + u.bbox.width)) return;
     ctx.save();
