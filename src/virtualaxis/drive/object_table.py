@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from itertools import compress
-from operator import ne
 from typing import Any
 
 from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, ObjectSpec
@@ -141,26 +139,28 @@ class ObjectTable:
 
     def publish(self, values: tuple) -> None:
         """The actual values of one cycle (``output_keys`` order): the changed ones into the objects (and the
-        mirror's entries). Not marked in the changed set: a reader compares :attr:`outputs` by identity.
-        (Hot path: which outputs changed is found by C-level ``map`` / ``compress``; Python runs only for the
-        mirrored outputs that changed.)"""
+        mirror's entries). Not marked in the changed set: a reader compares :attr:`outputs` by identity."""
         last = self.outputs
         if values == last:
             return
-        changed = tuple(map(ne, values, last))
-        if len(changed) != len(self.output_keys):
-            raise ValueError("one value per output")
-        self.values.update(compress(zip(self.output_keys, values, strict=True), changed))
+        objects = self.values
         mirror = self._mirror
-        if mirror is not None:
-            for entry, real, value in compress(zip(mirror[0], mirror[1], values, strict=True), changed):
-                if entry is not None:
-                    if real:
-                        value = float(value)
-                    if entry.value != value:
-                        entry.value = value
-                        for tpdo in entry.tpdos:
-                            tpdo.dirty = True
+        if mirror is None:
+            for key, value, old in zip(self.output_keys, values, last, strict=True):
+                if value != old:
+                    objects[key] = value
+        else:
+            for key, value, old, entry, real in zip(self.output_keys, values, last, mirror[0], mirror[1],
+                                                    strict=True):
+                if value != old:
+                    objects[key] = value
+                    if entry is not None:
+                        if real:
+                            value = float(value)
+                        if entry.value != value:
+                            entry.value = value
+                            for tpdo in entry.tpdos:
+                                tpdo.dirty = True
         self.outputs = values
 
     # ------------------------------------------------------------------ write checks
