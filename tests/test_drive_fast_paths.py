@@ -97,3 +97,58 @@ def test_the_od_mirror_holds_every_drive_value_after_a_move():
         assert list(itertools.islice(drive.take_changed(), 1)) == []  # nothing left unmirrored
     finally:
         bus.shutdown()
+
+
+class _Entry:
+    def __init__(self, value, tpdos=()):
+        self.value = value
+        self.tpdos = tpdos
+
+
+class _Tpdo:
+    dirty = False
+
+
+def test_publish_stores_the_changed_outputs_and_marks_only_the_tpdos_of_changed_entries():
+    from virtualaxis.drive.object_table import ObjectTable
+
+    keys = ((0x6064, 0), (0x606C, 0), (0x2020, 0), (0x6041, 0))
+    table = ObjectTable({}, keys, {}, {}, frozenset())
+    table.reset({k: 0 for k in keys})
+    tp_pos, tp_vel, tp_temp = _Tpdo(), _Tpdo(), _Tpdo()
+    entries = [_Entry(0, (tp_pos,)), _Entry(0, (tp_vel,)), _Entry(0.0, (tp_temp,)), None]
+    table.mirror_outputs(entries, [False, False, True, False])
+    table.publish((5, 0, 25, 7))
+    assert [table.values[k] for k in keys] == [5, 0, 25, 7]
+    assert entries[0].value == 5 and entries[1].value == 0
+    assert entries[2].value == 25.0 and isinstance(entries[2].value, float)  # a REAL entry gets a float
+    assert (tp_pos.dirty, tp_vel.dirty, tp_temp.dirty) == (True, False, True)  # 0 -> 0: no mark
+    tp_pos.dirty = tp_temp.dirty = False
+    published = table.outputs
+    table.publish((5, 0, 25, 7))
+    assert table.outputs is published  # nothing changed: the same tuple
+    table.publish((5, -3, 25, math.nan))
+    assert table.values[(0x606C, 0)] == -3 and math.isnan(table.values[(0x6041, 0)])
+    assert (tp_pos.dirty, tp_vel.dirty, tp_temp.dirty) == (False, True, False)
+    table.values[(0x6064, 0)] = 99  # a value set apart from publish stays until its output changes
+    table.publish((5, -3, 26, 1))
+    assert table.values[(0x6064, 0)] == 99 and table.values[(0x2020, 0)] == 26
+    for wrong in ((1, 2, 3), (1, 2, 3, 4, 5)):
+        with pytest.raises(ValueError):
+            table.publish(wrong)
+    assert table.outputs == (5, -3, 26, 1)
+
+
+@pytest.mark.parametrize("cycle_s", [1e-3, 2.5e-4, 1.25e-4, 4e-4, 1 / 3000, 0.7e-3])
+def test_the_sync_loss_cycle_count_is_the_first_whose_run_time_exceeds_the_loss_time(cycle_s):
+    from virtualaxis.drive.canopen_app import SYNC_LOSS_MIN_S, SYNC_LOSS_PERIODS, sync_loss_cycles
+
+    for period_us in (0, 1, 250, 500, 1000, 1333, 2000, 4000, 9999, 10_000, 10_001, 20_000, 65_535, 10**6):
+        timeout_s = 1.5 * period_us * 1e-6  # as the SYNC consumer derives it from 0x1006
+        k = sync_loss_cycles(timeout_s, cycle_s)
+        if period_us == 0:
+            assert k is None
+            continue
+        limit_s = max(SYNC_LOSS_PERIODS * (timeout_s / 1.5), SYNC_LOSS_MIN_S)
+        first = next(n for n in itertools.count(0) if n * cycle_s > limit_s)
+        assert k == first, (period_us, cycle_s, k, first)

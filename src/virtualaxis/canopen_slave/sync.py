@@ -99,8 +99,12 @@ class SyncConsumer:
     def check_timeout(self, now_s: float, rx_pending=None) -> bool:
         """True once when SYNCs stop for 1.5 x 0x1006 (monitoring starts with the first SYNC);
         ``rx_pending()`` (optional) says whether frames still wait in the receive socket: then not yet."""
-        if self.timeout_s > 0.0 and self.last_sync_s is not None and not self.timed_out and \
-                now_s - self.last_sync_s > self.timeout_s + self.delivery_allowance_s:
+        timeout_s, last = self.timeout_s, self.last_sync_s
+        if timeout_s <= 0.0 or last is None or self.timed_out:
+            return False
+        gap_s = now_s - last
+        # (the allowance is at least MIN_ALLOWANCE_S: a gap within that needs no allowance computed)
+        if gap_s > timeout_s + MIN_ALLOWANCE_S and gap_s > timeout_s + self.delivery_allowance_s:
             if rx_pending is not None and rx_pending():
                 return False
             self.timed_out = True

@@ -50,6 +50,9 @@ class Cia402Application(BaseApplication):
         self._cycles_at_sync = 0
         self._cycles_watched = -1
         self._sync_loss_reported = False
+        #: (SYNC timeout, drive cycle) -> drive cycles without SYNC that make a SYNC loss (see :func:`sync_loss_cycles`)
+        self._loss_key: tuple[float, float] | None = None
+        self._loss_cycles: int | None = None
 
     def attach(self, slave: CanopenSlave) -> None:
         """Connect to the slave (call before ``slave.boot``)."""
@@ -158,11 +161,11 @@ class Cia402Application(BaseApplication):
             return
         if self._sync_loss_reported or slave.nmt_state != NMT_STATE.OPERATIONAL or not syncs:
             return
-        period_s = slave.sync.timeout_s / 1.5
-        if period_s <= 0.0:
-            return
-        ran_s = (cycles - self._cycles_at_sync) * self.drive.cycle_s
-        if ran_s > max(SYNC_LOSS_PERIODS * period_s, SYNC_LOSS_MIN_S):
+        timeout_s, cycle_s = slave.sync.timeout_s, self.drive.cycle_s
+        if (timeout_s, cycle_s) != self._loss_key:
+            self._loss_key = (timeout_s, cycle_s)
+            self._loss_cycles = sync_loss_cycles(timeout_s, cycle_s)
+        if self._loss_cycles is not None and cycles - self._cycles_at_sync >= self._loss_cycles:
             self._sync_loss_reported = True
             self.drive.communication_error("sync_loss", 0)
 
@@ -183,3 +186,20 @@ class Cia402Application(BaseApplication):
         if application:
             self.drive.power_on_reset()
             self._sync_from_slave()
+
+
+def sync_loss_cycles(timeout_s: float, cycle_s: float) -> int | None:
+    """The fewest drive cycles ``k`` whose run time ``k * cycle_s`` exceeds the SYNC-loss time (the larger of
+    :data:`SYNC_LOSS_PERIODS` communication cycles, 0x1006 = ``timeout_s`` / 1.5, and :data:`SYNC_LOSS_MIN_S`),
+    with the same floating-point comparison as ``k * cycle_s > limit`` (monotone in ``k``); ``None`` without
+    SYNC monitoring (``timeout_s`` 0) or without a drive cycle."""
+    period_s = timeout_s / 1.5
+    if period_s <= 0.0 or not cycle_s > 0.0:
+        return None
+    limit_s = max(SYNC_LOSS_PERIODS * period_s, SYNC_LOSS_MIN_S)
+    k = max(0, int(limit_s / cycle_s) - 1)
+    while not k * cycle_s > limit_s:
+        k += 1
+    while k > 0 and (k - 1) * cycle_s > limit_s:
+        k -= 1
+    return k

@@ -181,7 +181,7 @@ class Drive:
             "setpoints_refused": 0,
         }
         self._refused_setpoint: str | None = None  # why the set-point of the write in progress was refused
-        self._cycle_hooks: list[Callable[[Drive], None]] = []
+        self._cycle_hooks: tuple[Callable[[Drive], None], ...] = ()  # (a new tuple on change: none built per cycle)
         self._switch_input: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None = None  # set_switch_input
         #: fault buffer, 0x603F, persistent causes, warnings and their EMCY
         self.fault_manager = FaultManager(self._store, self.counters, self._emcy, self._emcy_reset)
@@ -788,7 +788,7 @@ class Drive:
         for _ in range(n_cycles):
             with self._lock:
                 try:
-                    for hook in tuple(self._cycle_hooks):
+                    for hook in self._cycle_hooks:
                         hook(self)
                     self._cycle()
                 except Exception as exc:  # noqa: BLE001 - see docstring: caught, logged, counted, faulted
@@ -829,12 +829,12 @@ class Drive:
         exception (FAULT 0x6100, logged)."""
         with self._lock:
             if fn not in self._cycle_hooks:
-                self._cycle_hooks.append(fn)
+                self._cycle_hooks = (*self._cycle_hooks, fn)
 
     def remove_cycle_hook(self, fn: Callable[[Drive], None]) -> None:
         with self._lock:
             if fn in self._cycle_hooks:
-                self._cycle_hooks.remove(fn)
+                self._cycle_hooks = tuple(h for h in self._cycle_hooks if h != fn)
 
     @property
     def simulator(self) -> AxisSimulator:

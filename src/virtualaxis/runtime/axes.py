@@ -85,6 +85,8 @@ class AxisNode:
         self.exceptions = 0  # exceptions caught from this axis's drive cycles (see runtime.pacing)
         #: the live 0x1006 entry (read every SYNC in lockstep; None when the EDS has no 0x1006)
         self._comm_period = self.slave.entry(0x1006, 0) if (0x1006, 0) in self.slave.od.entries else None
+        self._sync_cycles_key: tuple[int, int, float] | None = None  # what :meth:`sync_cycles` last computed from
+        self._sync_cycles = 1
 
     def fault_internal(self, code: int) -> None:
         """Put the drive in FAULT with ``code`` (EMCY through the slave) after an exception in its cycle; not
@@ -112,7 +114,11 @@ class AxisNode:
         period_us = self._comm_period.value if self._comm_period is not None else 0
         if not period_us:
             return 1
-        return min(self.max_sync_cycles, max(1, int(round(period_us * 1e-6 / self.drive.cycle_s))))
+        key = (period_us, self.max_sync_cycles, self.drive.cycle_s)
+        if key != self._sync_cycles_key:  # (recomputed only when 0x1006, the bound or the cycle changed)
+            self._sync_cycles_key = key
+            self._sync_cycles = min(self.max_sync_cycles, max(1, int(round(period_us * 1e-6 / self.drive.cycle_s))))
+        return self._sync_cycles
 
 
 def build_axes(bus: can.BusABC, specs: list[AxisSpec], *, eds_path: str | Path = DEFAULT_EDS) -> list[AxisNode]:
