@@ -86,3 +86,14 @@ def test_frf_and_studies_write_tables_and_plots(tmp_path):
     assert main(["study", "feed-sweep", "--config", str(SEED000), "--out", str(tmp_path / "f"),
                  "--values", "1000,6000"]) == 0
     assert (tmp_path / "f" / "feed_sweep.csv").exists()
+
+
+def test_the_command_parser_loads_neither_numba_nor_scipy() -> None:
+    """Building the parser of every command (``virtualaxis --help``, and the start of each command) imports no
+    compiler or optimiser: a command loads its model stack when it runs, so each CLI process starts quickly."""
+    code = ("import sys; from virtualaxis.cli.main import build_parser; build_parser(); "
+            "print(sorted(m for m in ('numba', 'scipy', 'scipy.optimize', 'canopen', 'matplotlib') "
+            "if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "[]", proc.stdout

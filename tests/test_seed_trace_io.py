@@ -119,3 +119,38 @@ def test_threaded_csv_writer_reports_a_full_disk() -> None:
             w.write(data)
         w.close()
     w.close()  # closing again after the error: nothing left to do, no hang
+
+
+def test_threaded_csv_writer_thread_never_compiles(tmp_path) -> None:
+    """The writer thread runs compiled code only: in a fresh interpreter (nothing compiled in memory yet) numba's
+    compiler lock is taken by the constructing thread, never by ``trace-writer`` (a compilation there, minutes on
+    a busy host, left ``close`` waiting in ``join``)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import threading
+        import numpy as np
+        from numba.core import event
+        from virtualaxis.sim.trace_io import TraceWriter
+
+        class Threads(event.Listener):
+            seen = set()
+            def on_start(self, ev):
+                self.seen.add(threading.current_thread().name)
+            def on_end(self, ev):
+                pass
+
+        listener = Threads()
+        with event.install_listener("numba:compiler_lock", listener):
+            with TraceWriter({str(tmp_path / "t.csv")!r}, ["a"], threaded=True) as w:
+                for k in range(3):
+                    w.write({{"t": np.arange(5.0) + 5 * k, "a": np.ones(5)}})
+        print(sorted(listener.seen))
+        """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    seen = proc.stdout.strip().splitlines()[-1]
+    assert "MainThread" in seen and "trace-writer" not in seen, seen
+    assert (tmp_path / "t.csv").read_text().count("\n") == 16

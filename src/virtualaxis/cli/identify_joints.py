@@ -8,24 +8,16 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from tqdm import tqdm
 
 from virtualaxis.cli.outputs import add_force_argument, check_input_file, check_output_file, write_text_atomic
 from virtualaxis.cli.rcsa import check_positions, parse_positions
-from virtualaxis.config import load_axis_config
-from virtualaxis.rcsa.config_writer import write_identified_config
-from virtualaxis.rcsa.identify import (
-    MeasuredModes,
-    identify_joints,
-    overall_error,
-    predict_modes,
-    relative_errors,
-)
-from virtualaxis.rcsa.measured import modes_from_frfs, read_frf_csv, read_mode_table_csv
-from virtualaxis.rcsa.params import JOINT_SYMBOLS, JOINT_UNITS, RcsaModel, rcsa_model_from_config
-from virtualaxis.rcsa.reproduce import nan_to_none
+
+if TYPE_CHECKING:  # (the model stack, scipy included, loads when the command runs: `virtualaxis --help` stays quick)
+    from virtualaxis.rcsa.identify import MeasuredModes
+    from virtualaxis.rcsa.params import RcsaModel
 
 
 def _nn(values: np.ndarray) -> list[float | None]:
@@ -33,6 +25,8 @@ def _nn(values: np.ndarray) -> list[float | None]:
 
 
 def _position_report(model: RcsaModel, measured: MeasuredModes, joints) -> list[dict]:
+    from virtualaxis.rcsa.identify import overall_error, predict_modes, relative_errors
+
     out = []
     preds = predict_modes(model, list(measured.positions_m), joints)
     for i, pr in enumerate(preds):
@@ -54,6 +48,7 @@ def _position_report(model: RcsaModel, measured: MeasuredModes, joints) -> list[
 
 def _load_measured(args: argparse.Namespace, model: RcsaModel) -> MeasuredModes:
     from virtualaxis.cli.main import CliError
+    from virtualaxis.rcsa.measured import modes_from_frfs, read_frf_csv, read_mode_table_csv
 
     if bool(args.frf) == bool(args.modes):
         raise CliError(
@@ -78,7 +73,14 @@ def _report_gaps(measured: MeasuredModes, model: RcsaModel, source: str) -> None
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
     from virtualaxis.cli.main import CliError
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.rcsa.config_writer import write_identified_config
+    from virtualaxis.rcsa.identify import identify_joints
+    from virtualaxis.rcsa.params import JOINT_SYMBOLS, JOINT_UNITS, rcsa_model_from_config
+    from virtualaxis.rcsa.reproduce import nan_to_none
 
     cfg = load_axis_config(args.config)
     model = rcsa_model_from_config(cfg)

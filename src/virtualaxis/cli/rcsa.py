@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,11 +18,9 @@ from virtualaxis.cli.outputs import (
     staged_dir,
     write_text_atomic,
 )
-from virtualaxis.config import load_axis_config
-from virtualaxis.rcsa.fe_shaft import fe_natural_frequencies_hz
-from virtualaxis.rcsa.identify import predict_modes
-from virtualaxis.rcsa.params import RcsaModel, rcsa_model_from_config
-from virtualaxis.rcsa.receptance import table_frf
+
+if TYPE_CHECKING:  # (the model stack, scipy included, loads when the command runs: `virtualaxis --help` stays quick)
+    from virtualaxis.rcsa.params import RcsaModel
 
 
 def parse_positions(text: str | None, what: str = "--positions") -> list[float]:
@@ -56,6 +55,8 @@ def plot_frf(model: RcsaModel, position_m: float, path: Path, modes: tuple[np.nd
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from virtualaxis.rcsa.receptance import table_frf
+
     f = np.geomspace(5.0, 1000.0, 3000)
     h = np.empty(f.size, dtype=np.complex128)
     table_frf(f, position_m, model.parameter_vector(), h)
@@ -81,6 +82,8 @@ def plot_frf(model: RcsaModel, position_m: float, path: Path, modes: tuple[np.nd
 
 def run(args: argparse.Namespace) -> int:
     from virtualaxis.cli.main import CliError
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.rcsa.params import rcsa_model_from_config
 
     cfg = load_axis_config(args.config)
     model = rcsa_model_from_config(cfg)
@@ -106,9 +109,12 @@ class _nullstage:
 
 
 def _run(args: argparse.Namespace, model: RcsaModel, positions: list[float], stage: Path | None) -> int:
+    from virtualaxis.rcsa.consistency import undamped_model
+    from virtualaxis.rcsa.fe_shaft import fe_natural_frequencies_hz
+    from virtualaxis.rcsa.identify import predict_modes
+
     results = []
     preds = predict_modes(model, positions)
-    from virtualaxis.rcsa.consistency import undamped_model
 
     poles = predict_modes(undamped_model(model), positions)  # modes the damped FRF may hide (no band peak)
     print(

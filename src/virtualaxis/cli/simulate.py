@@ -45,7 +45,7 @@ def run(args) -> int:
     from virtualaxis.sim.batch import EXTRA_COLUMNS, columns_for, rows_to_columns
     from virtualaxis.sim.profiles import check_limits, parse_profile, sample_profile
     from virtualaxis.sim.simulator import AxisSimulator
-    from virtualaxis.sim.trace_io import TraceWriter
+    from virtualaxis.sim.trace_io import TraceWriter, prepare_csv_formatter, trace_format_for
 
     if not args.out.strip():
         raise CliError("--out: empty path")
@@ -94,6 +94,8 @@ def run(args) -> int:
     summary_axes = {}
     start0 = time.perf_counter()  # one-off start-up (numba kernel load), reported apart as startup_s
     AxisSimulator(cfg, seed=args.seed).run_arrays(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+    if trace_format_for(out_path) == "csv":  # the CSV formatter's load belongs to the start-up too
+        prepare_csv_formatter()
     wall0 = time.perf_counter()
     chunk = 10000
     pos_limit = 10.0 * cfg.axis.stroke_m + 1.0  # [m] beyond this the run has diverged (see below)

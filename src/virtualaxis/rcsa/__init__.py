@@ -14,24 +14,38 @@ See docs/rcsa.md.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from virtualaxis.rcsa.identify import (
-    IdentificationResult,
-    MeasuredModes,
-    identify_joints,
-    overall_error,
-    predict_modes,
-    relative_errors,
-)
-from virtualaxis.rcsa.params import JointParams, RcsaModel, rcsa_model_from_config, rcsa_model_from_dict
-from virtualaxis.rcsa.receptance import table_frf
+from virtualaxis.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from virtualaxis.rcsa.identify import (
+        IdentificationResult,
+        MeasuredModes,
+        identify_joints,
+        overall_error,
+        predict_modes,
+        relative_errors,
+    )
+    from virtualaxis.rcsa.params import JointParams, RcsaModel, rcsa_model_from_config, rcsa_model_from_dict
+
+# imported on first use (virtualaxis.lazy): rcsa.params loads without scipy.optimize (rcsa.identify)
+__getattr__, __dir__ = lazy_exports(__name__, {
+    **{n: "virtualaxis.rcsa.identify" for n in ("IdentificationResult", "MeasuredModes", "identify_joints",
+                                                "overall_error", "predict_modes", "relative_errors")},
+    **{n: "virtualaxis.rcsa.params" for n in ("JointParams", "RcsaModel", "rcsa_model_from_config",
+                                              "rcsa_model_from_dict")},
+}, globals())
 
 
 def table_frf_m_per_n(
     model: RcsaModel, position_m: float, freq_hz: np.ndarray, joints: JointParams | None = None
 ) -> np.ndarray:
     """The coupled table FRF h_all-6a6a (eq. 24) [m/N] at nut position ``position_m`` on ``freq_hz``."""
+    from virtualaxis.rcsa.receptance import table_frf
+
     model.check_position(float(position_m))
     f = np.ascontiguousarray(freq_hz, dtype=np.float64)
     if f.ndim != 1 or not np.all(np.isfinite(f)) or np.any(f <= 0):

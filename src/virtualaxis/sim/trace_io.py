@@ -192,6 +192,14 @@ def format_csv_rows(block: np.ndarray) -> bytes:
     return buf[:n].tobytes()
 
 
+def prepare_csv_formatter() -> None:
+    """Compile (or load from numba's cache) the CSV formatter in the calling thread. A threaded
+    :class:`TraceWriter` calls it before it starts its thread, so that thread only runs compiled code: a first
+    compilation there (LLVM, under numba's process-wide compiler lock) would leave ``close`` waiting on it for
+    as long as the compilation takes on a busy host, with nothing to show for it."""
+    format_csv_rows(np.zeros((1, 1)))
+
+
 def trace_format_for(path: str | Path) -> str:
     """``'npz'`` or ``'csv'``, chosen by the file name's suffix (``.parquet`` is refused: no pyarrow)."""
     suffix = Path(path).suffix.lower()
@@ -210,7 +218,7 @@ class TraceWriter:
     ``columns``: signal names; ``t`` (s) always comes first. ``write(data)`` takes a dict of equal-length
     arrays (SI units) holding at least these columns. ``threaded``: CSV blocks are formatted and written by
     a thread of the writer (see the module docstring); an error there (a full disk) is raised by the next
-    ``write`` or by ``close``.
+    ``write`` or by ``close``. The formatter is compiled in the constructing thread (:func:`prepare_csv_formatter`).
     """
 
     def __init__(self, path: str | Path, columns: list[str], *, threaded: bool = False):
@@ -229,6 +237,7 @@ class TraceWriter:
             self._fh = self.path.open("wb")
             self._fh.write((",".join(self.columns) + "\n").encode("ascii"))
             if threaded:
+                prepare_csv_formatter()
                 self._queue = queue.Queue(maxsize=2)
                 self._thread = threading.Thread(target=self._drain, name="trace-writer", daemon=True)
                 self._thread.start()
