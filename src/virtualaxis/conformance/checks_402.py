@@ -461,17 +461,21 @@ def homing_current_position(ctx: Context) -> str:
     supported = ctx.read(0x6502)
     if not supported & MODE_BITS[6]:
         raise Skip(f"homing mode not supported (0x6502 = 0x{supported:X})")
+    held = ctx.read(0x6098) if 0x6098 in ctx.od else None
+    if held in (35, 37):  # the method the node holds is one it offers: writing it back is no value error
+        try:
+            ctx.write(0x6098, 0, held)
+        except canopen.SdoAbortedError as exc:
+            if exc.code in (0x06090030, 0x06090031, 0x06090032, 0x06090036):
+                raise Fail(f"0x6098 holds homing method {held} but writing it back is refused as a value "
+                           f"(0x{exc.code:08X})") from None
     mo = Motion(ctx)
     try:
-        held = ctx.read(0x6098) if 0x6098 in ctx.od else None
         for method in (37, 35):
             try:
                 ctx.write(0x6098, 0, method)
                 break
-            except canopen.SdoAbortedError as exc:
-                if method == held and exc.code in (0x06090030, 0x06090031, 0x06090032, 0x06090036):
-                    raise Fail(f"0x6098 holds method {method} but writing it back is refused as a value "
-                               f"(0x{exc.code:08X})") from None
+            except canopen.SdoAbortedError:
                 continue
         else:
             raise Skip("homing methods 37 and 35 both refused")
