@@ -393,19 +393,10 @@ def _loss_of_control_ignored() -> None:
 
 
 # ---------------------------------------------------------------------------------------- errors, EMCY
-@mutant("error_register_not_kept", "0x1001 not set while a fault is present (the EMCY frame carries the bits)",
-        only="402-FE-1")
+@mutant("error_register_not_kept", "0x1001 reads without bit 0 (generic error) while a fault is present (the EMCY "
+        "frame carries the bit)", only="402-FE-1")
 def _error_register_not_kept() -> None:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
-
-    original = CanopenSlave.emcy
-
-    def emcy(self, code: int, register_bits: int = 0, data: bytes = b"", communication: bool = False) -> None:
-        before = self.od.entries[(0x1001, 0)].value
-        original(self, code, register_bits, data, communication)
-        self.write(0x1001, 0, before)
-
-    CanopenSlave.emcy = emcy
+    _upload_patch({0x1001: lambda v: v & ~0x01})
 
 
 @mutant("error_history_not_updated", "pre-defined error field 0x1003 not updated on an error", only="402-FE-1")
@@ -415,18 +406,9 @@ def _error_history_not_updated() -> None:
     EmcyProducer.push_history = lambda self, code, info=0: None
 
 
-@mutant("error_code_not_set", "error code 0x603F not set on a fault", only="402-FE-1")
+@mutant("error_code_not_set", "error code 0x603F reads 0 while a fault is present", only="402-FE-1")
 def _error_code_not_set() -> None:
-    from virtualaxis.canopen_slave.slave import CanopenSlave
-
-    original = CanopenSlave.write
-
-    def write(self, index: int, sub: int, value) -> None:
-        if index == 0x603F and value:
-            return
-        original(self, index, sub, value)
-
-    CanopenSlave.write = write
+    _upload_patch({0x603F: lambda v: 0})
 
 
 @mutant("fault_reset_silent", "no EMCY 0x0000 (error reset) after a fault reset", only="402-FE-1")
@@ -448,17 +430,16 @@ def _emcy_cob_id_without_node_id() -> None:
 
 
 def _upload_patch(rules: dict) -> None:
-    """SDO uploads of the objects in ``rules`` answer ``rule(value)`` instead of the value (4-byte objects)."""
-    import struct
-
+    """SDO uploads of the objects in ``rules`` (integers) answer ``rule(value)`` instead of the value."""
     from virtualaxis.canopen_slave.slave import CanopenSlave
 
     original = CanopenSlave.sdo_upload
 
     def sdo_upload(self, index: int, sub: int) -> bytes:
         data = original(self, index, sub)
-        if index in rules and len(data) == 4:
-            return struct.pack("<I", rules[index](struct.unpack("<I", data)[0]) & 0xFFFFFFFF)
+        if index in rules and 1 <= len(data) <= 4:
+            mask = (1 << (8 * len(data))) - 1
+            return (rules[index](int.from_bytes(data, "little")) & mask).to_bytes(len(data), "little")
         return data
 
     CanopenSlave.sdo_upload = sdo_upload
@@ -521,8 +502,20 @@ def _sdo_toggle_wrong_abort() -> None:
 @mutant("sdo_value_limits_ignored", "values beyond an object's HighLimit / LowLimit accepted", only="sdo")
 def _sdo_value_limits_ignored() -> None:
     from virtualaxis.canopen_slave.slave import CanopenSlave
+    from virtualaxis.drive.core import Drive
+    from virtualaxis.drive.object_table import ObjectAccessError
 
     CanopenSlave._check_limits = staticmethod(lambda entry, value: None)
+    original = Drive.check_object_write
+
+    def check_object_write(self, index: int, sub: int, value) -> None:
+        try:
+            original(self, index, sub, value)
+        except ObjectAccessError as exc:
+            if exc.code not in (0x06090031, 0x06090032):
+                raise
+
+    Drive.check_object_write = check_object_write
 
 
 @mutant("mode_unsupported_accepted", "0x6060 accepts a mode 0x6502 does not list (0x6061 shows it)", only="sdo")
