@@ -31,6 +31,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=None,
                     help="start no run after this many minutes (the runs done are reported)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--keep", default=None, help="directory for the full report of each run with a failure")
     args = ap.parse_args()
     t_start = time.monotonic()
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
@@ -64,6 +65,12 @@ def main() -> int:
             print(f"run {k + 1}/{args.runs}: {len(verdicts)} checks, {len(failed)} failed "
                   f"{[f[0] for f in failed]}, skipped {skipped}, {rep['summary'].get('sdo_retries', 0)} SDO "
                   f"retries, {dt:.1f} s, load average {load}", flush=True)
+            for cid, detail in failed:
+                print(f"  {cid}: {detail}", flush=True)
+            if failed and args.keep:
+                keep = Path(args.keep)
+                keep.mkdir(parents=True, exist_ok=True)
+                (keep / f"run{k + 1}.json").write_text(json.dumps(rep, indent=1))
     finally:
         proc.terminate()
         proc.communicate(timeout=30)
