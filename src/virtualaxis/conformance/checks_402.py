@@ -611,10 +611,15 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float, *, q
         mo.pause(1.0)  # (lockstep: 1 s of node time)
         samples = mo.samples(mark)
         last = samples[-1]
-        travel = abs(last.pos - first.pos)
+        # travelled from the last sample before the stop: a gap in the samples (a node or master descheduled on a
+        # loaded host answers the queued SYNCs with the state after it) cannot hide part of the stop
+        earlier = [s for s in samples if s.t < first.t]
+        start = earlier[-1] if earlier else first
+        travel = abs(last.pos - start.pos)
         bound = _stop_bound(v_f, a, 0.020, ctx.mm(1))
         v_end = abs(last.vel or 0)
-        ctx.note(f"fault at SW 0x{first.sw:04X} pos {first.pos} v {v_f}; end pos {last.pos} v {v_end}")
+        ctx.note(f"stop at SW 0x{first.sw:04X} pos {first.pos} v {v_f} (last sample before it: pos {start.pos}); "
+                 f"end pos {last.pos} v {v_end}")
         least = 0.5 * v_f * v_f / (2 * a)
         if travel > bound:
             raise Fail(f"{name}: travelled {travel / ctx.units_per_mm:.2f} mm after the stop began from "
