@@ -31,6 +31,7 @@ def main() -> int:
     ap.add_argument("--minutes", type=float, default=None,
                     help="start no run after this many minutes (the runs done are reported)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--keep", default=None, help="directory for the full report of each run with a failure")
     args = ap.parse_args()
     t_start = time.monotonic()
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.hogs)]
@@ -49,19 +50,27 @@ def main() -> int:
                                    capture_output=True, text=True, cwd=REPO, timeout=1800,
                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
                 dt = time.monotonic() - t0
+                load = round(os.getloadavg()[0], 1)
                 if not out.exists():
                     print(f"run {k + 1}: no report (exit {r.returncode}): {r.stdout[-800:]}{r.stderr[-800:]}")
-                    runs.append({"verdicts": {}, "failed": [["(run)", "no report"]], "seconds": round(dt, 1)})
+                    runs.append({"verdicts": {}, "failed": [["(run)", "no report"]], "seconds": round(dt, 1),
+                                 "load_1min": load})
                     continue
                 rep = json.loads(out.read_text())
             verdicts = {c["id"]: c["status"] for c in rep["checks"]}
             failed = [[c["id"], c["detail"]] for c in rep["checks"] if c["status"] == "fail"]
             skipped = sorted(i for i, s in verdicts.items() if s == "skipped")
             runs.append({"verdicts": verdicts, "failed": failed, "skipped": skipped, "seconds": round(dt, 1),
-                         "sdo_retries": rep["summary"].get("sdo_retries", 0)})
+                         "sdo_retries": rep["summary"].get("sdo_retries", 0), "load_1min": load})
             print(f"run {k + 1}/{args.runs}: {len(verdicts)} checks, {len(failed)} failed "
                   f"{[f[0] for f in failed]}, skipped {skipped}, {rep['summary'].get('sdo_retries', 0)} SDO "
-                  f"retries, {dt:.1f} s", flush=True)
+                  f"retries, {dt:.1f} s, load average {load}", flush=True)
+            for cid, detail in failed:
+                print(f"  {cid}: {detail}", flush=True)
+            if failed and args.keep:
+                keep = Path(args.keep)
+                keep.mkdir(parents=True, exist_ok=True)
+                (keep / f"run{k + 1}.json").write_text(json.dumps(rep, indent=1))
     finally:
         proc.terminate()
         proc.communicate(timeout=30)
@@ -72,11 +81,16 @@ def main() -> int:
     first = runs[0]["verdicts"] if runs else {}
     identical = all(r["verdicts"] == first for r in runs)
     secs = [r["seconds"] for r in runs] or [0.0]
+    loads = [r["load_1min"] for r in runs] or [0.0]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=REPO).stdout.strip() or "unknown"
     print(f"summary: {len(runs)} runs with {args.hogs} CPU hogs ({os.cpu_count()} CPUs), {with_failure} with a "
-          f"failure, verdicts {'identical' if identical else 'DIFFER'}; run time {min(secs):.1f}..{max(secs):.1f} s")
+          f"failure, verdicts {'identical' if identical else 'DIFFER'}; run time {min(secs):.1f}..{max(secs):.1f} s; "
+          f"1-min load average at the runs' ends {min(loads):.1f}..{max(loads):.1f}; code {commit}")
     if args.json:
         Path(args.json).write_text(json.dumps({"runs": runs, "hogs": args.hogs, "with_failure": with_failure,
-                                               "identical": identical}, indent=1))
+                                               "identical": identical, "commit": commit,
+                                               "load_1min": [min(loads), max(loads)]}, indent=1))
     return 0 if not with_failure and identical else 1
 
 

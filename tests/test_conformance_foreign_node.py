@@ -79,3 +79,64 @@ def test_missing_optional_objects_and_services_are_skips_with_the_reason(tmp_pat
         assert cid in skipped, (cid, results[cid].status, results[cid].detail)
         assert why.lower() in skipped[cid].lower(), (cid, skipped[cid])
     assert results["301-ID-1"].status == "pass"
+
+
+def _homing_node(tmp_path: Path, supported_modes: int, refused: frozenset[int] = frozenset()):
+    """A LocalNode with the stripped EDS plus the homing objects 0x6098 / 0x607C; ``refused``: 0x6098 values the
+    node aborts 0x06090030 on write."""
+    global KEEP
+    keep, KEEP = KEEP, KEEP | {0x6098, 0x607C}
+    try:
+        eds = str(_stripped_eds(tmp_path / "homing.eds"))
+    finally:
+        KEEP = keep
+    channel = f"foreign-hm-{time.perf_counter_ns()}"
+    node_net = canopen.Network()
+    node_net.connect(interface="virtual", channel=channel, receive_own_messages=False)
+    master = canopen.Network()
+    master.connect(interface="virtual", channel=channel, receive_own_messages=False)
+    node = canopen.LocalNode(NODE, eds)
+    node.sdo[0x6502].raw = supported_modes
+    node.sdo[0x6098].raw = 35
+    node.sdo[0x607C].raw = 0
+
+    def refuse(index: int, subindex: int, od, data: bytes) -> None:
+        if index == 0x6098 and od.decode_raw(data) in refused:
+            raise canopen.SdoAbortedError(0x06090030)
+
+    node.add_write_callback(refuse)
+    node_net.add_node(node)
+
+    def on_nmt(_cob: int, data: bytearray, _t: float) -> None:
+        if len(data) == 2 and data[0] in (0x81, 0x82) and data[1] in (0, NODE):
+            node_net.send_message(0x700 + NODE, b"\x00")
+
+    node_net.subscribe(0, on_nmt)
+    node.nmt.state = "PRE-OPERATIONAL"
+    ctx = runner.Context(master, NODE, eds, sdo_timeout_s=0.3, lockstep=True)
+    return node, ctx, (master, node_net)
+
+
+def test_homing_check_skips_a_node_without_homing_and_leaves_its_homing_objects_alone(tmp_path):
+    """0x6502 without the homing bit: 402-HM-1 is a skip naming 0x6502, and it writes neither the homing method
+    0x6098 nor the home offset 0x607C of the node (a check skipped for a mode the node lacks changes nothing)."""
+    node, ctx, nets = _homing_node(tmp_path, supported_modes=0x80)
+    try:
+        (res,) = runner.run_checks(ctx, runner.select("402-HM-1"))
+    finally:
+        for net in nets:
+            net.disconnect()
+    assert res.status == "skipped" and "0x6502" in res.detail, (res.status, res.detail)
+    assert node.sdo[0x6098].raw == 35 and node.sdo[0x607C].raw == 0
+
+
+def test_homing_check_fails_a_node_refusing_the_method_its_0x6098_holds(tmp_path):
+    """0x6502 offers homing and 0x6098 holds method 35, yet writing 35 (and 37) is refused as a value: a failure
+    naming 0x6098, not a skip (a node whose only methods are others than 35 / 37 is a skip)."""
+    _node, ctx, nets = _homing_node(tmp_path, supported_modes=0xA0, refused=frozenset({35, 37}))
+    try:
+        (res,) = runner.run_checks(ctx, runner.select("402-HM-1"))
+    finally:
+        for net in nets:
+            net.disconnect()
+    assert res.status == "fail" and "0x6098" in res.detail and "35" in res.detail, (res.status, res.detail)

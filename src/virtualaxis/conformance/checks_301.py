@@ -219,10 +219,22 @@ def stop_start(ctx: Context) -> str:
 
 
 @check("301-NMT-3", "nmt", "CiA 301 7.3.2.2.1 (reset communication); CL 3",
-       "0x1017 = 30, NMT 0x82", "boot-up; communication objects (0x1017) back to their defaults; PRE-OP")
+       "0x1017 = 30, TPDO1 COB-ID 0x1800:1 invalid and transmission type 0x1800:2 changed (if listed), NMT 0x82",
+       "boot-up; communication objects (0x1017, 0x1800:1, 0x1800:2) back to their defaults; PRE-OP")
 def reset_comm(ctx: Context) -> str:
     default = ctx.od[0x1017].default or 0
     ctx.write(0x1017, 0, 30 if default != 30 else 31)
+    changed: dict[tuple[int, int], int] = {}  # (index, sub) -> default, for the PDO parameters written
+    if 0x1800 in ctx.od:
+        for sub, value_of in ((1, lambda d: d | 0x80000000), (2, lambda d: 254 if d != 254 else 255)):
+            d = ctx.od[0x1800][sub].default if sub in ctx.od[0x1800] else None
+            if not isinstance(d, int) or value_of(d) == d:
+                continue
+            try:
+                ctx.write(0x1800, sub, value_of(d))
+                changed[(0x1800, sub)] = d
+            except canopen.SdoAbortedError as exc:
+                ctx.note(f"0x1800:{sub} = 0x{value_of(d):X} refused (0x{exc.code:08X}): not judged")
     mark = ctx.frames.mark()
     ctx.nmt(0x82)
     if ctx.frames.wait(mark, ctx.hb_cob, lambda d: d[:1] == b"\x00", 2.0) is None:
@@ -232,7 +244,12 @@ def reset_comm(ctx: Context) -> str:
     ctx.write(0x1017, 0, 50)
     if v != default:
         raise Fail(f"0x1017 = {v} after reset communication, expected the default {default}")
-    return f"boot-up, 0x1017 back to {default}"
+    for (index, sub), d in changed.items():
+        got = ctx.read(index, sub)
+        if got != d:
+            raise Fail(f"0x{index:04X}:{sub} = 0x{got:X} after reset communication, expected the default 0x{d:X}")
+    also = "".join(f", 0x{i:04X}:{s}" for i, s in changed)
+    return f"boot-up, 0x1017{also} back to their defaults"
 
 
 @check("301-GUARD-1", "nmt", "CiA 301 7.2.8.3.2.1 (node guarding); CL 4",

@@ -215,18 +215,32 @@ def _enable_mode(ctx: Context, mode: int) -> None:
 
 
 # ============================================================================ state machine
-@check("402-SM-1", "sm", "CiA 402 6.1.3 (power drive state machine, transitions 2, 3, 4); CL 12",
-       "after reset: CW 0x06, 0x07, 0x0F by SDO", "SW & 0x6F = 0x21, 0x23, 0x27; real time: whole chain well inside "
-       "0.8 s")
+@check("402-SM-1", "sm", "CiA 402 6.1.3 (power drive state machine, transitions 2, 3, 4; statusword bit 9 "
+       "remote); CL 12",
+       "after reset: CW 0x0F and 0x07 in switch on disabled (no transition leads there), then CW 0x06, 0x07, 0x0F "
+       "by SDO", "switch on disabled stays (SW & 0x4F = 0x40); then SW & 0x6F = 0x21, 0x23, 0x27, each with bit 9 "
+       "(remote: the controlword is obeyed); real time: whole chain well inside 0.8 s")
 def sm_enable(ctx: Context) -> str:
     boot(ctx)
     sw = ctx.sw()
     if sw & 0x4F != 0x40:
         raise Fail(f"SW 0x{sw:04X} after boot, expected switch on disabled")
+    for cw in (0x0F, 0x07):  # enable operation / switch on: commands without a transition from here
+        ctx.write(0x6040, 0, cw)
+        expired = ctx.deadline(0.1)
+        while not expired():
+            sw = ctx.poll(0x6041)
+            if sw & 0x4F != 0x40:
+                raise Fail(f"CW 0x{cw:02X} in switch on disabled gave SW 0x{sw:04X}: only shutdown (0x06) leaves "
+                           "switch on disabled (transition 2)")
+            time.sleep(0.01)
     t0 = time.monotonic()
     for cw, exp in ((0x06, RTSO), (0x07, SO), (0x0F, OE)):
         ctx.write(0x6040, 0, cw)
-        ctx.wait_sw(STATE_MASK, exp, 0.5, f"CW 0x{cw:02X}")
+        sw = ctx.wait_sw(STATE_MASK, exp, 0.5, f"CW 0x{cw:02X}")
+        if not sw & 0x200:
+            raise Fail(f"SW 0x{sw:04X} after CW 0x{cw:02X}: bit 9 (remote) is 0 although the drive obeys the "
+                       "controlword")
     dt = time.monotonic() - t0
     ctx.disable()
     if ctx.lockstep:  # the node changes state on the SDO write itself: wait_sw judged it in reads of the node
@@ -433,6 +447,14 @@ def homing_current_position(ctx: Context) -> str:
     supported = ctx.read(0x6502)
     if not supported & MODE_BITS[6]:
         raise Skip(f"homing mode not supported (0x6502 = 0x{supported:X})")
+    held = ctx.read(0x6098) if 0x6098 in ctx.od else None
+    if held in (35, 37):  # the method the node holds is one it offers: writing it back is no value error
+        try:
+            ctx.write(0x6098, 0, held)
+        except canopen.SdoAbortedError as exc:
+            if exc.code in (0x06090030, 0x06090031, 0x06090032, 0x06090036):
+                raise Fail(f"0x6098 holds homing method {held} but writing it back is refused as a value "
+                           f"(0x{exc.code:08X})") from None
     mo = Motion(ctx)
     try:
         for method in (37, 35):
@@ -473,7 +495,8 @@ def homing_current_position(ctx: Context) -> str:
 
 @check("402-FE-1", "modes", "CiA 402 (following error 0x6065 / 0x6066, EMCY 0x8611); CiA 301 EMCY; CL 15, 24",
        "PP move at 100 mm/s with 0x6065 = 1 unit", "fault reaction -> fault (SW & 0x4F = 0x08), EMCY 0x8611 with "
-       "0x1001 bit 0, 0x603F = 0x8611, 0x1003:1 = 0x8611; CW 0x80 edge -> switch on disabled and EMCY 0x0000")
+       "error register bit 0, 0x1001 bit 0 in fault, "
+       "0x603F = 0x8611, 0x1003:1 = 0x8611; CW 0x80 edge -> switch on disabled and EMCY 0x0000")
 def following_error_fault(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
@@ -494,6 +517,9 @@ def following_error_fault(ctx: Context) -> str:
         if not emcy[2] & 0x01:
             raise Fail(f"EMCY 0x8611 with error register 0x{emcy[2]:02X} (bit 0 not set)")
         ctx.wait_sw(0x4F, 0x08, 2.0, "fault state")
+        register = ctx.read(0x1001)
+        if not register & 0x01:
+            raise Fail(f"0x1001 = 0x{register:02X} in fault (bit 0, generic error, not set)")
         code = ctx.read(0x603F)
         hist = ctx.read(0x1003, 1) & 0xFFFF if 0x1003 in ctx.od else 0x8611
         if code != 0x8611 or hist != 0x8611:
@@ -528,17 +554,21 @@ def fault_reaction_from_motion(ctx: Context) -> str:
     return "; ".join(out)
 
 
-def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> str:
-    """CSP at 100 mm/s, 0x605E = ``option`` whose ramp is ``ramp_index`` = ``a_mm_s2``, the other ramp 5x
-    steeper or shallower; a following-error fault: the travel after it must be that of the ramp (at least half
-    of v^2/2a, at most v^2/2a + v * 20 ms + 1 mm)."""
+def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float, *, quick_stop: bool = False,
+                other_factor: float = 5.0) -> str:
+    """CSP at 100 mm/s, 0x605E (``quick_stop``: 0x605A) = ``option`` whose ramp is ``ramp_index`` = ``a_mm_s2``,
+    the other ramp ``other_factor`` x steeper or shallower; a following-error fault (``quick_stop``: CW 0x0B in
+    the RPDO stream): the travel after it must be that of the ramp (at least half of v^2/2a, at most v^2/2a +
+    v * 20 ms + 1 mm), then fault (``quick_stop``: switch on disabled)."""
     mo = Motion(ctx)
     try:
         a = ctx.mm(a_mm_s2)
         other = 0x6084 if ramp_index == 0x6085 else 0x6085
-        ctx.write(0x605E, 0, option)
+        option_index = 0x605A if quick_stop else 0x605E
+        name = f"0x{option_index:04X} = {option}"
+        ctx.write(option_index, 0, option)
         ctx.write(ramp_index, 0, a)
-        ctx.write(other, 0, ctx.mm(a_mm_s2 * 5 if ramp_index == 0x6084 else a_mm_s2 / 5))
+        ctx.write(other, 0, ctx.mm(a_mm_s2 * other_factor if ramp_index == 0x6084 else a_mm_s2 / other_factor))
         _enable_mode(ctx, 8)
         p0 = ctx.read(0x6064)
         v_cmd = ctx.mm(100)
@@ -558,52 +588,79 @@ def _fault_stop(ctx: Context, option: int, ramp_index: int, a_mm_s2: float) -> s
                 break
             time.sleep(0.01)
         mark = ctx.frames.mark()
-        if 0x6066 in ctx.od:
-            ctx.write(0x6066, 0, 0)
-        ctx.write(0x6065, 0, 1)
+        if quick_stop:
+            mo.cw = 0x0B  # (quick stop: bit 2 = 0, in the stream's next RPDO)
+        else:
+            if 0x6066 in ctx.od:
+                ctx.write(0x6066, 0, 0)
+            ctx.write(0x6065, 0, 1)
+        stopping = (lambda sw: sw & STATE_MASK != OE) if quick_stop else _is_fault
         expired = ctx.deadline(2.0)
         first = None
         while first is None and not expired():
-            first = next((s for s in mo.samples(mark) if _is_fault(s.sw)), None)
+            first = next((s for s in mo.samples(mark) if stopping(s.sw)), None)
             time.sleep(0.005)
         if first is None:
-            raise Fail("no fault within 2 s of 0x6065 = 1 while moving at 100 mm/s")
+            raise Fail(f"no {'quick stop' if quick_stop else 'fault'} within 2 s of "
+                       f"{'CW 0x0B' if quick_stop else '0x6065 = 1'} while moving at 100 mm/s")
         before = [s for s in mo.samples(mark) if s.t <= first.t and s.vel is not None]
         v_f = abs(before[-1].vel) if before else v_cmd
         if v_f < 0.5 * v_cmd:
-            raise Fail(f"the fault came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
+            raise Fail(f"the stop came at {v_f / ctx.units_per_mm:.1f} mm/s, below half the commanded "
                        f"{v_cmd / ctx.units_per_mm:.0f} mm/s: the stop from motion cannot be judged")
         mo.pause(1.0)  # (lockstep: 1 s of node time)
         samples = mo.samples(mark)
         last = samples[-1]
-        travel = abs(last.pos - first.pos)
+        # travelled from the last sample before the stop: a gap in the samples (a node or master descheduled on a
+        # loaded host answers the queued SYNCs with the state after it) cannot hide part of the stop
+        earlier = [s for s in samples if s.t < first.t]
+        start = earlier[-1] if earlier else first
+        travel = abs(last.pos - start.pos)
         bound = _stop_bound(v_f, a, 0.020, ctx.mm(1))
         v_end = abs(last.vel or 0)
-        ctx.note(f"fault at SW 0x{first.sw:04X} pos {first.pos} v {v_f}; end pos {last.pos} v {v_end}")
+        ctx.note(f"stop at SW 0x{first.sw:04X} pos {first.pos} v {v_f} (last sample before it: pos {start.pos}); "
+                 f"end pos {last.pos} v {v_end}")
         least = 0.5 * v_f * v_f / (2 * a)
         if travel > bound:
-            raise Fail(f"0x605E = {option}: travelled {travel / ctx.units_per_mm:.2f} mm after the fault from "
+            raise Fail(f"{name}: travelled {travel / ctx.units_per_mm:.2f} mm after the stop began from "
                        f"{v_f / ctx.units_per_mm:.0f} mm/s, bound v^2/2a + margin = "
                        f"{bound / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X} (coasting? another ramp?)")
         if travel < least:
-            raise Fail(f"0x605E = {option}: stopped in {travel / ctx.units_per_mm:.2f} mm from "
+            raise Fail(f"{name}: stopped in {travel / ctx.units_per_mm:.2f} mm from "
                        f"{v_f / ctx.units_per_mm:.0f} mm/s, less than half of v^2/2a = "
-                       f"{2 * least / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X}: not the ramp 0x605E "
-                       "selects")
+                       f"{2 * least / ctx.units_per_mm:.2f} mm with 0x{ramp_index:04X}: not the ramp "
+                       f"0x{option_index:04X} selects")
         if v_end > ctx.mm(1):
-            raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1 s after the fault")
+            raise Fail(f"still moving at {v_end / ctx.units_per_mm:.1f} mm/s 1 s after the stop began")
         expired = ctx.deadline(2.0)
-        while last.sw & 0x4F != 0x08 and not expired():  # the reaction ends once the axis is at rest
+        end_sw, end_name = (0x40, "switch on disabled") if quick_stop else (0x08, "fault")
+        while last.sw & 0x4F != end_sw and not expired():  # the reaction ends once the axis is at rest
             time.sleep(0.05)
             last = mo.samples(mark)[-1]
-        if last.sw & 0x4F != 0x08:
-            raise Fail(f"0x605E = {option}: SW 0x{last.sw:04X} 3 s after the fault, expected fault (0x08)")
-        return (f"0x605E = {option}: {travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
+        if last.sw & 0x4F != end_sw:
+            raise Fail(f"{name}: SW 0x{last.sw:04X} 3 s after the stop began, expected {end_name} "
+                       f"(0x{end_sw:02X})")
+        return (f"{name}: {travel / ctx.units_per_mm:.2f} mm from {v_f / ctx.units_per_mm:.0f} mm/s "
                 f"(ramp 0x{ramp_index:04X}: {least / ctx.units_per_mm:.2f}..{bound / ctx.units_per_mm:.2f} mm), "
-                "at rest, fault")
+                f"at rest, {end_name}")
     finally:
         mo.close()
         boot(ctx)
+
+
+@check("402-QS-1", "reaction", "CiA 402 6.1.3 (quick stop, transitions 11, 12; quick stop option 0x605A = 2: "
+       "quick-stop ramp 0x6085, 1: slow-down ramp 0x6084)", "CSP at 100 mm/s (toward the middle of the travel), "
+       "0x605A = 2 with 0x6085 = 10 m/s^2 (0x6084 = 1 m/s^2), then 0x605A = 1 with 0x6084 = 2 m/s^2 (0x6085 = "
+       "10 m/s^2); CW 0x0B (quick stop) in the RPDO stream while moving",
+       "the drive brakes from the ACTUAL speed on the ramp 0x605A selects: v^2/(4 a) <= travel after the quick stop "
+       "<= v^2/(2 a) + v * 20 ms + 1 mm, at rest (< 1 mm/s), then switch on disabled (SW & 0x4F = 0x40)")
+def quick_stop_from_motion(ctx: Context) -> str:
+    if 0x605A not in ctx.od:
+        raise Skip("the EDS lists no quick stop option code 0x605A")
+    out = []
+    for option, ramp_index, a_mm_s2, other_factor in ((2, 0x6085, 10_000, 10.0), (1, 0x6084, 2_000, 5.0)):
+        out.append(_fault_stop(ctx, option, ramp_index, a_mm_s2, quick_stop=True, other_factor=other_factor))
+    return "; ".join(out)
 
 
 @check("402-FLD-2", "rpdo", "CiA 301 7.2.2 (all PDO entries stored before the application reacts); CiA 402 12 "
