@@ -421,7 +421,7 @@ def test_reads_are_answered_from_the_published_image_without_serve(server):
 def test_a_publication_longer_than_the_period_leaves_the_drive_lock_to_others(monkeypatch):
     """On a loaded machine an image build can outlast the publication period. The publisher must then rest
     (at least as long as the build took) instead of publishing back to back: the drive's lock is not fair, and a
-    publisher that re-takes it at once starves the runtime's cycle and every reader (a 900 s hang in CI)."""
+    publisher that re-takes it at once starves the runtime's cycle and every reader."""
     import virtualaxis.services.register_image as ri
 
     drive = make_drive()
