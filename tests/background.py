@@ -25,6 +25,7 @@ import traceback
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 HERE = Path(__file__).resolve().parent
 
@@ -133,19 +134,27 @@ UNPAUSABLE_MARK = "running-unpausable"
 
 
 # ---------------------------------------------------------------------------------------------- the runner
-def _run(names: list[str], folder: Path) -> int:
+def _watch(session_pid: int) -> None:
+    """Thread of the runner: when the session's main process is gone (ended, or killed without a chance to clean
+    up), kill the runner's whole process group (its pool workers too)."""
+    while True:
+        time.sleep(1.0)
+        try:
+            os.kill(session_pid, 0)
+        except ProcessLookupError:
+            os.killpg(0, signal.SIGKILL)
+
+
+def _run(names: list[str], folder: Path, session_pid: int) -> int:
     """Child process: each job in turn; ``<name>.pkl`` when done, ``<name>.err`` with the traceback if it
     raised (written under a temporary name and renamed, so a waiting test never reads half a file)."""
+    import threading
+
     try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):
         os.nice(19)
-    try:  # killed with the pytest process, even when that one is killed without a chance to clean up
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
+    threading.Thread(target=_watch, args=(session_pid,), daemon=True).start()
     names = sorted(names, key=lambda n: n not in UNPAUSABLE)  # the unpausable ones first (stable otherwise)
     for name in names:
         if name not in UNPAUSABLE:
@@ -164,77 +173,113 @@ def _run(names: list[str], folder: Path) -> int:
     return 0
 
 
-def start(config, names: list[str]) -> None:
-    """Start the jobs ``names`` in one SCHED_IDLE subprocess (from the conftest's collection hook)."""
+class Runner:
+    """The session's one runner process, as every process of the session (the pytest-xdist workers, or the
+    single pytest process) sees it: its pid (also its process group), its folder and the jobs it runs."""
+
+    def __init__(self, pid: int, folder: Path, names: set[str]) -> None:
+        self.pid, self.folder, self.names = pid, folder, names
+
+    def alive(self) -> bool:
+        try:
+            state = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            return False
+        return state not in ("Z", "X")
+
+    def signal_group(self, sig: int) -> bool:
+        try:
+            os.killpg(self.pid, sig)
+        except ProcessLookupError:
+            return False
+        return True
+
+
+RUNNER_KEY = pytest.StashKey[Runner]()
+
+
+def _folder(shared: Path) -> Path:
+    return shared / "background"
+
+
+def start(config, shared: Path, session_pid: int, names: list[str]) -> None:
+    """Start the jobs ``names`` in one SCHED_IDLE subprocess, once per session: the first process of the session
+    to ask starts it, the others (pytest-xdist workers collecting the same tests) find it in ``shared``."""
+    import fcntl
+
     if not names:
         return
-    folder = Path(config._tmp_path_factory.mktemp("background"))
-    if any(n in UNPAUSABLE for n in names):  # made here, before the runner exists, so no pause can slip in first
-        (folder / UNPAUSABLE_MARK).touch()
-    proc = subprocess.Popen([sys.executable, str(Path(__file__)), str(folder), *names],
-                            stdout=subprocess.DEVNULL, stderr=open(folder / "stderr.txt", "wb"),
-                            start_new_session=True, cwd=str(HERE.parent))
-    config._background = (proc, folder, set(names))
+    folder = _folder(shared)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(shared / "background.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        pid_file = folder / "runner.pid"
+        if not pid_file.exists():
+            if any(n in UNPAUSABLE for n in names):  # made before the runner exists, so no pause slips in first
+                (folder / UNPAUSABLE_MARK).touch()
+            with open(folder / "stderr.txt", "wb") as err:
+                proc = subprocess.Popen([sys.executable, str(Path(__file__)), str(folder), str(session_pid), *names],
+                                        stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
+                                        cwd=str(HERE.parent))
+            pid_file.write_text(f"{proc.pid}\n" + "\n".join(names))
+        pid, *started = pid_file.read_text().split("\n")
+    config.stash[RUNNER_KEY] = Runner(int(pid), folder, set(started))
 
 
-def stop(config) -> None:
-    """Kill the runner and its pool workers if they are still running (end of session, also on interrupt)."""
-    bg = getattr(config, "_background", None)
-    if bg is None:
+def _runner(config) -> Runner | None:
+    return config.stash.get(RUNNER_KEY, None)
+
+
+def stop(shared: Path) -> None:
+    """Kill the runner and its pool workers if they still run (end of session, from its main process)."""
+    pid_file = _folder(shared) / "runner.pid"
+    if not pid_file.exists():
         return
-    proc = bg[0]
-    if proc.poll() is None:
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        proc.wait()
+    runner = Runner(int(pid_file.read_text().split("\n")[0]), _folder(shared), set())
+    if runner.alive():
+        runner.signal_group(signal.SIGKILL)
+    t_end = time.monotonic() + 10
+    while runner.alive() and time.monotonic() < t_end:
+        time.sleep(0.05)
 
 
 def pause(config, wait_unpausable_s: float = 900.0) -> bool:
     """Stop the runner and its workers (SIGSTOP to its process group) while a timing-sensitive test runs: even
     at SCHED_IDLE a busy second core costs such a test (seen: the lockstep conformance suite failed 1 of 4 runs
     beside three SCHED_IDLE busy loops, 0 of 4 without). While an :data:`UNPAUSABLE` job runs, waits for it to
-    finish first (it runs first and takes about a minute). Returns whether anything was paused."""
-    bg = getattr(config, "_background", None)
-    if bg is None or bg[0].poll() is not None:
+    finish first (it runs first and takes about a minute). Returns whether anything was paused. Only one test
+    of the session pauses at a time (an ``exclusive`` test holds the session lock)."""
+    runner = _runner(config)
+    if runner is None or not runner.alive():
         return False
-    mark, t_end = bg[1] / UNPAUSABLE_MARK, time.monotonic() + wait_unpausable_s
-    while mark.exists() and bg[0].poll() is None and time.monotonic() < t_end:
+    mark, t_end = runner.folder / UNPAUSABLE_MARK, time.monotonic() + wait_unpausable_s
+    while mark.exists() and runner.alive() and time.monotonic() < t_end:
         time.sleep(0.05)
-    if bg[0].poll() is not None:
+    if not runner.alive():
         return False
-    try:
-        os.killpg(bg[0].pid, signal.SIGSTOP)
-    except ProcessLookupError:
-        return False
-    return True
+    return runner.signal_group(signal.SIGSTOP)
 
 
 def resume(config) -> None:
-    bg = getattr(config, "_background", None)
-    if bg is None:
-        return
-    try:
-        os.killpg(bg[0].pid, signal.SIGCONT)
-    except ProcessLookupError:
-        pass
+    runner = _runner(config)
+    if runner is not None:
+        runner.signal_group(signal.SIGCONT)
 
 
 def result(config, name: str, timeout_s: float = 1800.0):
     """The result of job ``name``: waits for the runner (which runs at full speed once the tests before
     it are done); the job's own traceback if it raised."""
-    bg = getattr(config, "_background", None)
-    if bg is None or name not in bg[2]:
+    runner = _runner(config)
+    if runner is None or name not in runner.names:
         raise RuntimeError(f"background job {name!r} was not started (mark the test "
                            f"@pytest.mark.background({name!r}))")
-    proc, folder, _ = bg
+    folder = runner.folder
     done, failed = folder / f"{name}.pkl", folder / f"{name}.err"
     t_end = time.monotonic() + timeout_s
     while not done.exists() and not failed.exists():
-        if proc.poll() is not None and not done.exists() and not failed.exists():
+        if not runner.alive() and not done.exists() and not failed.exists():
             err = (folder / "stderr.txt").read_text(errors="replace")[-4000:]
-            raise RuntimeError(f"background runner exited with {proc.returncode} before {name!r}:\n{err}")
+            raise RuntimeError(f"background runner ended before {name!r}:\n{err}")
         if time.monotonic() > t_end:
             raise TimeoutError(f"background job {name!r} not done after {timeout_s:.0f} s")
         time.sleep(0.05)
@@ -244,4 +289,4 @@ def result(config, name: str, timeout_s: float = 1800.0):
 
 
 if __name__ == "__main__":
-    sys.exit(_run(sys.argv[2:], Path(sys.argv[1])))
+    sys.exit(_run(sys.argv[3:], Path(sys.argv[1]), int(sys.argv[2])))
