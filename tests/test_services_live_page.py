@@ -3,6 +3,7 @@ headless Chromium (Chrome DevTools Protocol), an HTTP client, a canopen master o
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
 import os
@@ -565,3 +566,71 @@ def test_http_option_errors_are_one_line(tmp_path):
         with pytest.raises(ValueError) as exc:
             prepare(parser.parse_args(argv), CONFIG)
         assert expect in str(exc.value), (argv, str(exc.value))
+
+
+def _listening_pids(port: int, pids: list[int]) -> set[int]:
+    """Those of ``pids`` that hold the TCP socket listening on ``port`` (from /proc: its inode among their fds)."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                fields = line.split()
+                if int(fields[1].rsplit(":", 1)[1], 16) == port and fields[3] == "0A":  # 0A: LISTEN
+                    inodes.add(f"socket:[{fields[9]}]")
+    assert inodes, f"nothing listens on port {port}"
+    owners = set()
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                with contextlib.suppress(OSError):
+                    if os.readlink(f"/proc/{pid}/fd/{fd}") in inodes:
+                        owners.add(pid)
+    return owners
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out += [int(p) for p in f.read().split()]
+    return out
+
+
+def test_page_server_is_a_child_process_whose_end_leaves_the_drive_cycling():
+    """The page's socket belongs to a child process of serve, not to serve; killing that process is reported on
+    serve's stderr, and the drive goes on cycling and answering on the bus."""
+    import signal
+
+    with served("--http", "127.0.0.1:0") as s:
+        url = page_url(s)
+        port = urllib.parse.urlsplit(url).port
+        children = _children(s.proc.pid)
+        owners = _listening_pids(port, [s.proc.pid, *children])
+        assert len(owners) == 1 and s.proc.pid not in owners, (s.proc.pid, children, owners)
+        (server_pid,) = owners
+        st, info = request(url + "api/axes")
+        assert st == 200 and info["axes"][0]["name"] == AXIS
+        net = canopen.Network()
+        net.connect(**s.bus_kwargs())
+        try:
+            node = canopen.RemoteNode(NODE, "eds/virtualaxis.eds")
+            net.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 5.0
+            os.kill(server_pid, signal.SIGKILL)
+            lines: list[str] = []
+            reader = threading.Thread(target=lambda: lines.append(s.proc.stderr.readline()), daemon=True)
+            reader.start()
+            reader.join(20)
+            assert lines and lines[0].startswith("warning: --http: the live page's server process ended"), lines
+            cycles = []
+            for _ in range(2):
+                cycles.append(int.from_bytes(node.sdo.upload(0x2110, 5), "little"))
+                time.sleep(0.5)
+            assert cycles[1] - cycles[0] > 200, cycles  # (real time: ~500 cycles of 1 ms in 0.5 s)
+            assert int.from_bytes(node.sdo.upload(0x2110, 6), "little") == 0  # no exception in the cycle
+            with pytest.raises(OSError):
+                request(url + "api/axes")
+        finally:
+            net.disconnect()
+        assert s.stop() == 0
+        assert "Traceback" not in s.stderr, s.stderr

@@ -265,6 +265,8 @@ class PageServer:
         server = await asyncio.start_server(self._client, sock=self._sock, limit=MAX_HEADER_BYTES)
         threading.Thread(target=self._read, name="virtualaxis-http-reader", daemon=True).start()
         self.send(("ready", self._sock.getsockname()[1]))
+        threading.Thread(target=trace_csv, args=({"t": np.zeros(1), "x": np.zeros(1)},), daemon=True,
+                         name="virtualaxis-http-warm").start()  # (loads the trace writer before the first recording)
         ticker = asyncio.ensure_future(self._ticker())
         next_stats = 0.0
         try:
@@ -473,7 +475,7 @@ class PageServer:
                 return _json(200, await self.forward("objects", ax))
             if what == "recording.csv":
                 self._only(method, "GET")
-                return self._recording(ax, query)
+                return await self._recording(ax, query)
             if what == "write":
                 self._only(method, "POST")
                 if not self.writable:
@@ -498,9 +500,7 @@ class PageServer:
         return ax
 
     # ------------------------------------------------------------------ recording
-    def _recording(self, ax: PageAxis, query: dict):
-        from virtualaxis.sim.trace_io import TraceWriter
-
+    async def _recording(self, ax: PageAxis, query: dict):
         unknown = sorted(k for k in query if k not in ("from", "to"))
         if unknown:
             raise HttpRefusal(400, f"unknown parameter(s) {', '.join(unknown)[:80]} (from, to)")
@@ -522,11 +522,7 @@ class PageServer:
         cols = {"pos_cmd": 0, "pos_fb": 1, "vel_meas": 3, ("force_drive" if force else "torque_meas"): 4,
                 "current_q": 5, "following_error": 2, "statusword": 6}
         data = {"t": times, **{c: rows[:, j] for c, j in cols.items()}}
-        with tempfile.TemporaryDirectory(prefix="virtualaxis-page-") as tmp:
-            path = Path(tmp) / "recording.csv"
-            with TraceWriter(path, list(cols)) as w:
-                w.write(data)
-            payload = path.read_bytes()
+        payload = await asyncio.to_thread(trace_csv, data)  # (the page goes on streaming meanwhile)
         self.counters["recordings"] += 1
         fname = f"{_safe_file_part(ax.name)}-{bounds[0]}-{bounds[1]}.csv"
         return 200, "text/csv; charset=utf-8", payload, {"Content-Disposition": f'attachment; filename="{fname}"'}
@@ -722,6 +718,17 @@ def _json_body(headers: dict, body: bytes) -> Any:
         raise HttpRefusal(400, "body is not JSON (nested too deeply)") from None
     except ValueError as exc:
         raise HttpRefusal(400, f"body is not JSON ({exc})") from None
+
+
+def trace_csv(data: dict[str, np.ndarray]) -> bytes:
+    """``data`` (``t`` and the columns) as a trace CSV (docs/reference/trace-format.md)."""
+    from virtualaxis.sim.trace_io import TraceWriter
+
+    with tempfile.TemporaryDirectory(prefix="virtualaxis-page-") as tmp:
+        path = Path(tmp) / "recording.csv"
+        with TraceWriter(path, [c for c in data if c != "t"]) as w:
+            w.write(data)
+        return path.read_bytes()
 
 
 def _safe_file_part(name: str) -> str:
