@@ -5,9 +5,11 @@ process (server.py) maps:
 
 - **sample slots**: the drive's cycle hook (:meth:`PageBlock.hook`, runtime thread, under the drive's lock)
   packs the published output values of the cycle before (0x6062, 0x6064, 0x60F4, 0x606C, 0x6077, 0x6078, the
-  cycle count) and the statusword into the next of :data:`HANDOFF_SLOTS` fixed slots: three ``pack_into``
-  calls, no object kept. It announces slot ``w`` by setting ``w_begin = w + 1``, writes the slot (its ``seq`` =
-  w) and sets ``w_end = w + 1``, as :class:`~virtualaxis.services.mqtt.TelemetryRing` does;
+  cycle count) and the statusword into the next of :data:`HANDOFF_SLOTS` fixed slots, then the count of
+  slots written: two ``pack_into`` calls, no object kept. A slot starts and ends with its sequence number
+  (written first and last); the reader copies the ends before the values and the starts after them, so a
+  slot is taken only if both equal the one expected (a slot the hook overwrote while it was read is dropped,
+  never torn);
 - **units**: the position factor and the rated torque / current, written by serve's state thread, with which
   the server process converts the raw values to SI units;
 - **state**: the state message of the axis as JSON, written by serve's state thread under a sequence lock;
@@ -41,12 +43,14 @@ STATE_BYTES = 1 << 16  # room for one axis' state message (JSON)
 
 _U64 = struct.Struct("<Q")
 _F64X3 = struct.Struct("<3d")
-#: a slot: seq, statusword, 0x6062, 0x6064, 0x60F4, 0x606C, 0x6077, 0x6078, drive cycle count
-_SLOT = struct.Struct("<q8d")
-_SLOT_DTYPE = np.dtype([("seq", "<i8"), ("sw", "<f8"), ("v", "<f8", (7,))])
+#: a slot: seq, statusword, 0x6062, 0x6064, 0x60F4, 0x606C, 0x6077, 0x6078, drive cycle count, seq
+_SLOT = struct.Struct("<q8dq")
+_SLOT_DTYPE = np.dtype([("seq", "<i8"), ("sw", "<f8"), ("v", "<f8", (7,)), ("end", "<i8")])
+_SLOT_BYTES = _SLOT.size
+_SLOT_MASK = HANDOFF_SLOTS - 1
 _NAN_SLOT_VALUES = (math.nan,) * 8
 # header words (8 bytes each)
-_W_BEGIN, _W_END, _CLIENTS, _STATE_SEQ, _STATE_LEN = 0, 1, 2, 3, 4
+_W_END, _CLIENTS, _STATE_SEQ, _STATE_LEN = 1, 2, 3, 4
 _UNITS_AT = 8 * 5  # metres per position unit, rated torque [N m or N], rated current [A]
 _HEADER_BYTES = 64
 _STATE_AT = _HEADER_BYTES
@@ -72,7 +76,10 @@ class PageBlock:
         self.buf = buf
         self.base = axis * BLOCK_BYTES
         self._slots = self.base + _SLOTS_AT
-        self._w = _U64.unpack_from(buf, self.base + 8 * _W_END)[0]  # (serve's side: the next slot to write)
+        self._w_end = self.base + 8 * _W_END
+        self._w = _U64.unpack_from(buf, self._w_end)[0]  # (serve's side: the next slot to write)
+        self._pack_slot = _SLOT.pack_into
+        self._pack_u64 = _U64.pack_into
 
     def _word(self, i: int) -> int:
         return _U64.unpack_from(self.buf, self.base + 8 * i)[0]
@@ -85,16 +92,16 @@ class PageBlock:
         """The cycle hook: the output values and the statusword of the cycle before into the next slot (the hook
         runs under the drive's lock: its object table is read directly)."""
         n = self._w
-        buf, base = self.buf, self.base
-        _U64.pack_into(buf, base, n + 1)  # w_begin
         o = drive.outputs
-        off = self._slots + (n & (HANDOFF_SLOTS - 1)) * _SLOT.size
+        off = self._slots + (n & _SLOT_MASK) * _SLOT_BYTES
         if o[13] is None:  # (the drive has published nothing yet)
-            _SLOT.pack_into(buf, off, n, *_NAN_SLOT_VALUES)
+            self._pack_slot(self.buf, off, n, *_NAN_SLOT_VALUES, n)
         else:
-            _SLOT.pack_into(buf, off, n, drive.objects[_STATUSWORD_KEY], o[1], o[3], o[9], o[5], o[6], o[7], o[13])
-        _U64.pack_into(buf, base + 8, n + 1)  # w_end
-        self._w = n + 1
+            self._pack_slot(self.buf, off, n, drive.objects[_STATUSWORD_KEY], o[1], o[3], o[9], o[5], o[6], o[7],
+                            o[13], n)
+        n += 1
+        self._pack_u64(self.buf, self._w_end, n)
+        self._w = n
 
     # ------------------------------------------------------------------ serve: the state thread
     def set_units(self, drive) -> None:
@@ -141,9 +148,13 @@ class PageBlock:
         """Copies of the slots ``start`` .. ``end - 1`` and how many of the first were overwritten while copied."""
         view = np.frombuffer(self.buf, dtype=_SLOT_DTYPE, count=HANDOFF_SLOTS, offset=self._slots)
         seqs = np.arange(start, end)
-        block = view[seqs & (HANDOFF_SLOTS - 1)]  # (a copy)
-        w_begin = self._word(_W_BEGIN)
-        bad = np.flatnonzero((block["seq"] != seqs) | (seqs + HANDOFF_SLOTS < w_begin))
+        at = seqs & (HANDOFF_SLOTS - 1)
+        block = np.empty(len(seqs), dtype=_SLOT_DTYPE)
+        block["end"] = view["end"][at]  # (the ends first, the starts last: the reverse of the hook's order)
+        block["sw"] = view["sw"][at]
+        block["v"] = view["v"][at]
+        block["seq"] = view["seq"][at]
+        bad = np.flatnonzero((block["seq"] != seqs) | (block["end"] != seqs))
         return block, (int(bad[-1]) + 1 if len(bad) else 0)
 
 
