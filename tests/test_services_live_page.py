@@ -196,9 +196,10 @@ def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None
     assert times[-1] - times[0] < 0.5 * (full[1] - full[0])
     # cursors: a click on sample ca, then on sample cb
     ca, cb = a + 40, a + 150
-    left, top, width, height = _plot_box(tab)
-    tab.click_at(left + _x_of_sample(tab, ca), y)
-    tab.click_at(left + _x_of_sample(tab, cb), y)
+    for seq in (ca, cb):  # (the plot's place read before each click: the first cursor's readout may move it)
+        left, top, width, height = _plot_box(tab)
+        y = top + height / 2
+        tab.click_at(left + _x_of_sample(tab, seq), y)
     readout = tab.evaluate("window.livePage.cursorReadout")
     assert (readout["a"]["seq"], readout["b"]["seq"]) == (ca, cb)
     shown = tab.text("#cursor-info")

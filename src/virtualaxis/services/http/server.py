@@ -179,16 +179,21 @@ class PageServer:
     """The page's HTTP / WebSocket server in its own process (module doc)."""
 
     def __init__(self, conn: Connection, sock: socket.socket, spec: dict):
-        from multiprocessing import resource_tracker, shared_memory
+        import mmap
 
         self.conn = conn
         self.writable = bool(spec["writable"])
         self.info = spec["info"]
-        self._shm = shared_memory.SharedMemory(name=spec["shm"])
-        with contextlib.suppress(Exception):  # (serve owns the segment and unlinks it)
-            resource_tracker.unregister(self._shm._name, "shared_memory")  # noqa: SLF001
-        self.axes = {a["name"]: PageAxis(i, a["name"], LongRing(PageBlock(self._shm.buf, i), a["cycle_s"],
-                                                                spec["ring_s"]), a["force_actuator"])
+        # attached by path, not by SharedMemory(name): in Python < 3.13 that would register the segment with a
+        # resource tracker of this process, which unlinks it when this process ends (serve owns it)
+        fd = os.open(f"/dev/shm/{spec['shm'].lstrip('/')}", os.O_RDWR)
+        try:
+            self._map = mmap.mmap(fd, 0)
+        finally:
+            os.close(fd)
+        buf = memoryview(self._map)
+        self.axes = {a["name"]: PageAxis(i, a["name"], LongRing(PageBlock(buf, i), a["cycle_s"], spec["ring_s"]),
+                                         a["force_actuator"])
                      for i, a in enumerate(spec["axes"])}
         self.counters = {"requests": 0, "refused": 0, "writes_refused": 0, "streams_opened": 0,
                          "messages_skipped": 0, "ticks": 0, "recordings": 0, "forwarded": 0}
@@ -205,8 +210,8 @@ class PageServer:
     def close(self) -> None:
         for ax in self.axes.values():
             ax.ring.block = None
-        with contextlib.suppress(Exception):
-            self._shm.close()
+        with contextlib.suppress(Exception):  # (a view still exported: the process ends anyway)
+            self._map.close()
 
     def stats(self) -> dict:
         out = dict(self.counters)

@@ -175,8 +175,9 @@ class LivePageService:
         for ax in self.axes:
             ax.block = None
         if self._shm is not None:
-            with contextlib.suppress(FileNotFoundError, BufferError):
+            with contextlib.suppress(BufferError):
                 self._shm.close()
+            with contextlib.suppress(FileNotFoundError):
                 self._shm.unlink()
             self._shm = None
 
