@@ -270,8 +270,7 @@ class PageServer:
         server = await asyncio.start_server(self._client, sock=self._sock, limit=MAX_HEADER_BYTES)
         threading.Thread(target=self._read, name="virtualaxis-http-reader", daemon=True).start()
         self.send(("ready", self._sock.getsockname()[1]))
-        threading.Thread(target=trace_csv, args=({"t": np.zeros(1), "x": np.zeros(1)},), daemon=True,
-                         name="virtualaxis-http-warm").start()  # (loads the trace writer before the first recording)
+        threading.Thread(target=_load_trace_writer, daemon=True, name="virtualaxis-http-warm").start()
         ticker = asyncio.ensure_future(self._ticker())
         next_stats = 0.0
         try:
@@ -734,6 +733,14 @@ def trace_csv(data: dict[str, np.ndarray]) -> bytes:
         with TraceWriter(path, [c for c in data if c != "t"]) as w:
             w.write(data)
         return path.read_bytes()
+
+
+def _load_trace_writer() -> None:
+    """Load (and compile) the trace writer before the first recording asks for it, at nice 19 (this thread only:
+    the CPU it takes at start goes to the drive first)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    trace_csv({"t": np.zeros(1), "x": np.zeros(1)})
 
 
 def _safe_file_part(name: str) -> str:
