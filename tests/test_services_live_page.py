@@ -635,3 +635,27 @@ def test_page_server_is_a_child_process_whose_end_leaves_the_drive_cycling():
             net.disconnect()
         assert s.stop() == 0
         assert "Traceback" not in s.stderr, s.stderr
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for its reaper does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_page_server_process_ends_with_a_killed_serve():
+    """No orphan: the page's server process ends when serve is killed (SIGKILL: serve cleans nothing up)."""
+    import signal
+
+    with served("--http", "127.0.0.1:0") as s:
+        port = urllib.parse.urlsplit(page_url(s)).port
+        (server_pid,) = _listening_pids(port, _children(s.proc.pid))
+        os.kill(s.proc.pid, signal.SIGKILL)
+        s.proc.wait(10)
+        deadline = time.monotonic() + 10
+        while _alive(server_pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(server_pid), f"the page's server process {server_pid} outlived serve"
