@@ -288,7 +288,9 @@ def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
     """In-process cost of the page's cycle hook: one drive in CSP (a target written and one ``Drive.step`` per
     cycle), alternately without and with the sample ring attached; best of ``repeats`` runs of ``cycles`` cycles
     [us of this thread's CPU time per cycle]; and the server process' cost of draining (converting) the
-    cycles' samples."""
+    cycles' samples; and one call of the hook alone (``hook_call_us``, the time of an empty call taken off)."""
+    import timeit
+
     from virtualaxis.config import load_axis_config
     from virtualaxis.drive.core import Drive
     from virtualaxis.services.http.ring import LongRing, PageBlock, segment_size
@@ -328,7 +330,12 @@ def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
         best["with"] = min(best["with"], with_page)
         drain = min(drain, drain_us)
         drive.remove_cycle_hook(block.hook)
-    return {"cycle_us_without_page": best["without"], "cycle_us_with_page": best["with"],
+    hook = block.hook
+    calls = 100_000
+    call_us = min(timeit.repeat(lambda: hook(drive), number=calls, repeat=repeats)) / calls * 1e6
+    empty_us = min(timeit.repeat(lambda: None, number=calls, repeat=repeats)) / calls * 1e6
+    return {"hook_call_us": call_us - empty_us, "cycle_us_without_page": best["without"],
+            "cycle_us_with_page": best["with"],
             "hook_us": best["with"] - best["without"], "ratio": best["with"] / best["without"],
             "drain_us_per_cycle": drain}
 
