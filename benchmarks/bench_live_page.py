@@ -24,6 +24,7 @@ CPU share and threads (per OS thread name), the CPU share of serve's child proce
 process), the host's load average, and per client the messages and samples received per second and the gaps in
 the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds.
 
+``--rt-priority N``: serve and the master's SYNC loop at SCHED_FIFO N (a host shared with other work).
 ``--code NAME=SRC`` (repeated) runs every phase once per source tree (``PYTHONPATH=SRC`` for serve), interleaved
 within each round: an A/B comparison of two versions of the package in the same run (phases ``off@NAME``, ...).
 
@@ -161,7 +162,7 @@ def _cpu_of(pids: list[int]) -> float:
     return total
 
 
-def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None) -> dict:
+def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None, rt_priority: int = 0) -> dict:
     group = "239.74.163.9"
     spec = f"udp_multicast:{group},port={port}"
     http_port = free_port()
@@ -170,6 +171,8 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
             "--bitrate", "0", *[f"--axis={'XYZ'[i]}={n}:{CONFIG}" for i, n in enumerate(NODES)]]
     if page:
         args += ["--http", f"127.0.0.1:{http_port}"]
+    if rt_priority:
+        args += ["--rt-priority", str(rt_priority)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"} | ({"PYTHONPATH": src} if src else {})
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
     line = proc.stdout.readline()
@@ -223,7 +226,13 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
         frames0 = [t.evaluate(probe) for t in tabs]
         clock.clear()
         n_sync = int(seconds / PERIOD_S)
-        user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
+        if rt_priority:  # (the master at the drive's priority for the window only: the clients keep theirs)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        try:
+            user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
+        finally:
+            if rt_priority:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         time.sleep(0.2)
         wall, m1 = time.perf_counter() - t0, time.monotonic()
         out["serve_cpu_percent"] = 100.0 * (cpu_seconds(proc.pid) - cpu0) / wall
@@ -349,6 +358,9 @@ def main() -> int:
     ap.add_argument("--sched-idle", action="store_true",
                     help="the clients (WebSocket processes, Chromium) at SCHED_IDLE instead of nice 19")
     ap.add_argument("--hook-cost", action="store_true", help="only the in-process cost of the page's cycle hook")
+    ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                    help="serve (--rt-priority N) and this master's SYNC loop at SCHED_FIFO N; the clients stay "
+                         "at their priority (the page's server process leaves real time on its own)")
     ap.add_argument("--code", action="append", default=[], metavar="NAME=SRC",
                     help="run each phase with PYTHONPATH=SRC, once per --code (A/B of two source trees)")
     ap.add_argument("--ws-client", metavar="URL", help=argparse.SUPPRESS)  # one client process of `streams`
@@ -379,7 +391,7 @@ def main() -> int:
         for r in range(opts.rounds):
             for phase in phases:
                 for name, src in codes or [(None, None)]:
-                    res = run_phase(phase, opts.seconds, free_port(), Path(tmp), src)
+                    res = run_phase(phase, opts.seconds, free_port(), Path(tmp), src, opts.rt_priority)
                     res["round"] = r
                     res["phase"] = f"{phase}@{name}" if name else phase
                     results.append(res)
