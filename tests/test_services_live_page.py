@@ -659,3 +659,56 @@ def test_page_server_process_ends_with_a_killed_serve():
         while _alive(server_pid) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not _alive(server_pid), f"the page's server process {server_pid} outlived serve"
+
+
+def test_ring_counts_what_the_server_fell_too_far_behind_for():
+    """The shared sample ring: every cycle's values in SI units, in order; when the server process falls more than
+    the ring's slots behind, the overwritten samples are counted lost and a recording over them is refused."""
+    from types import SimpleNamespace
+
+    from virtualaxis.services.http.ring import (
+        HANDOFF_MARGIN,
+        HANDOFF_SLOTS,
+        LongRing,
+        PageBlock,
+        RecordingError,
+        segment_size,
+    )
+
+    buf = memoryview(bytearray(segment_size(2)))
+    block = PageBlock(buf, 1)  # (the second axis' block: nothing of it may land in the first's)
+    drive = SimpleNamespace(outputs=(None,) * 15, objects={(0x6041, 0): 0x250},
+                            scaling=SimpleNamespace(metres_per_unit=1e-6), read_object=lambda index: 2000)
+    block.set_units(drive)
+    ring = LongRing(block, 1e-3, seconds=60.0)
+
+    def cycles(first: int, n: int) -> None:
+        for k in range(first, first + n):
+            drive.outputs = (8, 10 * k, 0, 10 * k + 1, 0, 5, 500, -250, 0, 3, 0, 25.0, 0, k, 0)
+            block.hook(drive)
+
+    block.hook(drive)  # (before the drive published anything: a row of NaN, still one per cycle)
+    cycles(0, 100)
+    first, end = ring.drain()
+    assert (first, end, ring.lost) == (0, 101, 0)
+    times, rows = ring.slice(1, 101)
+    assert np.allclose(rows[:, 0], 10e-6 * np.arange(100)) and np.allclose(rows[:, 1], 10e-6 * np.arange(100) + 1e-6)
+    assert np.allclose(rows[:, 2], 3e-6) and np.allclose(rows[:, 3], 5e-6)
+    assert np.allclose(rows[:, 4], 0.5 * 2.0) and np.allclose(rows[:, 5], -0.25 * 2.0)  # per mille of 2 N m, 2 A
+    assert np.all(rows[:, 6] == 0x250) and np.allclose(np.diff(times), 1e-3)
+    assert np.all(np.isnan(ring.slice(0, 1)[1][0, :6]))
+    assert not buf[:len(buf) // 2].tobytes().strip(b"\x00")  # (the first axis' block untouched)
+    # the server process away for more than the ring's slots: the oldest are lost, counted; the rest in order
+    cycles(100, HANDOFF_SLOTS + 500)
+    first, end = ring.drain()
+    kept = HANDOFF_SLOTS - HANDOFF_MARGIN
+    assert ring.lost == HANDOFF_SLOTS + 500 - kept and (first, end) == (101, 101 + kept)
+    times, rows = ring.slice(first, end)
+    k0 = 100 + ring.lost
+    assert np.allclose(rows[:, 0], 10e-6 * np.arange(k0, k0 + kept))
+    with pytest.raises(RecordingError, match="no longer held"):
+        ring.slice(50, 150)  # (spans the lost samples)
+    assert np.allclose(times, (np.arange(k0, k0 + kept) + 1) * 1e-3)  # (the drive's time: no gap closed up)
+    block.set_state(b'{"axis": "X", "cycles": 7}')
+    state = json.loads(ring.state_message())
+    assert state["cycles"] == 7 and state["ring"]["lost"] == ring.lost and state["ring"]["written"] == end
