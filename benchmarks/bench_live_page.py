@@ -20,11 +20,16 @@ on every SYNC).
 Phases alternate ``--rounds`` times so that drifting machine load hits all alike. Reported per phase: the SYNC
 -> TPDO latency percentiles over the three axes (kernel receive timestamps, as ``bench_side_channels.py``),
 missed and late TPDOs, the drive cycles the pacing started late in the window (OD 0x2110:2 of node 1), serve's
-CPU share and threads (per OS thread name), the host's load average, and per client the messages and samples
-received per second and the gaps in the sample sequence (a lost sample is a gap). The shift is
-``phase - off`` of the medians over the rounds.
+CPU share and threads (per OS thread name), the CPU share of serve's child processes (the page's server
+process), the host's load average, and per client the messages and samples received per second and the gaps in
+the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds.
+
+``--rt-priority N``: serve and the master's SYNC loop at SCHED_FIFO N (a host shared with other work).
+``--code NAME=SRC`` (repeated) runs every phase once per source tree (``PYTHONPATH=SRC`` for serve), interleaved
+within each round: an A/B comparison of two versions of the package in the same run (phases ``off@NAME``, ...).
 
     python benchmarks/bench_live_page.py --seconds 10 --rounds 2
+    python benchmarks/bench_live_page.py --seconds 5 --rounds 2 --code a=/tmp/a/src --code b=$PWD/src
     python benchmarks/bench_live_page.py --hook-cost      # the in-process cost of the page's cycle hook
 """
 
@@ -141,7 +146,23 @@ def _threads(pid: int) -> int:
     return 0
 
 
-def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            out += [int(p) for p in Path(f"/proc/{pid}/task/{task}/children").read_text().split()]
+    return out
+
+
+def _cpu_of(pids: list[int]) -> float:
+    total = 0.0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            total += cpu_seconds(pid)
+    return total
+
+
+def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None, rt_priority: int = 0) -> dict:
     group = "239.74.163.9"
     spec = f"udp_multicast:{group},port={port}"
     http_port = free_port()
@@ -150,8 +171,10 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
             "--bitrate", "0", *[f"--axis={'XYZ'[i]}={n}:{CONFIG}" for i, n in enumerate(NODES)]]
     if page:
         args += ["--http", f"127.0.0.1:{http_port}"]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    if rt_priority:
+        args += ["--rt-priority", str(rt_priority)]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"} | ({"PYTHONPATH": src} if src else {})
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env)
     line = proc.stdout.readline()
     if not line.startswith("ready:"):
         proc.kill()
@@ -196,16 +219,25 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
                 t.evaluate("window.__frames = 0; (function f() { window.__frames++; requestAnimationFrame(f); })()")
         time.sleep(1.0)
         overruns0 = _late_cycles(bus, reply)
-        cpu0, st0 = cpu_seconds(proc.pid), thread_schedstat(proc.pid)
+        children = _children(proc.pid)
+        cpu0, st0, child0 = cpu_seconds(proc.pid), thread_schedstat(proc.pid), _cpu_of(children)
         t0, m0 = time.perf_counter(), time.monotonic()
         probe = "[window.__frames, window.livePage.samplesReceived, window.livePage.gaps]"
         frames0 = [t.evaluate(probe) for t in tabs]
         clock.clear()
         n_sync = int(seconds / PERIOD_S)
-        user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
+        if rt_priority:  # (the master at the drive's priority for the window only: the clients keep theirs)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        try:
+            user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
+        finally:
+            if rt_priority:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         time.sleep(0.2)
         wall, m1 = time.perf_counter() - t0, time.monotonic()
         out["serve_cpu_percent"] = 100.0 * (cpu_seconds(proc.pid) - cpu0) / wall
+        out["child_cpu_percent"] = 100.0 * (_cpu_of(children) - child0) / wall
+        out["child_processes"] = len(children)
         out["serve_threads"] = {k: round(100 * v["cpu_share"], 1)
                                 for k, v in schedstat_delta(st0, thread_schedstat(proc.pid), wall).items()}
         out["serve_thread_count"] = _threads(proc.pid)
@@ -264,17 +296,21 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path) -> dict:
 def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
     """In-process cost of the page's cycle hook: one drive in CSP (a target written and one ``Drive.step`` per
     cycle), alternately without and with the sample ring attached; best of ``repeats`` runs of ``cycles`` cycles
-    [us of this thread's CPU time per cycle]; and the page thread's cost of draining (converting) one second of
-    cycles."""
+    [us of this thread's CPU time per cycle]; and the server process' cost of draining (converting) the
+    cycles' samples; and one call of the hook alone (``hook_call_us``, the time of an empty call taken off)."""
+    import timeit
+
     from virtualaxis.config import load_axis_config
     from virtualaxis.drive.core import Drive
-    from virtualaxis.services.http.ring import SampleRing
+    from virtualaxis.services.http.ring import LongRing, PageBlock, segment_size
 
     drive = Drive(load_axis_config(REPO / CONFIG))
     drive.write_object(0x6060, 0, 8)
     for cw in (6, 7, 15):
         drive.write_object(0x6040, 0, cw)
-    ring = SampleRing(drive, 60.0)
+    block = PageBlock(memoryview(bytearray(segment_size(1))), 0)  # (as in shared memory: a plain buffer)
+    block.set_units(drive)
+    ring = LongRing(block, drive.cycle_s, 60.0)
     k = [0]
 
     def run(drain_every: int = 0) -> tuple[float, float]:
@@ -298,12 +334,17 @@ def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
     drain = float("inf")
     for _ in range(repeats):
         best["without"] = min(best["without"], run()[0])
-        ring.attach()
+        drive.add_cycle_hook(block.hook)
         with_page, drain_us = run(16)
         best["with"] = min(best["with"], with_page)
         drain = min(drain, drain_us)
-        ring.detach()
-    return {"cycle_us_without_page": best["without"], "cycle_us_with_page": best["with"],
+        drive.remove_cycle_hook(block.hook)
+    hook = block.hook
+    calls = 100_000
+    call_us = min(timeit.repeat(lambda: hook(drive), number=calls, repeat=repeats)) / calls * 1e6
+    empty_us = min(timeit.repeat(lambda: None, number=calls, repeat=repeats)) / calls * 1e6
+    return {"hook_call_us": call_us - empty_us, "cycle_us_without_page": best["without"],
+            "cycle_us_with_page": best["with"],
             "hook_us": best["with"] - best["without"], "ratio": best["with"] / best["without"],
             "drain_us_per_cycle": drain}
 
@@ -317,6 +358,11 @@ def main() -> int:
     ap.add_argument("--sched-idle", action="store_true",
                     help="the clients (WebSocket processes, Chromium) at SCHED_IDLE instead of nice 19")
     ap.add_argument("--hook-cost", action="store_true", help="only the in-process cost of the page's cycle hook")
+    ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
+                    help="serve (--rt-priority N) and this master's SYNC loop at SCHED_FIFO N; the clients stay "
+                         "at their priority (the page's server process leaves real time on its own)")
+    ap.add_argument("--code", action="append", default=[], metavar="NAME=SRC",
+                    help="run each phase with PYTHONPATH=SRC, once per --code (A/B of two source trees)")
     ap.add_argument("--ws-client", metavar="URL", help=argparse.SUPPRESS)  # one client process of `streams`
     opts = ap.parse_args()
     if opts.sched_idle:
@@ -333,26 +379,37 @@ def main() -> int:
         ap.error(f"--phases: unknown {', '.join(unknown)} (off, streams, browser, page10)")
     import tempfile
 
+    codes: list[tuple[str, str | None]] = []
+    for item in opts.code:
+        name, sep, src = item.partition("=")
+        if not sep or not name or not (Path(src) / "virtualaxis" / "__init__.py").is_file():
+            ap.error(f"--code {item!r}: expected NAME=SRC with SRC/virtualaxis/__init__.py")
+        codes.append((name, str(Path(src).resolve())))
+    labels = [f"{p}@{c}" for p in phases for c, _ in codes] if codes else phases
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(opts.rounds):
             for phase in phases:
-                res = run_phase(phase, opts.seconds, free_port(), Path(tmp))
-                res["round"] = r
-                results.append(res)
-                print(json.dumps({k: v for k, v in res.items() if k != "per_node"}), flush=True)
+                for name, src in codes or [(None, None)]:
+                    res = run_phase(phase, opts.seconds, free_port(), Path(tmp), src, opts.rt_priority)
+                    res["round"] = r
+                    res["phase"] = f"{phase}@{name}" if name else phase
+                    results.append(res)
+                    print(json.dumps({k: v for k, v in res.items() if k != "per_node"}), flush=True)
+    phases = labels
 
     def med(phase: str, key: str) -> float:
         vals = [r[key] for r in results if r["phase"] == phase and r.get(key) is not None]
         return float(np.median(vals)) if vals else float("nan")
 
     summary = {"machine": machine_info(), "rounds": results}
-    print(f"\n{'':24s}" + "".join(f"{p:>12s}" for p in phases))
+    width = max(12, *(len(p) + 2 for p in phases))
+    print(f"\n{'':24s}" + "".join(f"{p:>{width}s}" for p in phases))
     for key in ("latency_us_p50", "latency_us_p99", "latency_us_max", "window_overruns", "missed", "late",
-                "serve_cpu_percent", "serve_thread_count", "loadavg_1min"):
+                "serve_cpu_percent", "child_cpu_percent", "serve_thread_count", "loadavg_1min"):
         vals = {p: med(p, key) for p in phases}
         summary[key] = vals
-        print(f"{key:24s}" + "".join(f"{vals[p]:12.1f}" for p in phases))
+        print(f"{key:24s}" + "".join(f"{vals[p]:{width}.1f}" for p in phases))
     for p in phases:
         rs = [r for r in results if r["phase"] == p]
         rate = [x for r in rs for x in r.get("client_samples_per_s", [])]

@@ -3,6 +3,7 @@ headless Chromium (Chrome DevTools Protocol), an HTTP client, a canopen master o
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
 import os
@@ -195,9 +196,10 @@ def _pause_zoom_and_cursors(tab, m: LockstepMaster, url: str, rec: dict) -> None
     assert times[-1] - times[0] < 0.5 * (full[1] - full[0])
     # cursors: a click on sample ca, then on sample cb
     ca, cb = a + 40, a + 150
-    left, top, width, height = _plot_box(tab)
-    tab.click_at(left + _x_of_sample(tab, ca), y)
-    tab.click_at(left + _x_of_sample(tab, cb), y)
+    for seq in (ca, cb):  # (the plot's place read before each click: the first cursor's readout may move it)
+        left, top, width, height = _plot_box(tab)
+        y = top + height / 2
+        tab.click_at(left + _x_of_sample(tab, seq), y)
     readout = tab.evaluate("window.livePage.cursorReadout")
     assert (readout["a"]["seq"], readout["b"]["seq"]) == (ca, cb)
     shown = tab.text("#cursor-info")
@@ -565,3 +567,148 @@ def test_http_option_errors_are_one_line(tmp_path):
         with pytest.raises(ValueError) as exc:
             prepare(parser.parse_args(argv), CONFIG)
         assert expect in str(exc.value), (argv, str(exc.value))
+
+
+def _listening_pids(port: int, pids: list[int]) -> set[int]:
+    """Those of ``pids`` that hold the TCP socket listening on ``port`` (from /proc: its inode among their fds)."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                fields = line.split()
+                if int(fields[1].rsplit(":", 1)[1], 16) == port and fields[3] == "0A":  # 0A: LISTEN
+                    inodes.add(f"socket:[{fields[9]}]")
+    assert inodes, f"nothing listens on port {port}"
+    owners = set()
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            for fd in os.listdir(f"/proc/{pid}/fd"):
+                with contextlib.suppress(OSError):
+                    if os.readlink(f"/proc/{pid}/fd/{fd}") in inodes:
+                        owners.add(pid)
+    return owners
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out += [int(p) for p in f.read().split()]
+    return out
+
+
+def test_page_server_is_a_child_process_whose_end_leaves_the_drive_cycling():
+    """The page's socket belongs to a child process of serve, not to serve; killing that process is reported on
+    serve's stderr, and the drive goes on cycling and answering on the bus."""
+    import signal
+
+    with served("--http", "127.0.0.1:0") as s:
+        url = page_url(s)
+        port = urllib.parse.urlsplit(url).port
+        children = _children(s.proc.pid)
+        owners = _listening_pids(port, [s.proc.pid, *children])
+        assert len(owners) == 1 and s.proc.pid not in owners, (s.proc.pid, children, owners)
+        (server_pid,) = owners
+        st, info = request(url + "api/axes")
+        assert st == 200 and info["axes"][0]["name"] == AXIS
+        net = canopen.Network()
+        net.connect(**s.bus_kwargs())
+        try:
+            node = canopen.RemoteNode(NODE, "eds/virtualaxis.eds")
+            net.add_node(node)
+            node.sdo.RESPONSE_TIMEOUT = 5.0
+            os.kill(server_pid, signal.SIGKILL)
+            lines: list[str] = []
+            reader = threading.Thread(target=lambda: lines.append(s.proc.stderr.readline()), daemon=True)
+            reader.start()
+            reader.join(20)
+            assert lines and lines[0].startswith("warning: --http: the live page's server process ended"), lines
+            cycles = []
+            for _ in range(2):
+                cycles.append(int.from_bytes(node.sdo.upload(0x2110, 5), "little"))
+                time.sleep(0.5)
+            assert cycles[1] - cycles[0] > 200, cycles  # (real time: ~500 cycles of 1 ms in 0.5 s)
+            assert int.from_bytes(node.sdo.upload(0x2110, 6), "little") == 0  # no exception in the cycle
+            with pytest.raises(OSError):
+                request(url + "api/axes")
+        finally:
+            net.disconnect()
+        assert s.stop() == 0
+        assert "Traceback" not in s.stderr, s.stderr
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for its reaper does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_page_server_process_ends_with_a_killed_serve():
+    """No orphan: the page's server process ends when serve is killed (SIGKILL: serve cleans nothing up)."""
+    import signal
+
+    with served("--http", "127.0.0.1:0") as s:
+        port = urllib.parse.urlsplit(page_url(s)).port
+        (server_pid,) = _listening_pids(port, _children(s.proc.pid))
+        os.kill(s.proc.pid, signal.SIGKILL)
+        s.proc.wait(10)
+        deadline = time.monotonic() + 10
+        while _alive(server_pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(server_pid), f"the page's server process {server_pid} outlived serve"
+
+
+def test_ring_counts_what_the_server_fell_too_far_behind_for():
+    """The shared sample ring: every cycle's values in SI units, in order; when the server process falls more than
+    the ring's slots behind, the overwritten samples are counted lost and a recording over them is refused."""
+    from types import SimpleNamespace
+
+    from virtualaxis.services.http.ring import (
+        HANDOFF_MARGIN,
+        HANDOFF_SLOTS,
+        LongRing,
+        PageBlock,
+        RecordingError,
+        segment_size,
+    )
+
+    buf = memoryview(bytearray(segment_size(2)))
+    block = PageBlock(buf, 1)  # (the second axis' block: nothing of it may land in the first's)
+    drive = SimpleNamespace(outputs=(None,) * 15, objects={(0x6041, 0): 0x250},
+                            scaling=SimpleNamespace(metres_per_unit=1e-6), read_object=lambda index: 2000)
+    block.set_units(drive)
+    ring = LongRing(block, 1e-3, seconds=60.0)
+
+    def cycles(first: int, n: int) -> None:
+        for k in range(first, first + n):
+            drive.outputs = (8, 10 * k, 0, 10 * k + 1, 0, 5, 500, -250, 0, 3, 0, 25.0, 0, k, 0)
+            block.hook(drive)
+
+    block.hook(drive)  # (before the drive published anything: a row of NaN, still one per cycle)
+    cycles(0, 100)
+    first, end = ring.drain()
+    assert (first, end, ring.lost) == (0, 101, 0)
+    times, rows = ring.slice(1, 101)
+    assert np.allclose(rows[:, 0], 10e-6 * np.arange(100)) and np.allclose(rows[:, 1], 10e-6 * np.arange(100) + 1e-6)
+    assert np.allclose(rows[:, 2], 3e-6) and np.allclose(rows[:, 3], 5e-6)
+    assert np.allclose(rows[:, 4], 0.5 * 2.0) and np.allclose(rows[:, 5], -0.25 * 2.0)  # per mille of 2 N m, 2 A
+    assert np.all(rows[:, 6] == 0x250) and np.allclose(np.diff(times), 1e-3)
+    assert np.all(np.isnan(ring.slice(0, 1)[1][0, :6]))
+    assert not buf[:len(buf) // 2].tobytes().strip(b"\x00")  # (the first axis' block untouched)
+    # the server process away for more than the ring's slots: the oldest are lost, counted; the rest in order
+    cycles(100, HANDOFF_SLOTS + 500)
+    first, end = ring.drain()
+    kept = HANDOFF_SLOTS - HANDOFF_MARGIN
+    assert ring.lost == HANDOFF_SLOTS + 500 - kept and (first, end) == (101, 101 + kept)
+    times, rows = ring.slice(first, end)
+    k0 = 100 + ring.lost
+    assert np.allclose(rows[:, 0], 10e-6 * np.arange(k0, k0 + kept))
+    with pytest.raises(RecordingError, match="no longer held"):
+        ring.slice(50, 150)  # (spans the lost samples)
+    assert np.allclose(times, (np.arange(k0, k0 + kept) + 1) * 1e-3)  # (the drive's time: no gap closed up)
+    block.set_state(b'{"axis": "X", "cycles": 7}')
+    state = json.loads(ring.state_message())
+    assert state["cycles"] == 7 and state["ring"]["lost"] == ring.lost and state["ring"]["written"] == end

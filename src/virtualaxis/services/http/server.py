@@ -1,12 +1,15 @@
-"""The live drive page of ``virtualaxis serve --http HOST:PORT`` (docs/live-page.md).
+"""The live drive page's server (docs/live-page.md): HTTP/1.1 and WebSocket on asyncio, standard library only,
+in a **server process** of its own (:func:`server_child`, a plain child interpreter of serve; it imports neither
+the drive nor numba), so that its clients cost that process the CPU and the interpreter lock, not serve's.
+serve's side (service.py) hands it the listening socket, a shared-memory segment with every drive cycle's
+samples and each axis' state message (ring.py), and a socket pair for the requests only the drives can answer.
 
-A small HTTP/1.1 server on asyncio in a thread of its own (like the Modbus and MQTT side channels), standard
-library only. Routes (``NAME``: an axis name, percent-encoded):
+Routes (``NAME``: an axis name, percent-encoded):
 
 - ``GET /`` the page; ``GET /static/FILE`` its scripts, styles and the vendored plotting library (uPlot);
 - ``GET /api/axes``: the served axes and what the page may do (writes, fault injection);
 - ``GET /api/axes/NAME/objects``: the object dictionary (EDS name, type, access, limits, note; the value as an
-  SDO upload reads it);
+  SDO upload reads it), from serve;
 - ``GET /api/axes/NAME/live``: the same messages over a WebSocket (what the page uses: a browser opens at most
   6 event streams per server, a WebSocket per tab has no such limit);
 - ``GET /api/axes/NAME/events``: server-sent events: ``scope`` (every drive cycle's samples since the last
@@ -15,13 +18,13 @@ library only. Routes (``NAME``: an axis name, percent-encoded):
 - ``GET /api/axes/NAME/recording.csv?from=SEQ&to=SEQ``: samples SEQ..to-1 as a trace (docs/reference/
   trace-format.md), one row per drive cycle;
 - ``POST /api/axes/NAME/write`` ``{"index": 24705, "sub": 0, "value": 1000}`` (with ``--http-writable``):
-  an SDO download of the slave (same checks, same abort codes);
-- ``POST /api/axes/NAME/fault`` (with ``--allow-fault-injection``): the MQTT ``fault/set`` command format.
+  an SDO download of the slave (same checks, same abort codes), applied by serve;
+- ``POST /api/axes/NAME/fault`` (with ``--allow-fault-injection``): the MQTT ``fault/set`` command format,
+  applied by serve.
 
-Refusals are JSON ``{"error": ...}`` with a 4xx status (and ``abort_code`` where an SDO would abort); a request
-the server cannot parse gets 400 and the connection is closed. Nothing is changed by a refused request.
-The periodic job (drain the sample rings, send the messages) runs in the gap after a SYNC's PDOs
-(:class:`~virtualaxis.services.cycle_gate.CycleGate`), like the other side channels.
+Each message is built once per tick and axis and queued to every stream of the axis. Refusals are JSON
+``{"error": ...}`` with a 4xx status (and ``abort_code`` where an SDO would abort); a request the server cannot
+parse gets 400 and the connection is closed. Nothing is changed by a refused request.
 """
 
 from __future__ import annotations
@@ -29,25 +32,23 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import itertools
 import json
-import math
+import os
 import socket
-import struct
 import tempfile
 import threading
 import time
 import urllib.parse
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from importlib import resources
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from virtualaxis.services import listen
-from virtualaxis.services.http.frames import FrameLog
-from virtualaxis.services.http.ring import COLUMNS, RecordingError, SampleRing
+from virtualaxis.services.http.ring import COLUMNS, LongRing, PageBlock, RecordingError
 
 SCOPE_HZ = 60.0  # scope messages per second and stream
 STATE_EVERY = 6  # a state message every this many scope ticks (10 per second)
@@ -57,7 +58,8 @@ MAX_REQUEST_LINE = 2048
 MAX_HEADER_BYTES = 8192
 MAX_BODY_BYTES = 4096
 READ_TIMEOUT_S = 10.0
-DEFAULT_RING_S = 120.0
+REQUEST_TIMEOUT_S = 10.0  # serve's answer to a forwarded request
+STATS_PERIOD_S = 1.0  # the server's counters to serve
 
 STATIC_TYPES = {
     "index.html": "text/html; charset=utf-8",
@@ -72,12 +74,6 @@ REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 40
            414: "URI Too Long", 415: "Unsupported Media Type", 422: "Unprocessable Content",
            431: "Request Header Fields Too Large", 500: "Internal Server Error", 501: "Not Implemented",
            503: "Service Unavailable", 505: "HTTP Version Not Supported"}
-_TYPE_NAMES = {0x1: "BOOL", 0x2: "INT8", 0x3: "INT16", 0x4: "INT32", 0x5: "UINT8", 0x6: "UINT16", 0x7: "UINT32",
-               0x8: "REAL32", 0x9: "VISIBLE_STRING", 0xA: "OCTET_STRING", 0xF: "DOMAIN", 0x11: "REAL64",
-               0x15: "INT64", 0x1B: "UINT64"}
-_ABORT_INVALID_VALUE = 0x06090030
-_ABORT_TOO_HIGH = 0x06090031
-_ABORT_TOO_LOW = 0x06090032
 
 
 class HttpRefusal(Exception):
@@ -87,21 +83,6 @@ class HttpRefusal(Exception):
         super().__init__(message)
         self.status = status
         self.extra = extra
-
-
-@dataclass
-class AxisPage:
-    """One axis on the page: name, node id, the drive, its CANopen slave, the fault injector (or None)."""
-
-    name: str
-    node_id: int
-    drive: Any
-    slave: Any
-    injector: Any = None
-    nmt: Callable[[], str] | None = None
-    ring: SampleRing | None = None
-    streams: set = field(default_factory=set)
-    notes: dict = field(default_factory=dict)  # index -> the EDS [Comments] note
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -149,88 +130,155 @@ def eds_notes(eds_path: str | Path) -> dict[int, str]:
     return notes
 
 
-class LivePageService:
-    """The page's server thread for ``axes``; :meth:`start` binds (raises OSError), :meth:`stop` ends it."""
+class PageAxis:
+    """One axis in the server process: its index in serve's list, name, ring and open streams."""
 
-    def __init__(self, axes: list[AxisPage], *, host: str = "127.0.0.1", port: int = 8080, writable: bool = False,
-                 bus: Any = None, frame_log: FrameLog | None = None, gate: Any = None,
-                 ring_s: float = DEFAULT_RING_S):
-        self.axes = {a.name: a for a in axes}
-        self.host, self.port = host, port
-        self.writable = writable
-        self.bus = bus
-        self.frame_log = frame_log
-        self.gate = gate
-        self.ring_s = ring_s
-        self.bound_port: int | None = None
-        self.counters = {"requests": 0, "refused": 0, "writes": 0, "writes_refused": 0, "fault_commands": 0,
-                         "streams_opened": 0, "messages_skipped": 0, "ticks": 0, "recordings": 0}
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._sock: socket.socket | None = None
-        self._stopping = False
-        self._static: dict[str, bytes] = {}
+    def __init__(self, index: int, name: str, ring: LongRing, force_actuator: bool):
+        self.index = index
+        self.name = name
+        self.ring = ring
+        self.force_actuator = force_actuator
+        self.streams: set = set()
 
-    # ------------------------------------------------------------------ life cycle
-    def start(self) -> LivePageService:
-        family, kind, proto, _, address = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_STREAM,
-                                                             flags=socket.AI_PASSIVE)[0]
-        sock = socket.socket(family, kind, proto)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    def opened(self, q: asyncio.Queue) -> None:
+        self.streams.add(q)
+        self.ring.block.set_clients(len(self.streams))
+
+    def closed(self, q: asyncio.Queue) -> None:
+        self.streams.discard(q)
+        self.ring.block.set_clients(len(self.streams))
+
+
+def server_child(conn_fd: int, listen_fd: int) -> None:
+    """Entry of the page's server process (``python -c``): ``conn_fd`` joins it to serve, ``listen_fd`` is the
+    page's listening socket."""
+    import signal
+
+    from virtualaxis.services.threads import leave_realtime
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops serve, which stops this process
+    leave_realtime()  # clients are not the drive: never compete with it at real-time priority
+    conn = Connection(conn_fd)
+    sock = socket.socket(fileno=listen_fd)
+    try:
+        _, spec = conn.recv()
+    except (EOFError, OSError):
+        return
+    try:
+        server = PageServer(conn, sock, spec)
+    except Exception as exc:  # noqa: BLE001 - reported to serve as a start-up error
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        raise SystemExit(1) from None
+    try:
+        asyncio.run(server.main())
+    finally:
+        server.close()
+
+
+class PageServer:
+    """The page's HTTP / WebSocket server in its own process (module doc)."""
+
+    def __init__(self, conn: Connection, sock: socket.socket, spec: dict):
+        import mmap
+
+        self.conn = conn
+        self.writable = bool(spec["writable"])
+        self.info = spec["info"]
+        # attached by path, not by SharedMemory(name): in Python < 3.13 that would register the segment with a
+        # resource tracker of this process, which unlinks it when this process ends (serve owns it)
+        fd = os.open(f"/dev/shm/{spec['shm'].lstrip('/')}", os.O_RDWR)
         try:
-            sock.bind(address)
-            sock.listen(64)
-        except OSError as exc:
-            sock.close()
-            raise OSError(f"--http {self.host}:{self.port}: cannot listen ({exc.strerror or exc})") from None
+            self._map = mmap.mmap(fd, 0)
+        finally:
+            os.close(fd)
+        buf = memoryview(self._map)
+        self.axes = {a["name"]: PageAxis(i, a["name"], LongRing(PageBlock(buf, i), a["cycle_s"], spec["ring_s"]),
+                                         a["force_actuator"])
+                     for i, a in enumerate(spec["axes"])}
+        self.counters = {"requests": 0, "refused": 0, "writes_refused": 0, "streams_opened": 0,
+                         "messages_skipped": 0, "ticks": 0, "recordings": 0, "forwarded": 0}
         sock.setblocking(False)
         self._sock = sock
-        self.bound_port = sock.getsockname()[1]
         pkg = resources.files("virtualaxis.services.http") / "static"
         self._static = {name: (pkg / name).read_bytes() for name in STATIC_TYPES}
-        for ax in self.axes.values():
-            ax.ring = SampleRing(ax.drive, self.ring_s).attach()
-            ax.notes = eds_notes(getattr(getattr(ax.slave, "od", None), "eds_path", "") or "")
-        ready = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(ready,), name="http-page", daemon=True)
-        self._thread.start()
-        ready.wait(10.0)
-        return self
+        self._stopping = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._send_lock = threading.Lock()
+        self._futures: dict[int, asyncio.Future] = {}
+        self._ids = itertools.count(1)
 
-    def stop(self) -> None:
-        self._stopping = True
-        if self._loop is not None and self._thread is not None:
-            with contextlib.suppress(RuntimeError):
-                self._loop.call_soon_threadsafe(lambda: None)
-            self._thread.join(5.0)
+    def close(self) -> None:
         for ax in self.axes.values():
-            if ax.ring is not None:
-                ax.ring.detach()
+            ax.ring.block = None
+        with contextlib.suppress(Exception):  # (a view still exported: the process ends anyway)
+            self._map.close()
 
     def stats(self) -> dict:
         out = dict(self.counters)
         out["streams_open"] = sum(len(a.streams) for a in self.axes.values())
-        out["samples_lost"] = {a.name: a.ring.lost for a in self.axes.values() if a.ring is not None}
+        out["samples_lost"] = {a.name: a.ring.lost for a in self.axes.values()}
         return out
 
-    def _run(self, ready: threading.Event) -> None:
-        from virtualaxis.services.threads import short_gil_slices
-
-        short_gil_slices()
-        loop = asyncio.new_event_loop()
-        self._loop = loop
+    # ------------------------------------------------------------------ serve's socket
+    def send(self, msg: tuple) -> None:
         try:
-            loop.run_until_complete(self._main(ready))
-        finally:
-            loop.close()
+            with self._send_lock:
+                self.conn.send(msg)
+        except (EOFError, OSError, ValueError):
+            pass
 
-    async def _main(self, ready: threading.Event) -> None:
+    def _read(self) -> None:
+        """serve's messages: replies, stop. EOF: serve is gone, and so is this process at once."""
+        loop = self._loop
+        try:
+            while True:
+                msg = self.conn.recv()
+                if msg[0] == "reply":
+                    loop.call_soon_threadsafe(self._resolve, msg[1], msg[2])
+                elif msg[0] == "stop":
+                    break
+        except (EOFError, OSError):
+            os._exit(0)  # never outlive serve
+        self._stopping = True
+
+    def _resolve(self, rid: int, reply: tuple) -> None:
+        fut = self._futures.get(rid)
+        if fut is not None and not fut.done():
+            fut.set_result(reply)
+
+    async def forward(self, kind: str, ax: PageAxis, *args: Any) -> Any:
+        """A request only serve can answer (objects, write, fault): its result, or HttpRefusal as serve refused."""
+        rid = next(self._ids)
+        fut = self._loop.create_future()
+        self._futures[rid] = fut
+        self.counters["forwarded"] += 1
+        self.send((kind, rid, ax.index, *args))
+        try:
+            reply = await asyncio.wait_for(fut, REQUEST_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            raise HttpRefusal(503, f"serve did not answer in {REQUEST_TIMEOUT_S:g} s") from None
+        finally:
+            self._futures.pop(rid, None)
+        if reply[0] == "ok":
+            return reply[1]
+        _, status, message, extra = reply
+        raise HttpRefusal(status, message, **extra)
+
+    # ------------------------------------------------------------------ life cycle
+    async def main(self) -> None:
+        self._loop = asyncio.get_running_loop()
         server = await asyncio.start_server(self._client, sock=self._sock, limit=MAX_HEADER_BYTES)
-        ready.set()
+        threading.Thread(target=self._read, name="virtualaxis-http-reader", daemon=True).start()
+        self.send(("ready", self._sock.getsockname()[1]))
+        threading.Thread(target=_load_trace_writer, daemon=True, name="virtualaxis-http-warm").start()
         ticker = asyncio.ensure_future(self._ticker())
+        next_stats = 0.0
         try:
             while not self._stopping:
                 await asyncio.sleep(0.05)
+                if time.monotonic() >= next_stats:
+                    next_stats = time.monotonic() + STATS_PERIOD_S
+                    self.send(("stats", self.stats()))
         finally:
             ticker.cancel()
             server.close()
@@ -240,6 +288,7 @@ class LivePageService:
             await asyncio.sleep(0.05)
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(server.wait_closed(), 1.0)
+            self.send(("stats", self.stats()))
 
     # ------------------------------------------------------------------ periodic job
     async def _ticker(self) -> None:
@@ -252,13 +301,11 @@ class LivePageService:
             if delay < -period:  # far behind (a stalled host): no burst of catch-up ticks
                 next_t = time.monotonic()
             await asyncio.sleep(max(0.0, delay))
-            if self.gate is not None:
-                self.gate.wait_next()  # (at most 2 ms: the rest of the communication cycle after the PDOs)
             n += 1
             self.counters["ticks"] = n
             try:
                 self._tick(n % STATE_EVERY == 0)
-            except Exception:  # noqa: BLE001 - the page never takes serve down; the next tick tries again
+            except Exception:  # noqa: BLE001 - one bad tick never stops the page; the next tick tries again
                 import logging
 
                 logging.getLogger("virtualaxis.services.http").exception("live page tick failed")
@@ -271,9 +318,11 @@ class LivePageService:
             if end > first:
                 self._broadcast(ax, b"scope", self._scope_message(ax, first, end))
             if with_state:
-                self._broadcast(ax, b"state", json.dumps(self.state_of(ax), default=str).encode())
+                state = ax.ring.state_message()
+                if state:
+                    self._broadcast(ax, b"state", state)
 
-    def _broadcast(self, ax: AxisPage, event: bytes, data: bytes) -> None:
+    def _broadcast(self, ax: PageAxis, event: bytes, data: bytes) -> None:
         msg = (event, data)
         for q in ax.streams:
             if q.full():
@@ -282,45 +331,11 @@ class LivePageService:
             q.put_nowait(msg)
 
     @staticmethod
-    def _scope_message(ax: AxisPage, first: int, end: int) -> bytes:
+    def _scope_message(ax: PageAxis, first: int, end: int) -> bytes:
         times, rows = ax.ring.slice(first, end)
         b64 = base64.b64encode(rows.astype(np.float32).tobytes()).decode("ascii")
         return json.dumps({"seq0": first, "t0": float(times[0]), "dt": ax.ring.cycle_s, "n": end - first,
                            "cols": len(COLUMNS), "b64": b64}).encode()
-
-    def state_of(self, ax: AxisPage) -> dict:
-        """The state message of one axis (JSON-ready)."""
-        s = ax.drive.state
-        faults = sorted(ax.drive.faults, key=lambda f: f.time_s, reverse=True)
-        from virtualaxis.drive.faults import fault_info
-
-        warnings = [{"emcy_code": f"0x{code:04X}", "alarm_number": f"A{num:05d}", "text": fault_info(code).text}
-                    for code, num in ax.drive.warnings.items()]
-        sw = s.statusword
-        out = {
-            "axis": ax.name, "node_id": ax.node_id, "time_s": s.time_s, "cycles": s.cycles,
-            "cia402_state": s.cia402_state, "statusword": sw,
-            "statusword_bits": [(sw >> b) & 1 for b in range(16)],
-            "controlword": s.controlword, "mode": s.mode, "mode_name": s.mode_name,
-            "nmt_state": ax.nmt() if ax.nmt is not None else None,
-            "position_actual_m": s.position_actual_m, "position_demand_m": s.position_demand_m,
-            "following_error_m": s.following_error_m, "velocity_actual_m_s": s.velocity_actual_m_s,
-            "current_a": s.current_a, "torque_nm": s.torque_nm, "dc_link_v": s.dc_link_v,
-            "motor_temperature_c": s.motor_temperature_c, "homed": s.homed,
-            "fault_active": s.fault_active, "error_code": f"0x{s.error_code:04X}",
-            "faults": [f.as_dict() for f in faults], "warnings": warnings,
-            "bus_events": self.frame_log.for_node(ax.node_id) if self.frame_log is not None else [],
-            "drive_counters": dict(ax.drive.counters),
-            "canopen_counters": dict(getattr(ax.slave, "counters", {}) or {}),
-            "ring": {"written": ax.ring.written, "oldest": ax.ring.oldest(), "lost": ax.ring.lost,
-                     "capacity_s": ax.ring.capacity * ax.ring.cycle_s},
-            "fault_injection": sorted(ax.injector.active) if ax.injector is not None else [],
-        }
-        stats = getattr(self.bus, "stats", None)
-        if callable(stats):
-            with contextlib.suppress(Exception):
-                out["bus"] = stats()
-        return out
 
     # ------------------------------------------------------------------ HTTP
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -364,7 +379,7 @@ class LivePageService:
                 ax = self._axis(path[len("/api/axes/"):-len("/events")])
                 await self._stream(ax, writer)
                 return
-            status, ctype, payload, extra_headers = self._route(method, path, query, headers, body)
+            status, ctype, payload, extra_headers = await self._route(method, path, query, headers, body)
         except HttpRefusal as exc:
             self.counters["refused"] += 1
             self._respond_json(writer, exc.status, {"error": str(exc), **exc.extra})
@@ -440,7 +455,7 @@ class LivePageService:
             raise HttpRefusal(400, f"query: {exc}") from None
         return method, path, query, headers, body
 
-    def _route(self, method: str, path: str, query: dict, headers: dict, body: bytes):
+    async def _route(self, method: str, path: str, query: dict, headers: dict, body: bytes):
         if path in ("/", "/index.html"):
             self._only(method, "GET")
             return 200, STATIC_TYPES["index.html"], self._static["index.html"], {}
@@ -452,7 +467,7 @@ class LivePageService:
             return 200, STATIC_TYPES[name], self._static[name], {"Cache-Control": "max-age=3600"}
         if path == "/api/axes":
             self._only(method, "GET")
-            return _json(200, self.axes_info())
+            return _json(200, self.info)
         if path.startswith("/api/axes/"):
             rest = path[len("/api/axes/"):]
             name, sep, what = rest.rpartition("/")
@@ -461,19 +476,19 @@ class LivePageService:
             ax = self._axis(name)
             if what == "objects":
                 self._only(method, "GET")
-                return _json(200, self.objects_of(ax))
+                return _json(200, await self.forward("objects", ax))
             if what == "recording.csv":
                 self._only(method, "GET")
-                return self._recording(ax, query)
+                return await self._recording(ax, query)
             if what == "write":
                 self._only(method, "POST")
                 if not self.writable:
                     self.counters["writes_refused"] += 1
                     raise HttpRefusal(403, "the page is read-only (serve with --http-writable to write objects)")
-                return _json(200, self.write(ax, _json_body(headers, body)))
+                return _json(200, await self.forward("write", ax, _json_body(headers, body)))
             if what == "fault":
                 self._only(method, "POST")
-                return _json(200, self.fault_command(ax, body, headers))
+                return _json(200, await self.forward("fault", ax, body, headers.get("content-type", "")))
         raise HttpRefusal(404, f"no route {path[:80]!r} (the page is at /, the API under /api/axes)")
 
     @staticmethod
@@ -481,133 +496,15 @@ class LivePageService:
         if method != allowed:
             raise HttpRefusal(405, f"method {method[:16]!r} not allowed here (only {allowed})", allow=allowed)
 
-    def _axis(self, quoted_name: str) -> AxisPage:
+    def _axis(self, quoted_name: str) -> PageAxis:
         name = urllib.parse.unquote(quoted_name)
         ax = self.axes.get(name)
         if ax is None:
             raise HttpRefusal(404, f"no axis {name[:40]!r} (served: {', '.join(self.axes)})")
         return ax
 
-    def axes_info(self) -> dict:
-        from virtualaxis.drive.injection import KINDS
-
-        return {
-            "writable": self.writable,
-            "columns": list(COLUMNS),
-            "axes": [{"name": a.name, "node_id": a.node_id, "cycle_s": a.ring.cycle_s,
-                      "fault_injection": bool(a.injector is not None and a.injector.allowed),
-                      "force_actuator": getattr(getattr(a.drive.cfg, "actuator", None), "kind", "") == "force"}
-                     for a in self.axes.values()],
-            "fault_kinds": list(KINDS),
-        }
-
-    # ------------------------------------------------------------------ object dictionary
-    def objects_of(self, ax: AxisPage) -> dict:
-        from virtualaxis.canopen_slave.errors import SdoAbort
-
-        rows = []
-        od = ax.slave.od
-        with ax.drive.lock:
-            for index in sorted(od.objects):
-                obj = od.objects[index]
-                for sub in sorted(obj.subs):
-                    e = obj.subs[sub]
-                    row = {"index": f"0x{index:04X}", "sub": sub, "name": e.name, "object": obj.name,
-                           "type": _TYPE_NAMES.get(e.data_type, f"0x{e.data_type:X}"), "access": e.access,
-                           "low": e.low, "high": e.high, "default": _plain(e.default), "pdo": e.pdo_mappable,
-                           "note": ax.notes.get(index, "")}
-                    if e.readable:
-                        try:
-                            row["value"] = _plain(e.decode(ax.slave.sdo_upload(index, sub)))
-                        except SdoAbort as exc:
-                            row["read_abort"] = f"0x{exc.code:08X}"
-                    rows.append(row)
-        return {"axis": ax.name, "writable": self.writable, "objects": rows}
-
-    def write(self, ax: AxisPage, data: Any) -> dict:
-        """An SDO download of ``{"index", "sub", "value"}`` (HttpRefusal 403 without --http-writable, 400 for a
-        malformed request, 422 with the abort code for a refused value)."""
-        from virtualaxis.canopen_slave.errors import SdoAbort
-        from virtualaxis.canopen_slave.od import type_range
-
-        if not self.writable:
-            self.counters["writes_refused"] += 1
-            raise HttpRefusal(403, "the page is read-only (serve with --http-writable to write objects)")
-        if not isinstance(data, dict):
-            raise HttpRefusal(400, f"body must be a JSON object (got {type(data).__name__})")
-        unknown = sorted(k for k in data if k not in ("index", "sub", "value"))
-        if unknown:
-            raise HttpRefusal(400, f"unknown key(s) {', '.join(map(repr, unknown))[:120]} (index, sub, value)")
-        index, sub = _index_of(data.get("index"), "index", 0xFFFF), _index_of(data.get("sub", 0), "sub", 0xFF)
-        if "value" not in data:
-            raise HttpRefusal(400, "value: missing")
-        value = data["value"]
-        obj = ax.slave.od.objects.get(index)
-
-        def refuse(code: int, message: str) -> HttpRefusal:
-            self.counters["writes_refused"] += 1
-            return HttpRefusal(422, f"0x{index:04X}:{sub}: {message}", abort_code=f"0x{code:08X}")
-
-        if obj is None:
-            raise refuse(0x06020000, "no such object")
-        entry = obj.subs.get(sub)
-        if entry is None:
-            raise refuse(0x06090011, "no such sub-index")
-        if entry.fmt is not None:
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise refuse(_ABORT_INVALID_VALUE, f"value must be a number (got {type(value).__name__})")
-            if entry.fmt in "fd":
-                if not math.isfinite(value):
-                    raise refuse(_ABORT_INVALID_VALUE, "value must be finite")
-                value = float(value)
-            else:
-                if isinstance(value, float):
-                    if not value.is_integer():
-                        raise refuse(_ABORT_INVALID_VALUE, f"{entry.name} needs an integer (got {value!r})")
-                    value = int(value)
-                rng = type_range(entry.data_type)
-                if rng is not None and value > rng[1]:
-                    raise refuse(_ABORT_TOO_HIGH, f"{value} > {rng[1]} (type range)")
-                if rng is not None and value < rng[0]:
-                    raise refuse(_ABORT_TOO_LOW, f"{value} < {rng[0]} (type range)")
-            try:
-                payload = entry.encode(value)
-            except (struct.error, OverflowError) as exc:
-                raise refuse(_ABORT_INVALID_VALUE, str(exc)) from None
-        elif isinstance(value, str):
-            payload = entry.encode(value)
-        else:
-            raise refuse(_ABORT_INVALID_VALUE, f"value must be a string for {entry.name}")
-        try:
-            with ax.drive.lock:
-                ax.slave.sdo_download(index, sub, payload)
-                now = entry.decode(ax.slave.sdo_upload(index, sub)) if entry.readable else None
-        except SdoAbort as exc:
-            raise refuse(exc.code, exc.message or str(exc)) from None
-        self.counters["writes"] += 1
-        return {"ok": True, "index": f"0x{index:04X}", "sub": sub, "value": _plain(now)}
-
-    def fault_command(self, ax: AxisPage, body: bytes, headers: dict) -> dict:
-        from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
-
-        _check_json_type(headers)
-        if ax.injector is None or not ax.injector.allowed:
-            raise HttpRefusal(403, "fault injection is off (serve with --allow-fault-injection)",
-                              abort_code="0x08000022")
-        command, refusal = parse_fault_command(body)
-        if refusal is not None:
-            raise HttpRefusal(400, refusal.get("error", "malformed fault command"))
-        self.counters["fault_commands"] += 1
-        result = apply_fault_command(ax.injector, command)
-        if not result.get("ok"):
-            raise HttpRefusal(422, result.get("error", "refused"),
-                              **{k: v for k, v in result.items() if k not in ("error",)})
-        return result
-
     # ------------------------------------------------------------------ recording
-    def _recording(self, ax: AxisPage, query: dict):
-        from virtualaxis.sim.trace_io import TraceWriter
-
+    async def _recording(self, ax: PageAxis, query: dict):
         unknown = sorted(k for k in query if k not in ("from", "to"))
         if unknown:
             raise HttpRefusal(400, f"unknown parameter(s) {', '.join(unknown)[:80]} (from, to)")
@@ -625,21 +522,17 @@ class LivePageService:
         except RecordingError as exc:
             status = 410 if "no longer" in str(exc) else 409 if "so far" in str(exc) else 400
             raise HttpRefusal(status, str(exc)) from None
-        force = getattr(getattr(ax.drive.cfg, "actuator", None), "kind", "") == "force"
+        force = ax.force_actuator
         cols = {"pos_cmd": 0, "pos_fb": 1, "vel_meas": 3, ("force_drive" if force else "torque_meas"): 4,
                 "current_q": 5, "following_error": 2, "statusword": 6}
         data = {"t": times, **{c: rows[:, j] for c, j in cols.items()}}
-        with tempfile.TemporaryDirectory(prefix="virtualaxis-page-") as tmp:
-            path = Path(tmp) / "recording.csv"
-            with TraceWriter(path, list(cols)) as w:
-                w.write(data)
-            payload = path.read_bytes()
+        payload = await asyncio.to_thread(trace_csv, data)  # (the page goes on streaming meanwhile)
         self.counters["recordings"] += 1
         fname = f"{_safe_file_part(ax.name)}-{bounds[0]}-{bounds[1]}.csv"
         return 200, "text/csv; charset=utf-8", payload, {"Content-Disposition": f'attachment; filename="{fname}"'}
 
     # ------------------------------------------------------------------ event stream
-    async def _stream(self, ax: AxisPage, writer: asyncio.StreamWriter) -> None:
+    async def _stream(self, ax: PageAxis, writer: asyncio.StreamWriter) -> None:
         if sum(len(a.streams) for a in self.axes.values()) >= MAX_STREAMS:
             self.counters["refused"] += 1
             self._respond_json(writer, 503, {"error": f"{MAX_STREAMS} event streams open already (close a tab)"})
@@ -649,8 +542,10 @@ class LivePageService:
         writer.write(b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\n"
                      b"Connection: keep-alive\r\nX-Content-Type-Options: nosniff\r\n\r\n"
                      b"retry: 1000\n\n")
-        q.put_nowait((b"state", json.dumps(self.state_of(ax), default=str).encode()))
-        ax.streams.add(q)
+        state = ax.ring.state_message()
+        if state:
+            q.put_nowait((b"state", state))
+        ax.opened(q)
         self.counters["streams_opened"] += 1
         try:
             while True:
@@ -660,9 +555,9 @@ class LivePageService:
                 writer.write(b"event: " + msg[0] + b"\ndata: " + msg[1] + b"\n\n")
                 await writer.drain()
         finally:
-            ax.streams.discard(q)
+            ax.closed(q)
 
-    async def _websocket(self, ax: AxisPage, headers: dict, reader: asyncio.StreamReader,
+    async def _websocket(self, ax: PageAxis, headers: dict, reader: asyncio.StreamReader,
                          writer: asyncio.StreamWriter) -> None:
         """The live updates over a WebSocket (RFC 6455): the messages of the event stream as text frames
         ``{"event": ..., "data": ...}``. The socket only sends: a data message from the browser is answered with
@@ -688,8 +583,10 @@ class LivePageService:
         writer.write(("HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
                       f"Sec-WebSocket-Accept: {accept}\r\n\r\n").encode())
         q: asyncio.Queue = asyncio.Queue(STREAM_QUEUE)
-        q.put_nowait((b"state", json.dumps(self.state_of(ax), default=str).encode()))
-        ax.streams.add(q)
+        state = ax.ring.state_message()
+        if state:
+            q.put_nowait((b"state", state))
+        ax.opened(q)
         self.counters["streams_opened"] += 1
         listener = asyncio.ensure_future(self._ws_listen(reader, q))
         try:
@@ -707,7 +604,7 @@ class LivePageService:
                 await writer.drain()
         finally:
             listener.cancel()
-            ax.streams.discard(q)
+            ax.closed(q)
 
     async def _ws_listen(self, reader: asyncio.StreamReader, q: asyncio.Queue) -> None:
         """Frames from the browser: ping -> pong, close -> close, a data message -> an error message."""
@@ -771,6 +668,7 @@ class LivePageService:
         self._respond(writer, status, "application/json", json.dumps(obj, default=str).encode(), extra)
 
 
+
 _WS_GUID = "258EAFA5-E914-47DA-95CA-C5AB0DC85B11"  # RFC 6455
 
 
@@ -793,14 +691,6 @@ async def _drain(writer) -> None:
 
 def _json(status: int, obj: Any):
     return status, "application/json", json.dumps(obj, default=str, allow_nan=False).encode(), {}
-
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, (bytes, bytearray)):
-        return v.hex(" ")
-    if isinstance(v, float) and not math.isfinite(v):
-        return str(v)
-    return v
 
 
 def _check_json_type(headers: dict) -> None:
@@ -834,18 +724,23 @@ def _json_body(headers: dict, body: bytes) -> Any:
         raise HttpRefusal(400, f"body is not JSON ({exc})") from None
 
 
-def _index_of(v: Any, key: str, high: int) -> int:
-    """An object index / sub-index given as a number or a string ("0x6081", "24705")."""
-    if isinstance(v, str):
-        try:
-            v = int(v, 0)
-        except ValueError:
-            raise HttpRefusal(400, f"{key}: {v[:20]!r} is not a number") from None
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise HttpRefusal(400, f"{key}: must be an integer or a string like \"0x6081\" (got {type(v).__name__})")
-    if not 0 <= v <= high:
-        raise HttpRefusal(400, f"{key}: must be 0..0x{high:X} (got {v})")
-    return v
+def trace_csv(data: dict[str, np.ndarray]) -> bytes:
+    """``data`` (``t`` and the columns) as a trace CSV (docs/reference/trace-format.md)."""
+    from virtualaxis.sim.trace_io import TraceWriter
+
+    with tempfile.TemporaryDirectory(prefix="virtualaxis-page-") as tmp:
+        path = Path(tmp) / "recording.csv"
+        with TraceWriter(path, [c for c in data if c != "t"]) as w:
+            w.write(data)
+        return path.read_bytes()
+
+
+def _load_trace_writer() -> None:
+    """Load (and compile) the trace writer before the first recording asks for it, at nice 19 (this thread only:
+    the CPU it takes at start goes to the drive first)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    trace_csv({"t": np.zeros(1), "x": np.zeros(1)})
 
 
 def _safe_file_part(name: str) -> str:

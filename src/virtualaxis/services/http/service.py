@@ -1,0 +1,452 @@
+"""serve's side of the live page (docs/live-page.md): the page's server runs in a process of its own.
+
+:class:`LivePageService` binds the page's address (an error names ``--http``), creates the shared-memory
+segment (ring.py) and starts the **server process** (server.py: a plain child interpreter, as the Modbus,
+MQTT and OPC UA servers; it imports neither the drive nor numba), handing it the listening socket and one end
+of a socket pair. What it costs serve's process:
+
+- the drive's **cycle hook** per axis (ring.py: three ``pack_into`` per cycle, no allocation of its own);
+- a **state thread**: the state message of each axis (JSON) into the segment ten times a second while the
+  axis has a live stream open, once a second otherwise (in the gap after a SYNC's PDOs, cycle_gate.py);
+- a **bridge thread**: the requests the server process forwards -- the object dictionary with its values,
+  object writes (``--http-writable``: the SDO download's checks and abort codes) and fault-injection commands
+  (``--allow-fault-injection``) -- applied under the drive's lock, i.e. between two cycles, and answered.
+
+The server process ends on the socket pair's EOF, i.e. with serve even if serve is killed. If it ends on its
+own, serve prints one warning line and goes on serving CANopen (``server_process`` in the stats).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import socket
+import struct
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from virtualaxis.services.http.frames import FrameLog
+from virtualaxis.services.http.ring import COLUMNS, STATE_BYTES, PageBlock, segment_size
+from virtualaxis.services.http.server import HttpRefusal, eds_notes
+
+STATE_PERIOD_S = 0.1  # state messages of an axis with a live stream open
+IDLE_STATE_EVERY = 10  # ... and every this many periods without one
+START_TIMEOUT_S = 30.0
+_TYPE_NAMES = {0x1: "BOOL", 0x2: "INT8", 0x3: "INT16", 0x4: "INT32", 0x5: "UINT8", 0x6: "UINT16", 0x7: "UINT32",
+               0x8: "REAL32", 0x9: "VISIBLE_STRING", 0xA: "OCTET_STRING", 0xF: "DOMAIN", 0x11: "REAL64",
+               0x15: "INT64", 0x1B: "UINT64"}
+_ABORT_INVALID_VALUE = 0x06090030
+_ABORT_TOO_HIGH = 0x06090031
+_ABORT_TOO_LOW = 0x06090032
+
+
+@dataclass
+class AxisPage:
+    """One axis on the page: name, node id, the drive, its CANopen slave, the fault injector (or None)."""
+
+    name: str
+    node_id: int
+    drive: Any
+    slave: Any
+    injector: Any = None
+    nmt: Callable[[], str] | None = None
+    block: PageBlock | None = None
+    notes: dict = field(default_factory=dict)  # index -> the EDS [Comments] note
+
+
+class LivePageService:
+    """The live page of ``axes``: :meth:`start` binds (raises OSError naming ``--http``) and starts the server
+    process, :meth:`stop` ends it (module doc)."""
+
+    def __init__(self, axes: list[AxisPage], *, host: str = "127.0.0.1", port: int = 8080, writable: bool = False,
+                 bus: Any = None, frame_log: FrameLog | None = None, gate: Any = None, ring_s: float = 120.0):
+        self.axes = list(axes)
+        self.host, self.port = host, port
+        self.writable = writable
+        self.bus = bus
+        self.frame_log = frame_log
+        self.gate = gate
+        self.ring_s = ring_s
+        self.bound_port: int | None = None
+        self.counters = {"writes": 0, "writes_refused": 0, "fault_commands": 0, "state_messages": 0,
+                         "state_errors": 0}
+        self.server_counters: dict = {}  # as last reported by the server process
+        self.server_process = "not started"  # running, stopped, or ended (exit code N)
+        self._shm = None
+        self._proc: subprocess.Popen | None = None
+        self._conn: Connection | None = None
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._bridge: threading.Thread | None = None
+        self._state: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> LivePageService:
+        from multiprocessing import shared_memory
+
+        from virtualaxis.services.threads import short_gil_slices
+
+        where = f"--http {self.host}:{self.port}"
+        family, kind, proto, _, address = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, kind, proto)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+            sock.listen(64)
+        except OSError as exc:
+            sock.close()
+            raise OSError(f"{where}: cannot listen ({exc.strerror or exc})") from None
+        self.bound_port = sock.getsockname()[1]
+        short_gil_slices()
+        self._shm = shared_memory.SharedMemory(create=True, size=segment_size(len(self.axes)))
+        self._shm.buf[:] = b"\x00" * self._shm.size
+        for i, ax in enumerate(self.axes):
+            ax.block = PageBlock(self._shm.buf, i)
+            ax.notes = eds_notes(getattr(getattr(ax.slave, "od", None), "eds_path", "") or "")
+            with ax.drive.lock:
+                ax.block.set_units(ax.drive)
+            self._publish_state(ax)
+        spec = {"shm": self._shm.name, "writable": self.writable, "ring_s": self.ring_s, "info": self.axes_info(),
+                "axes": [{"name": a.name, "cycle_s": float(a.drive.cycle_s), "force_actuator": _force(a)}
+                         for a in self.axes]}
+        ours, theirs = socket.socketpair()
+        src = str(Path(__file__).resolve().parents[3])  # the virtualaxis package this process runs
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
+        code = ("import sys; from virtualaxis.services.http.server import server_child; "
+                "server_child(int(sys.argv[1]), int(sys.argv[2]))")
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno()), str(sock.fileno())],
+                                          pass_fds=(theirs.fileno(), sock.fileno()), env=env)
+        finally:
+            theirs.close()
+            sock.close()  # (the server process holds the listening socket now)
+        self._conn = Connection(ours.detach())
+        try:
+            self._conn.send(("init", spec))
+            if not self._conn.poll(START_TIMEOUT_S):
+                raise OSError(f"{where}: the live page's server did not start in {START_TIMEOUT_S:g} s")
+            kind, value = self._conn.recv()
+            if kind != "ready":
+                raise OSError(f"{where}: {value}")
+        except (EOFError, OSError) as exc:
+            self.stop()
+            if isinstance(exc, OSError) and str(exc).startswith(where):
+                raise
+            raise OSError(f"{where}: the live page's server process ended while starting") from None
+        self.server_process = "running"
+        for ax in self.axes:
+            ax.drive.add_cycle_hook(ax.block.hook)
+        self._bridge = threading.Thread(target=self._serve_bridge, name="virtualaxis-http-bridge", daemon=True)
+        self._bridge.start()
+        self._state = threading.Thread(target=self._state_loop, name="virtualaxis-http-state", daemon=True)
+        self._state.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        for ax in self.axes:
+            if ax.block is not None:
+                ax.drive.remove_cycle_hook(ax.block.hook)
+        if self._state is not None:
+            self._state.join(timeout_s)
+        if self._proc is not None:
+            self._send(("stop",))
+            try:
+                self._proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait(timeout=timeout_s)
+            if self.server_process == "running":
+                self.server_process = "stopped"
+        if self._bridge is not None:
+            self._bridge.join(timeout_s)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        for ax in self.axes:
+            ax.block = None
+        if self._shm is not None:
+            with contextlib.suppress(BufferError):
+                self._shm.close()
+            with contextlib.suppress(FileNotFoundError):
+                self._shm.unlink()
+            self._shm = None
+
+    @property
+    def server_pid(self) -> int | None:
+        """The process id of the page's server process (None before start)."""
+        return self._proc.pid if self._proc is not None else None
+
+    def stats(self) -> dict:
+        out = dict(self.server_counters)
+        for k, v in self.counters.items():
+            out[k] = out.get(k, 0) + v
+        out.update(server_pid=self.server_pid, server_process=self.server_process)
+        return out
+
+    # ------------------------------------------------------------------ the state thread
+    def _state_loop(self) -> None:
+        tick = 0
+        while not self._stop.wait(STATE_PERIOD_S):
+            if self.gate is not None:
+                self.gate.wait_next()  # (at most 2 ms: the rest of the communication cycle after the PDOs)
+            tick += 1
+            for ax in self.axes:
+                if ax.block is None or (not ax.block.clients() and tick % IDLE_STATE_EVERY):
+                    continue
+                self._publish_state(ax)
+
+    def _publish_state(self, ax: AxisPage) -> None:
+        try:
+            with ax.drive.lock:
+                ax.block.set_units(ax.drive)
+            state = self.state_of(ax)
+            msg = json.dumps(state, default=str).encode()
+            while len(msg) > STATE_BYTES and (state["faults"] or state["bus_events"]):  # (the oldest go first)
+                for key in ("bus_events", "faults"):
+                    if state[key]:
+                        state[key] = state[key][: len(state[key]) // 2]
+                msg = json.dumps(state, default=str).encode()
+            ax.block.set_state(msg)
+            self.counters["state_messages"] += 1
+        except Exception:  # noqa: BLE001 - the page never takes serve down; the next period tries again
+            self.counters["state_errors"] += 1
+            if self.counters["state_errors"] == 1:
+                import logging
+
+                logging.getLogger("virtualaxis.services.http").exception("live page state failed")
+
+    def state_of(self, ax: AxisPage) -> dict:
+        """The state message of one axis (JSON-ready; the server process adds its ring's figures)."""
+        from virtualaxis.drive.faults import fault_info
+
+        s = ax.drive.state
+        faults = sorted(ax.drive.faults, key=lambda f: f.time_s, reverse=True)
+        warnings = [{"emcy_code": f"0x{code:04X}", "alarm_number": f"A{num:05d}", "text": fault_info(code).text}
+                    for code, num in ax.drive.warnings.items()]
+        sw = s.statusword
+        out = {
+            "axis": ax.name, "node_id": ax.node_id, "time_s": s.time_s, "cycles": s.cycles,
+            "cia402_state": s.cia402_state, "statusword": sw,
+            "statusword_bits": [(sw >> b) & 1 for b in range(16)],
+            "controlword": s.controlword, "mode": s.mode, "mode_name": s.mode_name,
+            "nmt_state": ax.nmt() if ax.nmt is not None else None,
+            "position_actual_m": s.position_actual_m, "position_demand_m": s.position_demand_m,
+            "following_error_m": s.following_error_m, "velocity_actual_m_s": s.velocity_actual_m_s,
+            "current_a": s.current_a, "torque_nm": s.torque_nm, "dc_link_v": s.dc_link_v,
+            "motor_temperature_c": s.motor_temperature_c, "homed": s.homed,
+            "fault_active": s.fault_active, "error_code": f"0x{s.error_code:04X}",
+            "faults": [f.as_dict() for f in faults], "warnings": warnings,
+            "bus_events": self.frame_log.for_node(ax.node_id) if self.frame_log is not None else [],
+            "drive_counters": dict(ax.drive.counters),
+            "canopen_counters": dict(getattr(ax.slave, "counters", {}) or {}),
+            "fault_injection": sorted(ax.injector.active) if ax.injector is not None else [],
+        }
+        stats = getattr(self.bus, "stats", None)
+        if callable(stats):
+            with contextlib.suppress(Exception):
+                out["bus"] = stats()
+        return out
+
+    def axes_info(self) -> dict:
+        from virtualaxis.drive.injection import KINDS
+
+        return {
+            "writable": self.writable,
+            "columns": list(COLUMNS),
+            "axes": [{"name": a.name, "node_id": a.node_id, "cycle_s": float(a.drive.cycle_s),
+                      "fault_injection": bool(a.injector is not None and a.injector.allowed),
+                      "force_actuator": _force(a)}
+                     for a in self.axes],
+            "fault_kinds": list(KINDS),
+        }
+
+    # ------------------------------------------------------------------ the bridge thread
+    def _send(self, msg: tuple) -> bool:
+        conn = self._conn
+        if conn is None:
+            return False
+        try:
+            with self._send_lock:
+                conn.send(msg)
+        except (EOFError, OSError, ValueError):
+            return False
+        return True
+
+    def _serve_bridge(self) -> None:
+        """Answer the server process' requests on the live drives; take its counters."""
+        conn = self._conn
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            kind = msg[0]
+            if kind == "stats":
+                self.server_counters = msg[1]
+            elif kind in ("objects", "write", "fault"):
+                rid, axis = msg[1], self.axes[msg[2]]
+                try:
+                    if kind == "objects":
+                        reply = ("ok", self.objects_of(axis))
+                    elif kind == "write":
+                        reply = ("ok", self.write(axis, msg[3]))
+                    else:
+                        reply = ("ok", self.fault_command(axis, msg[3], msg[4]))
+                except HttpRefusal as exc:
+                    reply = ("refused", exc.status, str(exc), exc.extra)
+                except Exception as exc:  # noqa: BLE001 - the client gets a 500, serve goes on
+                    reply = ("refused", 500, f"internal error: {type(exc).__name__}: {exc}", {})
+                self._send(("reply", rid, reply))
+        if not self._stop.is_set():  # the server process ended on its own: say so once, keep serving CANopen
+            try:
+                code = self._proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                code = None
+            self.server_process = f"ended (exit code {code})"
+            print(f"warning: --http: the live page's server process ended (exit code {code}); serving CANopen goes "
+                  "on without the live page", file=sys.stderr, flush=True)
+
+    # ------------------------------------------------------------------ object dictionary
+    def objects_of(self, ax: AxisPage) -> dict:
+        from virtualaxis.canopen_slave.errors import SdoAbort
+
+        rows = []
+        od = ax.slave.od
+        with ax.drive.lock:
+            for index in sorted(od.objects):
+                obj = od.objects[index]
+                for sub in sorted(obj.subs):
+                    e = obj.subs[sub]
+                    row = {"index": f"0x{index:04X}", "sub": sub, "name": e.name, "object": obj.name,
+                           "type": _TYPE_NAMES.get(e.data_type, f"0x{e.data_type:X}"), "access": e.access,
+                           "low": e.low, "high": e.high, "default": _plain(e.default), "pdo": e.pdo_mappable,
+                           "note": ax.notes.get(index, "")}
+                    if e.readable:
+                        try:
+                            row["value"] = _plain(e.decode(ax.slave.sdo_upload(index, sub)))
+                        except SdoAbort as exc:
+                            row["read_abort"] = f"0x{exc.code:08X}"
+                    rows.append(row)
+        return {"axis": ax.name, "writable": self.writable, "objects": rows}
+
+    def write(self, ax: AxisPage, data: Any) -> dict:
+        """An SDO download of ``{"index", "sub", "value"}`` (HttpRefusal 403 without --http-writable, 400 for a
+        malformed request, 422 with the abort code for a refused value)."""
+        from virtualaxis.canopen_slave.errors import SdoAbort
+        from virtualaxis.canopen_slave.od import type_range
+
+        if not self.writable:
+            self.counters["writes_refused"] += 1
+            raise HttpRefusal(403, "the page is read-only (serve with --http-writable to write objects)")
+        if not isinstance(data, dict):
+            raise HttpRefusal(400, f"body must be a JSON object (got {type(data).__name__})")
+        unknown = sorted(k for k in data if k not in ("index", "sub", "value"))
+        if unknown:
+            raise HttpRefusal(400, f"unknown key(s) {', '.join(map(repr, unknown))[:120]} (index, sub, value)")
+        index, sub = _index_of(data.get("index"), "index", 0xFFFF), _index_of(data.get("sub", 0), "sub", 0xFF)
+        if "value" not in data:
+            raise HttpRefusal(400, "value: missing")
+        value = data["value"]
+        obj = ax.slave.od.objects.get(index)
+
+        def refuse(code: int, message: str) -> HttpRefusal:
+            self.counters["writes_refused"] += 1
+            return HttpRefusal(422, f"0x{index:04X}:{sub}: {message}", abort_code=f"0x{code:08X}")
+
+        if obj is None:
+            raise refuse(0x06020000, "no such object")
+        entry = obj.subs.get(sub)
+        if entry is None:
+            raise refuse(0x06090011, "no such sub-index")
+        if entry.fmt is not None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise refuse(_ABORT_INVALID_VALUE, f"value must be a number (got {type(value).__name__})")
+            if entry.fmt in "fd":
+                if not math.isfinite(value):
+                    raise refuse(_ABORT_INVALID_VALUE, "value must be finite")
+                value = float(value)
+            else:
+                if isinstance(value, float):
+                    if not value.is_integer():
+                        raise refuse(_ABORT_INVALID_VALUE, f"{entry.name} needs an integer (got {value!r})")
+                    value = int(value)
+                rng = type_range(entry.data_type)
+                if rng is not None and value > rng[1]:
+                    raise refuse(_ABORT_TOO_HIGH, f"{value} > {rng[1]} (type range)")
+                if rng is not None and value < rng[0]:
+                    raise refuse(_ABORT_TOO_LOW, f"{value} < {rng[0]} (type range)")
+            try:
+                payload = entry.encode(value)
+            except (struct.error, OverflowError) as exc:
+                raise refuse(_ABORT_INVALID_VALUE, str(exc)) from None
+        elif isinstance(value, str):
+            payload = entry.encode(value)
+        else:
+            raise refuse(_ABORT_INVALID_VALUE, f"value must be a string for {entry.name}")
+        try:
+            with ax.drive.lock:
+                ax.slave.sdo_download(index, sub, payload)
+                now = entry.decode(ax.slave.sdo_upload(index, sub)) if entry.readable else None
+        except SdoAbort as exc:
+            raise refuse(exc.code, exc.message or str(exc)) from None
+        self.counters["writes"] += 1
+        return {"ok": True, "index": f"0x{index:04X}", "sub": sub, "value": _plain(now)}
+
+    def fault_command(self, ax: AxisPage, body: bytes, content_type: str) -> dict:
+        from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
+
+        _check_json_type(content_type)
+        if ax.injector is None or not ax.injector.allowed:
+            raise HttpRefusal(403, "fault injection is off (serve with --allow-fault-injection)",
+                              abort_code="0x08000022")
+        command, refusal = parse_fault_command(body)
+        if refusal is not None:
+            raise HttpRefusal(400, refusal.get("error", "malformed fault command"))
+        self.counters["fault_commands"] += 1
+        result = apply_fault_command(ax.injector, command)
+        if not result.get("ok"):
+            raise HttpRefusal(422, result.get("error", "refused"),
+                              **{k: v for k, v in result.items() if k not in ("error",)})
+        return result
+
+
+def _force(ax: AxisPage) -> bool:
+    return getattr(getattr(ax.drive.cfg, "actuator", None), "kind", "") == "force"
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, (bytes, bytearray)):
+        return v.hex(" ")
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return v
+
+
+def _check_json_type(content_type: str) -> None:
+    ctype = (content_type or "application/json").split(";")[0].strip().lower()
+    if ctype not in ("application/json", ""):
+        raise HttpRefusal(415, f"Content-Type {ctype[:40]!r}: send application/json")
+
+
+def _index_of(v: Any, key: str, high: int) -> int:
+    """An object index / sub-index given as a number or a string ("0x6081", "24705")."""
+    if isinstance(v, str):
+        try:
+            v = int(v, 0)
+        except ValueError:
+            raise HttpRefusal(400, f"{key}: {v[:20]!r} is not a number") from None
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise HttpRefusal(400, f"{key}: must be an integer or a string like \"0x6081\" (got {type(v).__name__})")
+    if not 0 <= v <= high:
+        raise HttpRefusal(400, f"{key}: must be 0..0x{high:X} (got {v})")
+    return v
