@@ -49,6 +49,7 @@ _VALUE_RANGES = {
     (0x2012, 0): (0, 1),
     (0x2013, 0): (0, 1),
     (0x60C2, 2): (-6, 0),
+    (0x60C0, 0): (0, 0),  # interpolation sub-mode: linear only
     (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
     # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
     # running at speed); refused as SDO does from the EDS's LowLimit 1

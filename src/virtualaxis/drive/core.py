@@ -103,6 +103,7 @@ DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
 PP, PV, PT, HM, CSP, CSV, CST = (OperationMode.PP, OperationMode.PV, OperationMode.PT, OperationMode.HM,
                                  OperationMode.CSP, OperationMode.CSV, OperationMode.CST)
+IP = OperationMode.IP
 # objects that are two names for one value (manufacturer alias -> CiA 402 object)
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
@@ -409,6 +410,8 @@ class Drive:
             self._mode_obj.on_target_position(self.ctx, int(value))
         elif index in (0x60FF, 0x60B1):
             self._mode_obj.on_target_velocity(self.ctx)
+        elif index == 0x60C1:
+            self._mode_obj.on_interpolation_data(self.ctx, int(value))
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -699,7 +702,7 @@ class Drive:
             enabled = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
             if kind.startswith("nmt_") and not enabled:
                 return
-            if kind == "sync_loss" and (not enabled or self._mode not in (CSP, CSV, CST)):
+            if kind == "sync_loss" and (not enabled or self._mode not in (IP, CSP, CSV, CST)):
                 return
             option = int(self._obj(0x6007))
             if option == 1:

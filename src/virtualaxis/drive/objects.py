@@ -50,8 +50,8 @@ def _o(index: int, sub: int, name: str, dtype: str, access: str, default: int) -
     return ObjectSpec(index, sub, name, dtype, access, default)
 
 
-# Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, CSP 0x80, CSV 0x100, CST 0x200
-SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x80 | 0x100 | 0x200
+# Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, IP 0x40, CSP 0x80, CSV 0x100, CST 0x200
+SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x40 | 0x80 | 0x100 | 0x200
 MODE_BITS = SUPPORTED_MODE_BITS  # 0x6502: the modes of drive.opmodes
 
 OBJECTS: tuple[ObjectSpec, ...] = (
@@ -155,6 +155,8 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x60A4, 1, "profile jerk", "u32", "rw", 0),
     _o(0x60B1, 0, "velocity offset", "i32", "rw", 0),
     _o(0x60B2, 0, "torque offset [per mille]", "i16", "rw", 0),
+    _o(0x60C0, 0, "interpolation sub mode select (0 linear)", "i16", "rw", 0),
+    _o(0x60C1, 1, "interpolation data record: position set-point", "i32", "rw", 0),
     _o(0x60C2, 1, "interpolation time period: value", "u8", "rw", 1),
     _o(0x60C2, 2, "interpolation time period: index (10^index s)", "i8", "rw", -3),
     _o(0x60F4, 0, "following error actual value", "i32", "ro", 0),
