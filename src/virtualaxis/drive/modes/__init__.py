@@ -14,5 +14,5 @@ from virtualaxis.drive.modes.pv import ProfileVelocity
 from virtualaxis.drive.opmodes import OperationMode
 
 __all__ = ["HOMING_CRAWL_M", "MODE_TYPES", "CyclicPosition", "CyclicTorque", "CyclicVelocity", "Homing",
-           "InterpolatedPosition", "OperatingMode", "OperationMode", "ProfileGenerator", "ProfilePosition", "ProfileTorque",
-           "ProfileVelocity", "make_modes", "register"]
+           "InterpolatedPosition", "OperatingMode", "OperationMode", "ProfileGenerator", "ProfilePosition",
+           "ProfileTorque", "ProfileVelocity", "make_modes", "register"]

@@ -10,7 +10,6 @@ from virtualaxis.drive import reactions as rx
 from virtualaxis.drive.modes.base import OperatingMode, ProfileGenerator, register
 from virtualaxis.drive.opmodes import OperationMode
 from virtualaxis.drive.profiles import LinearInterpolator
-from virtualaxis.sim import CONTROL_MODE
 
 if TYPE_CHECKING:
     from virtualaxis.drive.mode_context import ModeContext
