@@ -437,7 +437,7 @@ def test_application_abort_codes(rig):  # noqa: F811
     for index, sub, value, code in (
         (0x6092, 1, 1000, 0x08000022),  # position factor while in operation
         (0x6086, 0, 1, 0x06090030),  # motion profile type 1 (sin^2) not offered
-        (0x607E, 0, 0x80, 0x06090030),  # polarity inversion not offered
+        (0x607E, 0, 0x01, 0x06090030),  # polarity: only bits 6 and 7 are defined
         (0x6098, 0, 3, 0x06090030),  # homing method 3 not offered
         (0x2010, 0, 0x1234, 0x06090030),  # not a fault code
     ):

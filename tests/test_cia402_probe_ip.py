@@ -87,3 +87,48 @@ def test_interpolated_position_interpolates_buffers_and_needs_enable_ip():
         assert node.sdo[0x6062].raw == 1_200
     finally:
         r.close()
+
+
+def test_polarity_inverts_targets_actual_values_and_limits_and_is_refused_in_operation():
+    """0x607E bit 7: 0x607A, 0x6064 and 0x607D in the inverted direction (the table moves the other way); bit 6:
+    0x60FF and 0x606C; other bits refused (0x06090030), a change in OPERATION ENABLED too (0x08000022)."""
+    import canopen
+    import pytest
+
+    r = _pp_rig()
+    node = r.node
+    try:
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x607E].raw = 0xC0  # in operation
+        assert exc.value.code == 0x08000022
+        node.sdo[0x6040].raw = 0x07  # disable operation (ramp 0x605C = 1: done at rest)
+        r.wait(lambda: r.sw() & 0x6F == 0x23, sync=True)
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x607E].raw = 0x01
+        assert exc.value.code == 0x06090030
+        node.sdo[0x607E].raw = 0xC0
+        node.sdo[0x607D][2].raw = 20_000
+        node.sdo[0x6040].raw = 0x0F
+        node.sdo[0x607A].raw = 30_000  # beyond the max limit: clamped to it (in the master's direction)
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        r.sync(60)
+        assert node.sdo[0x606C].raw > 50_000  # moving toward +, as the master sees it
+        assert r.drive.simulator.state.table_position_m < -2e-3  # the table moves the other way
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+        assert abs(node.sdo[0x6064].raw - 20_000) <= node.sdo[0x6067].raw
+        assert abs(node.sdo[0x6062].raw - 20_000) <= 1
+        assert abs(r.drive.simulator.state.table_position_m + 0.020) < 1e-4
+        node.sdo[0x6040].raw = 0x07
+        r.wait(lambda: r.sw() & 0x6F == 0x23, sync=True)  # switched on
+        node.sdo[0x607E].raw = 0x40  # velocity only: positions read as the table goes again
+        r.sync(1)
+        assert abs(node.sdo[0x6064].raw + 20_000) < 100  # (the axis at rest, pulses off)
+        node.sdo[0x6060].raw = 3
+        node.sdo[0x60FF].raw = 10_000
+        node.sdo[0x6040].raw = 0x0F
+        r.sync(150)
+        assert abs(node.sdo[0x606C].raw - 10_000) < 1_000  # +10 mm/s as the master sees it ...
+        assert node.sdo[0x6064].raw < -21_000  # ... is toward - in position
+    finally:
+        r.close()

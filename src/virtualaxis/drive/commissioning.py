@@ -223,8 +223,13 @@ def check_write_rules(key: tuple[int, int], index: int, sub: int, value, objects
         and (value not in SUPPORTED_MODE_BITS or not SUPPORTED_MODE_BITS[value] & objects[(0x6502, 0)])
     ):
         raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
-    if key == (0x607E, 0) and value != 0:
-        raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: inversion is not offered, only 0")
+    if key == (0x607E, 0):
+        if value & ~0xC0:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: only bit 7 (position) and bit 6 "
+                                    f"(velocity) are defined, not 0x{value:02X}")
+        if in_operation and value != objects[(0x607E, 0)]:
+            raise ObjectAccessError(ABORT_DEVICE_STATE, "polarity 0x607E cannot change in operation (OPERATION "
+                                    "ENABLED / QUICK STOP ACTIVE): disable operation first")
     if key == (0x6088, 0) and value != 0:
         raise ObjectAccessError(ABORT_VALUE_INVALID, "torque profile type must be 0 (linear)")
     if key == (0x6086, 0) and value not in (0, 3):

@@ -271,6 +271,7 @@ class Drive:
             self.setpoints.control = self.sim.mode
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+            self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
             self._set_axis(self.sim.state)
             self._refresh_params()
             # transition 0 + 1 (self-test done): switch on disabled
@@ -365,6 +366,7 @@ class Drive:
             self._apply_gains()
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+            self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
 
     @property
     def outputs(self) -> tuple:
@@ -407,11 +409,13 @@ class Drive:
         elif index == 0x6060:
             self._on_mode(int(value))
         elif index == 0x607A:
-            self._mode_obj.on_target_position(self.ctx, int(value))
+            self._mode_obj.on_target_position(self.ctx, int(value) * self.setpoints.position_sign)
         elif index in (0x60FF, 0x60B1):
             self._mode_obj.on_target_velocity(self.ctx)
         elif index == 0x60C1:
-            self._mode_obj.on_interpolation_data(self.ctx, int(value))
+            self._mode_obj.on_interpolation_data(self.ctx, int(value) * self.setpoints.position_sign)
+        elif index == 0x607E:
+            self.setpoints.set_polarity(int(value))
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -1035,18 +1039,21 @@ class Drive:
         ax, pc, o = self._axis, self._pc, self.objects
         self._update_statusword()
         inv_u = pc.inv_u
-        x = ax.position_m - self.setpoints.zero_m
-        fe = ax.following_error_m if self._power and self.setpoints.control == CONTROL_MODE.POSITION else 0.0
+        sp = self.setpoints
+        x = ax.position_m - sp.zero_m
+        fe = ax.following_error_m if self._power and sp.control == CONTROL_MODE.POSITION else 0.0
         self._fe_m = fe
         rated_nm, rated_a = pc.rated_nm, pc.rated_a
+        inv_pu = inv_u * sp.position_sign  # (polarity 0x607E: the master's direction)
+        inv_vu = inv_u * sp.velocity_sign
         try:
-            p_dem = round(self.setpoints.demand_m * inv_u)
+            p_dem = round(sp.demand_m * inv_pu)
             p_inc = round(x * self._inc_per_m)
-            p_act = round(x * inv_u)
-            v_dem = round(self.setpoints.demand_v * inv_u)
-            v_act = round(ax.velocity_m_s * inv_u)
-            fe_u = round(fe * inv_u)
-            torque_pm = round(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
+            p_act = round(x * inv_pu)
+            v_dem = round(sp.demand_v * inv_vu)
+            v_act = round(ax.velocity_m_s * inv_vu)
+            fe_u = round(fe * inv_pu)
+            torque_pm = round(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
             current_pm = round(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
         except (OverflowError, ValueError):  # NaN or inf (never expected: the cycle guards the plant)
             p_dem = p_inc = p_act = v_dem = v_act = fe_u = torque_pm = current_pm = None
@@ -1054,9 +1061,9 @@ class Drive:
                 _I32_MIN <= p_dem <= _I32_MAX and _I32_MIN <= p_inc <= _I32_MAX and _I32_MIN <= p_act <= _I32_MAX
                 and _I32_MIN <= v_dem <= _I32_MAX and _I32_MIN <= v_act <= _I32_MAX and _I32_MIN <= fe_u <= _I32_MAX
                 and -0x8000 <= torque_pm <= 0x7FFF and -0x8000 <= current_pm <= 0x7FFF):
-            p_dem, p_inc, p_act = _i32(self.setpoints.demand_m * inv_u), _i32(x * self._inc_per_m), _i32(x * inv_u)
-            v_dem, v_act, fe_u = _i32(self.setpoints.demand_v * inv_u), _i32(ax.velocity_m_s * inv_u), _i32(fe * inv_u)
-            torque_pm = _i16(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
+            p_dem, p_inc, p_act = _i32(sp.demand_m * inv_pu), _i32(x * self._inc_per_m), _i32(x * inv_pu)
+            v_dem, v_act, fe_u = _i32(sp.demand_v * inv_vu), _i32(ax.velocity_m_s * inv_vu), _i32(fe * inv_pu)
+            torque_pm = _i16(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
             current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
         vdc_mv = ax.dc_link_v * 1000.0
         neg, pos, home = self._switches(ax.position_m, o[(0x6098, 0)])  # (a method: fault injection wraps it)
@@ -1087,6 +1094,7 @@ class Drive:
     def state(self) -> DriveState:
         with self._lock:
             o, _u, ax = self.objects, self._u, self._axis
+            ps, vs = self.setpoints.position_sign, self.setpoints.velocity_sign  # (polarity 0x607E)
             return DriveState(
                 name=self.name,
                 time_s=ax.time_s,
@@ -1096,14 +1104,14 @@ class Drive:
                 mode_name=MODE_NAMES.get(self._mode, str(self._mode)),
                 controlword=self._cw,
                 statusword=int(o[(0x6041, 0)]),
-                position_demand_m=self.setpoints.demand_m,
-                position_actual_m=ax.position_m - self.setpoints.zero_m,
+                position_demand_m=self.setpoints.demand_m * ps,
+                position_actual_m=(ax.position_m - self.setpoints.zero_m) * ps,
                 table_position_m=ax.table_position_m,
-                velocity_demand_m_s=self.setpoints.demand_v,
-                velocity_actual_m_s=ax.velocity_m_s,
-                torque_nm=self._torque_actual_nm(ax),
+                velocity_demand_m_s=self.setpoints.demand_v * vs,
+                velocity_actual_m_s=ax.velocity_m_s * vs,
+                torque_nm=self._torque_actual_nm(ax) * vs,
                 current_a=ax.current_q_a,
-                following_error_m=self._fe_m,
+                following_error_m=self._fe_m * ps,
                 dc_link_v=ax.dc_link_v,
                 motor_temperature_c=MOTOR_AMBIENT_C + self._motor_rise_k,
                 target_reached=bool(int(o[(0x6041, 0)]) & 0x400),

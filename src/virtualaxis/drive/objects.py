@@ -132,7 +132,7 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x607C, 0, "home offset", "i32", "rw", 0),
     _o(0x607D, 1, "software position limit: min", "i32", "rw", -300000),
     _o(0x607D, 2, "software position limit: max", "i32", "rw", 300000),
-    _o(0x607E, 0, "polarity (0 only: inverting position / velocity is not offered)", "u8", "rw", 0),
+    _o(0x607E, 0, "polarity (bit 7 position, bit 6 velocity and torque: multiplied by -1)", "u8", "rw", 0),
     _o(0x607F, 0, "max profile velocity", "u32", "rw", 500000),
     _o(0x6080, 0, "max motor speed [1/min] (speed set-point limit, all modes)", "u32", "rw", 3000),
     _o(0x6081, 0, "profile velocity", "u32", "rw", 100000),

@@ -133,7 +133,7 @@ class ProfilePosition(OperatingMode):
         """Set-point handshake: rising bit 4 takes 0x607A (bit 6 relative, bit 5 change immediately)."""
         if cw & 0x10 and not old_cw & 0x10:
             if not self.ack or cw & 0x20:
-                value = int(ctx.obj(0x607A))
+                value = int(ctx.obj(0x607A)) * ctx.setpoints.position_sign
                 base = self.pending_m if self.pending_m is not None else self.gen.target_m
                 target = base + value * ctx.u if cw & 0x40 else value * ctx.u
                 target_l = ctx.setpoints.check_limit(target, value) if self.plannable(ctx) else None
