@@ -132,3 +132,54 @@ def test_polarity_inverts_targets_actual_values_and_limits_and_is_refused_in_ope
         assert node.sdo[0x6064].raw < -21_000  # ... is toward - in position
     finally:
         r.close()
+
+
+def _move_to(r, node, target: int) -> None:
+    node.sdo[0x607A].raw = target
+    node.sdo[0x6040].raw = 0x1F
+    node.sdo[0x6040].raw = 0x0F
+    r.sync(2)
+    r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+
+
+def test_touch_probe_latches_between_drive_cycles_single_and_continuous():
+    """Probe 1 on its input (switching at 10 mm, both edges, first edge only), probe 2 on the index pulse
+    (continuous, positive edge): positions latched within one inner (current-loop) sample of the edge, not at the
+    1 ms drive cycle (0.1 mm apart at 0.1 m/s); status bits and toggles of 0x60B9; re-armed by bit 4; an input
+    forced by the master (0x2014:3, 0x60FD bit 16)."""
+    r = _pp_rig()
+    node = r.node
+    try:
+        inner_m = 0.1 * r.drive.cycle_s / r.drive.simulator.current_cycles_per_cycle  # travel per inner sample
+        tol = inner_m / 1e-6 + 1
+        node.sdo[0x2014][1].raw = 10_000
+        node.sdo[0x60B8].raw = 0x1731  # probe 2: enable, continuous, index, positive; probe 1: enable, both edges
+        assert node.sdo[0x60B9].raw == 0x0101
+        _move_to(r, node, 20_000)
+        status = node.sdo[0x60B9].raw
+        assert status == 0x0101 | 0x2 | 0x200 | 0x4000, hex(status)  # positive edge stored; probe 2 toggled once
+        assert abs(node.sdo[0x60BA].raw - 10_000) <= tol, node.sdo[0x60BA].raw
+        assert abs(node.sdo[0x60BC].raw - 16_000) <= tol, node.sdo[0x60BC].raw  # one motor revolution = 16 mm
+        _move_to(r, node, 5_000)
+        status = node.sdo[0x60B9].raw
+        assert status == 0x0101 | 0x2 | 0x4 | 0x200, hex(status)  # negative edge stored; probe 2 toggled back
+        assert abs(node.sdo[0x60BB].raw - 10_000) <= tol, node.sdo[0x60BB].raw
+        assert abs(node.sdo[0x60BC].raw - 16_000) <= tol
+        # first edge only: a forced edge is not latched until bit 4 re-arms the positive edge
+        node.sdo[0x2014][3].raw = 1
+        r.sync(2)
+        assert node.sdo[0x60FD].raw & 0x10000
+        assert abs(node.sdo[0x60BA].raw - 10_000) <= tol
+        node.sdo[0x2014][3].raw = 0
+        node.sdo[0x60B8].raw = 0x1721
+        node.sdo[0x60B8].raw = 0x1731
+        assert not node.sdo[0x60B9].raw & 0x2
+        r.sync(2)
+        node.sdo[0x2014][3].raw = 1
+        r.sync(2)
+        assert node.sdo[0x60B9].raw & 0x2
+        assert abs(node.sdo[0x60BA].raw - node.sdo[0x6064].raw) <= 2  # at rest at 5 mm
+        node.sdo[0x60B8].raw = 0  # disabled: status cleared
+        assert node.sdo[0x60B9].raw == 0
+    finally:
+        r.close()

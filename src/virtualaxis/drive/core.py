@@ -89,6 +89,7 @@ from virtualaxis.drive.statemachine import (
     decode,
     transition_for,
 )
+from virtualaxis.drive.touch_probe import LATCH_INDEX, TouchProbe
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.resources import project_file
 from virtualaxis.sim import CONTROL_MODE, AxisSimulator
@@ -243,6 +244,9 @@ class Drive:
                 switches=self._switches, travel_room_m=self.travel_room_m, refuse_setpoint=self.refuse_setpoint,
                 accept_setpoint=self.accept_setpoint, on_homed=lambda: self._notify("homed"),
                 stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
+            #: touch probes 0x60B8-0x60BD, latching at the plant's inner rate (current-loop cycles)
+            self.touch_probe = TouchProbe(self.sim.current_cycles_per_cycle, self.settings.index_pulse_offset_m,
+                                          1.0)
             self.fault_manager.reset()
             self._state = S.NOT_READY_TO_SWITCH_ON
             self._cw = 0
@@ -272,6 +276,8 @@ class Drive:
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
             self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
+            self.touch_probe.set_function(int(self.objects[(0x60B8, 0)]))
+            self._configure_probe_inputs()
             self._set_axis(self.sim.state)
             self._refresh_params()
             # transition 0 + 1 (self-test done): switch on disabled
@@ -367,6 +373,8 @@ class Drive:
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
             self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
+            self.touch_probe.set_function(int(self.objects[(0x60B8, 0)]))
+            self._configure_probe_inputs()
 
     @property
     def outputs(self) -> tuple:
@@ -416,6 +424,11 @@ class Drive:
             self._mode_obj.on_interpolation_data(self.ctx, int(value) * self.setpoints.position_sign)
         elif index == 0x607E:
             self.setpoints.set_polarity(int(value))
+        elif index == 0x60B8:
+            self.touch_probe.set_function(int(value))
+            self._store((0x60B9, 0), self.touch_probe.status)
+        elif index == 0x2014:
+            self._configure_probe_inputs()
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -442,6 +455,26 @@ class Drive:
         self._u = self.ctx.u = self.scaling.metres_per_unit
         self._inc_per_m = self.scaling.increments_per_metre
         self.ctx.motor_rev_travel_m = self.scaling.motor_rev_travel_m
+        self._configure_probe_inputs()
+
+    def _configure_probe_inputs(self) -> None:
+        """The touch probe inputs from 0x2014 and the index pulse period (one motor revolution)."""
+        o, tp = self.objects, self.touch_probe
+        tp.configure_inputs((int(o[(0x2014, 1)]), int(o[(0x2014, 2)])), int(o[(0x2014, 3)]), self._u)
+        tp.index_period_m = self.scaling.motor_rev_travel_m
+
+    def _probe_cycle(self, x0_m: float, x1_m: float) -> None:
+        """The touch probes over the cycle just run (feedback ``x0_m`` -> ``x1_m``, plant coordinate): latched
+        positions and status into 0x60BA-0x60BD / 0x60B9 (in the master's units, polarity 0x607E)."""
+        tp = self.touch_probe
+        if tp.cycle(x0_m, x1_m):
+            self._store((0x60B9, 0), tp.status)
+        if tp.latched:
+            sp = self.setpoints
+            scale = sp.position_sign / self._u
+            for probe, edge, x in tp.latched:
+                self._store((LATCH_INDEX[(probe, edge)], 0), _i32((x - sp.zero_m) * scale))
+            tp.latched.clear()
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
@@ -916,6 +949,8 @@ class Drive:
         if ax is not self._axis:
             self._set_axis(ax)
         self.counters["cycles"] += 1
+        if not self.touch_probe.idle:
+            self._probe_cycle(self.ctx.prev_position_m, ax.position_m)
         if not math.isfinite(ax.position_m + ax.velocity_m_s + ax.table_position_m + ax.current_q_a) and not (
                 math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
                 and math.isfinite(ax.table_position_m) and math.isfinite(ax.current_q_a)):
@@ -1071,7 +1106,7 @@ class Drive:
             self._mode, p_dem, p_inc, p_act, v_dem, v_act, torque_pm, current_pm,
             round(vdc_mv) if 0.0 <= vdc_mv <= 4294967295.0 else clamp_to_dtype(vdc_mv, "u32"),
             fe_u,
-            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
+            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0) | self.touch_probe.input_bits,
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self.fault_manager.alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
