@@ -183,3 +183,34 @@ def test_touch_probe_latches_between_drive_cycles_single_and_continuous():
         assert node.sdo[0x60B9].raw == 0
     finally:
         r.close()
+
+
+def test_interpolated_position_full_buffer_is_refused_and_halt_brakes():
+    """IP: a record beyond the buffer (16 after the running segment) aborts 0x08000022 and nothing buffered is
+    lost; halt (bit 8) drops the buffer and brakes to rest (bit 10 once at rest, bit 12 off while halted)."""
+    import canopen
+    import pytest
+
+    r = _ip_rig()
+    node = r.node
+    try:
+        node.sdo[0x6084].raw = 10_000_000  # the halt's deceleration (0x605D = 1): 10 m/s^2
+        node.sdo[0x6040].raw = 0x1F
+        for k in range(1, 18):  # the running segment + 16 buffered: 1 mm per period
+            node.sdo[0x60C1][1].raw = 1_000 * k
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x60C1][1].raw = 18_000
+        assert exc.value.code == 0x08000022
+        r.sync(4 * 17)
+        assert abs(node.sdo[0x6062].raw - 17_000) <= 1  # every accepted record interpolated
+        for k in range(18, 30):
+            node.sdo[0x60C1][1].raw = 1_000 * k
+        r.sync(8)  # at 0.25 m/s
+        assert node.sdo[0x606C].raw > 100_000
+        node.sdo[0x6040].raw = 0x11F  # halt
+        assert not r.sw() & 0x1000
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=5)
+        assert abs(node.sdo[0x606C].raw) < 2_000
+        assert node.sdo[0x6062].raw < 25_000  # 3 mm of braking, short of the records buffered (29 mm)
+    finally:
+        r.close()

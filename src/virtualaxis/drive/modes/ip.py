@@ -106,7 +106,7 @@ class InterpolatedPosition(OperatingMode):
     def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         pc = ctx.params()
         if self.halting or ctx.halted:
-            return ctx.halted and self.gen.settled()
+            return ctx.halted and self.gen.settled() and rx.at_standstill(ctx)  # halted: the axis at rest
         x = ax.position_m - ctx.setpoints.zero_m
         it = self.interp
         cond = it.i >= it.n and not self.buffer and abs(it.end - x) <= pc.position_window_m
