@@ -214,3 +214,33 @@ def test_interpolated_position_full_buffer_is_refused_and_halt_brakes():
         assert node.sdo[0x6062].raw < 25_000  # 3 mm of braking, short of the records buffered (29 mm)
     finally:
         r.close()
+
+
+def test_polarity_applies_to_the_home_offset_and_torque():
+    """0x607E = 0xC0: homing on the current position reads 0x607C there; in CST a positive 0x6071 drives the table
+    toward - while 0x6077 and 0x606C read positive."""
+    from test_drive_rig import Rig
+
+    r = Rig()
+    node = r.node
+    try:
+        node.sdo[0x607E].raw = 0xC0
+        node.sdo[0x6098].raw = 37
+        node.sdo[0x607C].raw = 1_000
+        node.sdo[0x6060].raw = 6
+        node.nmt.state = "OPERATIONAL"
+        r.enable()
+        node.sdo[0x6040].raw = 0x1F
+        r.wait(lambda: r.sw() & 0x1400 == 0x1400, sync=True)
+        r.sync(1)  # (method 37 is done at the write; the actual values are published by the next cycle)
+        assert abs(node.sdo[0x6064].raw - 1_000) <= 2
+        node.sdo[0x6040].raw = 0x0F
+        node.sdo[0x6060].raw = 10
+        x0 = r.drive.simulator.state.table_position_m
+        node.sdo[0x6071].raw = 100  # 10 % of the rated torque
+        r.sync(30)
+        assert node.sdo[0x6077].raw > 50 and node.sdo[0x6074].raw == 100
+        assert node.sdo[0x606C].raw > 0 and node.sdo[0x6064].raw > 1_000
+        assert r.drive.simulator.state.table_position_m < x0  # the other way
+    finally:
+        r.close()
