@@ -22,15 +22,16 @@ def test_profile_position_change_on_setpoint_passes_the_first_target_at_its_velo
         assert r.sw() & 0x1000
         node.sdo[0x6040].raw = 0x20F
         near_first, after = [], []
-        for _ in range(1200):
-            r.sync(1)
+        for _ in range(300):
+            r.sync(4)
             x, v = node.sdo[0x6064].raw, node.sdo[0x606C].raw
             if 17_000 <= x <= 20_000:
                 near_first.append(v)
             elif 30_000 <= x <= 35_000:
                 after.append(v)
-            if r.sw() & 0x400:
+            elif x > 35_000:
                 break
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
         assert near_first and min(near_first) > 90_000, near_first  # no stop at the first target
         assert after and all(abs(v - 50_000) < 3_000 for v in after), after
         assert not r.sw() & 0x1000  # both set-points taken
