@@ -93,21 +93,34 @@ def test_change_on_setpoint_across_processes(master):
 
 
 def test_interpolated_position_across_processes(master):
-    """IP: bit 4 -> bit 12; a record is one segment of 0x60C2 = 4 ms, records sent at once are buffered."""
-    sdo = master.node.sdo
-    sdo[0x60C2][1].raw = 4
+    """IP: controlword + 0x60C1:1 in a synchronous RPDO, one record per 1 ms SYNC, 0x60C2 = 2 ms: a record sent
+    before bit 4 is ignored; bit 12 once bit 4 is set; each record is a 2 ms straight segment from the previous
+    one (100 units per cycle for records 200 apart); records that come faster than that wait in the buffer."""
+    sdo, net = master.node.sdo, master.net
     master.enable(7)
-    sdo[0x60C2][1].raw = 4
-    sdo[0x6040].raw = 0x1F
-    assert master.sw() & 0x1000
+    sdo[0x6040].raw = 0x0F
+    cob = 0x200 + NODE
+    sdo[0x1400][1].raw = cob | 0x80000000  # RPDO1: controlword + 0x60C1:1, synchronous
+    sdo[0x1600][0].raw = 0
+    sdo[0x1600][1].raw = 0x60400010
+    sdo[0x1600][2].raw = 0x60C10120
+    sdo[0x1600][0].raw = 2
+    sdo[0x1400][2].raw = 1
+    sdo[0x1400][1].raw = cob
+    sdo[0x60C2][1].raw = 2  # 2 ms: each record is interpolated over two SYNC periods
     p0 = sdo[0x6062].raw  # (the axis stays where the last test left it)
-    for value in (400, 1_200):
-        sdo[0x60C1][1].raw = p0 + value
-    demands = []
-    for _ in range(8):
+
+    def cycle(cw: int, record: int) -> int:
+        net.send_message(cob, cw.to_bytes(2, "little") + (p0 + record).to_bytes(4, "little", signed=True))
         master.sync(1)
-        demands.append(sdo[0x6062].raw - p0)
-    assert demands == [100, 200, 300, 400, 600, 800, 1_000, 1_200]
+        return sdo[0x6062].raw - p0
+
+    assert cycle(0x0F, 500) == 0  # bit 4 not set: ignored
+    assert not master.sw() & 0x1000
+    demands = [cycle(0x1F, 0)]
+    assert master.sw() & 0x1000
+    demands += [cycle(0x1F, r) for r in (200, 400, 600, 800)] + [cycle(0x1F, 800) for _ in range(4)]
+    assert demands == [0, 100, 200, 300, 400, 500, 600, 700, 800], demands
 
 
 def test_polarity_across_processes(master):
