@@ -246,7 +246,7 @@ class Drive:
                 stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
             #: touch probes 0x60B8-0x60BD, latching at the plant's inner rate (current-loop cycles)
             self.touch_probe = TouchProbe(self.sim.current_cycles_per_cycle, self.settings.index_pulse_offset_m,
-                                          1.0)
+                                          index_period_m=1.0)  # (the period: _configure_probe_inputs)
             self.fault_manager.reset()
             self._state = S.NOT_READY_TO_SWITCH_ON
             self._cw = 0
@@ -949,12 +949,12 @@ class Drive:
         if ax is not self._axis:
             self._set_axis(ax)
         self.counters["cycles"] += 1
-        if not self.touch_probe.idle:
-            self._probe_cycle(self.ctx.prev_position_m, ax.position_m)
         if not math.isfinite(ax.position_m + ax.velocity_m_s + ax.table_position_m + ax.current_q_a) and not (
                 math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
                 and math.isfinite(ax.table_position_m) and math.isfinite(ax.current_q_a)):
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
+        if not self.touch_probe.idle:
+            self._probe_cycle(self.ctx.prev_position_m, ax.position_m)
         if not self._power:
             self.setpoints.demand_m = ax.position_m - self.setpoints.zero_m
             self._gen.profile.reset(self.setpoints.demand_m)
@@ -1089,7 +1089,7 @@ class Drive:
             v_act = round(ax.velocity_m_s * inv_vu)
             fe_u = round(fe * inv_pu)
             torque_pm = round(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
-            current_pm = round(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+            current_pm = round(ax.current_q_a * sp.velocity_sign / rated_a * 1000.0) if rated_a else 0
         except (OverflowError, ValueError):  # NaN or inf (never expected: the cycle guards the plant)
             p_dem = p_inc = p_act = v_dem = v_act = fe_u = torque_pm = current_pm = None
         if p_dem is None or not (
@@ -1099,7 +1099,7 @@ class Drive:
             p_dem, p_inc, p_act = _i32(sp.demand_m * inv_pu), _i32(x * self._inc_per_m), _i32(x * inv_pu)
             v_dem, v_act, fe_u = _i32(sp.demand_v * inv_vu), _i32(ax.velocity_m_s * inv_vu), _i32(fe * inv_pu)
             torque_pm = _i16(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
-            current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+            current_pm = _i16(ax.current_q_a * sp.velocity_sign / rated_a * 1000.0) if rated_a else 0
         vdc_mv = ax.dc_link_v * 1000.0
         neg, pos, home = self._switches(ax.position_m, o[(0x6098, 0)])  # (a method: fault injection wraps it)
         values = (
@@ -1145,7 +1145,7 @@ class Drive:
                 velocity_demand_m_s=self.setpoints.demand_v * vs,
                 velocity_actual_m_s=ax.velocity_m_s * vs,
                 torque_nm=self._torque_actual_nm(ax) * vs,
-                current_a=ax.current_q_a,
+                current_a=ax.current_q_a * vs,
                 following_error_m=self._fe_m * ps,
                 dc_link_v=ax.dc_link_v,
                 motor_temperature_c=MOTOR_AMBIENT_C + self._motor_rise_k,

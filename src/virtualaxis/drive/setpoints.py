@@ -15,7 +15,7 @@ Polarity 0x607E (:meth:`set_polarity`): the drive computes in its own direction 
 signs ``position_sign`` (bit 7) and ``velocity_sign`` (bit 6) convert between it and the master's values: a
 position object (0x607A, 0x60C1, 0x6062, 0x6064, 0x60F4, 0x607C, 0x607D, 0x60BA-0x60BD; the CSP velocity
 offset 0x60B1) is ``position_sign`` times the drive's value, a velocity or torque object (0x60FF, 0x60B1 in
-CSV, 0x606B, 0x606C, 0x6071, 0x60B2, 0x6074, 0x6077) ``velocity_sign`` times it.
+CSV, 0x606B, 0x606C, 0x6071, 0x60B2, 0x6074, 0x6077, 0x6078) ``velocity_sign`` times it.
 """
 
 from __future__ import annotations
