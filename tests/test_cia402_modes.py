@@ -9,14 +9,14 @@ import pytest
 from test_drive_rig import Rig, rig, seed_config  # noqa: F401  (fixture)
 
 
-@pytest.mark.parametrize("mode", [1, 3, 4, 6, 8, 9, 10])
+@pytest.mark.parametrize("mode", [1, 3, 4, 6, 7, 8, 9, 10])
 def test_mode_by_sdo_is_displayed_at_once(rig, mode):  # noqa: F811
     """18: 0x6060 = m -> 0x6061 = m."""
     rig.node.sdo[0x6060].raw = mode
     assert rig.node.sdo[0x6061].raw == mode
 
 
-@pytest.mark.parametrize("mode", [2, 5, 7, -1, 11])
+@pytest.mark.parametrize("mode", [2, 5, -1, 11])
 def test_unsupported_mode_is_refused_and_display_unchanged(rig, mode):  # noqa: F811
     """7: a mode not in 0x6502 -> abort 0x06090030 (or the EDS range limit), 0x6061 unchanged."""
     rig.node.sdo[0x6060].raw = 8
@@ -437,7 +437,7 @@ def test_application_abort_codes(rig):  # noqa: F811
     for index, sub, value, code in (
         (0x6092, 1, 1000, 0x08000022),  # position factor while in operation
         (0x6086, 0, 1, 0x06090030),  # motion profile type 1 (sin^2) not offered
-        (0x607E, 0, 0x80, 0x06090030),  # polarity inversion not offered
+        (0x607E, 0, 0x01, 0x06090030),  # polarity: only bits 6 and 7 are defined
         (0x6098, 0, 3, 0x06090030),  # homing method 3 not offered
         (0x2010, 0, 0x1234, 0x06090030),  # not a fault code
     ):

@@ -46,7 +46,7 @@ def test_bad_parameter_values_are_refused_with_the_sdo_abort_code(drive):
         drive.set_parameter("quick_stop_option", 9)
     assert exc.value.code == 0x06090031
     with pytest.raises(ObjectAccessError) as exc:
-        drive.set_parameter("mode_of_operation", 7)  # interpolated position is not supported
+        drive.set_parameter("mode_of_operation", 5)  # mode 5 is not supported
     assert exc.value.code == 0x06090030
     with pytest.raises(ObjectAccessError) as exc:
         drive.write_object(0x6041, 0, 0)

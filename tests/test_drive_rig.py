@@ -167,7 +167,7 @@ def test_rig_boots_the_drive_in_switch_on_disabled(rig):
     assert rig.node.nmt.state == "PRE-OPERATIONAL"
     assert rig.sw() & 0x4F == 0x40
     assert rig.node.sdo[0x1000].raw & 0xFFFF == 0x0192
-    assert rig.node.sdo[0x6502].raw == 0x3AD
+    assert rig.node.sdo[0x6502].raw == 0x3ED
 
 
 def test_rig_sync_advances_the_plant_one_cycle_per_sync(rig):

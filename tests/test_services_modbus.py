@@ -626,3 +626,13 @@ def test_fc23_refused_read_writes_nothing_fc06_echoes_and_writes_follow_the_posi
         assert srv.read(40408, 2) == [0, 0] and srv.read(40419) == [len(drive.state.faults)]
     finally:
         srv.close()
+
+
+def test_digital_inputs_register_shows_the_switches_with_a_probe_input_active(server):
+    """40356 holds 0x60FD bits 0-15 (the limit and home switches); an active touch probe input (0x60FD bit 16)
+    does not saturate it."""
+    drive = server.links[1].drive
+    drive.write_object(0x2014, 3, 1)  # probe input 1 forced active
+    drive.step(2)
+    assert drive.read_object(0x60FD, 0) & 0x10000
+    assert server.read(40356) == [drive.read_object(0x60FD, 0) & 0xFFFF]

@@ -15,6 +15,7 @@ from virtualaxis.drive.object_table import ObjectAccessError
 from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, clamp_to_dtype
 from virtualaxis.drive.opmodes import SUPPORTED_MODE_BITS
 from virtualaxis.drive.settings import DriveSettings
+from virtualaxis.drive.touch_probe import check_function as check_touch_probe_function
 
 # SDO abort codes used by the drive's own checks
 ABORT_READ_ONLY = 0x06010002
@@ -49,6 +50,8 @@ _VALUE_RANGES = {
     (0x2012, 0): (0, 1),
     (0x2013, 0): (0, 1),
     (0x60C2, 2): (-6, 0),
+    (0x60C0, 0): (0, 0),  # interpolation sub-mode: linear only
+    (0x2014, 3): (0, 3),
     (0x6080, 0): (1, DTYPE_RANGES["u32"][1]),  # max motor speed 0 would be no motion at all
     # accelerations / decelerations: 0 would be a stop that never ends (a quick stop at 0x6085 = 0 kept the axis
     # running at speed); refused as SDO does from the EDS's LowLimit 1
@@ -60,7 +63,7 @@ _VALUE_RANGES = {
 #: objects checked by ranges alone: key (and alias) -> (min, max) of an integer value, its data type's range
 #: narrowed by _VALUE_RANGES; every writable integer object without a rule of its own in check_write_rules (the
 #: fast path of an RPDO's controlword and targets; anything else, and any value outside, takes the full check)
-_OWN_RULES = frozenset({0x6060, 0x607E, 0x6088, 0x6086, 0x6098, 0x608F, 0x6091, 0x6092, 0x2000, 0x2001, 0x2003,
+_OWN_RULES = frozenset({0x6060, 0x607E, 0x60B8, 0x6088, 0x6086, 0x6098, 0x608F, 0x6091, 0x6092, 0x2000, 0x2001, 0x2003,
                         0x2004, 0x200A, 0x200B, 0x2011, 0x2010})
 
 
@@ -222,8 +225,17 @@ def check_write_rules(key: tuple[int, int], index: int, sub: int, value, objects
         and (value not in SUPPORTED_MODE_BITS or not SUPPORTED_MODE_BITS[value] & objects[(0x6502, 0)])
     ):
         raise ObjectAccessError(ABORT_VALUE_INVALID, f"mode {value} is not supported (0x6502)")
-    if key == (0x607E, 0) and value != 0:
-        raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: inversion is not offered, only 0")
+    if key == (0x607E, 0):
+        if value & ~0xC0:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, "polarity 0x607E: only bit 7 (position) and bit 6 "
+                                    f"(velocity) are defined, not 0x{value:02X}")
+        if in_operation and value != objects[(0x607E, 0)]:
+            raise ObjectAccessError(ABORT_DEVICE_STATE, "polarity 0x607E cannot change in operation (OPERATION "
+                                    "ENABLED / QUICK STOP ACTIVE): disable operation first")
+    if key == (0x60B8, 0):
+        reason = check_touch_probe_function(int(value))
+        if reason is not None:
+            raise ObjectAccessError(ABORT_VALUE_INVALID, reason)
     if key == (0x6088, 0) and value != 0:
         raise ObjectAccessError(ABORT_VALUE_INVALID, "torque profile type must be 0 (linear)")
     if key == (0x6086, 0) and value not in (0, 3):

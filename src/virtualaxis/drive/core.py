@@ -89,6 +89,7 @@ from virtualaxis.drive.statemachine import (
     decode,
     transition_for,
 )
+from virtualaxis.drive.touch_probe import LATCH_INDEX, TouchProbe
 from virtualaxis.drive.units import PositionScaling
 from virtualaxis.resources import project_file
 from virtualaxis.sim import CONTROL_MODE, AxisSimulator
@@ -103,6 +104,7 @@ DEFAULT_EDS = project_file("eds/virtualaxis.eds")
 
 PP, PV, PT, HM, CSP, CSV, CST = (OperationMode.PP, OperationMode.PV, OperationMode.PT, OperationMode.HM,
                                  OperationMode.CSP, OperationMode.CSV, OperationMode.CST)
+IP = OperationMode.IP
 # objects that are two names for one value (manufacturer alias -> CiA 402 object)
 ALIASES = {(0x2005, 0): (0x6065, 0), (0x2008, 0): (0x6067, 0), (0x2009, 0): (0x6068, 0)}
 ALIASES_BACK = {v: k for k, v in ALIASES.items()}
@@ -242,6 +244,9 @@ class Drive:
                 switches=self._switches, travel_room_m=self.travel_room_m, refuse_setpoint=self.refuse_setpoint,
                 accept_setpoint=self.accept_setpoint, on_homed=lambda: self._notify("homed"),
                 stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
+            #: touch probes 0x60B8-0x60BD, latching at the plant's inner rate (current-loop cycles)
+            self.touch_probe = TouchProbe(self.sim.current_cycles_per_cycle, self.settings.index_pulse_offset_m,
+                                          index_period_m=1.0)  # (the period: _configure_probe_inputs)
             self.fault_manager.reset()
             self._state = S.NOT_READY_TO_SWITCH_ON
             self._cw = 0
@@ -270,6 +275,9 @@ class Drive:
             self.setpoints.control = self.sim.mode
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+            self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
+            self.touch_probe.set_function(int(self.objects[(0x60B8, 0)]))
+            self._configure_probe_inputs()
             self._set_axis(self.sim.state)
             self._refresh_params()
             # transition 0 + 1 (self-test done): switch on disabled
@@ -364,6 +372,9 @@ class Drive:
             self._apply_gains()
             self._params_dirty = True
             self.sim.set_external_force(float(self.objects[(0x2011, 0)]))
+            self.setpoints.set_polarity(int(self.objects[(0x607E, 0)]))
+            self.touch_probe.set_function(int(self.objects[(0x60B8, 0)]))
+            self._configure_probe_inputs()
 
     @property
     def outputs(self) -> tuple:
@@ -406,9 +417,18 @@ class Drive:
         elif index == 0x6060:
             self._on_mode(int(value))
         elif index == 0x607A:
-            self._mode_obj.on_target_position(self.ctx, int(value))
+            self._mode_obj.on_target_position(self.ctx, int(value) * self.setpoints.position_sign)
         elif index in (0x60FF, 0x60B1):
             self._mode_obj.on_target_velocity(self.ctx)
+        elif index == 0x60C1:
+            self._mode_obj.on_interpolation_data(self.ctx, int(value) * self.setpoints.position_sign)
+        elif index == 0x607E:
+            self.setpoints.set_polarity(int(value))
+        elif index == 0x60B8:
+            self.touch_probe.set_function(int(value))
+            self._store((0x60B9, 0), self.touch_probe.status)
+        elif index == 0x2014:
+            self._configure_probe_inputs()
         elif index in (0x608F, 0x6091, 0x6092):
             self._update_scaling()
         elif index in (0x2000, 0x2001, 0x2002, 0x2003, 0x2004, 0x6072, 0x6073, 0x6075, 0x6076, 0x6080):
@@ -435,6 +455,26 @@ class Drive:
         self._u = self.ctx.u = self.scaling.metres_per_unit
         self._inc_per_m = self.scaling.increments_per_metre
         self.ctx.motor_rev_travel_m = self.scaling.motor_rev_travel_m
+        self._configure_probe_inputs()
+
+    def _configure_probe_inputs(self) -> None:
+        """The touch probe inputs from 0x2014 and the index pulse period (one motor revolution)."""
+        o, tp = self.objects, self.touch_probe
+        tp.configure_inputs((int(o[(0x2014, 1)]), int(o[(0x2014, 2)])), int(o[(0x2014, 3)]), self._u)
+        tp.index_period_m = self.scaling.motor_rev_travel_m
+
+    def _probe_cycle(self, x0_m: float, x1_m: float) -> None:
+        """The touch probes over the cycle just run (feedback ``x0_m`` -> ``x1_m``, plant coordinate): latched
+        positions and status into 0x60BA-0x60BD / 0x60B9 (in the master's units, polarity 0x607E)."""
+        tp = self.touch_probe
+        if tp.cycle(x0_m, x1_m):
+            self._store((0x60B9, 0), tp.status)
+        if tp.latched:
+            sp = self.setpoints
+            scale = sp.position_sign / self._u
+            for probe, edge, x in tp.latched:
+                self._store((LATCH_INDEX[(probe, edge)], 0), _i32((x - sp.zero_m) * scale))
+            tp.latched.clear()
 
     def _apply_gains(self) -> None:
         """Loop parameters from 0x2000-0x2004 and limits 0x6072/0x6073 into the simulator."""
@@ -699,7 +739,7 @@ class Drive:
             enabled = self._power and self._state in (S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
             if kind.startswith("nmt_") and not enabled:
                 return
-            if kind == "sync_loss" and (not enabled or self._mode not in (CSP, CSV, CST)):
+            if kind == "sync_loss" and (not enabled or self._mode not in (IP, CSP, CSV, CST)):
                 return
             option = int(self._obj(0x6007))
             if option == 1:
@@ -913,6 +953,8 @@ class Drive:
                 math.isfinite(ax.position_m) and math.isfinite(ax.velocity_m_s)
                 and math.isfinite(ax.table_position_m) and math.isfinite(ax.current_q_a)):
             raise FloatingPointError(f"plant state not finite (x={ax.position_m}, v={ax.velocity_m_s})")
+        if not self.touch_probe.idle:
+            self._probe_cycle(self.ctx.prev_position_m, ax.position_m)
         if not self._power:
             self.setpoints.demand_m = ax.position_m - self.setpoints.zero_m
             self._gen.profile.reset(self.setpoints.demand_m)
@@ -1032,36 +1074,39 @@ class Drive:
         ax, pc, o = self._axis, self._pc, self.objects
         self._update_statusword()
         inv_u = pc.inv_u
-        x = ax.position_m - self.setpoints.zero_m
-        fe = ax.following_error_m if self._power and self.setpoints.control == CONTROL_MODE.POSITION else 0.0
+        sp = self.setpoints
+        x = ax.position_m - sp.zero_m
+        fe = ax.following_error_m if self._power and sp.control == CONTROL_MODE.POSITION else 0.0
         self._fe_m = fe
         rated_nm, rated_a = pc.rated_nm, pc.rated_a
+        inv_pu = inv_u * sp.position_sign  # (polarity 0x607E: the master's direction)
+        inv_vu = inv_u * sp.velocity_sign
         try:
-            p_dem = round(self.setpoints.demand_m * inv_u)
+            p_dem = round(sp.demand_m * inv_pu)
             p_inc = round(x * self._inc_per_m)
-            p_act = round(x * inv_u)
-            v_dem = round(self.setpoints.demand_v * inv_u)
-            v_act = round(ax.velocity_m_s * inv_u)
-            fe_u = round(fe * inv_u)
-            torque_pm = round(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
-            current_pm = round(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+            p_act = round(x * inv_pu)
+            v_dem = round(sp.demand_v * inv_vu)
+            v_act = round(ax.velocity_m_s * inv_vu)
+            fe_u = round(fe * inv_pu)
+            torque_pm = round(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
+            current_pm = round(ax.current_q_a * sp.velocity_sign / rated_a * 1000.0) if rated_a else 0
         except (OverflowError, ValueError):  # NaN or inf (never expected: the cycle guards the plant)
             p_dem = p_inc = p_act = v_dem = v_act = fe_u = torque_pm = current_pm = None
         if p_dem is None or not (
                 _I32_MIN <= p_dem <= _I32_MAX and _I32_MIN <= p_inc <= _I32_MAX and _I32_MIN <= p_act <= _I32_MAX
                 and _I32_MIN <= v_dem <= _I32_MAX and _I32_MIN <= v_act <= _I32_MAX and _I32_MIN <= fe_u <= _I32_MAX
                 and -0x8000 <= torque_pm <= 0x7FFF and -0x8000 <= current_pm <= 0x7FFF):
-            p_dem, p_inc, p_act = _i32(self.setpoints.demand_m * inv_u), _i32(x * self._inc_per_m), _i32(x * inv_u)
-            v_dem, v_act, fe_u = _i32(self.setpoints.demand_v * inv_u), _i32(ax.velocity_m_s * inv_u), _i32(fe * inv_u)
-            torque_pm = _i16(self._torque_actual_nm(ax) / rated_nm * 1000.0) if rated_nm else 0
-            current_pm = _i16(ax.current_q_a / rated_a * 1000.0) if rated_a else 0
+            p_dem, p_inc, p_act = _i32(sp.demand_m * inv_pu), _i32(x * self._inc_per_m), _i32(x * inv_pu)
+            v_dem, v_act, fe_u = _i32(sp.demand_v * inv_vu), _i32(ax.velocity_m_s * inv_vu), _i32(fe * inv_pu)
+            torque_pm = _i16(self._torque_actual_nm(ax) * sp.velocity_sign / rated_nm * 1000.0) if rated_nm else 0
+            current_pm = _i16(ax.current_q_a * sp.velocity_sign / rated_a * 1000.0) if rated_a else 0
         vdc_mv = ax.dc_link_v * 1000.0
         neg, pos, home = self._switches(ax.position_m, o[(0x6098, 0)])  # (a method: fault injection wraps it)
         values = (
             self._mode, p_dem, p_inc, p_act, v_dem, v_act, torque_pm, current_pm,
             round(vdc_mv) if 0.0 <= vdc_mv <= 4294967295.0 else clamp_to_dtype(vdc_mv, "u32"),
             fe_u,
-            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0),
+            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0) | self.touch_probe.input_bits,
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self.fault_manager.alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
@@ -1084,6 +1129,7 @@ class Drive:
     def state(self) -> DriveState:
         with self._lock:
             o, _u, ax = self.objects, self._u, self._axis
+            ps, vs = self.setpoints.position_sign, self.setpoints.velocity_sign  # (polarity 0x607E)
             return DriveState(
                 name=self.name,
                 time_s=ax.time_s,
@@ -1093,14 +1139,14 @@ class Drive:
                 mode_name=MODE_NAMES.get(self._mode, str(self._mode)),
                 controlword=self._cw,
                 statusword=int(o[(0x6041, 0)]),
-                position_demand_m=self.setpoints.demand_m,
-                position_actual_m=ax.position_m - self.setpoints.zero_m,
+                position_demand_m=self.setpoints.demand_m * ps,
+                position_actual_m=(ax.position_m - self.setpoints.zero_m) * ps,
                 table_position_m=ax.table_position_m,
-                velocity_demand_m_s=self.setpoints.demand_v,
-                velocity_actual_m_s=ax.velocity_m_s,
-                torque_nm=self._torque_actual_nm(ax),
-                current_a=ax.current_q_a,
-                following_error_m=self._fe_m,
+                velocity_demand_m_s=self.setpoints.demand_v * vs,
+                velocity_actual_m_s=ax.velocity_m_s * vs,
+                torque_nm=self._torque_actual_nm(ax) * vs,
+                current_a=ax.current_q_a * vs,
+                following_error_m=self._fe_m * ps,
                 dc_link_v=ax.dc_link_v,
                 motor_temperature_c=MOTOR_AMBIENT_C + self._motor_rise_k,
                 target_reached=bool(int(o[(0x6041, 0)]) & 0x400),

@@ -81,8 +81,8 @@ class ModeContext:
         return v_m_s * (1.0 - kff) / kv if kv > 0 else 0.0
 
     def home_offset_m(self) -> float:
-        """Home offset 0x607C [m]: the position the home point reads as."""
-        return int(self.objects[(0x607C, 0)]) * self.u
+        """Home offset 0x607C [m, the drive's direction]: the position the home point reads as."""
+        return int(self.objects[(0x607C, 0)]) * self.u * self.setpoints.position_sign
 
     def homed(self) -> None:
         """A homing run has attained its home point (the drive tells its observers)."""

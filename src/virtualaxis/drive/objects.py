@@ -50,8 +50,8 @@ def _o(index: int, sub: int, name: str, dtype: str, access: str, default: int) -
     return ObjectSpec(index, sub, name, dtype, access, default)
 
 
-# Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, CSP 0x80, CSV 0x100, CST 0x200
-SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x80 | 0x100 | 0x200
+# Supported modes 0x6502: PP 0x1, PV 0x4, PT 0x8, HM 0x20, IP 0x40, CSP 0x80, CSV 0x100, CST 0x200
+SUPPORTED_MODES_BITS = 0x1 | 0x4 | 0x8 | 0x20 | 0x40 | 0x80 | 0x100 | 0x200
 MODE_BITS = SUPPORTED_MODE_BITS  # 0x6502: the modes of drive.opmodes
 
 OBJECTS: tuple[ObjectSpec, ...] = (
@@ -76,6 +76,11 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x2012, 0, "software limit reaction (0 clamp + SW bit 11, 1 fault EMCY 0x8612)", "u8", "rw", 0),
     _o(0x2013, 0, "limit switch reaction (0 warning A07491/2 + stop, 1 fault F07491/2 0xFF10/0xFF11)", "u8", "rw",
        1),
+    _o(0x2014, 1, "touch probe input 1: switching position (machine coordinate; 0x7FFFFFFF never)", "i32", "rw",
+       0x7FFFFFFF),
+    _o(0x2014, 2, "touch probe input 2: switching position (machine coordinate; 0x7FFFFFFF never)", "i32", "rw",
+       0x7FFFFFFF),
+    _o(0x2014, 3, "touch probe inputs forced active (bit 0 input 1, bit 1 input 2)", "u8", "rw", 0),
     _o(0x2020, 0, "motor temperature [C]", "f32", "ro", 20.0),
     *(_o(0x2030, i, f"fault number {i - 1} (r0947)", "u16", "ro", 0) for i in range(1, 9)),
     _o(0x2031, 0, "alarm number", "u16", "ro", 0),
@@ -132,7 +137,7 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x607C, 0, "home offset", "i32", "rw", 0),
     _o(0x607D, 1, "software position limit: min", "i32", "rw", -300000),
     _o(0x607D, 2, "software position limit: max", "i32", "rw", 300000),
-    _o(0x607E, 0, "polarity (0 only: inverting position / velocity is not offered)", "u8", "rw", 0),
+    _o(0x607E, 0, "polarity (bit 7 position, bit 6 velocity and torque: multiplied by -1)", "u8", "rw", 0),
     _o(0x607F, 0, "max profile velocity", "u32", "rw", 500000),
     _o(0x6080, 0, "max motor speed [1/min] (speed set-point limit, all modes)", "u32", "rw", 3000),
     _o(0x6081, 0, "profile velocity", "u32", "rw", 100000),
@@ -155,10 +160,18 @@ OBJECTS: tuple[ObjectSpec, ...] = (
     _o(0x60A4, 1, "profile jerk", "u32", "rw", 0),
     _o(0x60B1, 0, "velocity offset", "i32", "rw", 0),
     _o(0x60B2, 0, "torque offset [per mille]", "i16", "rw", 0),
+    _o(0x60B8, 0, "touch probe function", "u16", "rw", 0),
+    _o(0x60B9, 0, "touch probe status", "u16", "ro", 0),
+    _o(0x60BA, 0, "touch probe 1 positive edge position", "i32", "ro", 0),
+    _o(0x60BB, 0, "touch probe 1 negative edge position", "i32", "ro", 0),
+    _o(0x60BC, 0, "touch probe 2 positive edge position", "i32", "ro", 0),
+    _o(0x60BD, 0, "touch probe 2 negative edge position", "i32", "ro", 0),
+    _o(0x60C0, 0, "interpolation sub mode select (0 linear)", "i16", "rw", 0),
+    _o(0x60C1, 1, "interpolation data record: position set-point", "i32", "rw", 0),
     _o(0x60C2, 1, "interpolation time period: value", "u8", "rw", 1),
     _o(0x60C2, 2, "interpolation time period: index (10^index s)", "i8", "rw", -3),
     _o(0x60F4, 0, "following error actual value", "i32", "ro", 0),
-    _o(0x60FD, 0, "digital inputs (bit 0 neg. limit, 1 pos. limit, 2 home switch)", "u32", "ro", 0),
+    _o(0x60FD, 0, "digital inputs (bit 0 neg. limit, 1 pos. limit, 2 home, 16 / 17 probe 1 / 2)", "u32", "ro", 0),
     _o(0x60FF, 0, "target velocity", "i32", "rw", 0),
     _o(0x6502, 0, "supported drive modes", "u32", "ro", SUPPORTED_MODES_BITS),
 )

@@ -13,6 +13,7 @@ class OperationMode(enum.IntEnum):
     PV = 3  # profile velocity
     PT = 4  # profile torque
     HM = 6  # homing
+    IP = 7  # interpolated position
     CSP = 8  # cyclic synchronous position
     CSV = 9  # cyclic synchronous velocity
     CST = 10  # cyclic synchronous torque
@@ -22,5 +23,5 @@ class OperationMode(enum.IntEnum):
 SUPPORTED_MODE_BITS = {m: 1 << (m - 1) for m in OperationMode if m != OperationMode.NO_MODE}
 #: the position profile modes and those that hold a position
 TORQUE_MODES = (OperationMode.PT, OperationMode.CST)
-POSITION_MODES = (OperationMode.PP, OperationMode.HM, OperationMode.CSP)
+POSITION_MODES = (OperationMode.PP, OperationMode.HM, OperationMode.IP, OperationMode.CSP)
 VELOCITY_MODES = (OperationMode.PV, OperationMode.CSV)

@@ -22,7 +22,7 @@ ZERO_CURRENT_LIMIT = 1e-9
 #: objects whose change recomputes the parameters (:func:`drive_parameters`)
 PARAMETER_INDICES = frozenset({
     0x6065, 0x6066, 0x6072, 0x2006, 0x2007, 0x6067, 0x6068, 0x606D, 0x606E, 0x606F, 0x6070, 0x200A, 0x200B,
-    0x6075, 0x6076, 0x607F, 0x6080, 0x608F, 0x6091, 0x6092, 0x607D, 0x60C2,
+    0x6075, 0x6076, 0x607F, 0x6080, 0x608F, 0x6091, 0x6092, 0x607D, 0x60C2, 0x607E,
 })
 
 
@@ -63,10 +63,13 @@ def interp_cycles(objects: dict, cycle_s: float) -> int:
 
 
 def travel_limits_m(objects: dict, u: float) -> tuple[float, float] | None:
-    """Software position limits 0x607D [m], None when min >= max (off)."""
+    """Software position limits 0x607D in the drive's direction [m] (position polarity 0x607E bit 7: the
+    master's min / max are the drive's -max / -min), None when min >= max (off)."""
     lo, hi = int(objects[(0x607D, 1)]), int(objects[(0x607D, 2)])
     if lo >= hi:
         return None
+    if int(objects[(0x607E, 0)]) & 0x80:
+        return -hi * u, -lo * u
     return lo * u, hi * u
 
 

@@ -10,6 +10,12 @@ Its limiters (:meth:`position`, :meth:`velocity_limit`, :meth:`clamp_velocity`, 
 :meth:`check_limit`) keep every set-point within the software limits 0x607D, the speed limits 0x607F /
 0x6080, the torque limit 0x6072 and away from an active limit switch; ``internal_limit`` (statusword bit 11)
 tells that one of them acted.
+
+Polarity 0x607E (:meth:`set_polarity`): the drive computes in its own direction (that of the plant); the
+signs ``position_sign`` (bit 7) and ``velocity_sign`` (bit 6) convert between it and the master's values: a
+position object (0x607A, 0x60C1, 0x6062, 0x6064, 0x60F4, 0x607C, 0x607D, 0x60BA-0x60BD; the CSP velocity
+offset 0x60B1) is ``position_sign`` times the drive's value, a velocity or torque object (0x60FF, 0x60B1 in
+CSV, 0x606B, 0x606C, 0x6071, 0x60B2, 0x6074, 0x6077, 0x6078) ``velocity_sign`` times it.
 """
 
 from __future__ import annotations
@@ -58,6 +64,13 @@ class SetpointChannel:
         self.last_vff = 0.0  # speed feed-forward sent last [m/s]
         self.control: ControlMode = sim.mode
         self.internal_limit = False  # a limiter acted (statusword bit 11)
+        self.position_sign = 1  # 0x607E bit 7: -1 (a position object is this times the drive's position)
+        self.velocity_sign = 1  # 0x607E bit 6: -1 (a velocity / torque object is this times the drive's)
+
+    def set_polarity(self, polarity: int) -> None:
+        """Polarity 0x607E: bit 7 position, bit 6 velocity (and torque) values multiplied by -1."""
+        self.position_sign = -1 if polarity & 0x80 else 1
+        self.velocity_sign = -1 if polarity & 0x40 else 1
 
     # ------------------------------------------------------------------ plant
     def set_control(self, mode: ControlMode) -> None:
@@ -132,7 +145,7 @@ class SetpointChannel:
             limited = True
         self.internal_limit = limited
         self._sim.set_torque_setpoint(t)
-        self._store((0x6074, 0), clamp_to_dtype(t / rated_nm * 1000 if rated_nm else 0, "i16"))
+        self._store((0x6074, 0), clamp_to_dtype(self.velocity_sign * t / rated_nm * 1000 if rated_nm else 0, "i16"))
 
     def check_limit(self, target_m: float, raw_value: int) -> float | None:
         """A position target within the software limits 0x607D: clamped (bit 11), or None when the target is

@@ -12,6 +12,7 @@ MODE_NAMES = {
     OperationMode.PV: "PROFILED VELOCITY",
     OperationMode.PT: "PROFILED TORQUE",
     OperationMode.HM: "HOMING",
+    OperationMode.IP: "INTERPOLATED POSITION",
     OperationMode.CSP: "CYCLIC SYNCHRONOUS POSITION",
     OperationMode.CSV: "CYCLIC SYNCHRONOUS VELOCITY",
     OperationMode.CST: "CYCLIC SYNCHRONOUS TORQUE",

@@ -521,7 +521,7 @@ REGISTERS: tuple[Register, ...] = (
     _r(40355, "CURRENT_PERMILLE", "i16", "0.1 % of rated current", "actual current 0x6078",
        lambda v: v.obj(0x6078), None, "0x6078"),
     _r(40356, "DIGITAL_INPUTS", "bits", "bits", "digital inputs 0x60FD (0 neg. limit, 1 pos. limit, 2 home)",
-       lambda v: v.s.digital_inputs, None, "0x60FD"),
+       lambda v: v.s.digital_inputs & 0xFFFF, None, "0x60FD"),  # (bits 16 / 17, the probe inputs: not here)
     _r(40357, "HOMED", "u16", "0/1", "homing attained since power on", lambda v: 1 if v.s.homed else 0, None, ""),
     _r(40358, "TEMP_ALARM", "i16", "1 C", "motor temperature alarm threshold (A07910)",
        lambda v: v.param("motor_temperature_alarm_c"), ObjectWrite(0x200A, 0, 1.0, integer=False),

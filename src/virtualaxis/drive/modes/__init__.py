@@ -7,11 +7,12 @@ from virtualaxis.drive.modes.csp import CyclicPosition
 from virtualaxis.drive.modes.cst import CyclicTorque
 from virtualaxis.drive.modes.csv import CyclicVelocity
 from virtualaxis.drive.modes.hm import HOMING_CRAWL_M, Homing
+from virtualaxis.drive.modes.ip import InterpolatedPosition
 from virtualaxis.drive.modes.pp import ProfilePosition
 from virtualaxis.drive.modes.pt import ProfileTorque
 from virtualaxis.drive.modes.pv import ProfileVelocity
 from virtualaxis.drive.opmodes import OperationMode
 
 __all__ = ["HOMING_CRAWL_M", "MODE_TYPES", "CyclicPosition", "CyclicTorque", "CyclicVelocity", "Homing",
-           "OperatingMode", "OperationMode", "ProfileGenerator", "ProfilePosition", "ProfileTorque",
-           "ProfileVelocity", "make_modes", "register"]
+           "InterpolatedPosition", "OperatingMode", "OperationMode", "ProfileGenerator", "ProfilePosition",
+           "ProfileTorque", "ProfileVelocity", "make_modes", "register"]

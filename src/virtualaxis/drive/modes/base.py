@@ -205,6 +205,9 @@ class OperatingMode:
     def on_target_velocity(self, ctx: ModeContext) -> None:
         """0x60FF / 0x60B1 written."""
 
+    def on_interpolation_data(self, ctx: ModeContext, value: int) -> None:
+        """0x60C1:1 interpolation data record written (raw position units)."""
+
     # ------------------------------------------------------------------ status
     def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         return False

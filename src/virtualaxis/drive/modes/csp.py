@@ -47,7 +47,8 @@ class CyclicPosition(OperatingMode):
 
     def cycle(self, ctx: ModeContext) -> None:
         p, slope = self.interp.step()
-        ctx.setpoints.position(p, slope / ctx.cycle_s + int(ctx.objects[(0x60B1, 0)]) * ctx.u)
+        offset = int(ctx.objects[(0x60B1, 0)]) * ctx.u * ctx.setpoints.position_sign
+        ctx.setpoints.position(p, slope / ctx.cycle_s + offset)
 
     def stop(self, ctx: ModeContext, decel_m_s2: float) -> None:
         self.interp.reset(ctx.setpoints.demand_m)  # no further targets: hold (a CS mode follows the master)

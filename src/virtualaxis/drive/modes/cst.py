@@ -22,7 +22,8 @@ class CyclicTorque(ProfileTorque):
         o = ctx.objects
         rated_nm = float(o[(0x6076, 0)]) / 1000.0
         t_max = float(o[(0x6072, 0)]) / 1000.0 * rated_nm
-        ctx.setpoints.torque((int(o[(0x6071, 0)]) + int(o[(0x60B2, 0)])) / 1000.0 * rated_nm, rated_nm, t_max)
+        sign = ctx.setpoints.velocity_sign
+        ctx.setpoints.torque((int(o[(0x6071, 0)]) + int(o[(0x60B2, 0)])) / 1000.0 * rated_nm * sign, rated_nm, t_max)
 
     def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         return False

@@ -24,14 +24,14 @@ class CyclicVelocity(ProfileVelocity):
 
     def on_target_velocity(self, ctx: ModeContext) -> None:
         if ctx.enabled and not ctx.stopping:
-            v = (int(ctx.obj(0x60FF)) + int(ctx.obj(0x60B1))) * ctx.u
+            v = (int(ctx.obj(0x60FF)) + int(ctx.obj(0x60B1))) * ctx.u * ctx.setpoints.velocity_sign
             self.interp_v.new_target(ctx.setpoints.clamp_velocity(v), ctx.params().interp_cycles)
 
     def cycle(self, ctx: ModeContext) -> None:
         v, _ = self.interp_v.step()
         v = ctx.setpoints.velocity_limit(v)
         o = ctx.objects
-        requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * ctx.u
+        requested = (int(o[(0x60FF, 0)]) + int(o[(0x60B1, 0)])) * ctx.u * ctx.setpoints.velocity_sign
         if ctx.setpoints.clamp_velocity(requested) != requested:
             ctx.setpoints.internal_limit = True
         ctx.setpoints.demand_v = v

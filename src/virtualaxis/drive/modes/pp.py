@@ -15,7 +15,11 @@ if TYPE_CHECKING:
 
 @register
 class ProfilePosition(OperatingMode):
-    """PP (1): trapezoid / jerk-limited profile to 0x607A with the set-point handshake (bits 4, 5, 6)."""
+    """PP (1): trapezoid / jerk-limited profile to 0x607A with the set-point handshake (bits 4, 5, 6) and
+    change on set-point (bit 9): with bit 9 = 1 (bit 5 = 0) a buffered set-point that lies further on in the
+    direction of travel is started when the profile passes the first target, which it passes at the profile
+    velocity of the first set-point (no stop there); a buffered set-point behind the first target waits until
+    the first one is reached, as with bit 9 = 0."""
 
     number = OperationMode.PP
 
@@ -24,26 +28,38 @@ class ProfilePosition(OperatingMode):
         self.ack = False  # statusword bit 12 "set-point acknowledge"
         self.pending_m: float | None = None  # buffered set-point (single set-point, not change immediately)
         self.halting = False  # the halt's braking profile is planned (once, when bit 8 rises)
+        self.setpoint_velocity = 0  # 0x6081 as the running set-point was taken (its velocity through a target)
 
     def reset(self, ctx: ModeContext, p_m: float) -> None:
         super().reset(ctx, p_m)
         self.ack = False
         self.pending_m = None
         self.halting = False
+        self.setpoint_velocity = int(ctx.obj(0x6081))
 
     def entry_decel_m_s2(self, ctx: ModeContext) -> float:
         return float(ctx.obj(0x6084)) * ctx.u
 
-    def limits(self, ctx: ModeContext) -> tuple[float, float, float]:
-        """Profile velocity (0x6081 limited by 0x607F and 0x6080), acceleration 0x6083, deceleration 0x6084
-        [m/s, m/s^2, m/s^2]."""
+    def limits(self, ctx: ModeContext, velocity: int | None = None) -> tuple[float, float, float]:
+        """Profile velocity (0x6081, or ``velocity`` [pos unit/s], limited by 0x607F and 0x6080), acceleration
+        0x6083, deceleration 0x6084 [m/s, m/s^2, m/s^2]."""
         o, u = ctx.objects, ctx.u
-        v = min(float(o[(0x6081, 0)]), float(o[(0x607F, 0)])) * u
+        v = min(float(o[(0x6081, 0)] if velocity is None else velocity), float(o[(0x607F, 0)])) * u
         return min(v, ctx.params().max_speed_m_s), float(o[(0x6083, 0)]) * u, float(o[(0x6084, 0)]) * u
+
+    def passing_through(self, ctx: ModeContext) -> bool:
+        """Change on set-point (controlword bit 9 = 1, bit 5 = 0): a buffered set-point lies beyond the running
+        target in the direction the profile travels to it, so the profile passes that target without stopping."""
+        if self.pending_m is None or ctx.cw & 0x220 != 0x200:
+            return False
+        first = self.gen.target_m
+        ahead = first - self.gen.profile.position_m
+        return ahead != 0.0 and ahead * (self.pending_m - first) > 0.0
 
     def cycle(self, ctx: ModeContext) -> None:
         gen = self.gen
         halt = bool(ctx.cw & 0x100)
+        through = False
         v, a, dec = self.limits(ctx)
         if halt:
             decel = self.halt_decel_m_s2(ctx)
@@ -57,11 +73,19 @@ class ProfilePosition(OperatingMode):
             if self.current_halt is not None:
                 self.release_current_halt(ctx)
             self.halting = False
-            gen.profile.set_target(gen.target_m, v, a, dec)
+            through = self.passing_through(ctx)
+            if through:  # toward the buffered target, at the first set-point's velocity up to the first target
+                vt, _, _ = self.limits(ctx, self.setpoint_velocity)
+                gen.profile.set_target(self.pending_m, vt, a, dec)
+            else:
+                gen.profile.set_target(gen.target_m, v, a, dec)
         p = self._profile_step(ctx)
-        if not halt and self.pending_m is not None and gen.profile.done and gen.jerk.settled(p):
+        if not halt and self.pending_m is not None and (
+                (through and (p - gen.target_m) * (self.pending_m - gen.target_m) >= 0.0)
+                or (gen.profile.done and gen.jerk.settled(p))):
             gen.target_m = self.pending_m
             self.pending_m = None
+            self.setpoint_velocity = int(ctx.obj(0x6081))
             self.start_move(ctx)
             if not ctx.cw & 0x10:
                 self.ack = False
@@ -109,7 +133,7 @@ class ProfilePosition(OperatingMode):
         """Set-point handshake: rising bit 4 takes 0x607A (bit 6 relative, bit 5 change immediately)."""
         if cw & 0x10 and not old_cw & 0x10:
             if not self.ack or cw & 0x20:
-                value = int(ctx.obj(0x607A))
+                value = int(ctx.obj(0x607A)) * ctx.setpoints.position_sign
                 base = self.pending_m if self.pending_m is not None else self.gen.target_m
                 target = base + value * ctx.u if cw & 0x40 else value * ctx.u
                 target_l = ctx.setpoints.check_limit(target, value) if self.plannable(ctx) else None
@@ -118,6 +142,7 @@ class ProfilePosition(OperatingMode):
                     if cw & 0x20 or self.gen.settled():
                         self.gen.target_m = target_l
                         self.pending_m = None
+                        self.setpoint_velocity = int(ctx.obj(0x6081))
                         self.start_move(ctx)
                     else:
                         self.pending_m = target_l

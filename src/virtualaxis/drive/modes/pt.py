@@ -36,7 +36,7 @@ class ProfileTorque(OperatingMode):
         if ctx.cw & 0x100:
             return 0.0
         t_max = float(ctx.obj(0x6072)) / 1000.0 * rated_nm
-        return max(-t_max, min(t_max, int(ctx.obj(0x6071)) / 1000.0 * rated_nm))
+        return max(-t_max, min(t_max, int(ctx.obj(0x6071)) / 1000.0 * rated_nm * ctx.setpoints.velocity_sign))
 
     def cycle(self, ctx: ModeContext) -> None:
         rated_nm = float(ctx.obj(0x6076)) / 1000.0
@@ -45,7 +45,7 @@ class ProfileTorque(OperatingMode):
         diff = target - self.torque_nm
         self.torque_nm = target if slope <= 0 or abs(diff) <= slope else (
             self.torque_nm + math.copysign(slope, diff))
-        requested = int(ctx.obj(0x6071)) / 1000.0 * rated_nm
+        requested = int(ctx.obj(0x6071)) / 1000.0 * rated_nm * ctx.setpoints.velocity_sign
         t_max = float(ctx.obj(0x6072)) / 1000.0 * rated_nm
         ctx.setpoints.torque(self.torque_nm, rated_nm, t_max, requested_nm=requested)
 

@@ -35,7 +35,7 @@ class ProfileVelocity(OperatingMode):
 
     def cycle(self, ctx: ModeContext) -> None:
         o, u = ctx.objects, ctx.u
-        requested = int(o[(0x60FF, 0)]) * u
+        requested = int(o[(0x60FF, 0)]) * u * ctx.setpoints.velocity_sign
         clamped = ctx.setpoints.clamp_velocity(requested)
         target = ctx.setpoints.velocity_limit(clamped)
         if clamped != requested:
@@ -60,7 +60,8 @@ class ProfileVelocity(OperatingMode):
 
     def target_reached(self, ctx: ModeContext, ax, dt: float) -> bool:
         pc = ctx.params()
-        target = ctx.setpoints.clamp_velocity(int(ctx.objects[(0x60FF, 0)]) * ctx.u) if not ctx.cw & 0x100 else 0.0
+        target = (ctx.setpoints.clamp_velocity(int(ctx.objects[(0x60FF, 0)]) * ctx.u * ctx.setpoints.velocity_sign)
+                  if not ctx.cw & 0x100 else 0.0)
         cond = abs(target - ax.velocity_m_s) <= pc.velocity_window_m_s
         return ctx.target_timer.update(cond, dt, pc.velocity_time_s)
 
