@@ -173,7 +173,7 @@ def test_sto_switches_torque_off_with_emcy_and_restart_interlock(vrig):
     assert sw & 0x4F == 0x40 and sw & 0x4000 and sw & 0x80, hex(sw)
     assert node.sdo[0x60FD].raw & (1 << 16)
     assert node.sdo[0x60FE][1].raw & 1 == 1
-    vrig.emcy.wait_for(0x5400)
+    assert vrig.emcy.wait_for(0x5400)[2] == 0x81  # error register: generic + manufacturer
     node.sdo[0x6040].raw = 0x06
     vrig.sync(5)
     assert vrig.sw() & 0x4F == 0x40
