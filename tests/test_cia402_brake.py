@@ -266,3 +266,21 @@ def test_served_brake_and_sto(tmp_path):
         finally:
             net.disconnect()
     assert s.returncode == 0, s.stderr[-2000:]
+
+
+def test_fault_reaction_stops_then_closes_the_brake_before_torque_off(vrig):
+    """A fault with a ramp reaction (0x2010 = 0x5530, 0x605E = 2) on the vertical axis: FAULT REACTION ACTIVE
+    through the stop and the 30 ms brake closing delay with torque, then FAULT with the brake applied; the
+    axis has not fallen (< 80 um of 0x6064)."""
+    node = vrig.node
+    _enable_until_operation(vrig)
+    vrig.sync(100)
+    x0 = node.sdo[0x6064].raw
+    node.sdo[0x2010].raw = 0x5530
+    vrig.sync(20)
+    assert vrig.sw() & 0x4F == 0x0F  # fault reaction active: the brake is closing, torque on
+    assert node.sdo[0x60FE][1].raw & 1 == 1 and node.sdo[0x6077].raw != 0
+    vrig.sync(20)
+    assert vrig.sw() & 0x4F == 0x08
+    vrig.sync(200)
+    assert abs(node.sdo[0x6064].raw - x0) < 80
