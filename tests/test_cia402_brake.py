@@ -243,9 +243,10 @@ def test_served_brake_and_sto(tmp_path):
             node.sdo[0x6040].raw = 0x06
             node.sdo[0x6040].raw = 0x07
             x0 = node.sdo[0x6064].raw
+            cycles0 = node.sdo[0x2110][5].raw
             node.sdo[0x6040].raw = 0x0F
-            assert node.sdo[0x6041].raw & 0x6F == 0x23  # (the 50 ms of the brake opening)
             _wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x27)
+            assert node.sdo[0x2110][5].raw - cycles0 >= 50  # (drive cycles: the 50 ms of the brake opening)
             assert node.sdo[0x60FE][1].raw & 1 == 0
             time.sleep(0.2)
             node.sdo[0x6040].raw = 0x07
