@@ -285,3 +285,13 @@ def test_fault_reaction_stops_then_closes_the_brake_before_torque_off(vrig):
     assert vrig.sw() & 0x4F == 0x08
     vrig.sync(200)
     assert abs(node.sdo[0x6064].raw - x0) < 80
+
+
+def test_brake_output_follows_the_power_stage_without_a_brake(rig):  # noqa: F811
+    """An axis without a brake still shows the output a brake would get: 0x60FE:1 bit 0 = 0 while enabled,
+    1 after disable voltage."""
+    assert rig.node.sdo[0x60FE][1].raw & 1 == 1
+    rig.enable()
+    assert rig.node.sdo[0x60FE][1].raw & 1 == 0
+    rig.node.sdo[0x6040].raw = 0x00
+    assert rig.node.sdo[0x60FE][1].raw & 1 == 1

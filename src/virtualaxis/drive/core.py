@@ -576,9 +576,8 @@ class Drive:
     def _power_off(self) -> None:
         self.sim.enable(False)
         self._power = self.ctx.powered = False
-        if self.brake.has_brake:
-            self.brake.stop()
-            self._update_brake_output()  # the brake closes (it holds after its own closing time)
+        self.brake.stop()
+        self._update_brake_output()  # the brake closes (it holds after its own closing time)
         self._stop = None
         self.ctx.stopping = False
         self.setpoints.demand_v = 0.0
