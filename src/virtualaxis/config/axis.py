@@ -289,6 +289,12 @@ class EffectsParams:
     force_offset_n: float = _p(0.0, doc="constant load force on the table against +x (gravity on an inclined "
                                         "axis, cable drag): m a = F - F_friction - offset; subtracted from any "
                                         "external force [N]")
+    brake_holding_force_n: float = _p(0.0, check=">=0", doc="holding brake on the table: the force it holds "
+                                                            "engaged, slipping beyond it; 0 = no brake [N]")
+    brake_opening_time_s: float = _p(0.0, check=">=0", doc="holding brake: time from the command to open "
+                                                           "until it is released (data sheet) [s]")
+    brake_closing_time_s: float = _p(0.0, check=">=0", doc="holding brake: time from the command to close "
+                                                           "until it holds (data sheet) [s]")
 
 
 @dataclass(frozen=True, kw_only=True)

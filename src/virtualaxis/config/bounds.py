@@ -145,6 +145,9 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "effects.resonance_mass_kg": (1e-3, 1e6),  # as mechanics.table_mass_kg
     "effects.resonance_damping_ratio": (0.0, 1.0),
     "effects.force_offset_n": (-1e7, 1e7),
+    "effects.brake_holding_force_n": (0.0, 1e7),
+    "effects.brake_opening_time_s": (0.0, 10.0),
+    "effects.brake_closing_time_s": (0.0, 10.0),
     # [limits]: 1e9 m is the schema's "no limit"
     "limits.max_velocity_m_s": (1e-6, 100.0),
     "limits.max_acceleration_m_s2": (1e-6, 1e5),

@@ -44,6 +44,20 @@ from virtualaxis.config import AxisConfig
 from virtualaxis.drive import modes
 from virtualaxis.drive import monitoring as mon
 from virtualaxis.drive import reactions as rx
+from virtualaxis.drive.brake import (
+    OBJ_CLOSING_DELAY,
+    OBJ_OPENING_DELAY,
+    OBJ_OUTPUT_MASK,
+    OBJ_OUTPUTS,
+    SET_BRAKE,
+    STO_EMCY,
+    STO_INPUT_BIT,
+    STO_STATUS_BIT,
+    BrakeControl,
+    BrakePhase,
+    SafeTorqueOff,
+    brake_objects,
+)
 from virtualaxis.drive.commissioning import (
     ABORT_DEVICE_STATE,
     ABORT_NO_OBJECT,
@@ -96,6 +110,7 @@ from virtualaxis.sim import CONTROL_MODE, AxisSimulator
 from virtualaxis.sim.simulator import end_stops
 
 S = STATE  # (the members as plain attributes; Cia402State is the type)
+_BRAKE_IDLE = BrakePhase.IDLE
 #: the SDO abort codes of the drive's write checks (:mod:`~virtualaxis.drive.commissioning`), also named here
 WRITE_ABORT_CODES = (ABORT_DEVICE_STATE, ABORT_NO_OBJECT, ABORT_READ_ONLY, ABORT_VALUE_INVALID, ABORT_VALUE_TOO_HIGH,
                      ABORT_VALUE_TOO_LOW)
@@ -187,12 +202,19 @@ class Drive:
         self._switch_input: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None = None  # set_switch_input
         #: fault buffer, 0x603F, persistent causes, warnings and their EMCY
         self.fault_manager = FaultManager(self._store, self.counters, self._emcy, self._emcy_reset)
+        #: the holding brake's sequence (:mod:`~virtualaxis.drive.brake`) and the safe torque off input
+        self.brake = BrakeControl(self.sim.brake is not None, cfg.effects.force_offset_n != 0.0)
+        self.sto = SafeTorqueOff()
         self._reset_all()
 
     # ================================================================================ object table
     def derived_objects(self) -> dict[tuple[int, int], int | float]:
         """Objects whose values come from the axis config (written at boot and on NMT reset node)."""
-        return derived_objects(self.cfg, self.settings, self._eds_defaults, self._switch_at_m)
+        out = derived_objects(self.cfg, self.settings, self._eds_defaults, self._switch_at_m)
+        e = self.cfg.effects
+        if self.sim.brake is not None:
+            out.update(brake_objects(e.brake_opening_time_s, e.brake_closing_time_s))
+        return out
 
     def _max_speed_m_s(self) -> float:
         """0x6080 max motor speed as table speed [m/s] (motor revolutions through the gear 0x6091)."""
@@ -280,6 +302,11 @@ class Drive:
             self._configure_probe_inputs()
             self._set_axis(self.sim.state)
             self._refresh_params()
+            self.brake.stop()
+            self._update_brake_output()
+            self.sto.sources.discard("terminal")  # (0x2042 is 0 again)
+            if self.sto.active:
+                self.fault_manager.set_warning(STO_EMCY, True, None, False)
             # transition 0 + 1 (self-test done): switch on disabled
             self._set_state(S.SWITCH_ON_DISABLED)
             self._publish_outputs()
@@ -314,6 +341,12 @@ class Drive:
     def check_object_write(self, index: int, sub: int, value) -> None:
         """Raise :class:`ObjectAccessError` if writing ``value`` would be refused (no side effects)."""
         spec = self.object_table.check_write(index, sub, value)  # existence, access, type, value ranges
+        if index == 0x60FE:
+            o = self.objects
+            reason = self.brake.check_output_write((index, sub), int(value), int(o[OBJ_OUTPUTS]),
+                                                   int(o[OBJ_OUTPUT_MASK]), self._power)
+            if reason:
+                raise ObjectAccessError(ABORT_DEVICE_STATE, reason)
         if spec is not None:  # (None: an integer object without rules of its own, value in range)
             check_write_rules(spec.key, index, sub, value, self.objects, self.gain_bounds,
                               homing=self._hm.in_progress(),
@@ -440,6 +473,10 @@ class Drive:
                 self.inject_fault(int(value))
         elif index == 0x2011:
             self.sim.set_external_force(float(value))
+        elif index == 0x60FE:
+            self._update_brake_output()
+        elif index == 0x2042:
+            self.set_safe_torque_off("terminal", value != 0)
 
     def _update_scaling(self) -> None:
         o = self.objects
@@ -505,6 +542,8 @@ class Drive:
         tr = _TRANSITIONS[(self._state._value_, cw & 0xF)]
         if tr == TRANSITION.T16 and not 5 <= int(self._obj(0x605A)) <= 8:
             tr = TRANSITION.ILLEGAL
+        if tr == TRANSITION.T2 and self.sto.active:
+            tr = TRANSITION.HOLD  # safe torque off: switching on inhibited
         if tr == TRANSITION.ILLEGAL:  # ignored (the state stays), counted once per new controlword value
             if cw != old_cw:
                 self.counters["illegal_controlword"] += 1
@@ -521,12 +560,20 @@ class Drive:
             self.ctx.stopping = False
             if not self._power:
                 self._power_on()
+            if self.brake.phase is BrakePhase.CLOSING:
+                self.brake.stop()
+            self._update_brake_output()
+            if tr != TRANSITION.T16 and self.brake.start(BrakePhase.OPENING, int(self._obj(*OBJ_OPENING_DELAY))):
+                self._set_state(S.SWITCHED_ON)  # holding, brake opening: OPERATION ENABLED after 0x2040
+                return
             self._enter_mode(self._mode)
             self._set_state(target)
         elif tr in (TRANSITION.T5, TRANSITION.T8):
             option = int(self._obj(0x605C if tr == TRANSITION.T5 else 0x605B))
             if option == 1 and self._stop is not None and self._stop.then is target:
                 return  # the same command again (a master's RPDO repeats it every SYNC): the ramp runs on
+            if option == 1 and self.brake.phase is BrakePhase.CLOSING and self.brake.then is target:
+                return  # ... or the brake is closing for it
             if option == 1 and self._power:
                 self._start_stop("slow", then=target)  # state changes once stopped
             else:
@@ -552,8 +599,8 @@ class Drive:
             else:
                 self._start_stop(kind, then=S.SWITCH_ON_DISABLED if option <= 4 else None)
         else:  # T2, T3, T6, T7, T9, T10, T12: no motion involved (T9/T12 coast)
-            if tr in (TRANSITION.T9, TRANSITION.T12):
-                self._power_off()
+            if tr in (TRANSITION.T9, TRANSITION.T12) or (self._power and tr in (TRANSITION.T6, TRANSITION.T10)):
+                self._power_off()  # (T6 / T10 with power: while the brake opens)
             self._set_state(target)
 
     def _power_on(self) -> None:
@@ -564,14 +611,66 @@ class Drive:
         self.setpoints.send_position(self.setpoints.demand_m, 0.0, 0.0)
         self.sim.enable(True)
         self._power = self.ctx.powered = True
+        self._update_brake_output()
 
     def _power_off(self) -> None:
         self.sim.enable(False)
         self._power = self.ctx.powered = False
+        self.brake.stop()
+        self._update_brake_output()  # the brake closes (it holds after its own closing time)
         self._stop = None
         self.ctx.stopping = False
         self.setpoints.demand_v = 0.0
         self._hm.run = None
+
+    def _update_brake_output(self) -> None:
+        """The brake output (:meth:`BrakeControl.released`) to the plant's brake, shown in 0x60FE:1 bit 0 while
+        the drive drives it."""
+        o = self.objects
+        outputs, mask = int(o[OBJ_OUTPUTS]), int(o[OBJ_OUTPUT_MASK])
+        released = self.brake.released(self._power, outputs, mask)
+        self.sim.command_brake(released)
+        if not mask & SET_BRAKE:
+            self._store(OBJ_OUTPUTS, (outputs & ~SET_BRAKE) | (0 if released else SET_BRAKE))
+
+    def _brake_cycle(self) -> None:
+        """A cycle of the brake opening / closing: the position held with torque; once the delay has elapsed,
+        OPERATION ENABLED (opening) or the power stage off and the state the stop was for (closing)."""
+        self.setpoints.set_control(CONTROL_MODE.POSITION)
+        self.setpoints.position(self.setpoints.demand_m, 0.0)
+        b = self.brake
+        if b.phase is BrakePhase.OPENING:
+            if b.tick(self.cycle_s, int(self._obj(*OBJ_OPENING_DELAY))):
+                self._enter_mode(self._mode)
+                self._set_state(S.OPERATION_ENABLED)
+        elif b.tick(self.cycle_s, int(self._obj(*OBJ_CLOSING_DELAY))):
+            then = b.then if self._state is not S.FAULT_REACTION_ACTIVE else S.FAULT
+            self._power_off()
+            if isinstance(then, Cia402State):
+                self._set_state(then)
+
+    def set_safe_torque_off(self, source: str, active: bool) -> None:
+        """The safe torque off input from ``source`` ("terminal": 0x2042; "injected": fault injection); STO is
+        active while any source demands it (see :mod:`virtualaxis.drive.brake`): torque off at once, the brake
+        closed, SWITCH ON DISABLED (FAULT from a fault reaction), warning EMCY 0x5400; once it is gone the
+        drive stays disabled until shutdown -> switch on -> enable operation."""
+        with self._lock:
+            was, now = self.sto.set(source, bool(active))
+            if now and not was:
+                self._stop = None
+                self.ctx.stopping = False
+                if self._power:
+                    self._power_off()
+                self.brake.stop()
+                self._update_brake_output()
+                if self._state is S.FAULT_REACTION_ACTIVE:
+                    self._set_state(S.FAULT)
+                elif self._state not in (S.FAULT, S.NOT_READY_TO_SWITCH_ON):
+                    self._set_state(S.SWITCH_ON_DISABLED)
+                self.set_warning(STO_EMCY, True)
+            elif was and not now:
+                self.set_warning(STO_EMCY, False)
+            self._update_statusword()
 
     def _start_stop(self, kind: str, then: Cia402State | str | None) -> None:
         """Stop FROM THE ACTUAL MOTION (see :mod:`virtualaxis.drive.reactions`); ``then``: the state once
@@ -657,6 +756,11 @@ class Drive:
         self._enter_mode_idle_hold()
         then = s.then
         if self._state is S.FAULT_REACTION_ACTIVE:
+            then = S.FAULT
+        if isinstance(then, Cia402State) and self.brake.start(BrakePhase.CLOSING, int(self._obj(*OBJ_CLOSING_DELAY)),
+                                                              then):
+            self._update_brake_output()  # brake closing, torque held for 0x2041, then the state change
+        elif then is S.FAULT:
             self._power_off()
             self._set_state(S.FAULT)
         elif then == "resume":
@@ -938,6 +1042,8 @@ class Drive:
         if self._power:
             if self._stop is not None:
                 self._run_stop()
+            elif self.brake.phase is not _BRAKE_IDLE:
+                self._brake_cycle()
             elif self._state == S.OPERATION_ENABLED:
                 self._mode_obj.cycle(self.ctx)
             elif self._state == S.QUICK_STOP_ACTIVE:
@@ -1041,6 +1147,8 @@ class Drive:
             sw |= 0x400
         if self.setpoints.internal_limit or (self._power and self._axis.current_limited):
             sw |= 0x800
+        if self.sto.sources:
+            sw |= STO_STATUS_BIT
         if self._state == S.OPERATION_ENABLED:
             mode = self._mode_obj  # bits 12 / 13 (HM: 10 too): the mode's status_mask
             sw = (sw & ~mode.status_mask) | mode.status_bits(ctx)
@@ -1106,7 +1214,8 @@ class Drive:
             self._mode, p_dem, p_inc, p_act, v_dem, v_act, torque_pm, current_pm,
             round(vdc_mv) if 0.0 <= vdc_mv <= 4294967295.0 else clamp_to_dtype(vdc_mv, "u32"),
             fe_u,
-            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0) | self.touch_probe.input_bits,
+            (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0) | self.touch_probe.input_bits
+            | (STO_INPUT_BIT if self.sto.sources else 0),
             round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self.fault_manager.alarm,
             self.counters["cycles"] & 0xFFFFFFFF,

@@ -46,6 +46,7 @@ FAULT_TABLE: dict[int, FaultInfo] = {
         FaultInfo(0x8611, 7452, "following error too high", 0x20, False),
         FaultInfo(0x8612, 7491, "reference limit (software limit) exceeded", 0x20, False),
         FaultInfo(0x5530, 1000, "internal software error", 0x80, False),
+        FaultInfo(0x5400, 1620, "safe torque off active (STO input)", 0x80, False, "coast"),
         FaultInfo(0x6100, 1000, "internal software error (exception in the drive cycle)", 0x80, True, "coast"),
         FaultInfo(0x8400, 7900, "braking failed: axis not at standstill after the stop ramp", 0x20, False, "coast"),
         FaultInfo(0x8401, 7901, "motor overspeed (beyond 1.2 x 0x6080 max motor speed)", 0x20, True, "coast"),

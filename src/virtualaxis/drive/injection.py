@@ -30,6 +30,9 @@ kind                          EMCY      how it is produced / how it clears
                                         controller does (a bus-off node hears no request to clear it): EMCY
                                         0x8140 and the 0x6007 reaction; also on clear and after each off phase
                                         of the intermittent variant
+``safe_torque_off``           0x5400    the STO input drops: torque off at once, the brake closes, SWITCH ON
+                                        DISABLED, warning EMCY; on clear the restart interlock holds the drive
+                                        disabled until shutdown -> switch on -> enable operation
 ============================  ========  ===================================================================
 
 Intermittent variant of each: ``duty`` in (0, 1) and ``period_s``: active for ``duty * period_s`` of every
@@ -64,6 +67,7 @@ KINDS: dict[str, int] = {
     "lost_rpdos": 8,
     "heartbeat_loss": 9,
     "bus_off": 10,
+    "safe_torque_off": 11,
 }
 KIND_NAMES = {v: k for k, v in KINDS.items()}
 
@@ -79,6 +83,7 @@ EMCY_OF_KIND: dict[str, int] = {
     "lost_rpdos": 0x8250,
     "heartbeat_loss": 0x8130,
     "bus_off": 0x8140,
+    "safe_torque_off": 0x5400,
 }
 
 #: CANopen objects of the channel (manufacturer-specific area; listed in eds/virtualaxis.eds)
@@ -296,6 +301,8 @@ class FaultInjector:
                 inj.anchor_m = None
         elif kind == "limit_switch":
             self._force_switch(inj.side if present else 0)
+        elif kind == "safe_torque_off":
+            drive.set_safe_torque_off("injected", present)
         elif kind == "lost_rpdos":
             self._drop_rpdo = present
         elif kind == "heartbeat_loss":

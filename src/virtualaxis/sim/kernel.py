@@ -59,6 +59,7 @@ from virtualaxis.sim.layout import (
     O_VSAT,
     P_BL,
     P_BL_HALF,
+    P_BRAKE_N,
     P_COG_A,
     P_COG_N,
     P_COG_PH,
@@ -634,6 +635,8 @@ def _mech_step(mp, z, at, bt, wk, wc, gtab, avec, ztmp, actuator, f_ext, was_stu
             else:
                 was_stuck = False
                 d_dir = d
+    elif was_stuck:  # neither friction nor a brake holds the table now
+        was_stuck = False
     # thermal growth of the screw, driven by friction power
     if th_alpha != 0.0:
         p = abs(ffric * z[n + tb]) if not stuck else 0.0
@@ -707,11 +710,20 @@ def run_cycles(st, pr, adt, bdt, krow, crow, gtab, avec, mvec, ring, wat, wbt, w
     ri = int(st[S_RING])
     # mechanical parameters (read once per call: the hot loop stores into st and ring, which the compiler must
     # assume may alias pr) and states held in locals
+    # a holding brake on the table is a Coulomb friction of its holding force on top of the axis' own (the
+    # table sticks while the net force is within it); without friction only the brake's force acts
+    fric_on = pr[P_FRIC] != 0.0
+    brake_n = pr[P_BRAKE_N]
+    fc_pos = (pr[P_FC_POS] if fric_on else 0.0) + brake_n
+    fc_neg = (pr[P_FC_NEG] if fric_on else 0.0) + brake_n
+    fs = pr[P_FS] if fric_on else 0.0
+    fv = pr[P_FV] if fric_on else 0.0
+    fv_neg = pr[P_FV_NEG] if fric_on else 0.0
     mp = (n, tb, int(pr[P_SCREW]), pr[P_HAS_CONTACT] != 0.0, pr[P_BL] != 0.0, pr[P_BL_HALF], pr[P_KC],
           pr[P_LEAD_PPM] * 1e-6 * pr[P_R], pr[P_LEAD_PER_A], pr[P_LEAD_PER_PH], pr[P_TH_ALPHA], pr[P_NUT_OFF],
-          pr[P_FRIC] != 0.0, pr[P_FC_POS], pr[P_FC_NEG], pr[P_FS], pr[P_VS], pr[P_DELTA], pr[P_FV],
-          stribeck_cut_ratio(pr[P_FS], min(pr[P_FC_POS], pr[P_FC_NEG]), pr[P_DELTA]),
-          pr[P_HM] / pr[P_TH_TAU] if pr[P_TH_ALPHA] != 0.0 else 0.0, pr[P_TH_R], pr[P_FV_NEG])
+          fric_on or brake_n != 0.0, fc_pos, fc_neg, fs, pr[P_VS], pr[P_DELTA], fv,
+          stribeck_cut_ratio(fs, min(fc_pos, fc_neg), pr[P_DELTA]),
+          pr[P_HM] / pr[P_TH_TAU] if pr[P_TH_ALPHA] != 0.0 else 0.0, pr[P_TH_R], fv_neg)
     was_stuck = st[S_STUCK] != 0.0
     d_dir = st[S_DIR]
     temp = st[S_TEMP]

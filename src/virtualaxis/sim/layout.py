@@ -87,7 +87,8 @@ P_DEAD_FRAC = 81  # ... and the fraction of a cycle beyond them (the reading is 
 P_STOP_TRAVEL = 82  # end-stop buffer travel [m]: the buffer (P_STOP_K, P_STOP_C) is compressed this far ...
 P_STOP_KH = 83  # ... then the rigid stop behind it takes over with this stiffness [N/m]
 P_OUT_DELAY = 84  # speed-loop output applied this many speed cycles after its samples (0, 1, 2)
-N_PARAMS = 85
+P_BRAKE_N = 85  # holding brake: the holding force it has now [N] (0: released or no brake; set per cycle)
+N_PARAMS = 86
 
 # ---- state (float64 array ``st``) -----------------------------------------------------------------------
 S_T = 0

@@ -19,6 +19,7 @@ from virtualaxis.control.options import fill_option_parameters
 from virtualaxis.plant.discrete import DiscreteMechanics, discretise
 from virtualaxis.plant.mechanics import feedforward_inertia, reflected_inertia_kg_m2
 from virtualaxis.sim import layout as L
+from virtualaxis.sim.brake import HoldingBrake
 from virtualaxis.sim.kernel import run_cycles
 
 
@@ -278,6 +279,10 @@ class AxisSimulator:
         self._pos1, self._vel1, self._acc1 = self._one["pos"], self._one["vel"], self._one["acc"]
         self._aux1, self._fext1 = self._one["aux"], self._one["fext"]
         self._force_offset = -float(cfg.effects.force_offset_n)  # a load against +x: external force -offset
+        #: the holding brake (None: the axis has none); its holding force goes to the kernel every cycle
+        self.brake = HoldingBrake.of(cfg)
+        if self.brake is not None:
+            self.pr[L.P_BRAKE_N] = self.brake.holding_force_n
         self._one["fext"][0] = self._force_offset
         self._noise1 = np.zeros((1, 2))
         # sensor noise of the step API drawn NOISE_BLOCK cycles at a time (the same stream as one draw of 2
@@ -316,7 +321,7 @@ class AxisSimulator:
         self.st[L.S_DIR] = 1.0
         self.st[L.S_POS_FB] = position_m
         self.st[L.S_CMD_POS] = position_m
-        self.st[L.S_STUCK] = 1.0 if self.cfg.friction.enabled else 0.0
+        self.st[L.S_STUCK] = 1.0 if self.cfg.friction.enabled or self.pr[L.P_BRAKE_N] else 0.0
         self.st[L.S_TEMP] = self.cfg.effects.initial_temperature_rise_k
         # at rest means the nut contact is relaxed: with a lead error or a warm screw the table sits where the
         # screw's kinematics put it for this screw angle, not at the nominal position_m (else the contact
@@ -399,6 +404,16 @@ class AxisSimulator:
         _finite("external force", force_n)
         self._one["fext"][0] = force_n + self._force_offset  # effects.force_offset_n: constant external force
 
+    def command_brake(self, released: bool) -> None:
+        """Energise (``released``) or de-energise the holding brake's coil now; it follows after its opening /
+        closing time (:class:`~virtualaxis.sim.brake.HoldingBrake`). Without a brake: nothing."""
+        if self.brake is not None:
+            self.brake.command(released, float(self.st[L.S_T]))
+
+    def brake_released(self) -> bool:
+        """Whether the holding brake is released now (True without a brake: nothing holds the axis)."""
+        return self.brake is None or self.brake.is_released(float(self.st[L.S_T]))
+
     def advance(self, n_cycles: int = 1) -> None:
         """Run ``n_cycles`` position-loop cycles with the present set-points (hot path: no allocation, no enum;
         one compiled kernel call per cycle)."""
@@ -408,7 +423,10 @@ class AxisSimulator:
             self._pos1[0] = self._last[L.O_POS_FB]
         d = self.dm
         kernel = self._step_kernel
+        brake = self.brake
         for _ in range(n_cycles):
+            if brake is not None:  # (its force at the start of the cycle, held through the cycle)
+                self.pr[L.P_BRAKE_N] = brake.force_n(self.st[L.S_T])
             if self._noisy:
                 i = self._noise_next
                 if i == NOISE_BLOCK:
