@@ -107,3 +107,33 @@ def test_sdo_answers_are_taken_only_by_the_exchange_they_answer():
             res = _run_one(axis, "301-EDS-1")
     assert res.status == "pass", res
     assert any("set aside" in line for line in res.trace), res.trace[-5:]
+
+
+
+class _SlowMaster(Context):
+    """A master on a loaded host in real time: each SYNC leaves 2 ms late, so its 1 ms set-point stream sends
+    about one set-point in three periods, with no gap long enough to be seen as a pause."""
+
+    def sync_once(self, answer_cob: int | None = None) -> None:
+        time.sleep(0.002)
+        super().sync_once(answer_cob)
+
+    def stimulus_missed(self) -> str | None:
+        return None  # (a loaded test host adds pauses of its own; the slow stream is what is judged here)
+
+
+def test_a_master_that_sends_too_few_set_points_is_a_run_error():
+    """402-CSP-1 in real time through a master that sends a third of its set-points: the axis travels a third
+    of the 20 mm, which is the master's miss, not the node's: the check is a run error naming the set-points
+    sent, never a failure of the node."""
+    with start_virtual_axis(transport="virtual") as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        ctx = _SlowMaster(net, axis.node_id, str(DEFAULT_EDS), lockstep=False)
+        try:
+            (res,) = run_checks(ctx, select("402-CSP-1"))
+        finally:
+            ctx.stop_sync()
+            net.disconnect()
+    assert res.status == "error" and res.failure_type == "run", res
+    assert "the master or the host" in res.detail, res

@@ -341,8 +341,8 @@ class Context:
         limit = max(STIMULUS_GAP_PERIODS * self.sync_period_s, STIMULUS_GAP_MIN_S)
         if self.lockstep or self.stimulus_gap_s <= limit:
             return None
-        return (f"the master's periodic SYNC / set-point sending paused {self.stimulus_gap_s * 1e3:.0f} ms (more "
-                f"than {limit * 1e3:.0f} ms) during the check: the master or the host missed the stimulus")
+        return (f"the master's periodic SYNC / set-point sending paused {self.stimulus_gap_s * 1e3:.1f} ms (more "
+                f"than {limit * 1e3:.1f} ms) during the check: the master or the host missed the stimulus")
 
     def log_frames(self, cob: int) -> None:
         """Record the frames of ``cob`` in :attr:`frames` too (once, whatever the number of calls)."""
