@@ -14,6 +14,8 @@ from virtualaxis.conformance.runner import Context, run_checks, select
 from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis
 
+pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
+
 
 class _DelayLine:
     """Frames of one COB-ID sent ``delay_s`` after the node produced them, in order (a loaded host's path)."""
