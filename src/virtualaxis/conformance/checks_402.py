@@ -23,6 +23,8 @@ SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
 #: real time: a stream that sent fewer than this share of the periods' set-points was not sent in time by the
 #: master or the host (an error of the run, not a verdict on the node)
 STREAM_MIN_SENT = 0.8
+#: real time: longest wait [s] for the SYNC answers of the sending before a stream to pass (3 quiet periods)
+STREAM_SETTLE_S = 0.05
 MODES = {1: "PP", 3: "PV", 4: "PT", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
 MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 7: 0x40, 8: 0x80, 9: 0x100, 10: 0x200}
 
@@ -133,6 +135,11 @@ class Motion:
         self._stop.clear()
         ctx.streams += 1
         self.sent = []
+        if not ctx.lockstep:  # answers to the SYNCs sent before this stream still on their way: let them pass
+            end = time.monotonic() + STREAM_SETTLE_S
+            while time.monotonic() < end and ctx.frames.wait(ctx.frames.mark(), self.tpdo1, None,
+                                                            3 * ctx.sync_period_s) is not None:
+                pass
         self._stream_mark = ctx.frames.mark()
 
         def run() -> None:
