@@ -38,9 +38,12 @@ def test_suite_passes_against_the_emulator_across_processes(tmp_path, lockstep):
     report = json.loads(js.read_text())
     # what only the other pacing can show: SYNC loss (real time), the cycle a CSP target lands in (lockstep)
     other_pacing = {"301-SYNC-1"} if lockstep else {"402-CSP-2"}
-    bad = [c for c in report["checks"] if c["status"] != "pass" and not (c["status"] == "skipped"
-                                                                          and c["id"] in other_pacing)]
-    assert proc.returncode == 0 and not bad, proc.stdout[-4000:] + proc.stderr[-2000:]
+    # a run error: the master or the host (not the drive) missed the stimulus on a loaded host, with its cause
+    host_missed = [c for c in report["checks"] if c["status"] == "error" and c["failure_type"] == "run"
+                   and "the master or the host" in c["detail"]]
+    bad = [c for c in report["checks"] if c["status"] != "pass" and c not in host_missed
+           and not (c["status"] == "skipped" and c["id"] in other_pacing)]
+    assert proc.returncode == (1 if host_missed else 0) and not bad, proc.stdout[-4000:] + proc.stderr[-2000:]
     assert len(report["checks"]) == len(select(None)) == len(REGISTRY)
     assert proc.stdout.count("\n") >= len(REGISTRY) + 1 and "summary:" in proc.stdout
     suite = ET.parse(junit).getroot()
@@ -165,8 +168,7 @@ def test_a_lost_sdo_request_is_sent_again_and_reported():
 def test_a_late_answer_to_a_request_sent_again_does_not_fail_the_next_exchange():
     """A loaded host answers an SDO request after the master's timeout: the master sent it again and took the
     first answer, and the second answer arrives during the next exchange (a response for another object).
-    The suite sends that exchange again once and notes it (before: the check failed "Unexpected response" /
-    "returned a value for 0x607C instead", seen under load); the check passes."""
+    That exchange does not take it: the late answer is set aside and noted, the check passes."""
     with start_virtual_axis(transport="virtual") as axis:
         slave = axis.runtime.axes[0].slave
         real = slave.sdo.on_frame
@@ -194,8 +196,8 @@ def test_a_late_answer_to_a_request_sent_again_does_not_fail_the_next_exchange()
             net.disconnect()
     assert seen["released"], seen
     assert res.status == "pass", res
-    assert len(res.sdo_retries) == 2 and res.sdo_retries[0] == "SDO write 0x607C:0 = 1000", res
-    assert any("late answer" in line for line in res.trace), res.trace
+    assert res.sdo_retries == ["SDO write 0x607C:0 = 1000"], res
+    assert any("set aside: 60 7c 60" in line for line in res.trace), res.trace
 
 
 def test_limit_switch_check_skips_with_a_reason_without_injection():

@@ -45,6 +45,42 @@ def _hb_state(ctx: Context, mark: int, timeout: float = 0.5) -> int:
     return f[2][0] & 0x7F
 
 
+#: an NMT command's effect is judged on the heartbeats after it: a node still reporting the state it was in
+#: after this many heartbeats (and :data:`STATE_WAIT_MIN_S` of wall time) did not change state
+STATE_WAIT_HEARTBEATS = 25
+#: ... and at least this wall time [s] (a heartbeat stream delayed by the host is waited for)
+STATE_WAIT_MIN_S = 1.0
+#: no heartbeat at all for this long [s] after an NMT stop / start: the producer stopped
+NO_HEARTBEAT_S = 5.0
+
+
+def _hb_state_after(ctx: Context, mark: int, before: int, what: str) -> int:
+    """The NMT state the node reports after a command sent at frame ``mark``, when it was in ``before``: the state
+    of the first heartbeat after the mark that differs from ``before``. Heartbeats carrying ``before`` logged
+    after the mark are not judged: they may have been produced before the node received the command (in flight,
+    or read late by a loaded master). The wait is counted in heartbeats, the node's own clock: ``before`` after
+    :data:`STATE_WAIT_HEARTBEATS` heartbeats (and :data:`STATE_WAIT_MIN_S` s) means the node stayed in it."""
+    t0 = time.monotonic()
+    seen = mark
+    beats: list[int] = []
+    while True:
+        f = ctx.frames.wait(seen, ctx.hb_cob, lambda d: len(d) == 1 and d[0] != 0, 0.05)
+        if f is not None:
+            seen = ctx.frames.mark()
+            beats = [d[0] & 0x7F for _, _, d in ctx.frames.since(mark, ctx.hb_cob) if len(d) == 1 and d[0] != 0]
+            changed = [s for s in beats if s != before]
+            if changed:
+                first = beats.index(changed[0])
+                ctx.note(f"heartbeats after {what}: " + ", ".join(f"0x{s:02X}" for s in beats[:first + 1]))
+                return changed[0]
+        waited = time.monotonic() - t0
+        if len(beats) >= STATE_WAIT_HEARTBEATS and waited >= STATE_WAIT_MIN_S:
+            ctx.note(f"{len(beats)} heartbeats after {what}, all 0x{before:02X}")
+            return before
+        if not beats and waited > NO_HEARTBEAT_S:
+            raise Fail(f"no heartbeat within {waited:.1f} s after {what}")
+
+
 # ============================================================================ node time in lockstep
 def _sync_answer(ctx: Context) -> int | None:
     """Lockstep, after a boot: TPDO2 remapped to the statusword, transmission type 1 (the node's answer to every
@@ -189,10 +225,10 @@ def heartbeat(ctx: Context) -> str:
        "NMT 0x02, SDO read, NMT 0x01", "stopped: heartbeat 0x04 and no SDO answer; start: 0x05")
 def stop_start(ctx: Context) -> str:
     ctx.write(0x1017, 0, 20)
+    before = _hb_state(ctx, ctx.frames.mark())  # (the state before the command: no command is under way)
     mark = ctx.frames.mark()
     ctx.nmt(0x02)
-    time.sleep(0.08)
-    st = _hb_state(ctx, ctx.frames.mark())
+    st = _hb_state_after(ctx, mark, before, "NMT stop")
     if st != 0x04:
         raise Fail(f"heartbeat 0x{st:02X} after NMT stop, expected 0x04")
     old = ctx.node.sdo.RESPONSE_TIMEOUT
@@ -206,11 +242,10 @@ def stop_start(ctx: Context) -> str:
         answered = True
     finally:
         ctx.node.sdo.RESPONSE_TIMEOUT = old
+    mark = ctx.frames.mark()
     ctx.nmt(0x01)
-    time.sleep(0.08)
-    st2 = _hb_state(ctx, ctx.frames.mark())
+    st2 = _hb_state_after(ctx, mark, 0x04, "NMT start")
     ctx.nmt(0x80)
-    del mark
     if answered:
         raise Fail("SDO answered in STOPPED (CiA 301: only NMT and heartbeat / guarding)")
     if st2 != 0x05:

@@ -20,6 +20,11 @@ from virtualaxis.conformance.runner import Context, Fail, RunError, Skip, boot, 
 
 STATE_MASK = 0x6F
 SOD, RTSO, SO, OE, QSA = 0x40, 0x21, 0x23, 0x27, 0x07
+#: real time: a stream that sent fewer than this share of the periods' set-points was not sent in time by the
+#: master or the host (an error of the run, not a verdict on the node)
+STREAM_MIN_SENT = 0.8
+#: real time: longest wait [s] for the SYNC answers of the sending before a stream to pass (3 quiet periods)
+STREAM_SETTLE_S = 0.05
 MODES = {1: "PP", 3: "PV", 4: "PT", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
 MODE_BITS = {1: 0x1, 3: 0x4, 4: 0x8, 6: 0x20, 7: 0x40, 8: 0x80, 9: 0x100, 10: 0x200}
 
@@ -60,6 +65,8 @@ class Motion:
         self.cw = 0x0F
         self.step_units = 0.0
         self.streamed = 0  # SYNCs the stream has sent
+        self.sent: list[float] = []  # the targets of the stream under way, one per SYNC, in order
+        self._stream_mark = 0  # the frame log's length when the stream under way began
 
     def map(self, comm: int, mapping: int, cob: int, entries: list[int], ttype: int) -> None:
         ctx = self.ctx
@@ -127,6 +134,13 @@ class Motion:
         self.step_units = velocity_units_s * ctx.sync_period_s
         self._stop.clear()
         ctx.streams += 1
+        self.sent = []
+        if not ctx.lockstep:  # answers to the SYNCs sent before this stream still on their way: let them pass
+            end = time.monotonic() + STREAM_SETTLE_S
+            while time.monotonic() < end and ctx.frames.wait(ctx.frames.mark(), self.tpdo1, None,
+                                                            3 * ctx.sync_period_s) is not None:
+                pass
+        self._stream_mark = ctx.frames.mark()
 
         def run() -> None:
             period = ctx.sync_period_s
@@ -135,6 +149,7 @@ class Motion:
             while not self._stop.is_set():
                 self.target += self.step_units
                 self.rpdo(self.cw, round(self.target))
+                self.sent.append(self.target)
                 ctx.sync_once(answer_cob=self.tpdo1)  # (lockstep: waits for the node's answer)
                 ctx.periodic_sent(restart=first)
                 first = False
@@ -149,11 +164,23 @@ class Motion:
         self._stream = threading.Thread(target=run, daemon=True, name="conformance-csp")
         self._stream.start()
 
+    def tracking(self) -> list[tuple[float, Sample]]:
+        """The stream's targets paired with the node's TPDO1 samples in order: the k-th sample since the stream
+        began answers its k-th SYNC, sent after its k-th target (a sample is judged against the target of its
+        own SYNC, not against the target the stream has reached when the master looks)."""
+        return list(zip(list(self.sent), self.samples(self._stream_mark), strict=False))
+
     def run_syncs(self, n: int, timeout_s: float | None = None) -> None:
         """Let the stream run for ``n`` SYNC periods of the node: ``n`` SYNCs (lockstep: the node's time is
-        the SYNC count), ``n`` periods of wall time (real time)."""
+        the SYNC count), ``n`` periods of wall time (real time; fewer than :data:`STREAM_MIN_SENT` x ``n``
+        set-points sent meanwhile is an error of the run: the master or the host missed the stimulus)."""
         if not self.ctx.lockstep:
+            s0 = self.streamed
             time.sleep(n * self.ctx.sync_period_s)
+            sent = self.streamed - s0
+            if self._stream is not None and sent < STREAM_MIN_SENT * n:
+                raise RunError(f"the master sent {sent} set-points + SYNCs in {n} periods of "
+                               f"{self.ctx.sync_period_s * 1e3:g} ms: the master or the host missed the stimulus")
             return
         goal = self.streamed + n
         timeout_s = timeout_s if timeout_s is not None else max(10.0, 0.1 * n)
@@ -420,8 +447,10 @@ def csp_follow(ctx: Context) -> str:
         d = _toward_middle(ctx)
         mo.stream(p0, d * ctx.mm(50))
         mo.run_syncs(400)
-        s = mo.samples(ctx.frames.mark() - 20)[-1:] or [mo.last()]
-        err = abs(mo.target - s[0].pos)
+        pairs = mo.tracking()
+        if not pairs:
+            raise Fail("no TPDO1 (statusword + position) answered the stream's SYNCs")
+        err = abs(pairs[-1][0] - pairs[-1][1].pos)
         mo.step_units = 0.0
         mo.run_syncs(300)
         s2 = mo.last()

@@ -9,6 +9,7 @@ or waits for is recorded in ``ctx.trace`` and reported with its result.
 from __future__ import annotations
 
 import json
+import queue
 import re
 import threading
 import time
@@ -21,7 +22,7 @@ from typing import Any
 import can
 import canopen
 
-from virtualaxis.master import SdoTransferOverrun, install_bounded_sdo
+from virtualaxis.master import BoundedSdoClient, SdoTransferOverrun
 
 
 class Fail(Exception):
@@ -181,6 +182,98 @@ def missing_object(exc: BaseException, ctx: Context | None = None) -> int | None
     return None
 
 
+class MatchedSdoClient(BoundedSdoClient):
+    """The suite's SDO client: an answer is taken only by the exchange it answers. A frame of the server that
+    does not answer the request last sent is set aside (kept in :attr:`set_aside`), never taken for it:
+
+    - an initiate (expedited / segmented / block) is answered by its own response type carrying the request's
+      index and sub-index, or by an abort carrying them;
+    - a segment request is answered by a segment response with the request's toggle bit, or by an abort of the
+      transfer (its index and sub-index);
+    - frames already queued when a request is sent answer earlier exchanges (late answers, answers to another
+      client on the same COB-IDs, the second answer to a request sent again) and are dropped with it.
+
+    Within block transfers (sub-block frames carry no command specifier) only aborts are matched."""
+
+    def __init__(self, rx_cobid: int, tx_cobid: int, od, *, transfer_timeout_s: float | None = None):
+        super().__init__(rx_cobid, tx_cobid, od, transfer_timeout_s=transfer_timeout_s)
+        self._match_lock = threading.Lock()
+        self._mux: bytes | None = None  # index and sub-index of the transfer under way
+        self._scs: set[int] | None = None  # server command specifiers that answer the pending request
+        self._toggle: int | None = None  # toggle bit the answer to a segment request carries
+        self._mux_checked = False  # the pending request is an initiate: its answer carries the mux
+        self._block: str | None = None  # a block transfer under way: "up" / "down"
+        #: frames of the server that answered no pending request (hex), oldest first
+        self.set_aside: list[str] = []
+
+    def send_request(self, request) -> None:
+        b = bytes(request)
+        ccs = b[0] >> 5 if b else -1
+        with self._match_lock:
+            self._toggle, self._mux_checked = None, False
+            if ccs == 4:  # an abort of the client (a block download's segments never start with 0x80)
+                self._mux = self._scs = self._block = None
+            elif self._block == "down" and self._scs is None:
+                pass  # a sub-block segment (its first byte is its sequence number) or the end of the download
+            elif self._block == "up" and ccs == 5:
+                self._scs = None  # start / acknowledge / end of a block upload: sub-block frames answer them
+                if b[0] & 0x03 == 1:
+                    self._block = None
+            elif ccs in (1, 2) or (ccs == 6 and b[0] & 0x01 == 0) or (ccs == 5 and b[0] & 0x03 == 0):
+                self._mux, self._mux_checked = b[1:4], True
+                self._scs = {1: {3}, 2: {2}, 6: {5}, 5: {6, 2}}[ccs]  # (block upload may switch to segmented)
+                self._block = {5: "up", 6: "down"}.get(ccs)
+            elif ccs in (0, 3):
+                self._scs, self._toggle = {0: {1}, 3: {0}}[ccs], b[0] & 0x10
+            else:
+                self._scs = None
+            while True:  # what is queued now answered an earlier exchange
+                try:
+                    stale = self.responses.get_nowait()
+                except queue.Empty:
+                    break
+                self.set_aside.append(stale.hex(" "))
+        super().send_request(request)
+
+    def answers(self, data: bytes) -> bool:
+        """Whether the server frame ``data`` answers the request last sent."""
+        if len(data) != 8:
+            return True  # (malformed: reported as such by the client)
+        if data[0] == 0x80:
+            return self._mux is None or data[1:4] == self._mux
+        if self._scs is None:
+            return True
+        if data[0] >> 5 not in self._scs:
+            return False
+        if self._mux_checked:
+            return data[1:4] == self._mux
+        return self._toggle is None or data[0] & 0x10 == self._toggle
+
+    def on_response(self, can_id: int, data, timestamp: float) -> None:
+        frame = bytes(data)
+        with self._match_lock:
+            if not self.answers(frame):
+                self.set_aside.append(frame.hex(" "))
+                return
+            self.responses.put(frame)
+            if self._block == "down":
+                if self._mux_checked:  # the initiate's answer: the segments follow
+                    self._mux_checked, self._scs = False, None
+                elif len(frame) == 8 and (frame[0] == 0x80 or frame[0] & 0xE3 == 0xA1):
+                    self._block = None  # aborted, or the end of the download answered
+
+
+def install_matched_sdo(node) -> MatchedSdoClient:
+    """Replace ``node``'s default SDO client (before ``network.add_node(node)``) by a :class:`MatchedSdoClient`
+    on the same COB-IDs; returns it."""
+    old = node.sdo
+    client = MatchedSdoClient(old.rx_cobid, old.tx_cobid, node.object_dictionary)
+    client.RESPONSE_TIMEOUT = old.RESPONSE_TIMEOUT
+    node.sdo_channels[:] = [client if c is old else c for c in node.sdo_channels]
+    node.sdo = client
+    return client
+
+
 class Context:
     """What a check works with: the network, the node (``BaseNode402`` on the EDS), the EDS' dictionary,
     frame logs and helpers that record every exchange in :attr:`trace`."""
@@ -191,7 +284,8 @@ class Context:
         self.node_id = node_id
         self.eds = eds
         self.node = canopen.BaseNode402(node_id, eds)
-        self.sdo_client = install_bounded_sdo(self.node)  # transfers that never end are cut, short frames named
+        # transfers that never end are cut, short frames named, answers matched to their exchange
+        self.sdo_client = install_matched_sdo(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
         network.add_node(self.node)
         self.od = self.node.object_dictionary
@@ -247,8 +341,8 @@ class Context:
         limit = max(STIMULUS_GAP_PERIODS * self.sync_period_s, STIMULUS_GAP_MIN_S)
         if self.lockstep or self.stimulus_gap_s <= limit:
             return None
-        return (f"the master's periodic SYNC / set-point sending paused {self.stimulus_gap_s * 1e3:.0f} ms (more "
-                f"than {limit * 1e3:.0f} ms) during the check: the master or the host missed the stimulus")
+        return (f"the master's periodic SYNC / set-point sending paused {self.stimulus_gap_s * 1e3:.1f} ms (more "
+                f"than {limit * 1e3:.1f} ms) during the check: the master or the host missed the stimulus")
 
     def log_frames(self, cob: int) -> None:
         """Record the frames of ``cob`` in :attr:`frames` too (once, whatever the number of calls)."""
@@ -588,6 +682,7 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
         ctx.retries = []
         ctx.last_abort = None
         ctx.stimulus_gap_s = 0.0
+        aside0 = len(ctx.sdo_client.set_aside)
         t0 = time.monotonic()
         failure_type = ""
         try:
@@ -626,6 +721,9 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
         stopped = _run_stopped(ctx, chk, results)
         if stopped is not None:
             raise stopped
+        aside = ctx.sdo_client.set_aside[aside0:]
+        if aside:
+            ctx.note(f"{len(aside)} SDO frame(s) answering no pending request set aside: " + "; ".join(aside[:5]))
         missed = ctx.stimulus_missed() if status == "fail" else None
         if missed is not None:  # real time: not the node's failure when the master did not send its stimulus
             ctx.note(f"failure not judged: {detail}")
