@@ -88,20 +88,16 @@ def pytest_unconfigure(config):
 @pytest.fixture(autouse=True)
 def _exclusive_of_background(request):
     """Tests marked ``exclusive`` (timing-sensitive: a drive served at 1 ms, a master judging its answers) run
-    alone: no other test on another pytest-xdist worker beside them (tests/session_lock.py), and the background
-    computations stopped (tests/background.py). Every other test holds the session lock shared."""
+    one at a time across the pytest-xdist workers (tests/session_lock.py) and with the background computations
+    stopped (tests/background.py). Beside them, the other worker runs ordinary tests: a CI runner with other
+    work on it, which these tests must stand."""
+    if request.node.get_closest_marker("exclusive") is None:
+        yield
+        return
     import background
     from session_lock import SessionLock
 
-    lock = SessionLock(request.config.stash[SHARED])
-    if request.node.get_closest_marker("exclusive") is None:
-        if _workers(request.config):
-            with lock.shared():
-                yield
-        else:
-            yield
-        return
-    with lock.exclusive():
+    with SessionLock(request.config.stash[SHARED]).exclusive():
         paused = background.pause(request.config)
         try:
             yield

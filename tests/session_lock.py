@@ -1,9 +1,9 @@
-"""A readers-writer lock shared by the processes of one test session (pytest-xdist workers).
+"""A lock shared by the processes of one test session (the pytest-xdist workers).
 
-Ordinary tests hold it shared, so they run side by side on the workers; a test marked ``exclusive`` (a drive
-served in real time, a master judging its answers) holds it exclusively, so it runs with no other test beside
-it, as in a session without workers. A turnstile in front of the shared side keeps a waiting exclusive test
-from being starved by a stream of ordinary ones: once it waits, no new ordinary test starts.
+A test marked ``exclusive`` (a drive served in real time, a master judging its answers) holds it exclusively, so
+no two such tests run at once on different workers. The shared side (with a turnstile in front of it, so a waiting
+exclusive holder is not starved by a stream of shared ones) is there for tests that must run with no exclusive
+test beside them.
 """
 
 from __future__ import annotations

@@ -19,10 +19,11 @@ C4 = ROOT / "configs" / "seed004-siemens.toml"
 
 def _run_and_signal(tmp_path: Path, sig: int, out: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src") + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    # a long run (600 s simulated, ~200 MB of trace) that is certainly still writing when the signal comes
+    # a long run (3600 s simulated: ~430 MB of trace, several seconds of writing even on a fast host) that is
+    # certainly still writing when the signal comes
     proc = subprocess.Popen(
         [sys.executable, "-m", "virtualaxis.cli.main", "simulate", "--config", str(C4), "--profile",
-         "sine:stroke_mm=100,feed_mm_min=3000", "--duration", "600", "--out", str(out), "--force"],
+         "sine:stroke_mm=100,feed_mm_min=3000", "--duration", "3600", "--out", str(out), "--force"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
     deadline = time.monotonic() + 90
     # wait until the temporary trace has grown (the run is writing), then signal

@@ -61,7 +61,7 @@ def test_motion_checks_pass_with_the_axis_left_at_the_end_of_the_travel():
     """A second run of the suite finds the axis where the first left it: 402-FLD-6 drives onto the + limit
     switch and stops ~5 mm before it. The motion checks then move toward the middle of the travel (before:
     PP-1, PV-1, CSP-1, FLD-1 and FLD-2 failed on every later run against the same drive)."""
-    with start_virtual_axis(transport="virtual") as axis:
+    with start_virtual_axis(transport="virtual", lockstep=True) as axis:  # the suite's pacing
         net = canopen.Network()
         net.connect(**axis.bus_kwargs)
         try:

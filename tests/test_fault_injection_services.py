@@ -23,8 +23,12 @@ from served_drive import served
 from services_fixtures import mosquitto  # noqa: F401 (fixture)
 from test_services_mqtt import SCHEMAS
 
+from virtualaxis.drive.injection import KINDS
 from virtualaxis.master import DEFAULT_EDS, connect
 from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
+
+#: a kind number no fault kind has
+UNKNOWN_KIND = max(KINDS.values()) + 1
 
 pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
@@ -109,7 +113,7 @@ def test_modbus_injects_dc_link_undervoltage_and_clears_it():
             time.sleep(0.1)
             assert mb.state() == FAULT
             # an unknown kind: exception 03, the drive's abort code recorded; nothing changes
-            assert mb.refused(FI_INJECT, 11) == (3, 4, FI_INJECT - A, 0x06090030)
+            assert mb.refused(FI_INJECT, UNKNOWN_KIND) == (3, 4, FI_INJECT - A, 0x06090030)
             assert mb.refused(FI_CLEAR, 12) == (3, 4, FI_CLEAR - A, 0x06090030)
             assert mb.refused(FI_DUTY, 1001) == (3, 4, FI_DUTY - A, 0x06090030)
             assert mb.refused(FI_PERIOD, 0, 1) == (3, 4, FI_PERIOD - A, 0x06090030)
@@ -262,7 +266,7 @@ def test_mqtt_inject_result_fault_event_malformed_commands_and_serve_goes_on(mos
                 assert not SCHEMAS["fault/set"].is_valid(payload), payload
         # refused by the drive's injector (well-formed): the abort code, and what stays injected
         cmd.publish({"action": "inject", "kind": "no_such_kind", "id": "c3"})
-        cmd.publish({"action": "inject", "kind": 11, "id": "c4"})
+        cmd.publish({"action": "inject", "kind": UNKNOWN_KIND, "id": "c4"})
         cmd.publish({"action": "inject", "kind": "encoder_loss", "duty": 2.0, "id": "c5"})
         for ident in ("c3", "c4", "c5"):
             r = cmd.result(ident)
@@ -309,7 +313,7 @@ def test_injection_refused_on_both_channels_without_allow_fault_injection(mosqui
             assert mb.read(FI_ALLOWED) == [0]
             # every write of the block: exception 04, reason 3 (drive state), abort 0x08000022; the unknown
             # kind too (the permission is checked first, as on CAN)
-            for number, values in ((FI_INJECT, (4,)), (FI_INJECT, (11,)), (FI_CLEAR, (0,)), (FI_DUTY, (500,)),
+            for number, values in ((FI_INJECT, (4,)), (FI_INJECT, (UNKNOWN_KIND,)), (FI_CLEAR, (0,)), (FI_DUTY, (500,)),
                                    (FI_PERIOD, (0, 200)), (FI_MAGNITUDE, (0, 5)), (FI_DUTY, (0, 0, 1000, 0, 0, 4))):
                 assert mb.refused(number, *values) == (4, 3, number - A, 0x08000022), (number, values)
             assert mb.u32(FI_ACTIVE) == 0 and mb.read(FI_DUTY, 5) == [0, 0, 1000, 0, 0]
