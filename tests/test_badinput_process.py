@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from signal_defaults import default_terminal_signals
 
 ROOT = Path(__file__).resolve().parents[1]
 C4 = ROOT / "configs" / "seed004-siemens.toml"
@@ -171,7 +172,8 @@ def test_second_ctrl_c_during_diagnose_ends_it(tmp_path):
     out = tmp_path / "d"
     proc = subprocess.Popen([sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(C4),
                              str(GOOD_TRACE), "--out", str(out), "--jobs", "2"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=tmp_path, start_new_session=True,
+                            preexec_fn=default_terminal_signals)
     try:
         deadline = time.monotonic() + 300
         workers: list[int] = []

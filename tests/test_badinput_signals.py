@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from signal_defaults import default_terminal_signals
 
 ROOT = Path(__file__).resolve().parents[1]
 C4 = ROOT / "configs" / "seed004-siemens.toml"
@@ -24,7 +25,8 @@ def _run_and_signal(tmp_path: Path, sig: int, out: Path) -> subprocess.Completed
     proc = subprocess.Popen(
         [sys.executable, "-m", "virtualaxis.cli.main", "simulate", "--config", str(C4), "--profile",
          "sine:stroke_mm=100,feed_mm_min=3000", "--duration", "3600", "--out", str(out), "--force"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+        preexec_fn=default_terminal_signals)
     deadline = time.monotonic() + 90
     # wait until the temporary trace has grown (the run is writing), then signal
     while time.monotonic() < deadline:
