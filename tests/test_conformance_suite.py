@@ -54,7 +54,9 @@ def test_suite_passes_against_the_emulator_across_processes(tmp_path, lockstep):
     cases = {c.get("name"): c for c in suite.iter("testcase")}
     assert set(cases) == {c.id for c in REGISTRY}
     out = cases["402-FLD-1"].find("system-out").text
-    assert "pass: 0x605E = 2:" in out and "SDO write 0x605E:0 = 1 -> ok" in out  # the outcome and the exchanges
+    # the outcome and the exchanges (a run error of the host instead of the outcome when the host missed it)
+    outcome = "error: " if any(c["id"] == "402-FLD-1" for c in host_missed) else "pass: 0x605E = 2:"
+    assert outcome in out and "SDO write 0x605E:0 = 1 -> ok" in out, out
 
 
 def test_motion_checks_pass_with_the_axis_left_at_the_end_of_the_travel():
