@@ -1273,9 +1273,10 @@ class Publisher:
                             ch.states.popleft()
                 now = time.monotonic()
                 dirty, ch.state_dirty = ch.state_dirty, False
-                if now >= next_state or stopping or (dirty and ch.current != published):
+                if (ch.current != published and (dirty or stopping)) or (now >= next_state and not stopping):
                     # (the current state last, so the retained message is the newest; not again when it is
-                    # the event's state just published: one state message per drive event)
+                    # the event's state just published: one state message per drive event; at a stop the
+                    # offline state below carries it when it is)
                     published = ch.current
                     await client.publish(self.topic(ch, "state"), self.state_payload(ch, published), qos=1,
                                          retain=True)

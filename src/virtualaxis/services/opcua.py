@@ -26,8 +26,9 @@ that process the CPU and the interpreter lock, not serve's. In serve (:class:`Op
   the server process emits the OPC UA events;
 - a **bridge thread** applies the writes and method calls the server process forwards, and takes its counters.
 
-The server process ends on the socket's EOF, i.e. with serve even if serve is killed; if it ends on its own,
-serve prints one warning line and goes on serving CANopen (``server_process`` in the stats).
+The server process is serve's child (child.py): it ends on the socket's EOF, i.e. with serve even if serve is
+killed; if it ends on its own, serve prints one warning line and goes on serving CANopen (``server_process`` in
+the stats).
 
 Client writes go only to ``Parameters/*`` and only with ``writable``: each is checked and applied (in serve) by
 ``Drive.set_parameter`` (the checks of an SDO download); a refusal answers the SDO abort code's OPC UA status
@@ -44,20 +45,17 @@ import ipaddress
 import itertools
 import math
 import os
-import socket
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from virtualaxis.services import listen
-from virtualaxis.services.threads import leave_realtime, short_gil_slices
+from virtualaxis.services.child import ChildProcess, ParentLink, enter_child
+from virtualaxis.services.threads import short_gil_slices
 
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
@@ -388,13 +386,8 @@ class OpcuaService:
                          "writes_refused": 0}
         self.server_counters = {"samples_replaced": 0, "events": 0, "writes_refused": 0, "method_calls": 0,
                                 "update_errors": 0}  # as last reported by the server process
-        self.server_process = "not started"  # running, stopped, or ended (exit code N)
-        self._proc: subprocess.Popen | None = None
-        self._conn: Connection | None = None
-        self._send_lock = threading.Lock()
+        self._child = ChildProcess(f"--opcua {settings.host}:{settings.port}", "the OPC UA server", "OPC UA")
         self._stop = threading.Event()
-        self._gone = threading.Event()  # the server process ended (or was stopped)
-        self._bridge: threading.Thread | None = None
         self._sampler: threading.Thread | None = None
         self._observers: list[tuple[Any, Callable]] = []
         self._last_alarm: dict[str, int] = {}
@@ -404,35 +397,10 @@ class OpcuaService:
         """Start the server process, then the bridge and the sampler; returns once the server listens (OSError
         naming ``--opcua`` if it cannot)."""
         short_gil_slices()  # the bridge and the sampler never hold the drive's runtime thread for a 5 ms slice
-        where = f"--opcua {self.settings.host}:{self.settings.port}"
         layout = [self._layout(ax) for ax in self.axes]
-        # a plain child interpreter (not multiprocessing's spawn, which would re-run the caller's __main__)
-        # joined by a socket pair; its EOF tells the server process that serve is gone
-        ours, theirs = socket.socketpair()
-        src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        code = "import sys; from virtualaxis.services.opcua import server_child; server_child(int(sys.argv[1]))"
-        self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno())],
-                                      pass_fds=(theirs.fileno(),), env=env)
-        theirs.close()
-        self._conn = Connection(ours.detach())
-        try:
-            self._conn.send(("init", self.settings, layout))
-            if not self._conn.poll(timeout_s):
-                raise OSError(f"{where}: the OPC UA server did not start in {timeout_s:g} s")
-            kind, value = self._conn.recv()
-        except (EOFError, OSError) as exc:
-            self.stop()
-            if isinstance(exc, OSError) and str(exc).startswith(where):
-                raise
-            raise OSError(f"{where}: the OPC UA server process ended while starting") from None
-        if kind != "ready":
-            self.stop()
-            raise OSError(f"{where}: {value}")
-        self.bound_port = int(value)
-        self.server_process = "running"
-        self._bridge = threading.Thread(target=self._serve_bridge, name="virtualaxis-opcua-bridge", daemon=True)
-        self._bridge.start()
+        self.bound_port = int(self._child.start("virtualaxis.services.opcua:server_child",
+                                                ("init", self.settings, layout), timeout_s))
+        self._child.serve(self._handle, "virtualaxis-opcua-bridge")
         for ax in self.axes:
             cb = self._observer(ax)
             ax.drive.add_observer(cb)
@@ -448,25 +416,17 @@ class OpcuaService:
         self._observers.clear()
         if self._sampler is not None:
             self._sampler.join(timeout_s)
-        if self._proc is not None:
-            self._send(("stop",))
-            try:
-                self._proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait(timeout=timeout_s)
-            if self.server_process == "running":
-                self.server_process = "stopped"
-        if self._bridge is not None:
-            self._bridge.join(timeout_s)
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
+        self._child.stop(timeout_s)
 
     @property
     def server_pid(self) -> int | None:
         """The process id of the OPC UA server process (None before start)."""
-        return self._proc.pid if self._proc is not None else None
+        return self._child.pid
+
+    @property
+    def server_process(self) -> str:
+        """not started, running, stopped, failed (why), or ended (exit code N)."""
+        return self._child.status
 
     def stats(self) -> dict:
         out = dict(self.counters)
@@ -517,17 +477,6 @@ class OpcuaService:
             ax.events_dropped += 1
         ax.events.append((kind, state, rec))
 
-    def _send(self, msg: tuple) -> bool:
-        conn = self._conn
-        if conn is None or self._gone.is_set():
-            return False
-        try:
-            with self._send_lock:
-                conn.send(msg)
-        except (EOFError, OSError, ValueError):
-            return False
-        return True
-
     def _sample_loop(self) -> None:
         """One compact batch of every axis' node values every SAMPLE_PERIOD_S (in the cycle's gap), parameters
         and ranges every PARAMETER_PERIOD_S; a batch equal to the last one sent is not sent."""
@@ -536,7 +485,7 @@ class OpcuaService:
         next_params = 0.0
         last: list | None = None
         last_params: list | None = None
-        while not self._stop.is_set() and not self._gone.is_set():
+        while not self._stop.is_set() and not self._child.gone:
             now = time.perf_counter()
             if now < nxt:
                 self._stop.wait(nxt - now)
@@ -574,39 +523,23 @@ class OpcuaService:
                 self.counters["samples_unchanged"] += 1
                 continue
             last = batch
-            if not self._send(("sample", batch, params)):
+            if not self._child.send(("sample", batch, params)):
                 return
             self.counters["samples"] += 1
 
-    def _serve_bridge(self) -> None:
-        """Answer the server process' writes and method calls on the live drives; take its counters."""
-        conn = self._conn
-        while True:
+    def _handle(self, msg: tuple) -> tuple | None:
+        """A message of the server process: its counters, or a client's write / method call on a live drive
+        (answered)."""
+        kind = msg[0]
+        if kind == "stats":
+            self.server_counters = msg[1]
+        elif kind in ("write", "call"):
             try:
-                msg = conn.recv()
-            except (EOFError, OSError):
-                break
-            kind = msg[0]
-            if kind == "stats":
-                self.server_counters = msg[1]
-            elif kind == "error":
-                self.server_process = f"failed ({msg[1]})"
-            elif kind in ("write", "call"):
-                try:
-                    reply = self._write(*msg[2:]) if kind == "write" else self._call(*msg[2:])
-                except Exception as exc:  # noqa: BLE001 - the client gets a status, serve goes on
-                    reply = ("BadUnexpectedError", f"{type(exc).__name__}: {exc}", None)
-                self._send(("reply", msg[1], reply))
-        self._gone.set()
-        if not self._stop.is_set():  # the server process ended on its own: say so once, keep serving CANopen
-            try:
-                code = self._proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                code = None
-            why = self.server_process[len("failed "):] if self.server_process.startswith("failed") else ""
-            self.server_process = f"ended (exit code {code})"
-            print(f"warning: --opcua: the OPC UA server process ended (exit code {code}){' ' + why if why else ''}; "
-                  "serving CANopen goes on without OPC UA", file=sys.stderr, flush=True)
+                reply = self._write(*msg[2:]) if kind == "write" else self._call(*msg[2:])
+            except Exception as exc:  # noqa: BLE001 - the client gets a status, serve goes on
+                reply = ("BadUnexpectedError", f"{type(exc).__name__}: {exc}", None)
+            return "reply", msg[1], reply
+        return None
 
     def _write(self, axis: int, name: str, value) -> tuple[str, str, Any]:
         """A client's write of parameter ``name`` of axis number ``axis``: (status name, reason, value now)."""
@@ -637,21 +570,16 @@ class OpcuaService:
 
 # ============================================================================================== server process
 def server_child(fd: int) -> None:
-    """Entry of the OPC UA server process (``python -c``): the inherited socket ``fd`` joins it to serve."""
-    import signal
-
-    conn = Connection(fd)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops serve, which stops this process
-    leave_realtime()  # clients are not the drive: never compete with it at real-time priority
-    try:
-        _, settings, layout = conn.recv()
-    except (EOFError, OSError):
+    """Entry of the OPC UA server process: the inherited socket ``fd`` joins it to serve."""
+    entered = enter_child(fd)
+    if entered is None:
         return
-    proc = ServerProcess(conn, settings, layout)
+    link, (_, settings, layout) = entered
+    proc = ServerProcess(link, settings, layout)
     try:
         asyncio.run(proc.main())
     except Exception as exc:  # noqa: BLE001 - reported to serve (a start-up error, or why the server ended)
-        proc.send(("error", f"{type(exc).__name__}: {exc}"))
+        link.send(("error", f"{type(exc).__name__}: {exc}"))
         raise SystemExit(1) from None
 
 
@@ -659,13 +587,12 @@ class ServerProcess:
     """The asyncua server in its own process: node values from serve's batches, writes and method calls
     forwarded to serve (:class:`OpcuaService`), fault events emitted from serve's records."""
 
-    def __init__(self, conn: Connection, settings: OpcuaSettings, layout: list[dict]):
-        self.conn = conn
+    def __init__(self, link: ParentLink, settings: OpcuaSettings, layout: list[dict]):
+        self.link = link
         self.settings = settings
         self.layout = layout
         self.counters = {"samples_replaced": 0, "events": 0, "writes_refused": 0, "method_calls": 0,
                          "update_errors": 0}
-        self._send_lock = threading.Lock()
         self._pending: tuple | None = None  # the newest batch not yet applied
         self._pending_lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -675,11 +602,7 @@ class ServerProcess:
         self._ids = itertools.count(1)
 
     def send(self, msg: tuple) -> None:
-        try:
-            with self._send_lock:
-                self.conn.send(msg)
-        except (EOFError, OSError, ValueError):
-            pass
+        self.link.send(msg)
 
     async def request(self, *msg) -> tuple:
         """A write / method call answered by serve: (status name, reason, value)."""
@@ -731,7 +654,7 @@ class ServerProcess:
         loop = self._loop
         try:
             while True:
-                msg = self.conn.recv()
+                msg = self.link.recv()
                 kind = msg[0]
                 if kind == "sample":
                     self._take(msg[1], msg[2])

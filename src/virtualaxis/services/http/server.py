@@ -41,13 +41,13 @@ import threading
 import time
 import urllib.parse
 from importlib import resources
-from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from virtualaxis.services import listen
+from virtualaxis.services.child import ParentLink, enter_child
 from virtualaxis.services.http.ring import COLUMNS, LongRing, PageBlock, RecordingError
 
 SCOPE_HZ = 60.0  # scope messages per second and stream
@@ -149,25 +149,18 @@ class PageAxis:
         self.ring.block.set_clients(len(self.streams))
 
 
-def server_child(conn_fd: int, listen_fd: int) -> None:
-    """Entry of the page's server process (``python -c``): ``conn_fd`` joins it to serve, ``listen_fd`` is the
+def server_child(link_fd: int, listen_fd: int) -> None:
+    """Entry of the page's server process (child.py): ``link_fd`` joins it to serve, ``listen_fd`` is the
     page's listening socket."""
-    import signal
-
-    from virtualaxis.services.threads import leave_realtime
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops serve, which stops this process
-    leave_realtime()  # clients are not the drive: never compete with it at real-time priority
-    conn = Connection(conn_fd)
     sock = socket.socket(fileno=listen_fd)
-    try:
-        _, spec = conn.recv()
-    except (EOFError, OSError):
+    entered = enter_child(link_fd)
+    if entered is None:
         return
+    link, (_, spec) = entered
     try:
-        server = PageServer(conn, sock, spec)
+        server = PageServer(link, sock, spec)
     except Exception as exc:  # noqa: BLE001 - reported to serve as a start-up error
-        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        link.send(("error", f"{type(exc).__name__}: {exc}"))
         raise SystemExit(1) from None
     try:
         asyncio.run(server.main())
@@ -178,10 +171,10 @@ def server_child(conn_fd: int, listen_fd: int) -> None:
 class PageServer:
     """The page's HTTP / WebSocket server in its own process (module doc)."""
 
-    def __init__(self, conn: Connection, sock: socket.socket, spec: dict):
+    def __init__(self, link: ParentLink, sock: socket.socket, spec: dict):
         import mmap
 
-        self.conn = conn
+        self.link = link
         self.writable = bool(spec["writable"])
         self.info = spec["info"]
         # attached by path, not by SharedMemory(name): in Python < 3.13 that would register the segment with a
@@ -203,7 +196,6 @@ class PageServer:
         self._static = {name: (pkg / name).read_bytes() for name in STATIC_TYPES}
         self._stopping = False
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._send_lock = threading.Lock()
         self._futures: dict[int, asyncio.Future] = {}
         self._ids = itertools.count(1)
 
@@ -221,18 +213,14 @@ class PageServer:
 
     # ------------------------------------------------------------------ serve's socket
     def send(self, msg: tuple) -> None:
-        try:
-            with self._send_lock:
-                self.conn.send(msg)
-        except (EOFError, OSError, ValueError):
-            pass
+        self.link.send(msg)
 
     def _read(self) -> None:
         """serve's messages: replies, stop. EOF: serve is gone, and so is this process at once."""
         loop = self._loop
         try:
             while True:
-                msg = self.conn.recv()
+                msg = self.link.recv()
                 if msg[0] == "reply":
                     loop.call_soon_threadsafe(self._resolve, msg[1], msg[2])
                 elif msg[0] == "stop":

@@ -12,8 +12,9 @@ of a socket pair. What it costs serve's process:
   object writes (``--http-writable``: the SDO download's checks and abort codes) and fault-injection commands
   (``--allow-fault-injection``) -- applied under the drive's lock, i.e. between two cycles, and answered.
 
-The server process ends on the socket pair's EOF, i.e. with serve even if serve is killed. If it ends on its
-own, serve prints one warning line and goes on serving CANopen (``server_process`` in the stats).
+The server process is serve's child (child.py): it ends on the socket pair's EOF, i.e. with serve even if serve
+is killed. If it ends on its own, serve prints one warning line and goes on serving CANopen (``server_process``
+in the stats).
 """
 
 from __future__ import annotations
@@ -21,18 +22,14 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import socket
 import struct
-import subprocess
-import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
-from pathlib import Path
 from typing import Any
 
+from virtualaxis.services.child import ChildProcess
 from virtualaxis.services.http.frames import FrameLog
 from virtualaxis.services.http.ring import COLUMNS, STATE_BYTES, PageBlock, segment_size
 from virtualaxis.services.http.server import HttpRefusal, eds_notes
@@ -79,13 +76,9 @@ class LivePageService:
         self.counters = {"writes": 0, "writes_refused": 0, "fault_commands": 0, "state_messages": 0,
                          "state_errors": 0}
         self.server_counters: dict = {}  # as last reported by the server process
-        self.server_process = "not started"  # running, stopped, or ended (exit code N)
         self._shm = None
-        self._proc: subprocess.Popen | None = None
-        self._conn: Connection | None = None
-        self._send_lock = threading.Lock()
+        self._child = ChildProcess(f"--http {host}:{port}", "the live page's server", "the live page")
         self._stop = threading.Event()
-        self._bridge: threading.Thread | None = None
         self._state: threading.Thread | None = None
 
     # ------------------------------------------------------------------ life cycle
@@ -118,35 +111,15 @@ class LivePageService:
         spec = {"shm": self._shm.name, "writable": self.writable, "ring_s": self.ring_s, "info": self.axes_info(),
                 "axes": [{"name": a.name, "cycle_s": float(a.drive.cycle_s), "force_actuator": _force(a)}
                          for a in self.axes]}
-        ours, theirs = socket.socketpair()
-        src = str(Path(__file__).resolve().parents[3])  # the virtualaxis package this process runs
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        code = ("import sys; from virtualaxis.services.http.server import server_child; "
-                "server_child(int(sys.argv[1]), int(sys.argv[2]))")
-        try:
-            self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno()), str(sock.fileno())],
-                                          pass_fds=(theirs.fileno(), sock.fileno()), env=env)
-        finally:
-            theirs.close()
-            sock.close()  # (the server process holds the listening socket now)
-        self._conn = Connection(ours.detach())
-        try:
-            self._conn.send(("init", spec))
-            if not self._conn.poll(START_TIMEOUT_S):
-                raise OSError(f"{where}: the live page's server did not start in {START_TIMEOUT_S:g} s")
-            kind, value = self._conn.recv()
-            if kind != "ready":
-                raise OSError(f"{where}: {value}")
-        except (EOFError, OSError) as exc:
+        try:  # (the server process holds the listening socket from now on)
+            self._child.start("virtualaxis.services.http.server:server_child", ("init", spec), START_TIMEOUT_S,
+                              pass_fds=(sock.detach(),))
+        except OSError:
             self.stop()
-            if isinstance(exc, OSError) and str(exc).startswith(where):
-                raise
-            raise OSError(f"{where}: the live page's server process ended while starting") from None
-        self.server_process = "running"
+            raise
         for ax in self.axes:
             ax.drive.add_cycle_hook(ax.block.hook)
-        self._bridge = threading.Thread(target=self._serve_bridge, name="virtualaxis-http-bridge", daemon=True)
-        self._bridge.start()
+        self._child.serve(self._handle, "virtualaxis-http-bridge")
         self._state = threading.Thread(target=self._state_loop, name="virtualaxis-http-state", daemon=True)
         self._state.start()
         return self
@@ -158,20 +131,7 @@ class LivePageService:
                 ax.drive.remove_cycle_hook(ax.block.hook)
         if self._state is not None:
             self._state.join(timeout_s)
-        if self._proc is not None:
-            self._send(("stop",))
-            try:
-                self._proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait(timeout=timeout_s)
-            if self.server_process == "running":
-                self.server_process = "stopped"
-        if self._bridge is not None:
-            self._bridge.join(timeout_s)
-        if self._conn is not None:
-            self._conn.close()
-            self._conn = None
+        self._child.stop(timeout_s)
         for ax in self.axes:
             ax.block = None
         if self._shm is not None:
@@ -184,7 +144,12 @@ class LivePageService:
     @property
     def server_pid(self) -> int | None:
         """The process id of the page's server process (None before start)."""
-        return self._proc.pid if self._proc is not None else None
+        return self._child.pid
+
+    @property
+    def server_process(self) -> str:
+        """not started, running, stopped, failed (why), or ended (exit code N)."""
+        return self._child.status
 
     def stats(self) -> dict:
         out = dict(self.server_counters)
@@ -271,50 +236,26 @@ class LivePageService:
         }
 
     # ------------------------------------------------------------------ the bridge thread
-    def _send(self, msg: tuple) -> bool:
-        conn = self._conn
-        if conn is None:
-            return False
-        try:
-            with self._send_lock:
-                conn.send(msg)
-        except (EOFError, OSError, ValueError):
-            return False
-        return True
-
-    def _serve_bridge(self) -> None:
-        """Answer the server process' requests on the live drives; take its counters."""
-        conn = self._conn
-        while True:
+    def _handle(self, msg: tuple) -> tuple | None:
+        """A message of the server process: its counters, or a request on a live drive (answered)."""
+        kind = msg[0]
+        if kind == "stats":
+            self.server_counters = msg[1]
+        elif kind in ("objects", "write", "fault"):
+            rid, axis = msg[1], self.axes[msg[2]]
             try:
-                msg = conn.recv()
-            except (EOFError, OSError):
-                break
-            kind = msg[0]
-            if kind == "stats":
-                self.server_counters = msg[1]
-            elif kind in ("objects", "write", "fault"):
-                rid, axis = msg[1], self.axes[msg[2]]
-                try:
-                    if kind == "objects":
-                        reply = ("ok", self.objects_of(axis))
-                    elif kind == "write":
-                        reply = ("ok", self.write(axis, msg[3]))
-                    else:
-                        reply = ("ok", self.fault_command(axis, msg[3], msg[4]))
-                except HttpRefusal as exc:
-                    reply = ("refused", exc.status, str(exc), exc.extra)
-                except Exception as exc:  # noqa: BLE001 - the client gets a 500, serve goes on
-                    reply = ("refused", 500, f"internal error: {type(exc).__name__}: {exc}", {})
-                self._send(("reply", rid, reply))
-        if not self._stop.is_set():  # the server process ended on its own: say so once, keep serving CANopen
-            try:
-                code = self._proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                code = None
-            self.server_process = f"ended (exit code {code})"
-            print(f"warning: --http: the live page's server process ended (exit code {code}); serving CANopen goes "
-                  "on without the live page", file=sys.stderr, flush=True)
+                if kind == "objects":
+                    reply = ("ok", self.objects_of(axis))
+                elif kind == "write":
+                    reply = ("ok", self.write(axis, msg[3]))
+                else:
+                    reply = ("ok", self.fault_command(axis, msg[3], msg[4]))
+            except HttpRefusal as exc:
+                reply = ("refused", exc.status, str(exc), exc.extra)
+            except Exception as exc:  # noqa: BLE001 - the client gets a 500, serve goes on
+                reply = ("refused", 500, f"internal error: {type(exc).__name__}: {exc}", {})
+            return "reply", rid, reply
+        return None
 
     # ------------------------------------------------------------------ object dictionary
     def objects_of(self, ax: AxisPage) -> dict:
