@@ -186,3 +186,41 @@ def test_write_only_counter_reset_takes_only_1():
         assert rig.slave.counters["sdo_aborts_sent"] == 1
         rig.node.sdo.download(0x2102, 0, b"\x01")
         assert rig.slave.counters["sdo_aborts_sent"] == 0
+
+
+@pytest.mark.parametrize("node_id", [1, 5, 127])
+def test_every_default_equals_canopens_import_for_each_node_id_of_one_parsed_eds(node_id):
+    """The EDS is parsed once per process; each node's store must still hold what canopen's importer gives for
+    that node-ID ($NODEID+n defaults included) and values of its own."""
+    from virtualaxis.canopen_slave.od import ObjectStore
+
+    first = ObjectStore(EDS_PATH, 3)  # (parsed for another node before)
+    store = ObjectStore(EDS_PATH, node_id)
+    ref = canopen.import_od(str(EDS_PATH), node_id)
+    compared = relative = 0
+    for (index, sub), entry in store.entries.items():
+        obj = ref[index]
+        var = obj if isinstance(obj, ODVariable) else obj[sub]
+        if var.default is None:
+            continue
+        assert entry.default == var.default and entry.value == var.default, (hex(index), sub)
+        compared += 1
+        relative += bool(getattr(var, "relative", False))
+    assert compared > 300 and relative >= 8  # (COB-IDs of EMCY, PDOs, SDO: $NODEID+n)
+    store.entry(0x6040).value = 0x0F
+    assert first.entry(0x6040).value != 0x0F  # values are the node's own
+
+
+def test_an_eds_changed_on_disk_is_read_again(tmp_path):
+    from virtualaxis.canopen_slave.od import ObjectStore
+
+    path = tmp_path / "drive.eds"
+    text = EDS_PATH.read_text(encoding="utf-8")
+    path.write_text(text, encoding="utf-8")
+    before = ObjectStore(path, 1).entry(0x1017).default
+    import re
+
+    changed = re.sub(r"(\[1017\][^\[]*?DefaultValue=)\s*\S+", r"\g<1>0x1234", text, count=1)
+    assert changed != text
+    path.write_text(changed, encoding="utf-8")
+    assert ObjectStore(path, 1).entry(0x1017).default == 0x1234 != before
