@@ -123,7 +123,35 @@ def dask_vs_pool(out: Path) -> dict:
     return res
 
 
-JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool")
+def reference_case_cli(out: Path) -> dict:
+    """``virtualaxis gap-bench --suite reference --quick`` on one case (tests/test_diagnosis_gapbench.py): each
+    case runs ``virtualaxis diagnose`` in a subprocess, as a user runs it."""
+    rc, text, err = _main_captured(["gap-bench", "--suite", "reference", "--quick", "--cases",
+                                    "rigid_pp/coulomb_friction", "--out", str(out), "--jobs", "2"])
+    return {"rc": rc, "stdout": text, "stderr": err, "out": out}
+
+
+def wrong_controller_diagnosis(out: Path) -> dict:
+    """The diagnosis of P/P traces with a P/PI controller in the config, clean and with Coulomb friction
+    (tests/test_diagnosis_controller.py): the two reports and the calibrated axis' controller."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_controller import RIGID, make_pp_traces
+
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.diagnosis.pipeline import run_diagnosis
+
+    traces = make_pp_traces(out)
+    cfg = load_axis_config(RIGID)
+    clean = run_diagnosis(cfg, traces["clean"][:2], traces["clean"][2:], jobs=1, hybrid=False).report
+    result = run_diagnosis(cfg, traces["coulomb"][:2], traces["coulomb"][2:], jobs=1, hybrid=False)
+    cal = result.calibrated.control
+    return {"clean": clean, "coulomb": result.report,
+            "calibrated": {"kv_1_per_s": cal.kv_1_per_s, "kv_per_s": cal.kv_per_s, "speed_ti_s": cal.speed_ti_s,
+                           "velocity_kp_n_s_per_m": cal.velocity_kp_n_s_per_m}}
+
+
+JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
+        "reference_case_cli", "wrong_controller_diagnosis")
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import background
 import numpy as np
 import pytest
 
@@ -60,8 +61,11 @@ def pp_cascade_trace(feed_mm_min: float, duration_s: float, *, kv=25.0, kp=5000.
 
 @pytest.fixture(scope="module")
 def pp_traces(tmp_path_factory):
+    return make_pp_traces(tmp_path_factory.mktemp("pp"))
+
+
+def make_pp_traces(root: Path) -> dict[str, list[str]]:
     """Fit F1500 + F4000, hold out F2500; clean and with Coulomb friction 90 N (config: 40 N)."""
-    root = tmp_path_factory.mktemp("pp")
     out = {}
     for case, fc in (("clean", 40.0), ("coulomb", 90.0)):
         paths = []
@@ -109,16 +113,16 @@ def test_our_own_pmsm_cascade_is_never_replaced():
         assert chk is not None and chk.used == "config"
 
 
-def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effect(pp_traces, tmp_path):
+@pytest.mark.background("wrong_controller_diagnosis")
+def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effect(request):
     """Config: P/PI (Ti 20 ms, Kv 40, Kp 8000), traces: P/P (Kv 25, Kp 5000). Without the check the whole
     controller difference is a 'gap'; with it the clean case has no effect and the withheld Coulomb friction
-    is found."""
-    cfg = load_axis_config(RIGID)
-    clean = run_diagnosis(cfg, pp_traces["clean"][:2], pp_traces["clean"][2:], jobs=1, hybrid=False).report
+    is found. (The two diagnoses run in the background: tests/background.py.)"""
+    job = background.result(request.config, "wrong_controller_diagnosis")
+    clean = job["clean"]
     assert [c["used"] for c in clean["controller_check"]] == ["identified"] * 3
     assert clean["accepted"] == []
-    result = run_diagnosis(cfg, pp_traces["coulomb"][:2], pp_traces["coulomb"][2:], jobs=1, hybrid=False)
-    coul = result.report
+    coul = job["coulomb"]
     assert all(c["used"] == "identified" for c in coul["controller_check"])
     assert coul["accepted"][:1] == ["coulomb_friction"]
     fc = next(e for e in coul["effects"] if e["name"] == "coulomb_friction")["params"]["coulomb_n"]["value"]
@@ -127,10 +131,10 @@ def test_diagnosis_with_the_wrong_controller_in_the_config_finds_the_plant_effec
     assert hold < 0.4
     assert any("identified controller used" in w for tr in coul["traces"] for w in tr["warnings"])
     # one controller ran all traces: the calibrated axis runs it (and keeps the found friction)
-    cal = result.calibrated.control
-    assert cal.kv_1_per_s == pytest.approx(25.0, rel=0.03) and cal.speed_ti_s == 0.0
-    assert cal.velocity_kp_n_s_per_m == pytest.approx(5000.0, rel=0.05)
-    assert coul["calibrated_controller"]["kv_per_s"] == cal.kv_per_s
+    cal = job["calibrated"]
+    assert cal["kv_1_per_s"] == pytest.approx(25.0, rel=0.03) and cal["speed_ti_s"] == 0.0
+    assert cal["velocity_kp_n_s_per_m"] == pytest.approx(5000.0, rel=0.05)
+    assert coul["calibrated_controller"]["kv_per_s"] == cal["kv_per_s"]
 
 
 def test_a_drive_force_on_a_motor_axis_is_its_torque_through_the_lead():

@@ -8,7 +8,8 @@ import ast
 import json
 from pathlib import Path
 
-from virtualaxis.cli.main import main
+import background
+import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "virtualaxis"
 
@@ -30,10 +31,12 @@ def test_the_diagnosis_and_the_reference_do_not_import_each_other():
         assert not any(m.startswith("virtualaxis.diagnosis") for m in _imports("refaxis"))
 
 
-def test_a_reference_case_is_diagnosed_and_scored_through_the_cli(tmp_path, capsys):
-    rc = main(["gap-bench", "--suite", "reference", "--quick", "--cases", "rigid_pp/coulomb_friction",
-               "--out", str(tmp_path), "--jobs", "2"])
-    assert rc == 0
+@pytest.mark.background("reference_case_cli")
+def test_a_reference_case_is_diagnosed_and_scored_through_the_cli(request):
+    """(computed in the background: tests/background.py)"""
+    job = background.result(request.config, "reference_case_cli")
+    tmp_path = job["out"]
+    assert job["rc"] == 0, job["stderr"]
     out = json.loads((tmp_path / "reference.json").read_text())
     case = out["cases"][0]
     assert case["truth"] == ["coulomb_friction"]
@@ -43,7 +46,7 @@ def test_a_reference_case_is_diagnosed_and_scored_through_the_cli(tmp_path, caps
     assert case["shrink_on_effect_channel"] > 0.6
     assert out["summary"]["right_effect_first"] == 1.0
     assert (tmp_path / "rigid_pp__coulomb_friction" / "diagnosis" / "report.json").exists()
-    assert "right effect first 100 %" in capsys.readouterr().out
+    assert "right effect first 100 %" in job["stdout"]
     # the case went through `virtualaxis diagnose` in a subprocess, as a user runs it (no terminal: a line per
     # stage in its log)
     assert case["door"]["door"] == "cli" and case["door"]["exit_code"] == 0
