@@ -97,3 +97,15 @@ def test_the_command_parser_loads_neither_numba_nor_scipy() -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == "[]", proc.stdout
+
+
+def test_python_m_virtualaxis_is_the_command():
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "virtualaxis", "--help"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert "serve" in p.stdout and "diagnose" in p.stdout
+    p = subprocess.run([sys.executable, "-m", "virtualaxis", "no-such-command"], capture_output=True, text=True,
+                       timeout=120)
+    assert p.returncode == 2 and "no-such-command" in p.stderr and "Traceback" not in p.stderr
