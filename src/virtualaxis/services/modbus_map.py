@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from virtualaxis import __version__
 from virtualaxis.drive.injection import (
     ABORT_DEVICE_STATE,
+    KIND_NAMES,
     OBJ_CLEAR,
     OBJ_DUTY,
     OBJ_INJECT,
@@ -40,6 +41,8 @@ from virtualaxis.drive.injection import (
 if TYPE_CHECKING:
     from virtualaxis.drive.core import Drive
     from virtualaxis.drive.injection import FaultInjector
+
+_LAST_KIND = max(KIND_NAMES)  # the highest fault-injection kind number (the map's texts name the range)
 
 # ---------------------------------------------------------------------------------------------- errors
 # reason codes of the last-error register 40499 (and the exception each one answers with)
@@ -601,12 +604,13 @@ REGISTERS: tuple[Register, ...] = (
     _r(40603, "FI_MAGNITUDE", "i32", "kind-specific", "magnitude of the next injection (brake force [N], limit "
        "switch side, heating [K/s], bus-off time [ms]; 0: the kind's default)", lambda v: v.link.fault_magnitude,
        _write_fault_magnitude, "0x5FF4"),
-    _r(40605, "FI_INJECT", "u16", "kind number", "write a kind number 1..10 to inject it with 40600-40604 "
+    _r(40605, "FI_INJECT", "u16", "kind number", f"write a kind number 1..{_LAST_KIND} to inject it with 40600-40604 "
        "(docs/fault-injection.md); reads the kind last injected through Modbus", lambda v: v.link.fault_last_injected,
        _write_fault_inject, "0x5FF0"),
     _r(40606, "FI_CLEAR", "u16", "kind number", "write a kind number to clear it (0 or 255: all); reads the "
        "value last written", lambda v: v.link.fault_last_cleared, _write_fault_clear, "0x5FF1"),
-    _r(40607, "FI_ACTIVE", "u32", "bit (kind number - 1)", "injected kinds (bit 0 encoder_loss ... bit 9 bus_off)",
+    _r(40607, "FI_ACTIVE", "u32", "bit (kind number - 1)",
+       f"injected kinds (bit 0 {KIND_NAMES[1]} ... bit {_LAST_KIND - 1} {KIND_NAMES[_LAST_KIND]})",
        lambda v: v.link.active_fault_bits(), None, "0x5FF5"),
     _r(40609, "FI_ALLOWED", "u16", "0/1", "1 when the axis accepts fault injection (serve "
        "--allow-fault-injection)", lambda v: 1 if v.link.injection_allowed else 0, None, "0x5FF6"),
@@ -802,7 +806,8 @@ def render_markdown() -> str:
         "speed); for a linear motor one revolution is 10 mm of travel.",
         "- Fault injection 40600-40609 is the CANopen channel 0x5FF0..0x5FF6 (docs/fault-injection.md) on Modbus: "
         "set the options 40600-40604 (kept by the Modbus server per unit, like 40324), then write the kind number "
-        "(1 encoder_loss ... 10 bus_off) to 40605; one FC16 request covering 40600-40605 does both (a request is "
+        f"(1 {KIND_NAMES[1]} ... {_LAST_KIND} {KIND_NAMES[_LAST_KIND]}) to 40605; one FC16 request covering "
+        "40600-40605 does both (a request is "
         "applied in address order). 40606 clears a kind (0 or 255: all); 40607-40608 has bit n-1 set while kind n "
         "is injected. Every write of the block needs `--modbus-writable` **and** `serve --allow-fault-injection` "
         "(else exception 04, 40499 = 3, 40497-40498 = 0x08000022); an unknown kind number or an option out of "
