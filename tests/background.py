@@ -150,8 +150,26 @@ def wrong_controller_diagnosis(out: Path) -> dict:
                            "velocity_kp_n_s_per_m": cal.velocity_kp_n_s_per_m}}
 
 
+def door_pair_runs(out: Path) -> dict:
+    """``virtualaxis diagnose`` on a withheld friction pair, in a log and on a terminal
+    (tests/test_diagnosis_door.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_door import run_pair
+
+    return run_pair(out)
+
+
+def diagnose_friction_pair(out: Path) -> dict:
+    """``virtualaxis diagnose`` on Coulomb + viscous friction from a mass-only config
+    (tests/test_diagnosis_pair.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_pair import diagnose_pair
+
+    return diagnose_pair(out)
+
+
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
-        "reference_case_cli", "wrong_controller_diagnosis")
+        "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair")
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's
@@ -303,7 +321,8 @@ def result(config, name: str, timeout_s: float = 1800.0):
                            f"@pytest.mark.background({name!r}))")
     folder = runner.folder
     done, failed = folder / f"{name}.pkl", folder / f"{name}.err"
-    t_end = time.monotonic() + timeout_s
+    t0 = time.monotonic()
+    t_end = t0 + timeout_s
     while not done.exists() and not failed.exists():
         if not runner.alive() and not done.exists() and not failed.exists():
             err = (folder / "stderr.txt").read_text(errors="replace")[-4000:]
@@ -311,9 +330,14 @@ def result(config, name: str, timeout_s: float = 1800.0):
         if time.monotonic() > t_end:
             raise TimeoutError(f"background job {name!r} not done after {timeout_s:.0f} s")
         time.sleep(0.05)
+    WAITED_S[name] = WAITED_S.get(name, 0.0) + time.monotonic() - t0
     if failed.exists():
         raise RuntimeError(f"background job {name!r} raised:\n{failed.read_text()}")
     return pickle.loads(done.read_bytes())
+
+
+#: seconds the tests waited for each job (the part of its computation the rest of the suite did not hide)
+WAITED_S: dict[str, float] = {}
 
 
 if __name__ == "__main__":

@@ -75,6 +75,16 @@ def pytest_collection_modifyitems(session, config, items):
     background.start(config, config.stash[SHARED], config.stash[SESSION_PID], wanted)
 
 
+def pytest_terminal_summary(terminalreporter):
+    """How long the tests waited for the background jobs (0: the rest of the suite hid their computation)."""
+    import background
+
+    if background.WAITED_S:
+        waits = ", ".join(f"{k} {v:.0f} s" for k, v in sorted(background.WAITED_S.items(), key=lambda kv: -kv[1]))
+        terminalreporter.write_line(f"background jobs, waited for: {sum(background.WAITED_S.values()):.0f} s "
+                                    f"({waits})")
+
+
 def pytest_unconfigure(config):
     """The session's main process ends the background runner and removes the shared folder."""
     import background

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import background
 import pytest
 
 from virtualaxis.config import load_axis_config
@@ -34,32 +35,44 @@ def _diagnose_cmd(case, out: Path, *extra: str) -> list[str]:
             *[str(p) for p in case.fit], "--holdout", *[str(p) for p in case.holdout], "--out", str(out), *extra]
 
 
-@pytest.fixture(scope="module")
-def pair_case(tmp_path_factory):
+def run_pair(root: Path) -> dict:
     """A withheld Coulomb + viscous friction pair on the reference's rigid P/P axis (10 mm stroke): both are
-    accepted, so the diagnosis refits them jointly."""
-    return make_case("rigid_pp/coulomb_friction+viscous_friction", tmp_path_factory.mktemp("pair"), seed=5,
-                     quick=True)
-
-
-@pytest.fixture(scope="module")
-def pair_runs(pair_case, tmp_path_factory):
-    """``virtualaxis diagnose`` on the pair case twice at once (each on one core): in a log (no terminal) and on
-    a terminal (a pty through ``script -qec``). Mass error is a third candidate that is screened, not fitted."""
+    accepted, so the diagnosis refits them jointly. ``virtualaxis diagnose`` on it twice at once (each on one
+    core): in a log (no terminal) and on a terminal (a pty through ``script -qec``). Mass error is a third
+    candidate that is screened, not fitted. (Run as a background job of the suite: tests/background.py.)"""
+    case = make_case("rigid_pp/coulomb_friction+viscous_friction", root / "pair", seed=5, quick=True)
     if shutil.which("script") is None:
-        pytest.skip("needs script(1) for a pty")
-    tmp = tmp_path_factory.mktemp("pair_runs")
+        return {"case": case, "skip": "needs script(1) for a pty"}
     opts = ("--effects", "coulomb_friction,viscous_friction,mass_error", "--no-hybrid", "--jobs", "1")
-    log = subprocess.Popen(_diagnose_cmd(pair_case, tmp / "log", *opts), stdin=subprocess.DEVNULL,
+    log = subprocess.Popen(_diagnose_cmd(case, root / "log", *opts), stdin=subprocess.DEVNULL,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
-    tty = subprocess.Popen(["script", "-qec", shlex.join(_diagnose_cmd(pair_case, tmp / "tty", *opts)), "/dev/null"],
+    tty = subprocess.Popen(["script", "-qec", shlex.join(_diagnose_cmd(case, root / "tty", *opts)), "/dev/null"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                            env=_env())  # bytes: a bar's carriage returns kept as written
     log_out, log_err = log.communicate(timeout=900)
     tty_out = tty.communicate(timeout=900)[0].decode("utf-8", "replace")
-    return {"log": (log.returncode, log_out, log_err, tmp / "log"), "tty": (tty.returncode, tty_out, tmp / "tty")}
+    return {"case": case, "log": (log.returncode, log_out, log_err, root / "log"),
+            "tty": (tty.returncode, tty_out, root / "tty")}
 
 
+@pytest.fixture(scope="module")
+def pair(request):
+    return background.result(request.config, "door_pair_runs")
+
+
+@pytest.fixture(scope="module")
+def pair_case(pair):
+    return pair["case"]
+
+
+@pytest.fixture(scope="module")
+def pair_runs(pair):
+    if "skip" in pair:
+        pytest.skip(pair["skip"])
+    return pair
+
+
+@pytest.mark.background("door_pair_runs")
 def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_runs):
     rc, log_out, log_err, log_dir = pair_runs["log"]
     trc, tty_out, tty_dir = pair_runs["tty"]
@@ -83,6 +96,7 @@ def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_runs
     assert "\r" in tty_out and re.search(r"screening 3 candidates: +100%", tty_out), tty_out
 
 
+@pytest.mark.background("door_pair_runs")
 def test_the_report_shows_each_stage_of_the_diagnosis_in_order(pair_runs):
     """report.json["stages"]: load -> check -> baseline -> localise -> per round screen, refine, judge (and the
     pair or refit that accepted) -> verify -> report, each with what it decided; nothing private in the file."""
@@ -113,6 +127,7 @@ def test_the_report_shows_each_stage_of_the_diagnosis_in_order(pair_runs):
     assert not [k for k in rep if k.startswith("_")]
 
 
+@pytest.mark.background("door_pair_runs")
 def test_the_report_reads_in_engineering_units_and_edits_only_the_fitted_values(pair_case, pair_runs):
     rc, out, err, d = pair_runs["log"]
     assert rc == 0, err

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import background
 import pytest
 
 from virtualaxis.refaxis import cases as C
@@ -21,9 +22,8 @@ MASS_ONLY = {"table_mass_kg": 100.0, "coulomb_n": 0.0, "coulomb_negative_n": 0.0
              "viscous_negative_n_s_per_m": 0.0}
 
 
-@pytest.fixture(scope="module")
-def report(tmp_path_factory) -> dict:
-    root = tmp_path_factory.mktemp("pair")
+def diagnose_pair(root: Path) -> dict:
+    """``virtualaxis diagnose`` on the friction pair (a background job of the suite: tests/background.py)."""
     s = 0.06  # stroke [m]
     fit = [("ptp_slow", K.point_to_point(-0.4 * s, 0.4 * s, 0.05, 1.0, 20.0, dwell_s=0.2)),
            ("ptp_fast", K.point_to_point(-0.4 * s, 0.4 * s, 0.15, 1.5, 40.0, dwell_s=0.2))]
@@ -33,9 +33,15 @@ def report(tmp_path_factory) -> dict:
     p = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(cf.config_path),
                         *map(str, cf.fit), "--holdout", *map(str, cf.holdout), "--out", str(out), "--no-hybrid"],
                        capture_output=True, text=True, timeout=1800)
-    assert p.returncode == 0, p.stderr[-2000:]
-    rep = json.loads((out / "report.json").read_text())
-    rep["_out"] = str(out)
+    return {"rc": p.returncode, "stderr": p.stderr, "out": out}
+
+
+@pytest.fixture(scope="module")
+def report(request) -> dict:
+    job = background.result(request.config, "diagnose_friction_pair")
+    assert job["rc"] == 0, job["stderr"][-2000:]
+    rep = json.loads((job["out"] / "report.json").read_text())
+    rep["_out"] = str(job["out"])
     return rep
 
 
@@ -46,11 +52,13 @@ def _value(rep: dict, key: str) -> float | None:
     return None
 
 
+@pytest.mark.background("diagnose_friction_pair")
 def test_coulomb_and_viscous_friction_are_both_named_within_15_percent(report):
     assert _value(report, "coulomb_n") == pytest.approx(20.0, rel=0.15), report["conclusion"]
     assert _value(report, "viscous_n_s_per_m") == pytest.approx(200.0, rel=0.15), report["conclusion"]
 
 
+@pytest.mark.background("diagnose_friction_pair")
 def test_the_report_plots_force_against_speed_per_direction_with_the_fitted_law(report):
     fvs = report["force_vs_speed"]
     assert set(fvs["directions"]) == {"positive", "negative"}
