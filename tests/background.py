@@ -168,8 +168,25 @@ def diagnose_friction_pair(out: Path) -> dict:
     return diagnose_pair(out)
 
 
+def simulate_then_diagnose(out: Path) -> dict:
+    """``virtualaxis simulate`` traces diagnosed against their own config (tests/test_diagnosis_door.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_door import simulate_then_diagnose as run
+
+    return run(out)
+
+
+def diagnose_delayed(out: Path) -> dict:
+    """A clean trace of a delayed controller stated in the config, diagnosed (tests/test_diagnosis_timing.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_timing import diagnose_delayed as run
+
+    return run(out)
+
+
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
-        "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair")
+        "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair",
+        "simulate_then_diagnose", "diagnose_delayed")
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's

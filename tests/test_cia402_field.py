@@ -10,6 +10,7 @@ import time
 
 import canopen
 import pytest
+from nmt_wait import reset_and_wait_for_bootup
 from test_drive_rig import Rig, seed_config
 
 from virtualaxis.sim.simulator import end_stops
@@ -186,8 +187,7 @@ def test_huge_external_force_stops_at_the_end_stop_and_reset_node_restores_the_p
         assert math.isfinite(s.position_actual_m) and s.cia402_state in ("OPERATION ENABLED", "FAULT")
         assert r.drive.counters["cycle_exceptions"] == 0
         node.sdo[0x2011].raw = 0.0
-        node.nmt.state = "RESET"
-        node.nmt.wait_for_bootup(5)
+        reset_and_wait_for_bootup(node, 5.0)
         r.sync(10)
         s = r.drive.state
         assert lo - 1e-6 <= s.table_position_m < -half and abs(s.velocity_actual_m_s) < 1e-3, s.table_position_m

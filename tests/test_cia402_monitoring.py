@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import pytest
+from nmt_wait import reset_and_wait_for_bootup
 from test_drive_rig import Rig, rig  # noqa: F401  (fixture)
 
 
@@ -229,8 +230,7 @@ def test_nmt_reset_node_restarts_the_application(rig):  # noqa: F811
     node.sdo[0x6065].raw = default_window + 123
     node.sdo[0x6060].raw = 8
     rig.enable()
-    node.nmt.send_command(0x81)
-    node.nmt.wait_for_bootup(2)
+    reset_and_wait_for_bootup(node, 2.0, send=lambda: node.nmt.send_command(0x81))
     assert node.sdo[0x6065].raw == default_window
     assert rig.sw() & 0x4F == 0x40
     assert node.sdo[0x6061].raw == 0

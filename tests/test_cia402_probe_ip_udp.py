@@ -8,6 +8,7 @@ from collections.abc import Iterator
 
 import canopen
 import pytest
+from nmt_wait import reset_and_wait_for_bootup
 from served_drive import served
 
 from virtualaxis.drive.core import DEFAULT_EDS
@@ -48,8 +49,7 @@ class Master:
 
     def enable(self, mode: int) -> None:
         sdo = self.node.sdo
-        self.node.nmt.state = "RESET"  # the drive's power-on state: every test starts from the defaults
-        self.node.nmt.wait_for_bootup(5)
+        reset_and_wait_for_bootup(self.node, 10.0)  # the drive's power-on state: every test starts from the defaults
         self.node.nmt.state = "OPERATIONAL"
         sdo[0x6060].raw = mode
         for cw, expect in ((0x06, 0x21), (0x07, 0x23), (0x0F, 0x27)):

@@ -230,26 +230,38 @@ def test_a_nominal_model_that_cannot_follow_the_motion_is_refused_before_any_fit
     assert not (tmp_path / "o" / "report.json").exists()
 
 
-def test_traces_written_by_virtualaxis_simulate_draw_no_column_warnings(tmp_path):
-    """Traces made with ``virtualaxis simulate`` (with ``--extras``: every internal signal) are diagnosed
-    against the config that made them: nothing is found, and no column the simulator writes is warned about."""
-    case = make_case("rigid_pp/clean", tmp_path / "case", seed=3, quick=True)
-    paths = []
+def simulate_then_diagnose(root: Path) -> dict:
+    """Traces made with ``virtualaxis simulate`` (with ``--extras``: every internal signal), diagnosed against
+    the config that made them (a background job of the suite: tests/background.py)."""
+    case = make_case("rigid_pp/clean", root / "case", seed=3, quick=True)
+    paths, simulated = [], []
     for feed, extras in ((1000, ()), (6000, ()), (3000, ("--extras",))):
-        out = tmp_path / f"sine_F{feed}.csv"
+        out = root / f"sine_F{feed}.csv"
         r = _run([sys.executable, "-m", "virtualaxis.cli.main", "simulate", "--config", str(case.config_path),
                   "--profile", f"sine:stroke_mm=10,feed_mm_min={feed}", "--duration", "1.5", "--out", str(out),
                   *extras])
-        assert r.returncode == 0, r.stderr
+        simulated.append((r.returncode, r.stderr))
         paths.append(str(out))
     r = _run([sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(case.config_path),
-              paths[0], paths[1], "--holdout", paths[2], "--out", str(tmp_path / "o"), "--effects",
+              paths[0], paths[1], "--holdout", paths[2], "--out", str(root / "o"), "--effects",
               "coulomb_friction", "--no-hybrid", "--jobs", "1"])
-    assert r.returncode == 0, r.stderr
-    assert "conclusion: no significant effect" in r.stdout, r.stdout
+    return {"simulated": simulated, "paths": paths, "rc": r.returncode, "stdout": r.stdout, "stderr": r.stderr,
+            "out": root / "o"}
+
+
+@pytest.mark.background("simulate_then_diagnose")
+def test_traces_written_by_virtualaxis_simulate_draw_no_column_warnings(request):
+    """Traces made with ``virtualaxis simulate`` (with ``--extras``: every internal signal) are diagnosed
+    against the config that made them: nothing is found, and no column the simulator writes is warned about."""
+    job = background.result(request.config, "simulate_then_diagnose")
+    for rc, err in job["simulated"]:
+        assert rc == 0, err
+    paths = job["paths"]
+    assert job["rc"] == 0, job["stderr"]
+    assert "conclusion: no significant effect" in job["stdout"], job["stdout"]
     assert "following_error" in Path(paths[0]).read_text().splitlines()[0]
-    assert not [ln for ln in r.stderr.splitlines() if ln.startswith("warning:") and "column" in ln], r.stderr
-    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert not [ln for ln in job["stderr"].splitlines() if ln.startswith("warning:") and "column" in ln], job["stderr"]
+    rep = json.loads((job["out"] / "report.json").read_text())
     assert not [w for w in rep["warnings"] if "column" in w], rep["warnings"]
 
 
