@@ -184,9 +184,26 @@ def diagnose_delayed(out: Path) -> dict:
     return run(out)
 
 
+def diagnose_circle(out: Path) -> dict:
+    """The contour error of two circles, diagnosed (tests/test_diagnosis_contour.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_contour import diagnose_circle as run
+
+    return run(out)
+
+
+def beyond_the_end_stops(out: Path) -> dict:
+    """Traces beyond the model's end stops, refused (tests/test_diagnosis_door.py)."""
+    sys.path.insert(0, str(HERE))
+    from test_diagnosis_door import beyond_the_end_stops as run
+
+    return run(out)
+
+
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
         "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair",
-        "simulate_then_diagnose", "diagnose_delayed")
+        "simulate_then_diagnose", "diagnose_delayed", "diagnose_circle",
+        "beyond_the_end_stops")
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's

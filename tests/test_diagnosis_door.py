@@ -180,9 +180,9 @@ def _run(cmd: list[str]) -> subprocess.CompletedProcess:
                           check=False)
 
 
-def test_traces_beyond_the_models_end_stops_are_refused_naming_the_stroke(tmp_path):
-    """The axis ran to +0.40 m while the config's stroke puts the model's end stop at +0.39 m: the nominal
-    model cannot follow, and the diagnosis says so instead of fitting effects to the difference."""
+def beyond_the_end_stops(tmp_path: Path) -> dict:
+    """``virtualaxis diagnose`` on traces that run 3 mm beyond the model's end stop (a background job of the
+    suite: tests/background.py)."""
     case = make_case("rigid_pp/coulomb_friction", tmp_path / "case", seed=1, quick=True)
     cfg = load_axis_config(case.config_path)
     from virtualaxis.sim.simulator import end_stops
@@ -198,13 +198,22 @@ def test_traces_beyond_the_models_end_stops_are_refused_naming_the_stroke(tmp_pa
     r = _run([sys.executable, "-m", "virtualaxis.cli.main", "diagnose", "--config", str(case.config_path), *fit,
               "--holdout", *hold, "--out", str(tmp_path / "o"), "--effects", "coulomb_friction", "--no-hybrid",
               "--jobs", "1"])
-    assert r.returncode == 2, (r.stdout, r.stderr)
-    err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
-    assert len(err) == 1 and "Traceback" not in r.stderr, r.stderr
+    return {"hi": hi, "rc": r.returncode, "stdout": r.stdout, "stderr": r.stderr, "out": tmp_path / "o"}
+
+
+@pytest.mark.background("beyond_the_end_stops")
+def test_traces_beyond_the_models_end_stops_are_refused_naming_the_stroke(request):
+    """The axis ran to +0.40 m while the config's stroke puts the model's end stop at +0.39 m: the nominal
+    model cannot follow, and the diagnosis says so instead of fitting effects to the difference."""
+    job = background.result(request.config, "beyond_the_end_stops")
+    hi = job["hi"]
+    assert job["rc"] == 2, (job["stdout"], job["stderr"])
+    err = [ln for ln in job["stderr"].splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "Traceback" not in job["stderr"], job["stderr"]
     msg = err[0]
     assert "axis.stroke_m" in msg and "end stops" in msg and "pos_cmd" in msg, msg
     assert f"{hi:+.4g}" in msg, msg  # the model's end stop in metres
-    assert "conclusion" not in r.stdout and not (tmp_path / "o" / "report.json").exists()
+    assert "conclusion" not in job["stdout"] and not (job["out"] / "report.json").exists()
 
 
 def test_a_nominal_model_that_cannot_follow_the_motion_is_refused_before_any_fit(tmp_path):
