@@ -150,54 +150,30 @@ def wrong_controller_diagnosis(out: Path) -> dict:
                            "velocity_kp_n_s_per_m": cal.velocity_kp_n_s_per_m}}
 
 
-def door_pair_runs(out: Path) -> dict:
-    """``virtualaxis diagnose`` on a withheld friction pair, in a log and on a terminal
-    (tests/test_diagnosis_door.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_door import run_pair
+def _in_test_module(module: str, function: str, doc: str):
+    """A job that is ``function(out)`` of a test module: the computation stays beside the assertions on it."""
 
-    return run_pair(out)
+    def job(out: Path) -> dict:
+        import importlib
 
+        sys.path.insert(0, str(HERE))
+        return getattr(importlib.import_module(module), function)(out)
 
-def diagnose_friction_pair(out: Path) -> dict:
-    """``virtualaxis diagnose`` on Coulomb + viscous friction from a mass-only config
-    (tests/test_diagnosis_pair.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_pair import diagnose_pair
-
-    return diagnose_pair(out)
+    job.__doc__ = f"{doc} (tests/{module}.py)"
+    return job
 
 
-def simulate_then_diagnose(out: Path) -> dict:
-    """``virtualaxis simulate`` traces diagnosed against their own config (tests/test_diagnosis_door.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_door import simulate_then_diagnose as run
-
-    return run(out)
-
-
-def diagnose_delayed(out: Path) -> dict:
-    """A clean trace of a delayed controller stated in the config, diagnosed (tests/test_diagnosis_timing.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_timing import diagnose_delayed as run
-
-    return run(out)
-
-
-def diagnose_circle(out: Path) -> dict:
-    """The contour error of two circles, diagnosed (tests/test_diagnosis_contour.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_contour import diagnose_circle as run
-
-    return run(out)
-
-
-def beyond_the_end_stops(out: Path) -> dict:
-    """Traces beyond the model's end stops, refused (tests/test_diagnosis_door.py)."""
-    sys.path.insert(0, str(HERE))
-    from test_diagnosis_door import beyond_the_end_stops as run
-
-    return run(out)
+door_pair_runs = _in_test_module("test_diagnosis_door", "run_pair",
+                                 "``virtualaxis diagnose`` on a friction pair, in a log and on a terminal")
+diagnose_friction_pair = _in_test_module("test_diagnosis_pair", "diagnose_pair",
+                                         "Coulomb + viscous friction from a mass-only config")
+simulate_then_diagnose = _in_test_module("test_diagnosis_door", "simulate_then_diagnose",
+                                         "``virtualaxis simulate`` traces diagnosed against their own config")
+diagnose_delayed = _in_test_module("test_diagnosis_timing", "diagnose_delayed",
+                                   "a clean trace of a delayed controller stated in the config")
+diagnose_circle = _in_test_module("test_diagnosis_contour", "diagnose_circle", "the contour error of two circles")
+beyond_the_end_stops = _in_test_module("test_diagnosis_door", "beyond_the_end_stops",
+                                       "traces beyond the model's end stops, refused")
 
 
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
