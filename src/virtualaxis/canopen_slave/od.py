@@ -8,8 +8,8 @@ the SDO server and the PDO engine never go back to the `canopen` objects in the 
 from __future__ import annotations
 
 import copy
+import functools
 import struct
-import threading
 from configparser import RawConfigParser
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,21 +125,15 @@ def _int_value(text: str) -> int:
     return total
 
 
-#: parsed EDS files, keyed by :func:`_file_key`: an EDS is parsed once per process and version of the file, not
-#: once per axis / slave (parsing took ~95 % of building a served axis)
-_VALID_EDS: set[tuple] = set()
-_TEMPLATES: dict[tuple, tuple[dict[int, ObjectInfo], frozenset[tuple[int, int]]]] = {}
-_CACHE_LOCK = threading.Lock()
-_CACHE_SIZE = 16
-
-
-def _file_key(path: Path) -> tuple | None:
-    """The identity of a file's version (path, modification time, size); None if it cannot be stat'ed."""
+def _file_key(path: Path) -> tuple[str, str, int, int] | None:
+    """The identity of a file's version (the path as given, the resolved path, modification time, size) for the
+    caches below: an EDS is checked and parsed once per process and version of the file, not once per axis
+    (parsing took ~95 % of building a served axis). None if the file cannot be stat'ed."""
     try:
         st = path.stat()
     except OSError:
         return None
-    return str(path.resolve()), st.st_mtime_ns, st.st_size
+    return str(path), str(path.resolve()), st.st_mtime_ns, st.st_size
 
 
 def validate_eds(eds_path: str | Path) -> None:
@@ -152,14 +146,16 @@ def validate_eds(eds_path: str | Path) -> None:
     if path.suffix.lower() not in (".eds", ".dcf", ".epf"):  # canopen picks its importer by the suffix
         raise InputError(str(path), f"not an EDS file (suffix {path.suffix or 'none'!r}; expected .eds, .dcf or .epf)")
     key = _file_key(path)
-    if key is not None and key in _VALID_EDS:
-        return
-    _check_sections(path)
-    if key is not None:
-        with _CACHE_LOCK:
-            if len(_VALID_EDS) >= _CACHE_SIZE:
-                _VALID_EDS.clear()
-            _VALID_EDS.add(key)
+    if key is None:
+        _check_sections(path)
+    else:
+        _checked(*key)
+
+
+@functools.lru_cache(maxsize=16)
+def _checked(path: str, _resolved: str, _mtime_ns: int, _size: int) -> None:
+    """:func:`_check_sections` once per version of a file (a file that fails is checked again: nothing cached)."""
+    _check_sections(Path(path))
 
 
 def _check_sections(path: Path) -> None:
@@ -314,6 +310,12 @@ def _parse_float_limits(eds_path: Path) -> dict[tuple[int, int], tuple[float | N
     return limits
 
 
+@functools.lru_cache(maxsize=16)
+def _loaded_objects(path: str, _resolved: str, _mtime_ns: int, _size: int):
+    """:func:`_load_objects` once per version of a file (the result is a template: never handed out)."""
+    return _load_objects(Path(path))
+
+
 def _load_objects(eds_path: Path) -> tuple[dict[int, ObjectInfo], frozenset[tuple[int, int]]]:
     """The objects of an EDS (checked by :func:`validate_eds`, imported by `canopen`) with the defaults of node-ID
     0, and the entries whose default is relative to the node-ID (``$NODEID+n``: the node's default is n + its
@@ -369,15 +371,7 @@ class ObjectStore:
         if not self.eds_path.is_file():
             raise InputError(str(self.eds_path), "EDS file not found")
         key = _file_key(self.eds_path)
-        template = _TEMPLATES.get(key) if key is not None else None
-        if template is None:
-            template = _load_objects(self.eds_path)
-            if key is not None:
-                with _CACHE_LOCK:
-                    if len(_TEMPLATES) >= _CACHE_SIZE:
-                        _TEMPLATES.clear()
-                    _TEMPLATES[key] = template
-        objects, relative = template
+        objects, relative = _load_objects(self.eds_path) if key is None else _loaded_objects(*key)
         # this store's own entries (their values are live; the template's are never handed out), with the
         # defaults given as $NODEID+n for this node
         self.objects: dict[int, ObjectInfo] = {}
