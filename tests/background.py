@@ -174,12 +174,23 @@ diagnose_delayed = _in_test_module("test_diagnosis_timing", "diagnose_delayed",
 diagnose_circle = _in_test_module("test_diagnosis_contour", "diagnose_circle", "the contour error of two circles")
 beyond_the_end_stops = _in_test_module("test_diagnosis_door", "beyond_the_end_stops",
                                        "traces beyond the model's end stops, refused")
+every_option_runs = _in_test_module("test_plant_vocab", "every_option_runs",
+                                    "the kernel and the solve_ivp reference with every plant option on")
+speed_loop_at_the_traces_rate = _in_test_module("test_diagnosis_controller", "speed_loop_at_the_traces_rate",
+                                                "a config's 8 kHz speed loop run at the traces' 1 kHz")
+start_at_rest_runs = _in_test_module("test_plant_reset_kinematic", "start_at_rest_runs",
+                                     "the kernel and the solve_ivp reference holding with every kinematic effect")
+every_shipped_config = _in_test_module("test_fmu", "every_shipped_config",
+                                       "an FMU of every shipped config, built, validated and run by FMPy")
+rcsa_json_and_plots = _in_test_module("test_rcsa_cli", "rcsa_json_and_plots",
+                                      "``virtualaxis rcsa`` with JSON, plots and the FE check")
 
 
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
         "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair",
         "simulate_then_diagnose", "diagnose_delayed", "diagnose_circle",
-        "beyond_the_end_stops")
+        "beyond_the_end_stops", "every_option_runs", "speed_loop_at_the_traces_rate", "start_at_rest_runs",
+        "every_shipped_config", "rcsa_json_and_plots")
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's

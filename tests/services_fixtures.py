@@ -54,9 +54,9 @@ def mosquitto_exe() -> str | None:
     return shutil.which("mosquitto")
 
 
-def broker_kind() -> str:
-    """'mosquitto' or 'amqtt': the environment's choice, else mosquitto where it is installed."""
-    want = os.environ.get(BROKER_ENV, "").strip().lower()
+def broker_kind(want: str | None = None) -> str:
+    """'mosquitto' or 'amqtt': ``want``, else the environment's choice, else mosquitto where it is installed."""
+    want = (want or os.environ.get(BROKER_ENV, "")).strip().lower()
     if want not in ("", "mosquitto", "amqtt"):
         raise RuntimeError(f"{BROKER_ENV}={want!r}: expected mosquitto or amqtt")
     if want == "mosquitto" and mosquitto_exe() is None:
@@ -77,8 +77,8 @@ class MqttBroker:
     key) PEM files, the listener then speaks TLS only."""
 
     def __init__(self, workdir: Path, port: int | None = None, *, users: dict[str, str] | None = None,
-                 tls: tuple[Path, Path, Path] | None = None):
-        self.kind = broker_kind()
+                 tls: tuple[Path, Path, Path] | None = None, kind: str | None = None):
+        self.kind = broker_kind(kind)
         self.mqtt5 = self.kind == "mosquitto"  # amqtt 0.12 speaks MQTT 3.1.1 only
         self.port = port or free_port()
         self.log = workdir / f"{self.kind}.log"
@@ -168,10 +168,20 @@ Mosquitto = MqttBroker  # the name the side-channel tests import
 
 
 @pytest.fixture
-def mqtt_broker(tmp_path):
-    broker = MqttBroker(tmp_path).start()
+def mqtt_broker(request, tmp_path):
+    """The broker of ``broker_kind()``; a test parametrised indirectly (:data:`ON_BOTH_BROKERS`) gets the kind it
+    names."""
+    broker = MqttBroker(tmp_path, kind=getattr(request, "param", None)).start()
     yield broker
     broker.cleanup()
 
 
 mosquitto = mqtt_broker  # the fixture name the side-channel tests use
+
+#: ``@ON_BOTH_BROKERS`` on a test taking the ``mosquitto`` fixture: it runs on the environment's broker and on
+#: amqtt, the pure-Python broker a machine without mosquitto gets (MQTT 3.1.1 only); amqtt alone where mosquitto
+#: is not installed. For the tests that cover what a broker changes: the protocol version, the retained state,
+#: the last will, commands and their answers.
+ON_BOTH_BROKERS = pytest.mark.parametrize(
+    "mosquitto", [None, "amqtt"] if mosquitto_exe() and os.environ.get(BROKER_ENV, "").strip().lower() != "amqtt"
+    else [None], indirect=True, ids=lambda kind: kind or "broker")

@@ -348,11 +348,14 @@ def test_each_planted_defect_fails_its_family():
         net.connect(**axis.bus_kwargs)
         try:
             for family, (plant, check_id) in DEFECTS.items():
-                with pytest.MonkeyPatch.context() as mp:
-                    plant(axis, mp)
-                    res = {r.id: r for r in run_conformance(net, axis.node_id, only=check_id, pacing="realtime")}
-                axis.runtime.axes[0].slave.rebuild_dispatch()  # drop a patched handler from the dispatch table
-                failed_as_expected[family] = (res[check_id].status, res[check_id].detail)
+                for _ in range(3):  # a run error of the host (it missed the stimulus) is no verdict: run it again
+                    with pytest.MonkeyPatch.context() as mp:
+                        plant(axis, mp)
+                        res = {r.id: r for r in run_conformance(net, axis.node_id, only=check_id, pacing="realtime")}
+                    axis.runtime.axes[0].slave.rebuild_dispatch()  # drop a patched handler from the dispatch table
+                    failed_as_expected[family] = (res[check_id].status, res[check_id].detail)
+                    if not (res[check_id].status == "error" and "the master or the host" in res[check_id].detail):
+                        break
         finally:
             net.disconnect()
     not_failed = {f: v for f, v in failed_as_expected.items() if v[0] != "fail"}

@@ -156,10 +156,9 @@ def test_a_drive_force_on_a_motor_axis_is_its_torque_through_the_lead():
     assert chk is not None and chk.channel == "force_drive" and chk.used == "config"
 
 
-def test_a_speed_loop_at_the_traces_rate_is_recognised_from_the_configs_own_gains(tmp_path):
-    """Right gains, wrong timing: the config says an 8 kHz speed loop, the drive runs it at 1 kHz with the
-    position loop. The config's gains explain the force far better with the 1 kHz timing (no fitted freedom),
-    so the timing is changed for those traces and the clean case stays clean."""
+def speed_loop_at_the_traces_rate(tmp_path: Path) -> dict:
+    """The controller check and the diagnosis of P/P traces whose config states an 8 kHz speed loop (a background
+    job of the suite: tests/background.py)."""
     cfg = load_axis_config(RIGID).replace(control={"velocity_kp_n_s_per_m": 5000.0, "speed_ti_s": 0.0,
                                                    "kv_per_s": 25.0})
     paths = []
@@ -169,9 +168,20 @@ def test_a_speed_loop_at_the_traces_rate_is_recognised_from_the_configs_own_gain
         paths.append(str(p))
     tr = read_trace(paths[1], cfg.axis.name)
     chk = check_controller(cfg, tr.name, tr.t, tr.pos_cmd, tr.columns)
-    assert chk.used == "identified" and chk.overrides["control"] == {"speed_cycle_s": cfg.control.position_cycle_s}
-    assert chk.identified_gains["speed_loop"] == "at the trace's rate"
     rep = run_diagnosis(cfg, paths[:2], paths[2:], jobs=1, hybrid=False).report
+    return {"position_cycle_s": cfg.control.position_cycle_s, "used": chk.used, "overrides": chk.overrides,
+            "speed_loop": chk.identified_gains["speed_loop"], "report": rep}
+
+
+@pytest.mark.background("speed_loop_at_the_traces_rate")
+def test_a_speed_loop_at_the_traces_rate_is_recognised_from_the_configs_own_gains(request):
+    """Right gains, wrong timing: the config says an 8 kHz speed loop, the drive runs it at 1 kHz with the
+    position loop. The config's gains explain the force far better with the 1 kHz timing (no fitted freedom),
+    so the timing is changed for those traces and the clean case stays clean."""
+    job = background.result(request.config, "speed_loop_at_the_traces_rate")
+    assert job["used"] == "identified" and job["overrides"]["control"] == {"speed_cycle_s": job["position_cycle_s"]}
+    assert job["speed_loop"] == "at the trace's rate"
+    rep = job["report"]
     assert rep["accepted"] == []
     assert any(c["used"] == "identified" for c in rep["controller_check"])
 

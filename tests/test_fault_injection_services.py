@@ -20,7 +20,7 @@ import canopen
 import pytest
 from pymodbus.client import ModbusTcpClient
 from served_drive import served
-from services_fixtures import mosquitto  # noqa: F401 (fixture)
+from services_fixtures import ON_BOTH_BROKERS, mosquitto  # noqa: F401 (fixture)
 from test_services_mqtt import SCHEMAS
 
 from virtualaxis.drive.injection import KINDS
@@ -207,6 +207,7 @@ class Commands:
 
 
 @pytest.mark.mqtt_broker
+@ON_BOTH_BROKERS
 def test_mqtt_inject_result_fault_event_malformed_commands_and_serve_goes_on(mosquitto):  # noqa: F811
     cmd = Commands(mosquitto.port)
     machine = "cell9"

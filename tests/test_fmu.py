@@ -11,6 +11,7 @@ import sys
 import zipfile
 from pathlib import Path
 
+import background
 import fmpy
 import numpy as np
 import pytest
@@ -317,16 +318,25 @@ def test_the_fmu_refuses_bad_steps_inputs_and_parameters(tmp_path, built):
     assert np.max(np.abs(fe[None] - fe[40.0])) > 1e-6  # the parameter mattered
 
 
-@pytest.mark.slow
-def test_every_shipped_config_exports_a_valid_running_fmu(tmp_path, built):
-    """configs/*.toml and configs/examples/*.toml, the interfaces in turn: the CLI builds each FMU, FMPy validates
-    its model description and runs it for 10 communication steps."""
+def every_shipped_config(tmp_path: Path) -> dict:
+    """configs/*.toml and configs/examples/*.toml, the interfaces in turn: each FMU built by the CLI and validated
+    by FMPy (:func:`export`), then run by FMPy for 10 communication steps (a background job of the suite:
+    tests/background.py)."""
     from virtualaxis.fmu.export import INTERFACES
 
     configs = sorted((ROOT / "configs").glob("*.toml")) + sorted((ROOT / "configs" / "examples").glob("*.toml"))
+    fmus = [str(export(tmp_path, cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
+    return {"configs": configs, "res": host(tmp_path, "smoke", fmus=fmus, stop_s=0.01)}
+
+
+@pytest.mark.slow
+@pytest.mark.background("every_shipped_config")
+def test_every_shipped_config_exports_a_valid_running_fmu(request):
+    """configs/*.toml and configs/examples/*.toml, the interfaces in turn: the CLI builds each FMU, FMPy validates
+    its model description and runs it for 10 communication steps."""
+    job = background.result(request.config, "every_shipped_config")
+    configs, res = job["configs"], job["res"]
     assert len(configs) >= 5
-    fmus = [str(built(cfg, INTERFACES[i % len(INTERFACES)])) for i, cfg in enumerate(configs)]
-    res = host(tmp_path, "smoke", fmus=fmus, stop_s=0.01)
     for k, cfg in enumerate(configs):
         assert str(res[f"problems{k}"]) == "" and bool(res[f"finite{k}"]) and int(res[f"rows{k}"]) == 11, cfg
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import background
 import numpy as np
 import pytest
 from plant_helpers import rigid_force_axis
@@ -372,10 +373,9 @@ def test_setpoint_difference_feed_forward_takes_the_callers_value_after_entering
 
 
 # ------------------------------------------------------------------------ every option on: kernel vs solve_ivp
-def test_kernel_with_every_option_on_matches_the_solve_ivp_reference():
-    """The solve_ivp reference (sim/reference.py: adaptive DOP853 between current-loop samples, event-located
-    stick/slip, its own loop code) implements the options from their definitions too; with all of them on, the
-    kernel's tracking error agrees with it point by point."""
+def every_option_runs(out=None) -> dict:
+    """The kernel and the solve_ivp reference with every option on, and the kernel without the options (a
+    background job of the suite: tests/background.py)."""
     from test_plant_reference import every_effect_config
 
     from virtualaxis.sim.reference import ReferenceAxis
@@ -391,11 +391,24 @@ def test_kernel_with_every_option_on_matches_the_solve_ivp_reference():
     p, v, a = amp * (1 - np.cos(w * t)), amp * w * np.sin(w * t), amp * w * w * np.cos(w * t)
     kern = simulate_command(cfg, t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
     ref = ReferenceAxis(cfg, rtol=1e-8, atol=1e-12).run(t, p, v, a)
-    r = cfg.mechanics.lead_m / (2 * math.pi)
+    plain = simulate_command(every_effect_config(), t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
+    keep = ("pos_meas", "pos_fb", "motor_pos")
+    return {"lead_m": cfg.mechanics.lead_m,
+            **{name: {k: np.asarray(run[k]) for k in keep} for name, run in (("kern", kern), ("ref", ref),
+                                                                                ("plain", plain))}}
+
+
+@pytest.mark.background("every_option_runs")
+def test_kernel_with_every_option_on_matches_the_solve_ivp_reference(request):
+    """The solve_ivp reference (sim/reference.py: adaptive DOP853 between current-loop samples, event-located
+    stick/slip, its own loop code) implements the options from their definitions too; with all of them on, the
+    kernel's tracking error agrees with it point by point."""
+    job = background.result(request.config, "every_option_runs")
+    kern, ref, plain = job["kern"], job["ref"], job["plain"]
+    r = job["lead_m"] / (2 * math.pi)
     tol = {"pos_meas": 0.2e-6, "pos_fb": 0.2e-6, "motor_pos": 0.2e-6 / r}
     for ch in tol:
         assert np.max(np.abs(kern[ch] - ref[ch])) < tol[ch], (ch, np.max(np.abs(kern[ch] - ref[ch])))
     # the options change the response by far more than that (the comparison can fail)
-    plain = simulate_command(every_effect_config(), t, p, vel_cmd_m_s=v, acc_cmd_m_s2=a)
     for ch in tol:
         assert np.max(np.abs(kern[ch] - plain[ch])) > 10 * tol[ch], ch

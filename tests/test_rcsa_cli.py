@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import background
 import numpy as np
 import pytest
 import tomllib
@@ -18,23 +19,26 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "seed002-usst.toml"
 TRUTH = JointParams(4.28e7, 2.94e7, 7.09e8, 880.0, 100.0, 100.0, 500.0, 0.1)  # Table 3, k_m read as in the config
 
 
-def test_rcsa_json_and_plots(tmp_path, capsys):
+def rcsa_json_and_plots(tmp_path: Path) -> dict:
+    """``virtualaxis rcsa`` at six nut positions with JSON, plots and the FE check (a background job of the suite:
+    tests/background.py): exit status, output and the output folder."""
+    import contextlib
+    import io
+
     out = tmp_path / "out.json"
-    rc = main(
-        [
-            "rcsa",
-            "--config",
-            str(CONFIG),
-            "--positions",
-            "0.6,0.8,1.0,1.3,1.6,1.9",
-            "--json",
-            str(out),
-            "--plot",
-            str(tmp_path / "plots"),
-            "--fe-check",
-        ]
-    )
-    assert rc == 0
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        rc = main(["rcsa", "--config", str(CONFIG), "--positions", "0.6,0.8,1.0,1.3,1.6,1.9", "--json", str(out),
+                   "--plot", str(tmp_path / "plots"), "--fe-check"])
+    return {"rc": rc, "stdout": text.getvalue(), "out": tmp_path}
+
+
+@pytest.mark.background("rcsa_json_and_plots")
+def test_rcsa_json_and_plots(request):
+    job = background.result(request.config, "rcsa_json_and_plots")
+    tmp_path = job["out"]
+    out = tmp_path / "out.json"
+    assert job["rc"] == 0
     doc = json.loads(out.read_text())
     assert [r["position_m"] for r in doc["results"]] == [0.6, 0.8, 1.0, 1.3, 1.6, 1.9]
     first = doc["results"][0]
@@ -43,7 +47,7 @@ def test_rcsa_json_and_plots(tmp_path, capsys):
     # Table 3's large nut damping hides modes 3 and 4 in the FRF: reported as gaps (null), not numbers
     assert first["natural_frequencies_hz"][2] is None and first["amplitudes_m_per_n"][2] is None
     assert len(list((tmp_path / "plots").glob("frf_*.png"))) == 6
-    assert "no peak in their band" in capsys.readouterr().out
+    assert "no peak in their band" in job["stdout"]
 
 
 @pytest.mark.parametrize(

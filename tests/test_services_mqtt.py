@@ -19,7 +19,7 @@ from pathlib import Path
 import jsonschema
 import paho.mqtt.client as mqtt
 import pytest
-from services_fixtures import Mosquitto, free_port, mosquitto, readable_dir  # noqa: F401 (fixture)
+from services_fixtures import ON_BOTH_BROKERS, Mosquitto, free_port, mosquitto, readable_dir  # noqa: F401 (fixture)
 from test_drive_rig import seed_config, seed_discrete
 
 from virtualaxis.runtime import AxisNode, Runtime, open_bus
@@ -135,6 +135,7 @@ def settings(url: str, **kw):
 
 
 @pytest.mark.mqtt_broker
+@ON_BOTH_BROKERS
 def test_topics_schema_rate_batches_and_fault_events(mosquitto):  # noqa: F811
     sub = Subscriber(mosquitto.port)
     ax = ServedAxis()
@@ -278,6 +279,7 @@ def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  
 
 
 @pytest.mark.mqtt_broker
+@ON_BOTH_BROKERS
 def test_last_will_offline_when_the_process_dies(mosquitto, tmp_path):  # noqa: F811
     """`virtualaxis serve --mqtt` in its own process, killed: the broker publishes the retained will."""
     sub = Subscriber(mosquitto.port)

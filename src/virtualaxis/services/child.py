@@ -68,7 +68,9 @@ class ChildProcess:
         module, function = entry.split(":")
         ours, theirs = socket.socketpair()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([_SRC, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        code = f"import sys; from {module} import {function}; {function}(*map(int, sys.argv[1:]))"
+        # below the drive before anything else is imported (numpy's BLAS threads start at import)
+        code = (f"import sys; from virtualaxis.services.threads import below_the_drive; below_the_drive(); "
+                f"from {module} import {function}; {function}(*map(int, sys.argv[1:]))")
         try:
             self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno()), *map(str, pass_fds)],
                                           pass_fds=(theirs.fileno(), *pass_fds), env=env)
@@ -182,10 +184,10 @@ def enter_child(fd: int) -> tuple[ParentLink, tuple] | None:
     already gone."""
     import signal
 
-    from virtualaxis.services.threads import leave_realtime
+    from virtualaxis.services.threads import below_the_drive
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    leave_realtime()
+    below_the_drive()  # clients are not the drive: they run below it
     link = ParentLink(fd)
     try:
         init = link.recv()

@@ -1,7 +1,10 @@
 """Thread settings that keep the side channels out of the drive's way.
 
-- :func:`leave_realtime`: the Modbus server process started by a ``serve --rt-priority N`` process inherits
-  SCHED_FIFO; it drops back to SCHED_OTHER so that the scheduler always prefers the drive. (Threads *inside*
+- :func:`below_the_drive`: a side channel's process (Modbus server, MQTT publisher, OPC UA and live-page
+  servers) runs below the drive. It leaves an inherited SCHED_FIFO (``serve --rt-priority N``) for SCHED_OTHER,
+  and it runs at nice :data:`SIDE_CHANNEL_NICE`, so that on a host without real-time priority the drive's
+  runtime thread, waking for its cycle, still preempts a client's request being served: as in a field drive,
+  communication is the background task and the control cycle the foreground one. (Threads *inside*
   ``serve`` keep the process' priority on purpose: a thread preempted while it holds the interpreter lock
   would stall the drive's runtime thread, a priority inversion through the GIL.)
 - :func:`short_gil_slices`: CPython hands the GIL to a waiting thread only after the holder has run for the
@@ -16,6 +19,8 @@ import os
 import sys
 
 SWITCH_INTERVAL_S = 20e-6
+#: nice value of the side channels' processes (0 is serve's; 19 the lowest priority)
+SIDE_CHANNEL_NICE = 10
 
 
 def leave_realtime() -> None:
@@ -23,6 +28,17 @@ def leave_realtime() -> None:
     try:
         if os.sched_getscheduler(0) in (os.SCHED_FIFO, os.SCHED_RR):
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (AttributeError, OSError):
+        pass
+
+
+def below_the_drive(nice: int = SIDE_CHANNEL_NICE) -> None:
+    """Run the calling process at SCHED_OTHER and at least nice ``nice``. Call it first in a side channel's
+    process: on Linux a thread's priority is its own, and threads started later inherit it."""
+    leave_realtime()
+    try:
+        if os.getpriority(os.PRIO_PROCESS, 0) < nice:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
     except (AttributeError, OSError):
         pass
 
