@@ -103,6 +103,13 @@ def test_symmetric_friction_asymmetry_reduces_to_coulomb_friction():
     assert fx.reduce_nested("friction_asymmetry", {"coulomb_n": 48.6, "coulomb_negative_n": 95.7},
                             {"coulomb_n": 3.0, "coulomb_negative_n": 4.0}) is None
     assert fx.reduce_nested("coulomb_friction", {"coulomb_n": 50.0}, {"coulomb_n": 1.0}) is None
+    # a few per cent apart, however small the standard errors: below the change an effect must make to pay its
+    # way (fx.MIN_RELATIVE_CHANGE), no asymmetry (55.05 / 57.14 N, +-0.7 N, on a symmetric 55 N)
+    assert fx.reduce_nested("friction_asymmetry", {"coulomb_n": 55.05, "coulomb_negative_n": 57.14},
+                            {"coulomb_n": 0.70, "coulomb_negative_n": 0.75}) == (
+        "coulomb_friction", {"coulomb_n": pytest.approx(56.095)})
+    assert fx.reduce_nested("friction_asymmetry", {"coulomb_n": 55.0, "coulomb_negative_n": 60.0},
+                            {"coulomb_n": 0.7, "coulomb_negative_n": 0.7}) is None  # 9 %: an asymmetry
 
 
 def test_chaos_floor_is_the_models_own_irreproducible_part():

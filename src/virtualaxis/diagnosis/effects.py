@@ -564,8 +564,9 @@ DISCRETE_PARAMS = {"cogging_periods_per_rev", "dead_time_feedback_sensor", "spee
 
 def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float]) -> tuple[str, dict] | None:
     """The simpler effect a fitted one reduces to, with its start values, or None: friction asymmetry whose
-    two directions agree within their uncertainty (2 sigma, at least 3 % of their mean) is Coulomb
-    friction; viscous asymmetry whose two directions agree so is viscous friction; a one-sample speed estimate
+    two directions agree within their uncertainty (2 sigma) or within :data:`MIN_RELATIVE_CHANGE` of their mean (an
+    asymmetry smaller than the change an effect must make to pay its way) is Coulomb friction; viscous asymmetry
+    whose two directions agree so is viscous friction; a one-sample speed estimate
     low-passed by half a sample (:func:`filter_delay_cycles` within :data:`TWO_SAMPLE_DELAY_TOLERANCE` of 1/2) is
     the two-sample estimate without a filter."""
     symmetric = {"friction_asymmetry": ("coulomb_friction", "coulomb_n", "coulomb_negative_n"),
@@ -575,7 +576,7 @@ def reduce_nested(effect: str, values: dict[str, float], stderr: dict[str, float
         a, b = values[key_pos], values[key_neg]
         sa, sb = stderr.get(key_pos, math.nan), stderr.get(key_neg, math.nan)
         sd = math.hypot(sa, sb) if math.isfinite(sa) and math.isfinite(sb) else 0.0
-        if abs(a - b) <= max(2.0 * sd, 0.03 * 0.5 * (a + b)):
+        if abs(a - b) <= max(2.0 * sd, MIN_RELATIVE_CHANGE * 0.5 * (a + b)):
             return simpler, {key_pos: 0.5 * (a + b)}
     if effect == "speed_estimator" and values.get("speed_estimator_samples", 1.0) < 1.5:
         # a one-sample difference low-passed with half a sample of delay is, at the frequencies a trace resolves,
