@@ -163,34 +163,34 @@ def _in_test_module(module: str, function: str, doc: str):
     return job
 
 
-door_pair_runs = _in_test_module("test_diagnosis_door", "run_pair",
-                                 "``virtualaxis diagnose`` on a friction pair, in a log and on a terminal")
-diagnose_friction_pair = _in_test_module("test_diagnosis_pair", "diagnose_pair",
-                                         "Coulomb + viscous friction from a mass-only config")
-simulate_then_diagnose = _in_test_module("test_diagnosis_door", "simulate_then_diagnose",
-                                         "``virtualaxis simulate`` traces diagnosed against their own config")
-diagnose_delayed = _in_test_module("test_diagnosis_timing", "diagnose_delayed",
-                                   "a clean trace of a delayed controller stated in the config")
-diagnose_circle = _in_test_module("test_diagnosis_contour", "diagnose_circle", "the contour error of two circles")
-beyond_the_end_stops = _in_test_module("test_diagnosis_door", "beyond_the_end_stops",
-                                       "traces beyond the model's end stops, refused")
-every_option_runs = _in_test_module("test_plant_vocab", "every_option_runs",
-                                    "the kernel and the solve_ivp reference with every plant option on")
-speed_loop_at_the_traces_rate = _in_test_module("test_diagnosis_controller", "speed_loop_at_the_traces_rate",
-                                                "a config's 8 kHz speed loop run at the traces' 1 kHz")
-start_at_rest_runs = _in_test_module("test_plant_reset_kinematic", "start_at_rest_runs",
-                                     "the kernel and the solve_ivp reference holding with every kinematic effect")
-every_shipped_config = _in_test_module("test_fmu", "every_shipped_config",
-                                       "an FMU of every shipped config, built, validated and run by FMPy")
-rcsa_json_and_plots = _in_test_module("test_rcsa_cli", "rcsa_json_and_plots",
-                                      "``virtualaxis rcsa`` with JSON, plots and the FE check")
-
+#: jobs that are a test module's function: name -> (module, function, what it computes)
+MODULE_JOBS = {
+    "door_pair_runs": ("test_diagnosis_door", "run_pair",
+                       "``virtualaxis diagnose`` on a friction pair, in a log and on a terminal"),
+    "diagnose_friction_pair": ("test_diagnosis_pair", "diagnose_pair",
+                               "Coulomb + viscous friction from a mass-only config"),
+    "simulate_then_diagnose": ("test_diagnosis_door", "simulate_then_diagnose",
+                               "``virtualaxis simulate`` traces diagnosed against their own config"),
+    "diagnose_delayed": ("test_diagnosis_timing", "diagnose_delayed",
+                         "a clean trace of a delayed controller stated in the config"),
+    "diagnose_circle": ("test_diagnosis_contour", "diagnose_circle", "the contour error of two circles"),
+    "beyond_the_end_stops": ("test_diagnosis_door", "beyond_the_end_stops",
+                             "traces beyond the model's end stops, refused"),
+    "every_option_runs": ("test_plant_vocab", "every_option_runs",
+                          "the kernel and the solve_ivp reference with every plant option on"),
+    "speed_loop_at_the_traces_rate": ("test_diagnosis_controller", "speed_loop_at_the_traces_rate",
+                                      "a config's 8 kHz speed loop run at the traces' 1 kHz"),
+    "start_at_rest_runs": ("test_plant_reset_kinematic", "start_at_rest_runs",
+                           "the kernel and the solve_ivp reference holding with every kinematic effect"),
+    "every_shipped_config": ("test_fmu", "every_shipped_config",
+                             "an FMU of every shipped config, built, validated and run by FMPy"),
+    "rcsa_json_and_plots": ("test_rcsa_cli", "rcsa_json_and_plots",
+                            "``virtualaxis rcsa`` with JSON, plots and the FE check"),
+}
+globals().update({name: _in_test_module(*spec) for name, spec in MODULE_JOBS.items()})
 
 JOBS = ("quick_bench", "withheld_pair", "plant_reference", "rigid_force_diagnosis", "dask_vs_pool",
-        "reference_case_cli", "wrong_controller_diagnosis", "door_pair_runs", "diagnose_friction_pair",
-        "simulate_then_diagnose", "diagnose_delayed", "diagnose_circle",
-        "beyond_the_end_stops", "every_option_runs", "speed_loop_at_the_traces_rate", "start_at_rest_runs",
-        "every_shipped_config", "rcsa_json_and_plots")
+        "reference_case_cli", "wrong_controller_diagnosis", *MODULE_JOBS)
 
 #: Jobs that must never be stopped by :func:`pause`: a Dask cluster's scheduler, nanny and workers watch each
 #: other with wall-clock timeouts, and a SIGSTOP of a minute or more makes them fire (seen in CI: the cluster's

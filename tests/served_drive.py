@@ -87,3 +87,12 @@ def served(*serve_args: str, ready_timeout_s: float = 60.0, env: dict | None = N
         yield s
     finally:
         s.stop()
+
+
+def children(pid: int) -> list[int]:
+    """The child processes of process ``pid`` (of all its threads), from /proc."""
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out += [int(p) for p in f.read().split()]
+    return out

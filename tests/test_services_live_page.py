@@ -19,7 +19,7 @@ import canopen
 import numpy as np
 import pytest
 from cdp_browser import CHROMIUM, Browser, wait_for_file
-from served_drive import CLI, ROOT, served
+from served_drive import CLI, ROOT, children, served
 
 from virtualaxis.master import LockstepMaster, connect
 
@@ -592,14 +592,6 @@ def _listening_pids(port: int, pids: list[int]) -> set[int]:
     return owners
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out += [int(p) for p in f.read().split()]
-    return out
-
-
 def test_page_server_is_a_child_process_whose_end_leaves_the_drive_cycling():
     """The page's socket belongs to a child process of serve, not to serve; killing that process is reported on
     serve's stderr, and the drive goes on cycling and answering on the bus."""
@@ -608,9 +600,9 @@ def test_page_server_is_a_child_process_whose_end_leaves_the_drive_cycling():
     with served("--http", "127.0.0.1:0") as s:
         url = page_url(s)
         port = urllib.parse.urlsplit(url).port
-        children = _children(s.proc.pid)
-        owners = _listening_pids(port, [s.proc.pid, *children])
-        assert len(owners) == 1 and s.proc.pid not in owners, (s.proc.pid, children, owners)
+        kids = children(s.proc.pid)
+        owners = _listening_pids(port, [s.proc.pid, *kids])
+        assert len(owners) == 1 and s.proc.pid not in owners, (s.proc.pid, kids, owners)
         (server_pid,) = owners
         st, info = request(url + "api/axes")
         assert st == 200 and info["axes"][0]["name"] == AXIS
@@ -655,7 +647,7 @@ def test_page_server_process_ends_with_a_killed_serve():
 
     with served("--http", "127.0.0.1:0") as s:
         port = urllib.parse.urlsplit(page_url(s)).port
-        (server_pid,) = _listening_pids(port, _children(s.proc.pid))
+        (server_pid,) = _listening_pids(port, children(s.proc.pid))
         os.kill(s.proc.pid, signal.SIGKILL)
         s.proc.wait(10)
         deadline = time.monotonic() + 10

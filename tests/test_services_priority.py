@@ -8,20 +8,12 @@ import os
 import time
 
 import pytest
-from served_drive import served
+from served_drive import children, served
 from services_fixtures import free_port, mosquitto  # noqa: F401 (fixture)
 
 from virtualaxis.services.threads import SIDE_CHANNEL_NICE
 
 pytestmark = pytest.mark.mqtt_broker
-
-
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out += [int(p) for p in f.read().split()]
-    return out
 
 
 def _cmdline(pid: int) -> str:
@@ -46,13 +38,13 @@ def test_every_side_channel_process_runs_below_the_drive(mosquitto):  # noqa: F8
         found: dict[str, int] = {}
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and len(found) < len(want):
-            for child in _children(s.proc.pid):
+            for child in children(s.proc.pid):
                 line = _cmdline(child)
                 for name, module in want.items():
                     if module in line:
                         found[name] = child
             time.sleep(0.2)
-        assert set(found) == set(want), (found, [_cmdline(c) for c in _children(s.proc.pid)])
+        assert set(found) == set(want), (found, [_cmdline(c) for c in children(s.proc.pid)])
         serve_nice = os.getpriority(os.PRIO_PROCESS, s.proc.pid)
         assert set(_thread_nices(s.proc.pid)) == {serve_nice}, _thread_nices(s.proc.pid)
         for name, pid in found.items():
