@@ -9,9 +9,9 @@ drive's runtime thread's interpreter. The two ends:
   handler's reply back; :meth:`ChildProcess.stop` asks the child to stop, then kills it after a timeout. If the
   child ends on its own, serve prints one warning line and goes on serving CANopen (``status``).
 - the child's end, :class:`ParentLink`: the inherited socket, a send that several threads may call, and the
-  child's set-up (:func:`enter_child`): Ctrl-C is serve's to handle (it stops the child), and the child never
-  runs at the drive's real-time priority. The child ends on the socket's EOF, i.e. with serve even if serve is
-  killed.
+  child's set-up (:func:`enter_child`): Ctrl-C is serve's to handle (it stops the child). The child runs below
+  the drive (``threads.CHILD_PROLOGUE``: nice 10, never the drive's real-time priority). The child ends on the
+  socket's EOF, i.e. with serve even if serve is killed.
 
 Messages are tuples whose first item names their kind; ``("stop",)`` and ``("error", text)`` are the link's own.
 """
@@ -27,6 +27,8 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
+
+from virtualaxis.services.threads import CHILD_PROLOGUE
 
 __all__ = ["ChildProcess", "ParentLink", "enter_child"]
 
@@ -68,9 +70,7 @@ class ChildProcess:
         module, function = entry.split(":")
         ours, theirs = socket.socketpair()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([_SRC, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        # below the drive before anything else is imported (numpy's BLAS threads start at import)
-        code = (f"import sys; from virtualaxis.services.threads import below_the_drive; below_the_drive(); "
-                f"from {module} import {function}; {function}(*map(int, sys.argv[1:]))")
+        code = f"import sys; {CHILD_PROLOGUE}from {module} import {function}; {function}(*map(int, sys.argv[1:]))"
         try:
             self._proc = subprocess.Popen([sys.executable, "-c", code, str(theirs.fileno()), *map(str, pass_fds)],
                                           pass_fds=(theirs.fileno(), *pass_fds), env=env)
@@ -179,15 +179,12 @@ class ParentLink:
 
 
 def enter_child(fd: int) -> tuple[ParentLink, tuple] | None:
-    """The set-up of a service's child process: Ctrl-C is left to serve (which stops this process), no real-time
-    priority (clients are not the drive); returns the link and serve's start-up message, or None if serve is
-    already gone."""
+    """The set-up of a service's child process (which :meth:`ChildProcess.start` started below the drive:
+    ``CHILD_PROLOGUE``): Ctrl-C is left to serve (which stops this process); returns the link and serve's start-up
+    message, or None if serve is already gone."""
     import signal
 
-    from virtualaxis.services.threads import below_the_drive
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    below_the_drive()  # clients are not the drive: they run below it
     link = ParentLink(fd)
     try:
         init = link.recv()

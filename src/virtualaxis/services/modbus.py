@@ -38,7 +38,7 @@ from pathlib import Path
 
 from virtualaxis.services import listen
 from virtualaxis.services.register_image import DEFAULT_PERIOD_S
-from virtualaxis.services.threads import below_the_drive, short_gil_slices
+from virtualaxis.services.threads import CHILD_PROLOGUE, short_gil_slices
 
 SUPPORTED_FUNCTIONS = (3, 4, 6, 16, 23)
 DEFAULT_ADDRESS = ("127.0.0.1", 5020)
@@ -160,8 +160,7 @@ class ModbusService:
         src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
         code = (
-            "import sys; from virtualaxis.services.threads import below_the_drive; below_the_drive(); "
-            "from virtualaxis.services.modbus import _server_child; "
+            f"import sys; {CHILD_PROLOGUE}from virtualaxis.services.modbus import _server_child; "
             "_server_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5], sys.argv[6])"
         )
         self._proc = subprocess.Popen(
@@ -302,7 +301,6 @@ def _server_main(conn, ctl, host: str, port: int, image_name: str, units: list[i
     import asyncio
     import logging
 
-    below_the_drive()  # clients are not the drive: they run below it
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     from pymodbus.server import ModbusTcpServer
 

@@ -61,7 +61,7 @@ from virtualaxis.services.mqtt_presence import (
     other_publisher,
     presence_fields,
 )
-from virtualaxis.services.threads import below_the_drive, short_gil_slices
+from virtualaxis.services.threads import CHILD_PROLOGUE, short_gil_slices
 
 if TYPE_CHECKING:  # the publisher process must not import the drive (numba)
     from virtualaxis.drive.core import Drive
@@ -691,8 +691,7 @@ class MqttService:
         ctl_ours, ctl_theirs = socket.socketpair()
         src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        code = ("import sys; from virtualaxis.services.threads import below_the_drive; below_the_drive(); "
-                "from virtualaxis.services.mqtt import _publisher_child; "
+        code = (f"import sys; {CHILD_PROLOGUE}from virtualaxis.services.mqtt import _publisher_child; "
                 "_publisher_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3])")
         self._proc = subprocess.Popen(
             [sys.executable, "-c", code, str(msg_theirs.fileno()), str(ctl_theirs.fileno()), json.dumps(spec)],
@@ -1328,7 +1327,6 @@ def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
     import mmap
     from multiprocessing.connection import Connection
 
-    below_the_drive()  # clients are not the drive: they run below it
     spec = json.loads(spec_json)
     settings = MqttSettings(**spec["settings"])
     fd = os.open(f"/dev/shm/{spec['shm'].lstrip('/')}", os.O_RDWR)  # by path: no resource tracker (see modbus)

@@ -21,6 +21,9 @@ import sys
 SWITCH_INTERVAL_S = 20e-6
 #: nice value of the side channels' processes (0 is serve's; 19 the lowest priority)
 SIDE_CHANNEL_NICE = 10
+#: the first statement of a side channel's child interpreter (``python -c``): below the drive before anything else
+#: is imported (numpy's BLAS threads start at import and keep the priority they start with)
+CHILD_PROLOGUE = "from virtualaxis.services.threads import below_the_drive; below_the_drive(); "
 
 
 def leave_realtime() -> None:
@@ -33,8 +36,9 @@ def leave_realtime() -> None:
 
 
 def below_the_drive(nice: int = SIDE_CHANNEL_NICE) -> None:
-    """Run the calling process at SCHED_OTHER and at least nice ``nice``. Call it first in a side channel's
-    process: on Linux a thread's priority is its own, and threads started later inherit it."""
+    """Run the calling process at SCHED_OTHER and at least nice ``nice``. Called first in a side channel's
+    process (:data:`CHILD_PROLOGUE`): on Linux a thread's priority is its own, and threads started later inherit
+    it."""
     leave_realtime()
     try:
         if os.getpriority(os.PRIO_PROCESS, 0) < nice:
