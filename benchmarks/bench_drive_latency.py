@@ -95,10 +95,11 @@ SPINDLE_RPM = 3000.0
 
 def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: int, rt_priority: int,
              lockstep: bool = False, bitrate: int = 0, cpu_latency_us: int | None = None,
-             serve_args: list[str] | None = None) -> dict:
+             serve_args: list[str] | None = None, src: str = SRC) -> dict:
     spec = f"udp_multicast:239.74.163.2,port={port}"
-    args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60),
-            "--bitrate", str(bitrate)]
+    args = [*CLI, "serve", "--can", spec, "--status-interval", "0", "--duration", str(seconds + 60)]
+    if bitrate is not None:  # (None: a checkout older than the CAN bit-rate emulation, which it does not know)
+        args += ["--bitrate", str(bitrate)]
     spindle = n_axes == 7
     for nid in range(1, n_axes + 1):
         cfg = SPINDLE if spindle and nid == 7 else config
@@ -112,7 +113,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
     args += serve_args or []
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": SRC},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": src},
     )
     line = proc.stdout.readline()
     if not line.startswith("ready:"):
@@ -143,7 +144,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         for lst in clock.times.values():
             lst.clear()
         # the drives' own count of cycles run (0x2110:5) and of cycles started late or given up (0x2110:2)
-        counts0 = {nid: (sdo(bus, reply, nid, 0x2110, 5), sdo(bus, reply, nid, 0x2110, 2)) for nid in node_ids}
+        counts0 = {nid: _drive_counts(bus, reply, nid) for nid in node_ids}
         n_sync = int(seconds / period_s)
         cpu0, wall0 = cpu_seconds(proc.pid), time.perf_counter()
         with tqdm(
@@ -154,7 +155,7 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             sync_times = sync_loop(bus, x0, period_s, n_sync, spin_s=0.0 if rt_priority else 3e-4, bar=bar)
         time.sleep(0.2)
         cpu1, wall1 = cpu_seconds(proc.pid), time.perf_counter()
-        counts1 = {nid: (sdo(bus, reply, nid, 0x2110, 5), sdo(bus, reply, nid, 0x2110, 2)) for nid in node_ids}
+        counts1 = {nid: _drive_counts(bus, reply, nid) for nid in node_ids}
         result = {
             "sync_period_us": period_s * 1e6,
             "axes": n_axes,
@@ -170,8 +171,9 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         for nid, cob in zip(node_ids, tpdo_cobs, strict=True):
             result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
                                     if k != "latency_us_p999"}
-            result[f"node{nid}"]["drive_cycles"] = (counts1[nid][0] - counts0[nid][0]) & 0xFFFFFFFF
-            result[f"node{nid}"]["drive_overruns"] = (counts1[nid][1] - counts0[nid][1]) & 0xFFFFFFFF
+            for k, key in enumerate(("drive_cycles", "drive_overruns")):
+                a, b = counts0[nid][k], counts1[nid][k]
+                result[f"node{nid}"][key] = None if a is None or b is None else (b - a) & 0xFFFFFFFF
         result["sdo_rtt_us_p50"] = float(np.percentile(rtts, 50) * 1e6)
         # the master's own stalls: SYNCs sent more than 2 periods after the previous one (then a burst follows
         # that the drive must work off: its late answers are the master's doing, not the drive's)
@@ -197,6 +199,93 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         "master_max_sync_gap_ms": result["master_max_sync_gap_ms"],
     }
     return result
+
+
+def _drive_counts(bus, reply: SdoReply, nid: int) -> tuple[int | None, int | None]:
+    """The drive's own (cycles run 0x2110:5, cycles started late 0x2110:2); None where the drive has no such
+    object (a checkout older than it)."""
+    out = []
+    for sub in (5, 2):
+        try:
+            out.append(sdo(bus, reply, nid, 0x2110, sub))
+        except RuntimeError:
+            out.append(None)
+    return out[0], out[1]
+
+
+def code_ab(args) -> int:
+    """``--code NAME=DIR`` (repeated): every case of ``--cases`` once per checkout ``DIR`` (``serve`` from
+    ``DIR/src``, the axis ``DIR/configs/seed000-hust.toml`` as that checkout ships it, ``--bitrate`` only where that
+    ``serve`` knows it), interleaved within each of ``--rounds`` rounds so that a drifting machine load hits every
+    version alike; a bisection of the latency over the history in one run. Per case and version: the median over
+    the rounds of the worst axis' figures."""
+    codes = []
+    for item in args.code:
+        name, _, root = item.partition("=")
+        root_p = Path(root).resolve()
+        serve_py = root_p / "src" / "virtualaxis" / "cli" / "serve.py"
+        if not name or not serve_py.is_file():
+            raise SystemExit(f"--code {item}: expected NAME=DIR with DIR a checkout (no {serve_py})")
+        knows_bitrate = '"--bitrate"' in serve_py.read_text()
+        codes.append((name, str(root_p / "src"), root_p / "configs" / "seed000-hust.toml", knows_bitrate))
+    cases = _parse_cases(args.cases)
+    runs = [(r, case, code) for r in range(args.rounds) for case in cases for code in codes]
+    rows: dict[tuple, list[dict]] = {}
+    for i, (rnd, (period_s, n_axes), (name, src, config, knows_bitrate)) in enumerate(
+            tqdm(runs, desc="versions x cases", unit="run")):
+        try:
+            res = run_case(period_s, n_axes, args.seconds, config, 45000 + os.getpid() % 500 + i % 400,
+                           args.rt_priority, args.lockstep, args.bitrate if knows_bitrate else None,
+                           args.cpu_latency_us, args.serve_args, src=src)
+        except RuntimeError as exc:  # (a version that cannot run the case: reported, the others go on)
+            print(f"{name} {period_s * 1e3:g} ms x {n_axes}: {exc}", file=sys.stderr)
+            continue
+        res.update(code=name, round=rnd)
+        rows.setdefault((period_s, n_axes, name), []).append(res)
+    machine = _machine()
+    print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
+    print(f"{'SYNC':>7} {'axes':>4} {'version':<12} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} "
+          f"{'late':>6} {'overruns':>8} {'CPU':>6} {'rounds':>6}")
+    summary = []
+    for (period_s, n_axes), (name, *_) in ((c, v) for c in cases for v in codes):
+        got = rows.get((period_s, n_axes, name), [])
+        if not got:
+            continue
+        worst = [_worst_axis(r) for r in got]
+        med = {k: float(np.median([w[k] for w in worst if w[k] is not None]))
+               if any(w[k] is not None for w in worst) else None for k in worst[0]}
+        med["cpu_percent"] = float(np.median([100 * r["serve_cpu_share_of_one_core"] for r in got]))
+        summary.append({"sync_period_us": period_s * 1e6, "axes": n_axes, "code": name, "rounds": len(got), **med})
+        ovr = "-" if med["drive_overruns"] is None else f"{med['drive_overruns']:.0f}"
+        print(f"{period_s * 1e6:>5.0f}us {n_axes:>4} {name:<12} {med['latency_us_p50']:>8.0f} "
+              f"{med['latency_us_p99']:>8.0f} {med['latency_us_max']:>9.0f} {med['missed_cycles']:>7.0f} "
+              f"{med['late_tpdos']:>6.0f} {ovr:>8} {med['cpu_percent']:>5.0f}% {len(got):>6}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "summary": summary,
+                                               "runs": [r for v in rows.values() for r in v]}, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _worst_axis(res: dict) -> dict:
+    """The worst axis of one run: highest p50/p99/max, summed missed/late/overruns."""
+    nodes = [res[f"node{n}"] for n in range(1, res["axes"] + 1)]
+    overruns = [n["drive_overruns"] for n in nodes]
+    return {"latency_us_p50": max(n["latency_us_p50"] or 0 for n in nodes),
+            "latency_us_p99": max(n["latency_us_p99"] or 0 for n in nodes),
+            "latency_us_max": max(n["latency_us_max"] or 0 for n in nodes),
+            "missed_cycles": sum(n["missed_cycles"] for n in nodes),
+            "late_tpdos": sum(n["late_tpdos"] for n in nodes),
+            "drive_overruns": None if None in overruns else sum(overruns)}
+
+
+def _parse_cases(text: str) -> list[tuple[float, int]]:
+    cases = []
+    for item in text.split(","):
+        period, axes = item.split(":")
+        period_s = float(period[:-2]) * 1e-3 if period.endswith("ms") else float(period[:-2]) * 1e-6
+        cases.append((period_s, int(axes)))
+    return cases
 
 
 def cycle_cost(axis_counts=(1, 2, 4, 7), cycles: int = 2000, repeats: int = 3) -> list[dict]:
@@ -318,7 +407,10 @@ def main() -> int:
                     help="serve --cpu-latency-us (PM QoS CPU wake-up bound; default: not requested)")
     ap.add_argument("--serve-arg", dest="serve_args", action="append", default=[],
                     help="one more argument for serve (repeat), e.g. --serve-arg=--sync-spin-us --serve-arg=150")
-    ap.add_argument("--rounds", type=int, default=1, help="--scale: repeat the interleaved case list N times")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="--scale / --code: repeat the interleaved case list N times")
+    ap.add_argument("--code", action="append", default=[], metavar="NAME=DIR",
+                    help="run the cases once per checkout DIR (repeat; interleaved; see code_ab)")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
     ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
     ap.add_argument("--bytecodes", action="store_true",
@@ -341,13 +433,11 @@ def main() -> int:
         return 0
     if args.scale:
         return scale(args)
-    cases = []
-    for item in args.cases.split(","):
-        period, axes = item.split(":")
-        period_s = float(period[:-2]) * 1e-3 if period.endswith("ms") else float(period[:-2]) * 1e-6
-        cases.append((period_s, int(axes)))
     if args.rt_priority:  # the master too, so that its SYNC timing is not the bottleneck
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority))
+    if args.code:
+        return code_ab(args)
+    cases = _parse_cases(args.cases)
     with tempfile.TemporaryDirectory() as tmp:
         config = all_effects_config(Path(tmp) / "all-effects.toml")
         results = []
