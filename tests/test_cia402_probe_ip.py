@@ -40,6 +40,36 @@ def test_profile_position_change_on_setpoint_passes_the_first_target_at_its_velo
         r.close()
 
 
+def test_profile_position_second_setpoint_before_the_next_cycle_is_buffered():
+    """Bit 5 = 0, two set-points before the drive ran a cycle (SDOs between two SYNCs): the first is the running
+    one, the second waits in the buffer (bit 12 stays set) and starts once the first target is reached -- it does
+    not take the first one's place."""
+    r = _pp_rig()
+    node = r.node
+    try:
+        node.sdo[0x607A].raw = 10_000  # 10 mm
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        node.sdo[0x607A].raw = 0  # back to the start, in the same drive cycle
+        node.sdo[0x6040].raw = 0x1F
+        assert r.sw() & 0x1000
+        node.sdo[0x6040].raw = 0x0F
+        assert r.sw() & 0x1000  # the buffer is full until the first target is reached
+        peak = 0  # of the position demand: the buffered set-point starts when the profile has reached the first
+        for _ in range(200):
+            r.sync(4)
+            peak = max(peak, node.sdo[0x6062].raw)
+            if peak > 5_000 and node.sdo[0x6064].raw < 100:
+                break
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+        window = node.sdo[0x6067].raw
+        assert abs(peak - 10_000) <= window, peak  # the first target was reached ...
+        assert abs(node.sdo[0x6064].raw) <= window  # ... and then the second one
+        assert not r.sw() & 0x1000
+    finally:
+        r.close()
+
+
 def _ip_rig():
     from test_drive_rig import Rig
 

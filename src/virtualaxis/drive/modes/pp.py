@@ -29,12 +29,14 @@ class ProfilePosition(OperatingMode):
         self.pending_m: float | None = None  # buffered set-point (single set-point, not change immediately)
         self.halting = False  # the halt's braking profile is planned (once, when bit 8 rises)
         self.setpoint_velocity = 0  # 0x6081 as the running set-point was taken (its velocity through a target)
+        self.unstarted = False  # a set-point taken at rest that no cycle has started yet (it is the running one)
 
     def reset(self, ctx: ModeContext, p_m: float) -> None:
         super().reset(ctx, p_m)
         self.ack = False
         self.pending_m = None
         self.halting = False
+        self.unstarted = False
         self.setpoint_velocity = int(ctx.obj(0x6081))
 
     def entry_decel_m_s2(self, ctx: ModeContext) -> float:
@@ -79,6 +81,7 @@ class ProfilePosition(OperatingMode):
                 gen.profile.set_target(self.pending_m, vt, a, dec)
             else:
                 gen.profile.set_target(gen.target_m, v, a, dec)
+            self.unstarted = False
         p = self._profile_step(ctx)
         if not halt and self.pending_m is not None and (
                 (through and (p - gen.target_m) * (self.pending_m - gen.target_m) >= 0.0)
@@ -139,11 +142,14 @@ class ProfilePosition(OperatingMode):
                 target_l = ctx.setpoints.check_limit(target, value) if self.plannable(ctx) else None
                 if target_l is not None:
                     ctx.accept_setpoint()
-                    if cw & 0x20 or self.gen.settled():
+                    if cw & 0x20 or (self.gen.settled() and not self.unstarted):
+                        # change immediately, or at rest: the running set-point (a second one before the next
+                        # cycle is buffered behind it, not put in its place)
                         self.gen.target_m = target_l
                         self.pending_m = None
                         self.setpoint_velocity = int(ctx.obj(0x6081))
                         self.start_move(ctx)
+                        self.unstarted = not cw & 0x20
                     else:
                         self.pending_m = target_l
                     self.ack = True
