@@ -229,7 +229,9 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
         if rt_priority:  # (the master at the drive's priority for the window only: the clients keep theirs)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
         try:
-            user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=3e-4)
+            # (under SCHED_FIFO the master sleeps to each SYNC: a spin would eat the real-time budget it shares
+            # with serve, and the kernel's RT throttling then stalls both for tens of ms)
+            user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=0.0 if rt_priority else 3e-4)
         finally:
             if rt_priority:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
