@@ -4,7 +4,7 @@ traceback; ``--list`` prints the checks with their source, stimulus and expectat
 from __future__ import annotations
 
 from virtualaxis.cli.main import main
-from virtualaxis.conformance.runner import select
+from virtualaxis.conformance.suite import select
 
 
 def test_bad_input_is_one_error_line(tmp_path, capsys):

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import canopen
 
-from virtualaxis.conformance import runner
+from virtualaxis.conformance import runner, suite
 from virtualaxis.master import DEFAULT_EDS
 
 KEEP = {0x1000, 0x1001, 0x1008, 0x1017, 0x1018, 0x6040, 0x6041, 0x6060, 0x6061, 0x6064, 0x6502}
@@ -63,7 +63,7 @@ def test_missing_optional_objects_and_services_are_skips_with_the_reason(tmp_pat
         mark = ctx.frames.mark()
         node_net.send_message(0x80 + NODE, b"\x10\x81\x11")
         assert ctx.frames.wait(mark, 0x80 + NODE, None, 1.0) is not None
-        checks = runner.select("301-ID,301-SDO-6,301-SDO-11,301-SYNC-1,301-HB-2,301-EMCY-1,402-FE-1,402-HM-1,"
+        checks = suite.select("301-ID,301-SDO-6,301-SDO-11,301-SYNC-1,301-HB-2,301-EMCY-1,402-FE-1,402-HM-1,"
                                "402-PP-3,402-FLD-6,402-FLD-5")
         results = {r.id: r for r in runner.run_checks(ctx, checks)}
     finally:
@@ -122,7 +122,7 @@ def test_homing_check_skips_a_node_without_homing_and_leaves_its_homing_objects_
     0x6098 nor the home offset 0x607C of the node (a check skipped for a mode the node lacks changes nothing)."""
     node, ctx, nets = _homing_node(tmp_path, supported_modes=0x80)
     try:
-        (res,) = runner.run_checks(ctx, runner.select("402-HM-1"))
+        (res,) = runner.run_checks(ctx, suite.select("402-HM-1"))
     finally:
         for net in nets:
             net.disconnect()
@@ -135,7 +135,7 @@ def test_homing_check_fails_a_node_refusing_the_method_its_0x6098_holds(tmp_path
     naming 0x6098, not a skip (a node whose only methods are others than 35 / 37 is a skip)."""
     _node, ctx, nets = _homing_node(tmp_path, supported_modes=0xA0, refused=frozenset({35, 37}))
     try:
-        (res,) = runner.run_checks(ctx, runner.select("402-HM-1"))
+        (res,) = runner.run_checks(ctx, suite.select("402-HM-1"))
     finally:
         for net in nets:
             net.disconnect()

@@ -10,7 +10,8 @@ import time
 import canopen
 import pytest
 
-from virtualaxis.conformance.runner import Context, run_checks, select
+from virtualaxis.conformance.runner import Context, run_checks
+from virtualaxis.conformance.suite import select
 from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis
 

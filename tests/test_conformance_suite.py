@@ -15,7 +15,8 @@ import pytest
 
 from virtualaxis.conformance import run_conformance
 from virtualaxis.conformance.mutants import MUTANTS
-from virtualaxis.conformance.runner import REGISTRY, Context, run_checks, select, summary
+from virtualaxis.conformance.runner import REGISTRY, Context, run_checks, summary
+from virtualaxis.conformance.suite import select
 from virtualaxis.drive.core import Drive
 from virtualaxis.master import DEFAULT_EDS
 from virtualaxis.testing import start_virtual_axis

@@ -51,12 +51,12 @@ def _out_path(opt: str, value: str | None, force: bool, inputs: list) -> Path | 
 
 def run(args) -> int:
     from virtualaxis.cli.errors import CliError
-    from virtualaxis.conformance import runner
+    from virtualaxis.conformance import runner, suite
 
     if args.only is not None and any(not part.strip() for part in args.only.split(",")):
         raise CliError(f"--only {args.only!r}: an empty list or item; give check ids, id prefixes or families "
                        "(e.g. 301-SDO,limits), or leave the option out for all checks")
-    checks = runner.select(args.only)
+    checks = suite.select(args.only)
     if args.list:
         for c in checks:
             pad = " " * 25

@@ -6,7 +6,8 @@
 
 from __future__ import annotations
 
-from virtualaxis.conformance.runner import REGISTRY, Check, Context, Result, run_checks, select, summary
+from virtualaxis.conformance.runner import REGISTRY, Check, Context, Result, run_checks, summary
+from virtualaxis.conformance.suite import select
 
 
 def run_conformance(network, node_id: int, *, eds: str | None = None, only: str | None = None,

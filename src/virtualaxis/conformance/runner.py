@@ -743,17 +743,6 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
     return results
 
 
-def select(ids: str | None) -> list[Check]:
-    """Checks whose id or family matches one of the comma-separated patterns (prefix match)."""
-    from virtualaxis.conformance import checks_301, checks_402  # noqa: F401 - registers the checks
-
-    if not ids:
-        return list(REGISTRY)
-    pats = [p.strip() for p in ids.split(",") if p.strip()]
-    chosen = [c for c in REGISTRY if any(c.id == p or c.id.startswith(p) or c.family == p for p in pats)]
-    return chosen
-
-
 def line(res: Result) -> str:
     trace = " | ".join(res.trace[-3:])
     return f"{res.id:<14} {res.status.upper():<7} {res.detail}" + (f"  [{trace}]" if trace else "")

@@ -34,6 +34,7 @@ from virtualaxis.diagnosis.fit import FitSettings, Runner
 from virtualaxis.diagnosis.hybrid import fit_hybrid
 from virtualaxis.diagnosis.plausibility import check_baseline
 from virtualaxis.diagnosis.progress import ProgressEvent, ProgressFn
+from virtualaxis.diagnosis.report import Plots, write_report
 from virtualaxis.diagnosis.selection import Selection, select_effects
 from virtualaxis.diagnosis.trace import CHANNEL_UNITS, Trace, check_units, read_trace
 from virtualaxis.diagnosis.verdict import channel_verdict
@@ -429,18 +430,6 @@ class Verification:
 
 
 @dataclass(frozen=True)
-class Plots:
-    """The arrays the report's plots are drawn from."""
-
-    tds: list[TraceData]
-    base_res: list[dict[str, np.ndarray]]
-    final_res: list[dict[str, np.ndarray]]
-    loc: Localisation
-    fit_idx: list[int]
-    hold_idx: list[int]
-
-
-@dataclass(frozen=True)
 class DiagnosisResult:
     """What :func:`run_diagnosis` returns: the report (``report.json``'s content), the calibrated config
     (``calibrated.toml``), the nominal config it started from, and the plots' arrays; plus each stage's result."""
@@ -824,8 +813,6 @@ def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, b
 
 def write_outputs(result: DiagnosisResult, out_dir: str | Path) -> dict[str, Path]:
     """``report.json``, ``report.html``, ``calibrated.toml`` (and ``force_vs_speed.png``) into ``out_dir``."""
-    from virtualaxis.diagnosis.report import write_report
-
     report = result.report
     paths = write_report(report, Path(out_dir), calibrated=result.calibrated, nominal=result.nominal,
                          plots=result.plots)

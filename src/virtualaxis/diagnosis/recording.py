@@ -6,12 +6,17 @@ but the trace's arrays."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:  # annotations only: data imports this module
-    from virtualaxis.diagnosis.data import TraceData
+
+class RecordedTrace(Protocol):
+    """What :func:`apply_post` reads of a trace (a :class:`virtualaxis.diagnosis.data.TraceData`)."""
+
+    post: dict  # velocity estimator form, shift per channel, start samples excluded
+    t: np.ndarray  # sample times [s]
+    measured: dict[str, np.ndarray]  # the measured channels
 
 
 def shift_samples(x: np.ndarray, s: int) -> np.ndarray:
@@ -38,7 +43,7 @@ def estimate_velocity(pos: np.ndarray, dt: float, form: str) -> np.ndarray:
     return v
 
 
-def apply_post(td: TraceData, pred: dict[str, np.ndarray], lead_m: float = 0.0) -> dict[str, np.ndarray]:
+def apply_post(td: RecordedTrace, pred: dict[str, np.ndarray], lead_m: float = 0.0) -> dict[str, np.ndarray]:
     """The prediction as the trace records it (``td.post``: ``velocity`` estimator form, ``shift`` per channel,
     ``exclude_start`` samples replaced by the measurement so they cost nothing)."""
     post = td.post

@@ -9,6 +9,7 @@ import html
 import io
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -16,10 +17,23 @@ import numpy as np
 
 if TYPE_CHECKING:  # annotations only
     from virtualaxis.config import AxisConfig
-    from virtualaxis.diagnosis.pipeline import Plots
+    from virtualaxis.diagnosis.data import TraceData
+    from virtualaxis.diagnosis.where import Localisation
 
 #: keys every report.json carries (checked by the tests)
 REQUIRED_KEYS = ("baseline", "where", "effects", "hybrid", "conclusion")
+
+
+@dataclass(frozen=True)
+class Plots:
+    """The arrays the report's plots are drawn from."""
+
+    tds: list[TraceData]
+    base_res: list[dict[str, np.ndarray]]
+    final_res: list[dict[str, np.ndarray]]
+    loc: Localisation
+    fit_idx: list[int]
+    hold_idx: list[int]
 
 
 def _clean(x):

@@ -21,8 +21,8 @@ Where the work runs (the drive's process keeps only what must touch the drive):
   rate and writes its raw values into a **shared-memory ring** (:class:`TelemetryRing`, no lock: a sequence
   counter per slot); it forwards drive events (state transitions, faults, recorded by a drive observer) and
   the current state (10 per second) as small JSON messages over a socket pair;
-- the **publisher process** (:func:`_publisher_child`, a plain child interpreter at normal priority that
-  imports neither the drive nor numba) drains the ring every 10 ms into a bounded buffer per axis
+- the **publisher process** (:func:`virtualaxis.services.mqtt_child.publisher_child`, a plain child interpreter
+  below the drive that imports neither the drive nor numba) drains the ring every 10 ms into a bounded buffer per axis
   (:class:`SampleBuffer`), encodes the JSON and runs the asyncio / aiomqtt clients (one connection per axis).
   Its counters are published back into the shared memory (a sequence lock), so ``serve`` shows them
   (``MqttService.channels``, ``stats()``).
@@ -691,8 +691,8 @@ class MqttService:
         ctl_ours, ctl_theirs = socket.socketpair()
         src = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([src, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        code = (f"import sys; {CHILD_PROLOGUE}from virtualaxis.services.mqtt import _publisher_child; "
-                "_publisher_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3])")
+        code = (f"import sys; {CHILD_PROLOGUE}from virtualaxis.services.mqtt_child import publisher_child; "
+                "publisher_child(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3])")
         self._proc = subprocess.Popen(
             [sys.executable, "-c", code, str(msg_theirs.fileno()), str(ctl_theirs.fileno()), json.dumps(spec)],
             pass_fds=(msg_theirs.fileno(), ctl_theirs.fileno()), env=env,
@@ -920,6 +920,11 @@ class Publisher:
         self.instance_id = new_instance_id()  # this process' identity on the broker (mqtt_presence)
         self.connection_log = ConnectionLog(settings.host, settings.port)
         self.serve_pid = os.getppid()  # this publisher process is serve's child
+
+    @property
+    def stopping(self) -> bool:
+        """serve asked this publisher to stop (its ``stop`` message): the run is ending cleanly."""
+        return self._stop.is_set()
 
     # -------------------------------------------------------------------------------- inputs
     def on_message(self, raw: bytes) -> None:
@@ -1317,52 +1322,6 @@ def tcp_no_delay(client) -> None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     except (AttributeError, OSError):
         pass
-
-
-def _publisher_child(msg_fd: int, ctl_fd: int, spec_json: str) -> None:
-    """Entry of the publisher process (``python -c``): the two inherited socket fds (messages from serve, stop
-    watch) and the spec (settings, axes, shared memory name). serve's ``stop`` message ends it cleanly (buffer
-    flushed, ``offline`` sent); serve's death (EOF on the watch socket) ends it at once without a DISCONNECT,
-    so that the broker publishes the last will."""
-    import mmap
-    from multiprocessing.connection import Connection
-
-    spec = json.loads(spec_json)
-    settings = MqttSettings(**spec["settings"])
-    fd = os.open(f"/dev/shm/{spec['shm'].lstrip('/')}", os.O_RDWR)  # by path: no resource tracker (see modbus)
-    try:
-        mem = mmap.mmap(fd, 0)
-    finally:
-        os.close(fd)
-    ring = TelemetryRing(memoryview(mem), len(spec["axes"]))
-    if settings.sparkplug_group is not None:
-        from virtualaxis.services.sparkplug import SparkplugPublisher
-
-        pub: Publisher = SparkplugPublisher(settings, spec["axes"], ring)
-    else:
-        pub = Publisher(settings, spec["axes"], ring)
-    conn, ctl = Connection(msg_fd), Connection(ctl_fd)
-    pub.to_serve = conn.send_bytes  # (only the event loop's thread sends: fault/set commands)
-
-    def read_messages() -> None:
-        try:
-            while True:
-                pub.on_message(conn.recv_bytes())
-        except (EOFError, OSError):
-            return
-
-    def watch_serve() -> None:  # serve never writes here: EOF = serve closed it after our exit, or died
-        try:
-            ctl.recv_bytes()
-        except (EOFError, OSError):
-            pass
-        if not pub._stop.is_set():
-            os._exit(0)  # serve died: drop the connections unannounced, the broker sends the will
-
-    threading.Thread(target=read_messages, daemon=True).start()
-    threading.Thread(target=watch_serve, daemon=True).start()
-    pub.run()
-    # (the memoryview is released with the process)
 
 
 def machine_name_from(config_path: str | Path | None, default: str = "machine") -> str:
