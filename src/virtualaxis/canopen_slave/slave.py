@@ -420,7 +420,7 @@ class CanopenSlave:
         for cob in consumer.monitors:
             handlers[cob] = self._on_heartbeat
         for cob, rpdo in self.pdo.rpdo_by_cob.items():
-            handlers[cob] = _rpdo_handler(self, rpdo)
+            handlers[cob] = rpdo_handler(self, rpdo)
         self._sync_cob = -1
         if not self.od.value(0x1005) & 0x80000000:
             handlers[self.sync.cob_id] = self._on_sync_frame
@@ -740,7 +740,7 @@ class CanopenSlave:
         return out
 
 
-def _rpdo_handler(slave: CanopenSlave, rpdo) -> Callable[[can.Message, float], None]:
+def rpdo_handler(slave: CanopenSlave, rpdo) -> Callable[[can.Message, float], None]:
     pdo = slave.pdo
 
     def handle(msg: can.Message, now_s: float) -> None:

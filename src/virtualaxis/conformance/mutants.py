@@ -112,7 +112,7 @@ def _pdo_in_stopped() -> None:
     from virtualaxis.canopen_slave import slave as slave_mod
     from virtualaxis.canopen_slave.nmt import NMT_STATE
 
-    original_handler = slave_mod._rpdo_handler
+    original_handler = slave_mod.rpdo_handler
     original_transmit = slave_mod.CanopenSlave.transmit_sync
 
     def handler(slave, rpdo):
@@ -132,7 +132,7 @@ def _pdo_in_stopped() -> None:
             return
         original_transmit(self, counter, now_s)
 
-    slave_mod._rpdo_handler = handler
+    slave_mod.rpdo_handler = handler
     slave_mod.CanopenSlave.transmit_sync = transmit_sync
 
 
@@ -141,7 +141,7 @@ def _rpdo_in_preop() -> None:
     from virtualaxis.canopen_slave import slave as slave_mod
     from virtualaxis.canopen_slave.nmt import NMT_STATE
 
-    original_handler = slave_mod._rpdo_handler
+    original_handler = slave_mod.rpdo_handler
 
     def handler(slave, rpdo):
         handle = original_handler(slave, rpdo)
@@ -154,7 +154,7 @@ def _rpdo_in_preop() -> None:
 
         return on_frame
 
-    slave_mod._rpdo_handler = handler
+    slave_mod.rpdo_handler = handler
 
 
 @mutant("sync_timeout_silent", "no EMCY 0x8100 when SYNC stops", pacing="realtime", only="sync")

@@ -592,7 +592,9 @@ class AxisChannel:
         except Exception:  # noqa: BLE001 - a diagnostic field, never worth a crash
             return "UNKNOWN"
 
-    def _read(self) -> tuple[dict, str]:
+    def counters_and_error(self) -> tuple[dict, str]:
+        """The publisher process' counters of this axis and its last connection error (after stop: as kept by
+        :meth:`keep_final`)."""
         if self._final is not None:
             return self._final
         ring = self.service.ring
@@ -602,11 +604,15 @@ class AxisChannel:
         return project_pending(c, ring.written(self.index), self.service.settings.buffer_samples), err
 
     def counters(self) -> dict:
-        return self._read()[0]
+        return self.counters_and_error()[0]
 
     @property
     def last_error(self) -> str:
-        return self._read()[1]
+        return self.counters_and_error()[1]
+
+    def keep_final(self, counters: dict, error: str) -> None:
+        """The counters and error as the publisher left them (the shared memory goes with the stop)."""
+        self._final = (counters, error)
 
     connects = property(lambda self: self.counters()["connects"])
     connect_attempts = property(lambda self: self.counters()["connect_attempts"])
@@ -829,7 +835,7 @@ class MqttService:
         if self.ring is not None:
             for ch in self.channels:
                 c, err = self.ring.counters(ch.index)
-                ch._final = project_pending(c, self.ring.written(ch.index), self.settings.buffer_samples), err
+                ch.keep_final(project_pending(c, self.ring.written(ch.index), self.settings.buffer_samples), err)
             self.ring = None
         for c in (self._conn, self._ctl):
             if c is not None:
@@ -846,7 +852,7 @@ class MqttService:
     def stats(self) -> dict:
         out = {}
         for ch in self.channels:
-            c, err = ch._read()
+            c, err = ch.counters_and_error()
             out[ch.name] = {k: c[k] for k in ("samples_taken", "samples_published", "samples_dropped",
                                               "samples_buffered", "connects", "disconnects", "batches_published",
                                               "events_published", "events_dropped")}

@@ -44,7 +44,7 @@ class Profile:
     spec: str
     axes: tuple[str, ...]
     natural_duration_s: float
-    _fn: object = field(repr=False)
+    fn: object = field(repr=False)  # t [s] (, duration [s]) -> per axis (position, velocity, acceleration)
     #: the move file a ``file:`` profile reads (an output must never overwrite it)
     source_path: str | None = None
     #: highest frequency in the command [Hz] (chirp), checked against the position cycle's Nyquist frequency
@@ -60,7 +60,7 @@ class Profile:
 
     def sample(self, t: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Position [m], velocity [m/s], acceleration [m/s^2] per axis at times ``t``."""
-        return self._fn(np.asarray(t, dtype=float))
+        return self.fn(np.asarray(t, dtype=float))
 
 
 def _kv(spec: str, body: str, required: tuple[str, ...], optional: dict) -> dict:
@@ -237,7 +237,7 @@ def parse_profile(spec: str, cfg: AxisConfig | None = None, start_position_m: fl
             acc = -amp * w * w * np.sin(ph)
             return {"x": (x0 + p, vel, acc)}
 
-        prof._fn = fn
+        prof.fn = fn
         return prof
     if kind == "circle":
         v = _kv(spec, body, ("radius_mm", "omega_rad_min"), {})
@@ -371,7 +371,7 @@ def check_limits(profile: Profile, cfg: AxisConfig, duration_s: float, cycle_s: 
 
 def sample_profile(profile: Profile, t: np.ndarray, duration_s: float):
     """Sample, passing the requested duration to profiles that scale with it (chirp)."""
-    fn = profile._fn
+    fn = profile.fn
     try:
         return fn(t, duration_s)  # type: ignore[misc]
     except TypeError:
