@@ -25,6 +25,10 @@ process), the host's load average, and per client the messages and samples recei
 the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds.
 
 ``--rt-priority N``: serve and the master's SYNC loop at SCHED_FIFO N (a host shared with other work).
+``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``): serve's runtime and CAN receive threads on DRIVE_CPUS, everything
+else of the run (serve's other threads, the page's server process, the clients, Chromium and the master, which
+in a rig are other machines) on LOAD_CPUS: the isolated-core deployment of docs/side-channels.md, as
+``bench_side_channels.py --pin``.
 ``--code NAME=SRC`` (repeated) runs every phase once per source tree (``PYTHONPATH=SRC`` for serve), interleaved
 within each round: an A/B comparison of two versions of the package in the same run (phases ``off@NAME``, ...).
 
@@ -81,9 +85,15 @@ def _late_cycles(bus, reply) -> int | None:
         return None
 
 
+DRIVE_THREADS = ("runtime", "can-rx")  # serve's threads on the SYNC -> TPDO path (OS names)
+
+
 def make_idle(cpus: set[int] | None = None) -> None:
     """The calling process at nice 19 (with ``BENCH_SCHED_IDLE=1`` in the environment: SCHED_IDLE, which runs it
-    only on CPU time nothing else wants) on ``cpus`` (default: the last CPU)."""
+    only on CPU time nothing else wants) on ``cpus`` (default: ``BENCH_LOAD_CPUS`` of the environment, set by
+    ``--pin``, else the last CPU)."""
+    if cpus is None and os.environ.get("BENCH_LOAD_CPUS"):
+        cpus = {int(c) for c in os.environ["BENCH_LOAD_CPUS"].split(",")}
     with contextlib.suppress(OSError):
         os.nice(19)
     if os.environ.get("BENCH_SCHED_IDLE") == "1":
@@ -162,7 +172,22 @@ def _cpu_of(pids: list[int]) -> float:
     return total
 
 
-def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None, rt_priority: int = 0) -> dict:
+def pin_serve(pid: int, drive_cpus: set[int] | None, load_cpus: set[int] | None) -> None:
+    """``--pin``: serve's SYNC path on ``drive_cpus``, its other threads and its child processes on ``load_cpus``."""
+    if drive_cpus is None:
+        return
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+            os.sched_setaffinity(int(tid), drive_cpus if name in DRIVE_THREADS else load_cpus)
+    for child in _children(pid):
+        with contextlib.suppress(OSError):
+            for tid in os.listdir(f"/proc/{child}/task"):
+                os.sched_setaffinity(int(tid), load_cpus)
+
+
+def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None, rt_priority: int = 0,
+              drive_cpus: set[int] | None = None, load_cpus: set[int] | None = None) -> dict:
     group = "239.74.163.9"
     spec = f"udp_multicast:{group},port={port}"
     http_port = free_port()
@@ -181,6 +206,7 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
         raise RuntimeError(f"serve did not start: {line} {proc.stderr.read()}")
     if page:
         proc.stdout.readline()  # "http: ..."
+    pin_serve(proc.pid, drive_cpus, load_cpus)
     bus = can.Bus(interface="udp_multicast", channel=group, port=port, hop_limit=0)
     clock = TpdoClock([*(0x280 + n for n in NODES), SYNC_COB])
     reply = SdoReply(list(NODES))
@@ -218,6 +244,7 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
             for t in tabs:  # count the frames each tab draws
                 t.evaluate("window.__frames = 0; (function f() { window.__frames++; requestAnimationFrame(f); })()")
         time.sleep(1.0)
+        pin_serve(proc.pid, drive_cpus, load_cpus)  # (threads started since, e.g. per connection)
         overruns0 = _late_cycles(bus, reply)
         children = _children(proc.pid)
         cpu0, st0, child0 = cpu_seconds(proc.pid), thread_schedstat(proc.pid), _cpu_of(children)
@@ -363,12 +390,24 @@ def main() -> int:
     ap.add_argument("--rt-priority", type=int, default=0, metavar="N",
                     help="serve (--rt-priority N) and this master's SYNC loop at SCHED_FIFO N; the clients stay "
                          "at their priority (the page's server process leaves real time on its own)")
+    ap.add_argument("--pin", default=None, metavar="DRIVE_CPUS:LOAD_CPUS",
+                    help="e.g. 1:0 -- serve's runtime + CAN receive threads on DRIVE_CPUS, the rest of the run "
+                         "(page server, clients, browser, master) on LOAD_CPUS")
     ap.add_argument("--code", action="append", default=[], metavar="NAME=SRC",
                     help="run each phase with PYTHONPATH=SRC, once per --code (A/B of two source trees)")
     ap.add_argument("--ws-client", metavar="URL", help=argparse.SUPPRESS)  # one client process of `streams`
     opts = ap.parse_args()
     if opts.sched_idle:
         os.environ["BENCH_SCHED_IDLE"] = "1"  # (inherited by the client processes)
+    drive_cpus = load_cpus = None
+    if opts.pin:
+        d, _, lo = opts.pin.partition(":")
+        try:
+            drive_cpus, load_cpus = {int(c) for c in d.split(",")}, {int(c) for c in lo.split(",")}
+        except ValueError:
+            ap.error(f"--pin {opts.pin!r}: expected DRIVE_CPUS:LOAD_CPUS, e.g. 1:0")
+        os.environ["BENCH_LOAD_CPUS"] = ",".join(map(str, sorted(load_cpus)))  # (the clients, Chromium)
+        os.sched_setaffinity(0, load_cpus)  # the master is another machine of the rig: not on the drive's CPU
     if opts.ws_client:
         return ws_client(opts.ws_client, opts.json)
     if opts.hook_cost:
@@ -393,7 +432,8 @@ def main() -> int:
         for r in range(opts.rounds):
             for phase in phases:
                 for name, src in codes or [(None, None)]:
-                    res = run_phase(phase, opts.seconds, free_port(), Path(tmp), src, opts.rt_priority)
+                    res = run_phase(phase, opts.seconds, free_port(), Path(tmp), src, opts.rt_priority,
+                                    drive_cpus, load_cpus)
                     res["round"] = r
                     res["phase"] = f"{phase}@{name}" if name else phase
                     results.append(res)

@@ -464,6 +464,37 @@ def test_websocket_sends_live_updates_and_refuses_what_it_does_not_take():
         assert "Traceback" not in s.stderr
 
 
+def test_at_real_time_priority_the_state_messages_are_made_in_the_runtime_threads_gap(tmp_path):
+    """serve --rt-priority: the page's state messages are made by the runtime thread in the gap before a drive
+    cycle (serve's JSON counts them as gap jobs), not by a thread that would hold the interpreter lock while the
+    drive's thread waits; they still come ten times a second, each with the drive's time advanced."""
+    out = tmp_path / "serve.json"
+    try:
+        cm = served("--http", "127.0.0.1:0", "--rt-priority", "5", "--json", str(out))
+        s = cm.__enter__()
+    except AssertionError as exc:
+        if "SCHED_FIFO" in str(exc):
+            pytest.skip("SCHED_FIFO not permitted on this host")
+        raise
+    try:
+        sock = _ws_open(page_url(s), f"/api/axes/{AXIS}/live")
+        cycles: list[int] = []
+        t_end = time.monotonic() + 2.0
+        while time.monotonic() < t_end:
+            op, data = _ws_read(sock)
+            msg = json.loads(data)
+            if op == 0x1 and msg["event"] == "state":
+                cycles.append(msg["data"]["cycles"])
+        sock.close()
+    finally:
+        cm.__exit__(None, None, None)
+    running = [c for c in cycles if c > 0]  # (the state made at start, before the first cycle, may come twice)
+    assert len(running) >= 10, cycles  # 10 per second with a stream open (20 expected in 2 s)
+    assert all(b > a for a, b in zip(running, running[1:], strict=False)), cycles
+    runtime = json.loads(out.read_text())["runtime"]
+    assert runtime["gap_jobs"] >= len(cycles) - 1 and runtime["gap_job_errors"] == 0, runtime
+
+
 def test_read_only_page_refuses_writes_and_fault_injection():
     with served("--http", "127.0.0.1:0") as s:
         api = page_url(s) + f"api/axes/{AXIS}"

@@ -163,7 +163,9 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, _stop)
     _log_to_stderr()
     try:  # before the drive runs: forking the side channels' processes holds the interpreter lock for ms
-        side.start(axes)
+        # at real-time priority the side channels' readings of the drives run in the runtime thread's gap: a
+        # thread of their own would make the drive's thread wait for the interpreter lock (a priority inversion)
+        side.start(axes, run_in_gap=runtime.run_in_gap if args.rt_priority else None)
     except OSError as exc:
         side.stop()
         bus.shutdown()

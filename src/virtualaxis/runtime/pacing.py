@@ -63,6 +63,7 @@ escapes the loop itself stops the thread; it is logged and recorded in :attr:`Ru
 
 from __future__ import annotations
 
+import collections
 import ctypes
 import gc
 import logging
@@ -70,7 +71,7 @@ import select
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import can
@@ -85,6 +86,14 @@ INTERNAL_SOFTWARE_FAULT = 0x6100
 LOGGED_TRACEBACKS = 5
 #: frames taken from the bus in one pass of the loop at most (a flood cannot starve the drive cycles)
 DRAIN_LIMIT = 256
+#: a job of another thread (``Runtime.run_in_gap``) runs when the next drive cycle is at least this far off [s]
+#: (real time; in lockstep after a pass: there is no deadline to keep) ...
+GAP_JOB_MIN_SLACK_S = 3e-4
+#: ... or, without that slack, once it has waited this long [s]: a side channel's picture is late by at most this
+GAP_JOB_MAX_WAIT_S = 0.25
+#: while SYNCs come (one within this long [s]), a job runs right after a pass that answered one, so that it ends
+#: before the next SYNC instead of delaying its answer
+GAP_JOB_SYNC_RECENT_S = 0.01
 #: timer slack of the runtime thread [ns] (Linux default 50 us; prctl PR_SET_TIMERSLACK)
 TIMER_SLACK_NS = 1000
 _PR_SET_TIMERSLACK = 29
@@ -139,6 +148,9 @@ class RuntimeStats:
     error_frames: int = 0  # CAN error frames: dropped
     frames_malformed: int = 0  # no classical CAN frame (runtime.frames): dropped, in every axis' 0x2100:1
     last_malformed: str = ""  # why the latest malformed frame was dropped
+    gap_jobs: int = 0  # jobs of other threads run in the gap before the next cycle (run_in_gap)
+    gap_jobs_forced: int = 0  # ... of them run without the slack, after waiting GAP_JOB_MAX_WAIT_S
+    gap_job_errors: int = 0  # ... that raised (logged, the loop goes on)
     started_s: float = field(default_factory=time.perf_counter)
 
     def as_dict(self) -> dict:
@@ -164,6 +176,9 @@ class RuntimeStats:
             "error_frames": self.error_frames,
             "frames_malformed": self.frames_malformed,
             "last_malformed": self.last_malformed,
+            "gap_jobs": self.gap_jobs,
+            "gap_jobs_forced": self.gap_jobs_forced,
+            "gap_job_errors": self.gap_job_errors,
         }
 
 
@@ -311,11 +326,46 @@ class Runtime:
         self._bus_drain = None  # the bus's own drain(limit, on_error) -> frames, when it has one
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
+        self._gap_jobs: collections.deque = collections.deque()  # (submitted at [perf_counter s], job)
+        self._sync_answered_s = -1.0  # perf_counter of the last pass that answered a SYNC (gap jobs)
         self._answered: list = []  # real time: (axis, SYNC counters) whose TPDOs went out, RPDOs still to apply
         self._stepping: list = []  # lockstep: (axis, SYNC counters) answered in this pass, cycles still to run
 
     def now(self) -> float:
         return time.perf_counter() - self._t0
+
+    def run_in_gap(self, job: Callable[[], None]) -> None:
+        """Thread-safe: run ``job()`` in the runtime thread, in the gap before a drive cycle (at least
+        :data:`GAP_JOB_MIN_SLACK_S` ahead of it; after :data:`GAP_JOB_MAX_WAIT_S` in any case), one job per pass of
+        the loop, in the order submitted; while SYNCs come, right after one was answered. For a side channel's
+        periodic reading of the drives: done by the thread that owns them, it never contends with a cycle for the
+        interpreter lock or a drive's lock, as the same work in a thread of its own does (each forced switch of
+        the interpreter lock costs the cycle a wake-up). An exception is logged and counted
+        (``stats.gap_job_errors``). Jobs wait for the runtime thread (before :meth:`start` they do not run)."""
+        self._gap_jobs.append((time.perf_counter(), job))
+
+    def _run_gap_job(self, now: float, next_cycle: float | None, answered_sync: bool) -> None:
+        """The oldest waiting job, if the gap allows it (see :meth:`run_in_gap`); ``answered_sync``: this pass
+        answered a SYNC."""
+        jobs = self._gap_jobs
+        submitted, job = jobs[0]
+        if answered_sync:
+            self._sync_answered_s = now
+        forced = ((next_cycle is not None and next_cycle - now < GAP_JOB_MIN_SLACK_S)
+                  or (not answered_sync and now - self._sync_answered_s < GAP_JOB_SYNC_RECENT_S))
+        if forced and now - submitted < GAP_JOB_MAX_WAIT_S:
+            return
+        jobs.popleft()
+        stats = self.stats
+        stats.gap_jobs += 1
+        if forced:
+            stats.gap_jobs_forced += 1
+        try:
+            job()
+        except Exception:  # noqa: BLE001 - a side channel's job never stops the drive
+            stats.gap_job_errors += 1
+            if stats.gap_job_errors <= LOGGED_TRACEBACKS:
+                log.exception("a job run in the gap before a drive cycle raised")
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -577,6 +627,7 @@ class Runtime:
         sleep = time.sleep
         while not stop.is_set():
             t_busy = perf()
+            syncs0 = stats.syncs
             if end is not None and t_busy >= end:
                 break
             if direct:
@@ -620,6 +671,8 @@ class Runtime:
                         t = perf()
                     stats.next_deadline_s = next_cycle
                     stats.checked_s = t
+            if self._gap_jobs:
+                self._run_gap_job(perf(), None if self.lockstep else next_cycle, stats.syncs != syncs0)
             stats.loops += 1
             t = perf()
             stats.busy_s += t - t_busy

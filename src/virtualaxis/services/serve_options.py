@@ -100,8 +100,9 @@ class SideChannels:
         self.bus = GateBus(bus, self.gate)
         return self.bus
 
-    def start(self, axes) -> None:
-        """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave, injection)."""
+    def start(self, axes, run_in_gap=None) -> None:
+        """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave, injection);
+        ``run_in_gap``: the runtime's ``run_in_gap`` (the live page's state messages are made by its thread)."""
         if self.modbus_address is not None:
             from virtualaxis.services.modbus import ModbusService
             from virtualaxis.services.modbus_map import AxisLink
@@ -132,7 +133,7 @@ class SideChannels:
             pages = [AxisPage(a.name, a.node_id, a.drive, a.slave, getattr(a, "injection", None), _nmt_getter(a))
                      for a in axes]
             self.http = LivePageService(pages, host=host, port=port, writable=self.http_writable, bus=self.bus,
-                                        frame_log=self.frame_log, gate=self.gate).start()
+                                        frame_log=self.frame_log, gate=self.gate, run_in_gap=run_in_gap).start()
             rw = "objects writable" if self.http_writable else "read-only"
             shown = f"[{host}]" if ":" in host else host
             self.lines.append(f"http: live page at http://{shown}:{self.http.bound_port}/ ({rw})")

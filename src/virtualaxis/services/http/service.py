@@ -6,8 +6,12 @@ MQTT and OPC UA servers; it imports neither the drive nor numba), handing it the
 of a socket pair. What it costs serve's process:
 
 - the drive's **cycle hook** per axis (ring.py: three ``pack_into`` per cycle, no allocation of its own);
-- a **state thread**: the state message of each axis (JSON) into the segment ten times a second while the
-  axis has a live stream open, once a second otherwise (in the gap after a SYNC's PDOs, cycle_gate.py);
+- the **state message** of each axis (JSON) into the segment ten times a second while the axis has a live
+  stream open, once a second otherwise. With ``run_in_gap`` (``Runtime.run_in_gap``; serve passes it at real-time
+  priority) a timer thread hands the work to the runtime thread, which does it in the gap before a drive cycle,
+  so that the drive's thread never waits for another thread's interpreter lock (a priority inversion at
+  real-time priority). Without, the timer thread does it itself, in the gap after a SYNC's PDOs (cycle_gate.py),
+  on the other core while the drive runs;
 - a **bridge thread**: the requests the server process forwards -- the object dictionary with its values,
   object writes (``--http-writable``: the SDO download's checks and abort codes) and fault-injection commands
   (``--allow-fault-injection``) -- applied under the drive's lock, i.e. between two cycles, and answered.
@@ -20,6 +24,7 @@ in the stats).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import socket
@@ -64,13 +69,16 @@ class LivePageService:
     process, :meth:`stop` ends it (module doc)."""
 
     def __init__(self, axes: list[AxisPage], *, host: str = "127.0.0.1", port: int = 8080, writable: bool = False,
-                 bus: Any = None, frame_log: FrameLog | None = None, gate: Any = None, ring_s: float = 120.0):
+                 bus: Any = None, frame_log: FrameLog | None = None, gate: Any = None, ring_s: float = 120.0,
+                 run_in_gap: Callable[[Callable[[], None]], None] | None = None):
         self.axes = list(axes)
         self.host, self.port = host, port
         self.writable = writable
         self.bus = bus
         self.frame_log = frame_log
         self.gate = gate
+        self.run_in_gap = run_in_gap
+        self._queued: set[int] = set()  # axes whose state message waits for the runtime thread
         self.ring_s = ring_s
         self.bound_port: int | None = None
         self.counters = {"writes": 0, "writes_refused": 0, "fault_commands": 0, "state_messages": 0,
@@ -161,14 +169,26 @@ class LivePageService:
     # ------------------------------------------------------------------ the state thread
     def _state_loop(self) -> None:
         tick = 0
+        run_in_gap = self.run_in_gap
         while not self._stop.wait(STATE_PERIOD_S):
-            if self.gate is not None:
+            if run_in_gap is None and self.gate is not None:
                 self.gate.wait_next()  # (at most 2 ms: the rest of the communication cycle after the PDOs)
             tick += 1
-            for ax in self.axes:
+            for i, ax in enumerate(self.axes):
                 if ax.block is None or (not ax.block.clients() and tick % IDLE_STATE_EVERY):
                     continue
-                self._publish_state(ax)
+                if run_in_gap is None:
+                    self._publish_state(ax)
+                elif i not in self._queued:  # (one waiting per axis: a slow runtime gets no backlog)
+                    self._queued.add(i)
+                    run_in_gap(functools.partial(self._publish_queued, i))
+
+    def _publish_queued(self, i: int) -> None:
+        """The runtime thread's part: one axis' state message (skipped once the page stopped)."""
+        self._queued.discard(i)
+        ax = self.axes[i]
+        if ax.block is not None and not self._stop.is_set():
+            self._publish_state(ax)
 
     def _publish_state(self, ax: AxisPage) -> None:
         try:
