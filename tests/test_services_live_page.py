@@ -488,9 +488,9 @@ def test_at_real_time_priority_the_state_messages_are_made_in_the_runtime_thread
         sock.close()
     finally:
         cm.__exit__(None, None, None)
-    running = [c for c in cycles if c > 0]  # (the state made at start, before the first cycle, may come twice)
-    assert len(running) >= 10, cycles  # 10 per second with a stream open (20 expected in 2 s)
-    assert all(b > a for a, b in zip(running, running[1:], strict=False)), cycles
+    # (the page's server sends the newest state at its own pace: one serve has not replaced yet comes twice)
+    assert all(b >= a for a, b in zip(cycles, cycles[1:], strict=False)), cycles
+    assert len({c for c in cycles if c > 0}) >= 10, cycles  # 10 new ones per second with a stream open
     runtime = json.loads(out.read_text())["runtime"]
     assert runtime["gap_jobs"] >= len(cycles) - 1 and runtime["gap_job_errors"] == 0, runtime
 
@@ -738,3 +738,34 @@ def test_ring_counts_what_the_server_fell_too_far_behind_for():
     block.set_state(b'{"axis": "X", "cycles": 7}')
     state = json.loads(ring.state_message())
     assert state["cycles"] == 7 and state["ring"]["lost"] == ring.lost and state["ring"]["written"] == end
+
+
+def test_a_state_message_is_read_whole_or_the_one_before_while_serve_writes_the_next():
+    """The server process reads an axis' state message while serve's writer replaces it: every read is a message
+    written whole (the newest, or while one is being written the one read before), never a torn one."""
+    from virtualaxis.services.http.ring import PageBlock, segment_size
+
+    buf = memoryview(bytearray(segment_size(1)))
+    writer, reader = PageBlock(buf, 0), PageBlock(buf, 0)
+    messages = [json.dumps({"n": k, "pad": "x" * (k % 7) * 300}).encode() for k in range(50)]
+    stop = threading.Event()
+
+    def write() -> None:
+        k = 0
+        while not stop.is_set():
+            writer.set_state(messages[k % len(messages)])
+            k += 1
+
+    assert reader.state() == b""
+    writer.set_state(messages[0])
+    assert reader.state() == messages[0]
+    t = threading.Thread(target=write)
+    t.start()
+    try:
+        reads = [reader.state() for _ in range(20_000)]
+    finally:
+        stop.set()
+        t.join()
+    whole = set(messages)
+    assert all(r in whole for r in reads), next(r for r in reads if r not in whole)[:80]
+    assert len(set(reads)) > 1  # (the writer did write meanwhile)

@@ -102,7 +102,9 @@ class SideChannels:
 
     def start(self, axes, run_in_gap=None) -> None:
         """Start for the runtime's ``axes`` (``AxisNode``: name, node_id, drive, slave, injection);
-        ``run_in_gap``: the runtime's ``run_in_gap`` (the live page's state messages are made by its thread)."""
+        ``run_in_gap``: the runtime's ``run_in_gap`` (the live page's state messages are made by its thread; the
+        Modbus register images stay in their own thread: built in the runtime thread they changed nothing
+        measurable, BENCHMARKS.md)."""
         if self.modbus_address is not None:
             from virtualaxis.services.modbus import ModbusService
             from virtualaxis.services.modbus_map import AxisLink

@@ -30,7 +30,6 @@ import json
 import math
 import struct
 import threading
-import time
 
 import numpy as np
 
@@ -40,6 +39,7 @@ _STATUSWORD_KEY = (0x6041, 0)
 HANDOFF_SLOTS = 1 << 14  # drive cycles the server process may fall behind (16 s at a 1 ms cycle)
 HANDOFF_MARGIN = 1 << 10  # slots kept clear of the hook's writing position while draining
 STATE_BYTES = 1 << 16  # room for one axis' state message (JSON)
+STATE_READ_TRIES = 3  # reads of a state message that serve is writing meanwhile before the last whole one is taken
 
 _U64 = struct.Struct("<Q")
 _F64X3 = struct.Struct("<3d")
@@ -80,6 +80,7 @@ class PageBlock:
         self._w = _U64.unpack_from(buf, self._w_end)[0]  # (serve's side: the next slot to write)
         self._pack_slot = _SLOT.pack_into
         self._pack_u64 = _U64.pack_into
+        self._last_state = b""  # (the server process' side: the newest state message read whole)
 
     def _word(self, i: int) -> int:
         return _U64.unpack_from(self.buf, self.base + 8 * i)[0]
@@ -128,15 +129,17 @@ class PageBlock:
         self._set(_CLIENTS, n)
 
     def state(self) -> bytes:
-        """The newest state message (b"" before serve wrote one)."""
-        for _ in range(1000):
+        """The newest state message read whole (b"" before one was). While serve is writing one (its
+        writer may hold the interpreter lock's turn for a while), the one before: this process never spins on
+        the segment waiting for serve."""
+        for _ in range(STATE_READ_TRIES):
             s1 = self._word(_STATE_SEQ)
             n = min(self._word(_STATE_LEN), STATE_BYTES)
             data = bytes(self.buf[self.base + _STATE_AT:self.base + _STATE_AT + n])
             if not s1 & 1 and s1 == self._word(_STATE_SEQ):
+                self._last_state = data
                 return data
-            time.sleep(0)
-        return b""
+        return self._last_state
 
     def units(self) -> tuple[float, float, float]:
         return _F64X3.unpack_from(self.buf, self.base + _UNITS_AT)
