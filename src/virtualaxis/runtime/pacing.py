@@ -349,8 +349,6 @@ class Runtime:
         answered a SYNC."""
         jobs = self._gap_jobs
         submitted, job = jobs[0]
-        if answered_sync:
-            self._sync_answered_s = now
         forced = ((next_cycle is not None and next_cycle - now < GAP_JOB_MIN_SLACK_S)
                   or (not answered_sync and now - self._sync_answered_s < GAP_JOB_SYNC_RECENT_S))
         if forced and now - submitted < GAP_JOB_MAX_WAIT_S:
@@ -671,8 +669,12 @@ class Runtime:
                         t = perf()
                     stats.next_deadline_s = next_cycle
                     stats.checked_s = t
+            answered_sync = stats.syncs != syncs0
+            if answered_sync:
+                self._sync_answered_s = t_pass = perf()
             if self._gap_jobs:
-                self._run_gap_job(perf(), None if self.lockstep else next_cycle, stats.syncs != syncs0)
+                self._run_gap_job(t_pass if answered_sync else perf(), None if self.lockstep else next_cycle,
+                                  answered_sync)
             stats.loops += 1
             t = perf()
             stats.busy_s += t - t_busy
