@@ -54,9 +54,14 @@ def mosquitto_exe() -> str | None:
     return shutil.which("mosquitto")
 
 
+def broker_wanted() -> str:
+    """The environment's choice of broker as given (lower case; "" for none), not yet checked."""
+    return os.environ.get(BROKER_ENV, "").strip().lower()
+
+
 def broker_kind(want: str | None = None) -> str:
     """'mosquitto' or 'amqtt': ``want``, else the environment's choice, else mosquitto where it is installed."""
-    want = (want or os.environ.get(BROKER_ENV, "")).strip().lower()
+    want = (want or broker_wanted()).strip().lower()
     if want not in ("", "mosquitto", "amqtt"):
         raise RuntimeError(f"{BROKER_ENV}={want!r}: expected mosquitto or amqtt")
     if want == "mosquitto" and mosquitto_exe() is None:
@@ -183,5 +188,5 @@ mosquitto = mqtt_broker  # the fixture name the side-channel tests use
 #: is not installed. For the tests that cover what a broker changes: the protocol version, the retained state,
 #: the last will, commands and their answers.
 ON_BOTH_BROKERS = pytest.mark.parametrize(
-    "mosquitto", [None, "amqtt"] if mosquitto_exe() and os.environ.get(BROKER_ENV, "").strip().lower() != "amqtt"
-    else [None], indirect=True, ids=lambda kind: kind or "broker")
+    "mosquitto", [None, "amqtt"] if mosquitto_exe() and broker_wanted() != "amqtt" else [None], indirect=True,
+    ids=lambda kind: kind or "broker")
