@@ -149,7 +149,7 @@ class RuntimeStats:
     frames_malformed: int = 0  # no classical CAN frame (runtime.frames): dropped, in every axis' 0x2100:1
     last_malformed: str = ""  # why the latest malformed frame was dropped
     gap_jobs: int = 0  # jobs of other threads run in the gap before the next cycle (run_in_gap)
-    gap_jobs_forced: int = 0  # ... of them run without the slack, after waiting GAP_JOB_MAX_WAIT_S
+    gap_jobs_forced: int = 0  # ... of them run outside their gap (no slack, or not after a SYNC's answer), late
     gap_job_errors: int = 0  # ... that raised (logged, the loop goes on)
     started_s: float = field(default_factory=time.perf_counter)
 
@@ -669,14 +669,14 @@ class Runtime:
                         t = perf()
                     stats.next_deadline_s = next_cycle
                     stats.checked_s = t
+            t = perf()
             answered_sync = stats.syncs != syncs0
             if answered_sync:
-                self._sync_answered_s = t_pass = perf()
+                self._sync_answered_s = t
             if self._gap_jobs:
-                self._run_gap_job(t_pass if answered_sync else perf(), None if self.lockstep else next_cycle,
-                                  answered_sync)
+                self._run_gap_job(t, None if self.lockstep else next_cycle, answered_sync)
+                t = perf()
             stats.loops += 1
-            t = perf()
             stats.busy_s += t - t_busy
             # wait for the next cycle (real time) or for a frame / the timer tick (both modes)
             deadline = t + self.idle_poll_s if self.lockstep else min(next_cycle, t + self.idle_poll_s)
