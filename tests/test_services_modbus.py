@@ -453,6 +453,41 @@ def test_a_publication_longer_than_the_period_leaves_the_drive_lock_to_others(mo
     assert max(waits) < 0.2, f"the drive's lock was held from a reader for {max(waits) * 1e3:.0f} ms"
 
 
+def test_an_image_build_and_a_request_never_wait_for_each_other():
+    """The register image is built under the drive's lock; a request's view takes the drive's state, which waits
+    for that lock. Neither may hold anything the other needs: here a request's view waits for the drive's lock
+    while the image build under that lock evaluates a view of its own; the build must finish (a lock shared by
+    every view, as ``functools.cached_property`` of Python < 3.12 has, deadlocks it and with it the drive)."""
+    import threading
+
+    from virtualaxis.services.modbus_map import View
+    from virtualaxis.services.register_image import IMAGE, build_image
+
+    drive = make_drive()
+    link = AxisLink(drive, 1)
+    held, request_waiting, built = threading.Event(), threading.Event(), []
+
+    def image_build():  # as ImagePublisher: the drive's lock, then views of the map
+        with drive.lock:
+            held.set()
+            request_waiting.wait(5.0)
+            time.sleep(0.2)  # the request is now inside its view, waiting for the drive's lock
+            built.append(build_image(link))
+
+    def request():
+        held.wait(5.0)
+        request_waiting.set()
+        View(link).s  # noqa: B018 - the state, taken under the drive's lock
+
+    threads = [threading.Thread(target=f, daemon=True) for f in (image_build, request)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(5.0)
+    assert not any(t.is_alive() for t in threads), "the image build and a request wait for each other"
+    assert len(built) == 1 and len(built[0]) == IMAGE.size
+
+
 def _eds_limits_read_apart(eds: Path) -> dict[tuple[int, int], tuple[float | None, float | None]]:
     """LowLimit / HighLimit of every object of the EDS, read here from its text (not by the project's code)."""
     import configparser

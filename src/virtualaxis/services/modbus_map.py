@@ -22,7 +22,6 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import cached_property
 from typing import TYPE_CHECKING
 
 from virtualaxis import __version__
@@ -189,15 +188,23 @@ class AxisLink:
 
 
 class View:
-    """The values one request reads: the drive state taken once (one lock), parameters read on demand."""
+    """The values one request reads: the drive state taken once (one lock), parameters read on demand.
+
+    The state is cached per view without a lock of its own: ``functools.cached_property`` of Python < 3.12
+    holds one lock per property for every instance, so a view built under the drive's lock (the register
+    image) and one whose state waits for that lock (a request) would wait for each other for ever."""
 
     def __init__(self, link: AxisLink):
         self.link = link
         self.drive = link.drive
+        self._state = None
 
-    @cached_property
+    @property
     def s(self):
-        return self.drive.state
+        state = self._state
+        if state is None:
+            state = self._state = self.drive.state
+        return state
 
     def obj(self, index: int, sub: int = 0) -> float:
         return float(self.drive.read_object(index, sub))
