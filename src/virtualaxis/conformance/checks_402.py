@@ -427,6 +427,9 @@ def pv_move(ctx: Context) -> str:
         ctx.start_sync()
         v_target = _toward_middle(ctx) * ctx.mm(50)
         ctx.write(0x60FF, 0, v_target)
+        # bit 10 of the statusword sampled before the drive's next cycle still answers the old target (0, reached
+        # at rest): the axis moving (bit 12, speed zero, cleared) shows the new target has been taken
+        ctx.wait_sw(0x1000, 0, 1.5, "speed no longer zero (bit 12) after the new target")
         ctx.wait_sw(0x400, 0x400, 1.5, "velocity reached (bit 10)")
         v = ctx.read(0x606C)
         if abs(v - v_target) > ctx.mm(5):
