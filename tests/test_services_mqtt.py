@@ -535,3 +535,56 @@ def test_telemetry_at_1000_hz_is_sampled_at_1000_hz(mosquitto):  # noqa: F811
         svc.stop()
         ax.close()
     assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
+
+
+def _publisher_process(parent: int) -> int:
+    """The pid of the MQTT publisher process started by ``parent`` (read from /proc)."""
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmd = (d / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == parent and b"publisher_child" in cmd:
+            return int(d.name)
+    raise AssertionError("no publisher process")
+
+
+def test_a_stalled_publisher_process_does_not_stall_the_sampler(mosquitto):  # noqa: F811
+    """The publisher process runs below the drive, so on a busy host it can go without CPU for a while. The
+    sampler in serve must keep its rate meanwhile: here the publisher process is stopped (SIGSTOP) for 2 s of
+    1000 Hz telemetry. A wake sent at every sample fills the socket to the stopped process within ~0.3 s and then
+    blocks the sampler; wakes to a publisher that far behind are not sent (counted), and what it missed is in the
+    ring when it runs again."""
+    import signal
+
+    from virtualaxis.services.cycle_gate import CycleGate
+
+    with _fifo_for_new_threads(10):
+        ax = ServedAxis()
+        svc = MqttService(settings(mosquitto.url, rate_hz=1000.0, batch_size=50),
+                          [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")], gate=CycleGate()).start()
+    try:
+        child = _publisher_process(os.getpid())
+        time.sleep(0.5)
+        os.kill(child, signal.SIGSTOP)
+        try:
+            c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+            time.sleep(2.0)
+            c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+        finally:
+            os.kill(child, signal.SIGCONT)
+        skipped = svc.wakes_skipped
+        published0 = svc.stats()[ax.axis.name]["samples_published"]
+        end = time.monotonic() + 30.0  # (it runs at nice 10: on a busy host it may take a while to run again)
+        while svc.stats()[ax.axis.name]["samples_published"] <= published0 + 2000 and time.monotonic() < end:
+            time.sleep(0.05)
+        published1 = svc.stats()[ax.axis.name]["samples_published"]
+    finally:
+        svc.stop()
+        ax.close()
+    assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
+    assert skipped > 0
+    assert published1 > published0 + 2000, "the publisher did not take up the samples of its stop after SIGCONT"

@@ -41,6 +41,7 @@ import contextlib
 import json
 import os
 import re
+import select
 import ssl
 import struct
 import subprocess
@@ -646,6 +647,7 @@ class MqttService:
         self._sampler: threading.Thread | None = None
         self._commands: threading.Thread | None = None
         self._send_lock = threading.Lock()  # the sampler and the command thread both send to the publisher
+        self.wakes_skipped = 0  # wakes of a publisher process far behind, not sent (see _send_tick)
         self._observers: list[tuple[Drive, Callable]] = []
 
     def _observer(self, ch: AxisChannel) -> Callable:
@@ -728,9 +730,17 @@ class MqttService:
             pass
 
     def _send_tick(self) -> None:
+        """Wake the publisher process: not while its message socket is more than a quarter full (what a socket
+        reports writable). A publisher that far behind (starved by other work: it runs below the drive) takes
+        every sample in the ring at its next wake anyway; a full socket would block the sampler, and the periods
+        it blocked would lose their samples. Skipped wakes are counted in :attr:`wakes_skipped`."""
+        conn = self._conn
         try:
+            if not select.select((), (conn.fileno(),), (), 0)[1]:
+                self.wakes_skipped += 1
+                return
             with self._send_lock:
-                self._conn.send_bytes(b'{"kind": "tick"}')
+                conn.send_bytes(b'{"kind": "tick"}')
         except (OSError, ValueError, AttributeError):
             pass
 
