@@ -24,7 +24,7 @@ CPU share and threads (per OS thread name), the CPU share of serve's child proce
 process), the host's load average, and per client the messages and samples received per second and the gaps in
 the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds.
 
-``--rt-priority N``: serve and the master's SYNC loop at SCHED_FIFO N (a host shared with other work).
+``--rt-priority N``: serve and every thread of the master at SCHED_FIFO N (a host shared with other work).
 ``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``): serve's runtime and CAN receive threads on DRIVE_CPUS, everything
 else of the run (serve's other threads, the page's server process, the clients, Chromium and the master, which
 in a rig are other machines) on LOAD_CPUS: the isolated-core deployment of docs/side-channels.md, as
@@ -66,6 +66,7 @@ from _master import (  # noqa: E402
     machine_info,
     schedstat_delta,
     sdo,
+    set_priority,
     setup_csp,
     sync_loop,
     thread_schedstat,
@@ -186,15 +187,6 @@ def pin_serve(pid: int, drive_cpus: set[int] | None, load_cpus: set[int] | None)
                 os.sched_setaffinity(int(tid), load_cpus)
 
 
-def _own_threads_policy(policy: int, priority: int) -> None:
-    """Every thread of this process (the SYNC loop and the receive thread that timestamps the answers) at
-    ``policy``: a master's receive thread starved by the page's browser drops frames from its socket buffer,
-    which would count as unanswered SYNCs of the drive."""
-    for tid in os.listdir("/proc/self/task"):
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(int(tid), policy, os.sched_param(priority))
-
-
 def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None = None, rt_priority: int = 0,
               drive_cpus: set[int] | None = None, load_cpus: set[int] | None = None) -> dict:
     group = "239.74.163.9"
@@ -263,14 +255,16 @@ def run_phase(phase: str, seconds: float, port: int, tmp: Path, src: str | None 
         clock.clear()
         n_sync = int(seconds / PERIOD_S)
         if rt_priority:  # (the master at the drive's priority for the window only: the clients keep theirs)
-            _own_threads_policy(os.SCHED_FIFO, rt_priority)
+            # every thread of it: its receive thread, starved by the page's browser, would drop answers from its
+            # socket buffer, counted as SYNCs the drive left unanswered
+            set_priority(os.getpid(), rt_priority)
         try:
             # (under SCHED_FIFO the master sleeps to each SYNC: a spin would eat the real-time budget it shares
             # with serve, and the kernel's RT throttling then stalls both for tens of ms)
             user_sync = sync_loop(bus, dict(targets), PERIOD_S, n_sync, spin_s=0.0 if rt_priority else 3e-4)
         finally:
             if rt_priority:
-                _own_threads_policy(os.SCHED_OTHER, 0)
+                set_priority(os.getpid(), 0)
         time.sleep(0.2)
         wall, m1 = time.perf_counter() - t0, time.monotonic()
         out["serve_cpu_percent"] = 100.0 * (cpu_seconds(proc.pid) - cpu0) / wall

@@ -20,6 +20,7 @@ from pathlib import Path
 import jsonschema
 import paho.mqtt.client as mqtt
 import pytest
+from served_drive import children
 from services_fixtures import ON_BOTH_BROKERS, Mosquitto, free_port, mosquitto, readable_dir  # noqa: F401 (fixture)
 from test_drive_rig import seed_config, seed_discrete
 
@@ -514,41 +515,45 @@ def _fifo_for_new_threads(priority: int):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
+@contextlib.contextmanager
+def _telemetry_at_1000_hz(url: str):
+    """A served axis and its MQTT service at 1000 Hz (batches of 50), both started at SCHED_FIFO where the
+    process may (the drive's thread too: the sampler takes the drive's lock); stopped at the end."""
+    from virtualaxis.services.cycle_gate import CycleGate
+
+    with _fifo_for_new_threads(10):
+        ax = ServedAxis()
+        svc = MqttService(settings(url, rate_hz=1000.0, batch_size=50),
+                          [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")], gate=CycleGate()).start()
+    try:
+        yield ax, svc
+    finally:
+        svc.stop()
+        ax.close()
+
+
 def test_telemetry_at_1000_hz_is_sampled_at_1000_hz(mosquitto):  # noqa: F811
     """--telemetry-rate up to 1000 Hz (the documented maximum) is sampled at that rate, not in the next drive
     cycle's PDO gap (or its 2 ms time-out without a master). Sampled by serve's own count over 2 s (what
     reaches the broker is checked by the tests above). Where the process may, its sampler runs at SCHED_FIFO as
     under ``serve --rt-priority`` (threads inherit the policy): on a host with other work a thread of normal
     priority wakes too late for 1 ms periods (150 Hz beside four CPU-bound processes on two cores)."""
-    from virtualaxis.services.cycle_gate import CycleGate
-
-    with _fifo_for_new_threads(10):  # (the drive's thread too: the sampler takes the drive's lock)
-        ax = ServedAxis()
-        svc = MqttService(settings(mosquitto.url, rate_hz=1000.0, batch_size=50),
-                          [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")], gate=CycleGate()).start()
-    try:
+    with _telemetry_at_1000_hz(mosquitto.url) as (ax, svc):
         time.sleep(0.5)
         c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
         time.sleep(2.0)
         c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
-    finally:
-        svc.stop()
-        ax.close()
     assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
 
 
 def _publisher_process(parent: int) -> int:
-    """The pid of the MQTT publisher process started by ``parent`` (read from /proc)."""
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
+    """The pid of the MQTT publisher process started by ``parent``."""
+    for pid in children(parent):
         try:
-            ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmd = (d / "cmdline").read_bytes()
-        except (OSError, IndexError, ValueError):
+            if b"publisher_child" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return pid
+        except OSError:
             continue
-        if ppid == parent and b"publisher_child" in cmd:
-            return int(d.name)
     raise AssertionError("no publisher process")
 
 
@@ -560,13 +565,7 @@ def test_a_stalled_publisher_process_does_not_stall_the_sampler(mosquitto):  # n
     ring when it runs again."""
     import signal
 
-    from virtualaxis.services.cycle_gate import CycleGate
-
-    with _fifo_for_new_threads(10):
-        ax = ServedAxis()
-        svc = MqttService(settings(mosquitto.url, rate_hz=1000.0, batch_size=50),
-                          [(ax.axis.name, 3, ax.drive, lambda: "OPERATIONAL")], gate=CycleGate()).start()
-    try:
+    with _telemetry_at_1000_hz(mosquitto.url) as (ax, svc):
         child = _publisher_process(os.getpid())
         time.sleep(0.5)
         os.kill(child, signal.SIGSTOP)
@@ -582,9 +581,6 @@ def test_a_stalled_publisher_process_does_not_stall_the_sampler(mosquitto):  # n
         while svc.stats()[ax.axis.name]["samples_published"] <= published0 + 2000 and time.monotonic() < end:
             time.sleep(0.05)
         published1 = svc.stats()[ax.axis.name]["samples_published"]
-    finally:
-        svc.stop()
-        ax.close()
     assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
     assert skipped > 0
     assert published1 > published0 + 2000, "the publisher did not take up the samples of its stop after SIGCONT"
