@@ -546,6 +546,43 @@ def test_telemetry_at_1000_hz_is_sampled_at_1000_hz(mosquitto):  # noqa: F811
     assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
 
 
+def test_a_publisher_stopped_for_long_neither_blocks_the_sampler_nor_loses_an_event(mosquitto, monkeypatch):  # noqa: F811
+    """Messages to a publisher process that stopped taking them (SIGSTOP here; a starved one in the field) wait
+    in serve without blocking the sampler: the current state is forwarded every sample here (as if the publisher
+    had been stopped for minutes at the usual 10 Hz), so the socket to it fills within a second; a blocking send
+    then stopped the sampler for as long as the publisher. A fault raised meanwhile is published once the
+    publisher runs again, and the state it publishes last is the drive's current one."""
+    import signal
+
+    from virtualaxis.services import mqtt as mqtt_module
+
+    monkeypatch.setattr(mqtt_module, "STATE_FORWARD_PERIOD_S", 0.001)  # read when the sampler starts
+    sub = Subscriber(mosquitto.port)
+    try:
+        with _telemetry_at_1000_hz(mosquitto.url) as (ax, svc):
+            child = _publisher_process(os.getpid())
+            time.sleep(0.5)
+            os.kill(child, signal.SIGSTOP)
+            try:
+                c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+                time.sleep(1.5)
+                ax.drive.inject_fault(0x4210, 42)
+                time.sleep(1.5)
+                c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+                waiting = len(getattr(svc, "backlog", ()))
+            finally:
+                os.kill(child, signal.SIGCONT)
+            sub.wait(lambda: any(f["event"] == "fault" and f["emcy_code"] == "0x4210" for f in sub.of("faults")),
+                     timeout=30.0)
+            sub.wait(lambda: sub.of("state") and sub.of("state")[-1]["cia402_state"] == "FAULT", timeout=30.0)
+            dropped = svc.messages_dropped
+    finally:
+        sub.close()
+    assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
+    assert 1 <= waiting < 10, waiting  # the fault's event and snapshot, one current state: not 3 000 states
+    assert dropped == 0
+
+
 def _publisher_process(parent: int) -> int:
     """The pid of the MQTT publisher process started by ``parent``."""
     for pid in children(parent):

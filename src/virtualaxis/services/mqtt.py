@@ -74,6 +74,9 @@ ENV_PASSWORD = "VIRTUALAXIS_MQTT_PASSWORD"
 ENV_PASSWORD_FILE = "VIRTUALAXIS_MQTT_PASSWORD_FILE"
 ENV_CA_FILE = "VIRTUALAXIS_MQTT_CA_FILE"
 STATE_FORWARD_PERIOD_S = 0.1  # serve -> publisher: the current state this often (the retained state's freshness)
+#: serve -> publisher: messages (events, transitions, command results) that wait, at most, for a publisher process
+#: far behind before the oldest are dropped (chosen: a burst of ~1 000 faults; ~0.5 MB)
+BACKLOG_MESSAGES = 2048
 
 
 class MqttSettingsError(ValueError):
@@ -648,6 +651,10 @@ class MqttService:
         self._commands: threading.Thread | None = None
         self._send_lock = threading.Lock()  # the sampler and the command thread both send to the publisher
         self.wakes_skipped = 0  # wakes of a publisher process far behind, not sent (see _send_tick)
+        #: messages waiting for a publisher process far behind (see _send); the newest state per axis only
+        self.backlog: deque[tuple[int, bytes]] = deque(maxlen=BACKLOG_MESSAGES)  # (axis index, message)
+        self._pending_state: dict[int, tuple[int, bytes]] = {}  # axis -> its state message waiting in the backlog
+        self.messages_dropped = 0  # the oldest waiting messages dropped beyond BACKLOG_MESSAGES
         self._observers: list[tuple[Drive, Callable]] = []
 
     def _observer(self, ch: AxisChannel) -> Callable:
@@ -722,12 +729,48 @@ class MqttService:
         return self
 
     def _send(self, ch: AxisChannel, kind: str, data: dict) -> None:
+        """A message to the publisher process, in order, never blocking: while the process' socket is more than
+        a quarter full (a publisher starved by other work, or stopped) messages wait in :attr:`backlog`, where a
+        newer ``state`` of an axis replaces the older one still waiting (it is the whole current state); at most
+        :data:`BACKLOG_MESSAGES` wait, the oldest beyond that dropped and counted (:attr:`messages_dropped`)."""
         msg = json.dumps({"axis": ch.index, "kind": kind, "data": data}).encode()
+        with self._send_lock:
+            backlog = self.backlog
+            if backlog:
+                self._flush_backlog()
+            if not backlog:
+                try:
+                    if select.select((), (self._conn.fileno(),), (), 0)[1]:
+                        self._conn.send_bytes(msg)
+                        return
+                except (OSError, ValueError, AttributeError):  # the publisher process is gone: the drive goes on
+                    return
+            item = (ch.index, msg)
+            if kind == "state":
+                pending = self._pending_state.get(ch.index)
+                if pending is not None:
+                    try:
+                        backlog.remove(pending)
+                    except ValueError:  # (already dropped as the oldest)
+                        pass
+                self._pending_state[ch.index] = item
+            if len(backlog) == backlog.maxlen:
+                self.messages_dropped += 1
+            backlog.append(item)
+
+    def _flush_backlog(self) -> None:
+        """Send the waiting messages while the publisher's socket takes them (under ``_send_lock``)."""
+        backlog, conn = self.backlog, self._conn
         try:
-            with self._send_lock:
-                self._conn.send_bytes(msg)
-        except (OSError, ValueError, AttributeError):  # the publisher process is gone: the drive goes on
-            pass
+            pending = self._pending_state
+            while backlog and select.select((), (conn.fileno(),), (), 0)[1]:
+                item = backlog.popleft()
+                conn.send_bytes(item[1])
+                if pending.get(item[0]) is item:
+                    del pending[item[0]]
+        except (OSError, ValueError, AttributeError):  # the publisher process is gone
+            backlog.clear()
+            self._pending_state.clear()
 
     def _send_tick(self) -> None:
         """Wake the publisher process: not while its message socket is more than a quarter full (what a socket
@@ -736,10 +779,12 @@ class MqttService:
         it blocked would lose their samples. Skipped wakes are counted in :attr:`wakes_skipped`."""
         conn = self._conn
         try:
-            if not select.select((), (conn.fileno(),), (), 0)[1]:
-                self.wakes_skipped += 1
-                return
             with self._send_lock:
+                if self.backlog:
+                    self._flush_backlog()
+                if self.backlog or not select.select((), (conn.fileno(),), (), 0)[1]:
+                    self.wakes_skipped += 1
+                    return
                 conn.send_bytes(b'{"kind": "tick"}')
         except (OSError, ValueError, AttributeError):
             pass
@@ -828,9 +873,16 @@ class MqttService:
             drive.remove_observer(cb)
         self._observers.clear()
         if self._conn is not None:  # after the last forwarded messages, on the same socket: in order
+            end = time.monotonic() + timeout_s
             try:
-                self._conn.send_bytes(json.dumps({"kind": "stop"}).encode())
-            except OSError:
+                with self._send_lock:
+                    while time.monotonic() < end:
+                        self._flush_backlog()
+                        writable = select.select((), (self._conn.fileno(),), (), 0.05)[1]
+                        if writable and not self.backlog:
+                            self._conn.send_bytes(json.dumps({"kind": "stop"}).encode())
+                            break
+            except (OSError, ValueError):
                 pass
         if self._proc is not None:
             try:
