@@ -74,6 +74,65 @@ def machine_info() -> dict:
     }
 
 
+def _reference_work(n: int = 1500) -> int:
+    """A fixed piece of plain Python (no virtualaxis code): the host's own speed and jitter for a workload of the
+    drive cycle's size (~50-150 us)."""
+    s = 0
+    for i in range(n):
+        s += i * i
+    return s
+
+
+def host_jitter(seconds: float = 3.0, period_s: float = 0.001, rt_priority: int = 0) -> dict:
+    """How much this host stretches a fixed Python workload (:func:`_reference_work`, written apart from the
+    package) that runs once per ``period_s`` as a drive cycle does, against the same workload back to back.
+    ``paced_p99_over_p50`` near 1 on a quiet dedicated core; a shared virtual CPU stretches 1 % of the paced runs
+    by 5-15x. Every latency figure of a host carries this tail: state it beside them, as ``--cycle-cost``.
+    ``rt_priority``: the measuring thread at SCHED_FIFO (as ``serve --rt-priority``); also reports the lateness
+    of a plain ``time.sleep`` wake-up to each period."""
+    if rt_priority:
+        old = os.sched_getscheduler(0), os.sched_getparam(0)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+    try:
+        n = int(seconds / period_s)
+        back = np.empty(n)
+        for k in range(n):
+            t0 = time.perf_counter()
+            _reference_work()
+            back[k] = time.perf_counter() - t0
+            if k * period_s > 0.5 * seconds and k > 200:  # (back to back: half the time is plenty)
+                back = back[:k + 1]
+                break
+        paced = np.empty(n)
+        wake = np.empty(n)
+        t = time.perf_counter() + period_s
+        for k in range(n):
+            d = t - time.perf_counter()
+            if d > 0:
+                time.sleep(d)
+            t0 = time.perf_counter()
+            wake[k] = t0 - t
+            _reference_work()
+            paced[k] = time.perf_counter() - t0
+            t += period_s
+    finally:
+        if rt_priority:
+            os.sched_setscheduler(0, old[0], old[1])
+    b, p, w = back[50:] * 1e6, paced[50:] * 1e6, wake[50:] * 1e6
+    return {
+        "period_us": period_s * 1e6,
+        "rt_priority": rt_priority,
+        "work_us_p50_back_to_back": float(np.percentile(b, 50)),
+        "work_us_p99_back_to_back": float(np.percentile(b, 99)),
+        "work_us_p50_paced": float(np.percentile(p, 50)),
+        "work_us_p99_paced": float(np.percentile(p, 99)),
+        "work_us_max_paced": float(p.max()),
+        "paced_p99_over_p50": float(np.percentile(p, 99) / np.percentile(b, 50)),
+        "wake_late_us_p99": float(np.percentile(w, 99)),
+        "wake_late_us_max": float(w.max()),
+    }
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process ``pid`` [s]."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()

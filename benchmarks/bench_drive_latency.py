@@ -14,6 +14,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py --scale --seconds 8 --rounds 3   # the same, 3 interleaved rounds
     python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
     python benchmarks/bench_drive_latency.py --cycle-cost --axes 1,3,7 --bytecodes   # the same as bytecodes
+    python benchmarks/bench_drive_latency.py --host-jitter --rt-priority 20   # the host's own tail (see below)
 
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
@@ -29,6 +30,11 @@ the next SYNC is counted as late. ``cycles`` / ``overrun``: the drive's own coun
 the SYNCs, of the drive cycles it ran (0x2110:5) and of those that started late or were given up (0x2110:2; in
 lockstep, the cycles of SYNCs it answered but could not run). Writes a JSON beside the printed table only with
 ``--json FILE`` (the committed figures are ``benchmarks/bench_drive_latency.json``: name it to regenerate them).
+
+``--host-jitter``: no drive at all. A fixed plain-Python workload (``_master.host_jitter``, ~100 us) back to back,
+then once per 1 ms as a drive cycle runs; the p99 of the paced runs against the back-to-back p50 is how much the
+host itself stretches a cycle (a shared virtual CPU: 5-15x at the 1 % level). The latency tails above cannot be
+smaller than this host's; state it beside them as ``--cycle-cost``.
 """
 
 from __future__ import annotations
@@ -61,6 +67,7 @@ from _master import (  # noqa: E402
     TpdoClock,
     _cpu_model,
     cpu_seconds,
+    host_jitter,
     latency_stats,
     sdo,
     setup_csp,
@@ -403,6 +410,9 @@ def main() -> int:
     ap.add_argument("--code", action="append", default=[], metavar="NAME=DIR",
                     help="run the cases once per checkout DIR (repeat; interleaved; see code_ab)")
     ap.add_argument("--cycle-cost", action="store_true", help="only the in-process cost per cycle and axis")
+    ap.add_argument("--host-jitter", action="store_true",
+                    help="only the host's stretch of a fixed plain-Python workload paced at 1 ms (_master.host_jitter;"
+                         " with --rt-priority N at SCHED_FIFO N)")
     ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
     ap.add_argument("--bytecodes", action="store_true",
                     help="--cycle-cost as Python bytecodes per axis and cycle (load-independent)")
@@ -410,6 +420,16 @@ def main() -> int:
     if args.cycle_cost and args.bytecodes:
         for r in cycle_bytecodes(tuple(int(n) for n in args.axes.split(","))):
             print(f"{r['axes']:>4} axes: {r['bytecodes_per_axis']:.0f} Python bytecodes per axis and cycle")
+        return 0
+    if args.host_jitter:
+        res = host_jitter(rt_priority=args.rt_priority)
+        print(f"plain Python workload [us]: back to back p50 {res['work_us_p50_back_to_back']:.1f} / p99 "
+              f"{res['work_us_p99_back_to_back']:.1f}; paced at 1 ms p50 {res['work_us_p50_paced']:.1f} / p99 "
+              f"{res['work_us_p99_paced']:.1f} / max {res['work_us_max_paced']:.0f} (p99 = "
+              f"{res['paced_p99_over_p50']:.1f}x the back-to-back p50); wake-up late p99 "
+              f"{res['wake_late_us_p99']:.0f} / max {res['wake_late_us_max']:.0f}")
+        if args.json:
+            Path(args.json).write_text(json.dumps({"machine": _machine(), "host_jitter": res}, indent=2))
         return 0
     if args.cycle_cost:
         res = cycle_cost(tuple(int(n) for n in args.axes.split(",")))
