@@ -22,7 +22,10 @@ Phases alternate ``--rounds`` times so that drifting machine load hits all alike
 missed and late TPDOs, the drive cycles the pacing started late in the window (OD 0x2110:2 of node 1), serve's
 CPU share and threads (per OS thread name), the CPU share of serve's child processes (the page's server
 process), the host's load average, and per client the messages and samples received per second and the gaps in
-the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds.
+the sample sequence (a lost sample is a gap). The shift is ``phase - off`` of the medians over the rounds, with
+the two-sided Mann-Whitney U p-value of the rounds (``_shifts``); the host's own tail is measured before and
+after the rounds (``_master.host_jitter``: a plain-Python workload paced at 1 ms), and no shift smaller than
+the scatter it causes can be seen.
 
 ``--rt-priority N``: serve and every thread of the master at SCHED_FIFO N (a host shared with other work).
 ``--pin DRIVE_CPUS:LOAD_CPUS`` (e.g. ``1:0``): serve's runtime and CAN receive threads on DRIVE_CPUS, everything
@@ -62,6 +65,7 @@ from _master import (  # noqa: E402
     TpdoClock,
     cpu_seconds,
     free_port,
+    host_jitter,
     latency_stats,
     machine_info,
     schedstat_delta,
@@ -381,6 +385,32 @@ def hook_cost(cycles: int = 4000, repeats: int = 7) -> dict:
             "drain_us_per_cycle": drain}
 
 
+#: the measures of the drive's cycle whose shift against ``off`` the benchmark tests
+SHIFT_KEYS = ("latency_us_p50", "latency_us_p99", "window_overruns", "late")
+
+
+def _shifts(results: list[dict], phases: list[str]) -> dict:
+    """Per page phase and measure: the shift of the median over the rounds against the ``off`` phase of the same
+    code (``phase - off``) and the two-sided Mann-Whitney U p-value of the rounds of the two (small: the rounds of
+    the phase differ from those of ``off`` beyond their scatter; needs 4+ rounds to get below 0.05)."""
+    from scipy.stats import mannwhitneyu
+
+    out = {}
+    for p in phases:
+        kind, _, code = p.partition("@")
+        ref = f"off@{code}" if code else "off"
+        if kind == "off" or ref not in phases:
+            continue
+        out[p] = {"reference": ref}
+        for key in SHIFT_KEYS:
+            a = [r[key] for r in results if r["phase"] == p and r.get(key) is not None]
+            b = [r[key] for r in results if r["phase"] == ref and r.get(key) is not None]
+            if a and b:
+                out[p][key] = {"shift": float(np.median(a) - np.median(b)),
+                               "p_value": float(mannwhitneyu(a, b, alternative="two-sided").pvalue)}
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=10.0, help="per phase")
@@ -431,6 +461,7 @@ def main() -> int:
         codes.append((name, str(Path(src).resolve())))
     labels = [f"{p}@{c}" for p in phases for c, _ in codes] if codes else phases
     results = []
+    jitter = [host_jitter(rt_priority=opts.rt_priority)]  # the host's own tail, before and after the rounds
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(opts.rounds):
             for phase in phases:
@@ -442,6 +473,7 @@ def main() -> int:
                     results.append(res)
                     print(json.dumps({k: v for k, v in res.items() if k != "per_node"}), flush=True)
     phases = labels
+    jitter.append(host_jitter(rt_priority=opts.rt_priority))
 
     def med(phase: str, key: str) -> float:
         vals = [r[key] for r in results if r["phase"] == phase and r.get(key) is not None]
@@ -455,6 +487,14 @@ def main() -> int:
         vals = {p: med(p, key) for p in phases}
         summary[key] = vals
         print(f"{key:24s}" + "".join(f"{vals[p]:{width}.1f}" for p in phases))
+    summary["host_jitter"] = jitter
+    print("host (plain-Python workload paced at 1 ms, before / after): p99 "
+          + " / ".join(f"{j['work_us_p99_paced']:.0f} us = {j['paced_p99_over_p50']:.1f}x its back-to-back p50"
+                       for j in jitter))
+    summary["shift_vs_off"] = shifts = _shifts(results, phases)
+    for p, by_key in shifts.items():
+        print(f"{p} - {by_key['reference']}: " + ", ".join(
+            f"{key} {v['shift']:+.0f} (p = {v['p_value']:.2f})" for key, v in by_key.items() if key != "reference"))
     for p in phases:
         rs = [r for r in results if r["phase"] == p]
         rate = [x for r in rs for x in r.get("client_samples_per_s", [])]
