@@ -100,7 +100,7 @@ def host_jitter(seconds: float = 3.0, period_s: float = 0.001, rt_priority: int 
             t0 = time.perf_counter()
             _reference_work()
             back[k] = time.perf_counter() - t0
-            if k * period_s > 0.5 * seconds and k > 200:  # (back to back: half the time is plenty)
+            if k >= n // 2:  # (back to back: half as many runs are plenty)
                 back = back[:k + 1]
                 break
         paced = np.empty(n)
