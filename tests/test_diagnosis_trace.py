@@ -41,6 +41,14 @@ def test_good_trace_reads(tmp_path):
     check_units(tr, load_axis_config(CFG))
 
 
+def test_drive_words_read_silently_other_unknown_columns_warned(tmp_path):
+    """A drive recording's statusword / controlword (the live page's recordings carry the statusword) are read
+    without a warning; a column nobody knows is named in one."""
+    rows = np.column_stack([_good_rows(), np.full(200, 0x1637), np.full(200, 0x0F), np.zeros(200)])
+    tr = read_trace(_write(tmp_path / "a.csv", HEADER + ",statusword,controlword,spindle_load", rows))
+    assert tr.warnings == ["extra columns ignored: spindle_load"]
+
+
 def test_missing_required_column(tmp_path):
     p = _write(tmp_path / "a.csv", "t,pos_meas", _good_rows()[:, [0, 2]])
     with pytest.raises(InputError, match=r"a\.csv: row 1: column pos_cmd: required column 'pos_cmd' missing"):

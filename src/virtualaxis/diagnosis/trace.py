@@ -324,6 +324,11 @@ def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: lis
     return y
 
 
+#: CiA 402 control and status words, as drive recordings carry them (the live page's): read without a warning,
+#: not used
+DRIVE_WORDS = frozenset({"statusword", "controlword"})
+
+
 def simulator_columns() -> frozenset[str]:
     """Every column ``virtualaxis simulate`` writes (with ``--extras``): read without a warning when the
     diagnosis does not use them (``following_error``, ``table_true``, ...)."""
@@ -352,7 +357,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     if data.shape[0] < 16:
         raise _err(sp, f"only {data.shape[0]} data rows (at least 16 needed)")
     cols = {h: data[:, i] for i, h in enumerate(names)}
-    extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns()]
+    extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns() and h not in DRIVE_WORDS]
     if extra:
         warnings.append(f"extra columns ignored: {', '.join(extra)}")
     t = cols["t"]
