@@ -23,6 +23,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -33,6 +34,10 @@ from virtualaxis.services.threads import CHILD_PROLOGUE
 __all__ = ["ChildProcess", "ParentLink", "enter_child"]
 
 _SRC = str(Path(__file__).resolve().parents[2])  # the virtualaxis package this process runs
+#: a child that is not ready after its start timeout still gets this long [s] at a time while it computes ...
+START_PROGRESS_S = 10.0
+#: ... up to this many times its start timeout in all
+START_MAX_FACTOR = 5.0
 
 
 class ChildProcess:
@@ -81,8 +86,7 @@ class ChildProcess:
         self._conn = Connection(ours.detach())
         try:
             self._conn.send(init)
-            if not self._conn.poll(timeout_s):
-                raise OSError(f"{self.option}: {self.what} did not start in {timeout_s:g} s")
+            self._wait_ready(timeout_s)
             kind, value = self._conn.recv()
         except (EOFError, OSError) as exc:
             self.stop()
@@ -94,6 +98,39 @@ class ChildProcess:
             raise OSError(f"{self.option}: {value}")
         self.status = "running"
         return value
+
+    def _wait_ready(self, timeout_s: float) -> None:
+        """Wait for the child's first message: ``timeout_s``, and beyond it for as long as the child keeps
+        computing (its CPU time grew in the last :data:`START_PROGRESS_S`, or half the timeout if shorter: a host
+        busy with other work starves a child that runs below the drive, and its imports then take minutes), at
+        most :data:`START_MAX_FACTOR` times ``timeout_s``. OSError naming :attr:`option` when it is not there by
+        then; EOFError when the child ended."""
+        t0 = time.monotonic()
+        deadline, hard = t0 + timeout_s, t0 + START_MAX_FACTOR * timeout_s
+        window = min(START_PROGRESS_S, timeout_s / 2)
+        samples: list[tuple[float, float]] = []  # (time, the child's CPU time), one per second
+        while not self._conn.poll(min(1.0, max(0.0, deadline - time.monotonic()), window / 2)):
+            if self._proc.poll() is not None:
+                raise EOFError
+            now = time.monotonic()
+            cpu = self._child_cpu_s()
+            if cpu is not None:
+                samples.append((now, cpu))
+            if now < deadline:
+                continue
+            before = [c for t, c in samples if t <= now - window]
+            if cpu is not None and before and cpu > before[-1] and now < hard:
+                deadline = min(hard, now + window)  # (still working: starved, not stuck)
+                continue
+            raise OSError(f"{self.option}: {self.what} did not start in {now - t0:.0f} s")
+
+    def _child_cpu_s(self) -> float | None:
+        """The child's user + system CPU time [s] (Linux ``/proc``; None elsewhere)."""
+        try:
+            fields = Path(f"/proc/{self._proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError, AttributeError):
+            return None
 
     def serve(self, handle: Callable[[tuple], tuple | None], name: str) -> None:
         """Start the bridge thread: each message of the child but ``("error", text)`` goes to ``handle``, whose
