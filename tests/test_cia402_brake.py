@@ -295,3 +295,81 @@ def test_brake_output_follows_the_power_stage_without_a_brake(rig):  # noqa: F81
     assert rig.node.sdo[0x60FE][1].raw & 1 == 0
     rig.node.sdo[0x6040].raw = 0x00
     assert rig.node.sdo[0x60FE][1].raw & 1 == 1
+
+
+@pytest.mark.parametrize("switch_off", ["disable voltage", "shutdown without ramp", "sto"])
+def test_master_released_brake_reads_applied_once_the_drive_applies_it(vrig, switch_off):
+    """0x60FE:2 = 1, the master releases the brake (0x60FE:1 = 0) in OPERATION ENABLED; a switch-off without a
+    ramp (controlword 0x00, 0x06 with 0x605B = 0, STO) ends that release: the brake holds the vertical axis
+    (it falls for the brake's closing time, then stays) and 0x60FE:1 bit 0 reads 1 (applied); releasing it
+    again with the power stage off is refused (0x08000022)."""
+    node = vrig.node
+    node.sdo[0x605B].raw = 0
+    node.sdo[0x60FE][2].raw = 1
+    _enable_until_operation(vrig)
+    node.sdo[0x60FE][1].raw = 0  # released by the master
+    vrig.sync(100)
+    assert node.sdo[0x60FE][1].raw & 1 == 0
+    if switch_off == "sto":
+        node.sdo[0x2042].raw = 1
+    else:
+        node.sdo[0x6040].raw = 0x00 if switch_off == "disable voltage" else 0x06
+    vrig.sync(100)
+    sw = vrig.sw()
+    assert sw & 0x4F == 0x40 or sw & 0x6F == 0x21, hex(sw)  # SWITCH ON DISABLED / READY TO SWITCH ON
+    assert node.sdo[0x60FE][1].raw & 1 == 1
+    held = node.sdo[0x6064].raw
+    vrig.sync(200)
+    assert abs(node.sdo[0x6064].raw - held) < 20  # the brake holds
+    with pytest.raises(canopen.SdoAbortedError) as exc:
+        node.sdo[0x60FE][1].raw = 0
+    assert exc.value.code == 0x08000022
+
+
+def _emcy_codes_after(r: Rig, index: int) -> list[int]:
+    return r.emcy.codes()[index:]
+
+
+@pytest.mark.parametrize("kind, code, register, during_ramp",
+                         [(2, 0x2310, 0x03, False), (4, 0x3220, 0x05, True)],
+                         ids=["over_current", "dc_link_undervoltage_in_the_reaction_ramp"])
+def test_sto_gone_in_fault_shows_the_fault_in_603f_and_1001(rig, kind, code, register, during_ramp):  # noqa: F811
+    """A fault (over-current; DC-link under-voltage with STO during its 0x605E ramp), then STO on and off while in
+    FAULT: while STO lasts 0x603F = 0x5400 and 0x1001 has bit 7 too; once it goes 0x603F is the fault's code
+    again and 0x1001 the fault's bits (no error-reset EMCY: the fault is still there). STO again, a fault reset
+    while it lasts: 0x603F = 0x5400, 0x1001 = 0x81 and no EMCY 0x0000; STO off: EMCY 0x0000, 0x603F = 0, 0x1001 = 0."""
+    node = rig.node
+    if during_ramp:
+        node.sdo[0x6060].raw = 3
+        node.sdo[0x605E].raw = 1
+        node.sdo[0x6084].raw = 100_000  # a 1 s ramp from 0.1 m/s
+        node.sdo[0x60FF].raw = 100_000
+    rig.enable()
+    rig.sync(150)
+    node.sdo[0x5FF0].raw = kind
+    rig.sync(2)
+    assert _state(rig) & 0x4F == (0x0F if during_ramp else 0x08), hex(rig.sw())
+    assert node.sdo[0x603F].raw == code and node.sdo[0x1001].raw == register
+    node.sdo[0x2042].raw = 1
+    rig.sync(1)
+    assert _state(rig) & 0x4F == 0x08 and rig.sw() & 0x4080 == 0x4080, hex(rig.sw())
+    assert node.sdo[0x603F].raw == 0x5400 and node.sdo[0x1001].raw == register | 0x81
+    seen = len(rig.emcy.codes())
+    node.sdo[0x2042].raw = 0
+    rig.sync(1)
+    assert node.sdo[0x2031].raw == 0 and not rig.sw() & 0x80
+    assert node.sdo[0x603F].raw == code and node.sdo[0x1001].raw == register
+    node.sdo[0x2042].raw = 1
+    rig.sync(1)
+    node.sdo[0x5FF1].raw = kind
+    node.sdo[0x6040].raw = 0x00
+    node.sdo[0x6040].raw = 0x80  # fault reset while STO lasts
+    rig.sync(1)
+    assert _state(rig) & 0x4F == 0x40
+    assert node.sdo[0x603F].raw == 0x5400 and node.sdo[0x1001].raw == 0x81
+    node.sdo[0x2042].raw = 0
+    rig.sync(1)
+    assert node.sdo[0x603F].raw == 0 and node.sdo[0x1001].raw == 0
+    rig.emcy.wait_for(0x0000)
+    after = _emcy_codes_after(rig, seen)
+    assert after.count(0) == 1 and after[-1] == 0, [hex(c) for c in after]  # one error reset: when all went

@@ -275,3 +275,131 @@ def test_polarity_applies_to_the_home_offset_and_torque():
         assert r.drive.simulator.state.table_position_m < x0  # the other way
     finally:
         r.close()
+
+
+def _emcy_codes_after(r, code: int) -> list[int]:
+    """The EMCY codes the master received after the last EMCY ``code``."""
+    codes = r.emcy.codes()
+    last = len(codes) - 1 - codes[::-1].index(code)
+    return codes[last + 1:]
+
+
+def test_interpolated_position_refused_record_warning_clears_on_the_next_accepted_record():
+    """IP: a record refused by the full buffer raises the warning 0x6320 (EMCY, statusword bit 7, 0x2031 = 7470,
+    0x603F = 0x6320, 0x1001 = 0x81); the next record accepted clears it, as an accepted PP set-point does: EMCY
+    0x0000, 0x603F = 0, 0x1001 = 0, bit 7 off, 0x2031 = 0."""
+    import time
+
+    import canopen
+    import pytest
+
+    r = _ip_rig()
+    node = r.node
+    try:
+        node.sdo[0x6040].raw = 0x1F
+        for k in range(1, 18):  # the running segment + 16 buffered
+            node.sdo[0x60C1][1].raw = 100 * k
+        for k in (18, 19):
+            with pytest.raises(canopen.SdoAbortedError) as exc:
+                node.sdo[0x60C1][1].raw = 100 * k
+            assert exc.value.code == 0x08000022
+        r.emcy.wait_for(0x6320)
+        r.sync(1)
+        assert r.sw() & 0x80 and node.sdo[0x2031].raw == 7470
+        assert node.sdo[0x603F].raw == 0x6320 and node.sdo[0x1001].raw == 0x81
+        r.sync(4)  # a segment done: room in the buffer
+        node.sdo[0x60C1][1].raw = 1_800
+        r.sync(1)
+        assert not r.sw() & 0x80 and node.sdo[0x2031].raw == 0
+        assert node.sdo[0x603F].raw == 0 and node.sdo[0x1001].raw == 0
+        end = time.monotonic() + 2
+        while 0 not in _emcy_codes_after(r, 0x6320):
+            assert time.monotonic() < end, r.emcy.codes()
+            time.sleep(0.005)
+        r.sync(4 * 18)
+        assert node.sdo[0x6062].raw == 1_800  # every accepted record interpolated
+    finally:
+        r.close()
+
+
+def test_interpolated_position_record_in_the_frame_that_enables_ip_is_the_first_point():
+    """IP with RPDO1 = controlword + 0x60C1:1 (synchronous): the record of the frame whose controlword raises bit 4
+    is the first interpolation point (one period 0x60C2 from the demand), not dropped; the next record is one
+    period further, not a segment twice as long. A record in a frame without bit 4 stays ignored."""
+    r = _ip_rig()
+    node = r.node
+    try:
+        cob = 0x200 + node.id
+        node.sdo[0x1400][1].raw = cob | 0x80000000  # RPDO1: controlword + 0x60C1:1, synchronous
+        node.sdo[0x1600][0].raw = 0
+        node.sdo[0x1600][1].raw = 0x60400010
+        node.sdo[0x1600][2].raw = 0x60C10120
+        node.sdo[0x1600][0].raw = 2
+        node.sdo[0x1400][2].raw = 1
+        node.sdo[0x1400][1].raw = cob
+
+        def frame(cw: int, record: int) -> int:
+            r.net.send_message(cob, cw.to_bytes(2, "little") + record.to_bytes(4, "little", signed=True))
+            r.sync(1)
+            return node.sdo[0x6062].raw
+
+        node.sdo[0x60C2][1].raw = 1  # 1 ms: one record per SYNC, each interpolated over one drive cycle
+        assert frame(0x0F, 4_000) == 0  # bit 4 not set: ignored
+        demands = [frame(0x1F, 100 * k) for k in range(1, 6)]  # bit 4 rises with the first record
+        assert demands == [100, 200, 300, 400, 500], demands
+    finally:
+        r.close()
+
+
+def test_interpolation_period_zero_is_refused():
+    """0x60C2:1 = 0 (no interpolation period: every record a step) is refused with SDO abort 0x06090032 (value
+    too low); the period stays as it was."""
+    import canopen
+    import pytest
+
+    from virtualaxis.drive import ObjectAccessError
+
+    r = _ip_rig()
+    node = r.node
+    try:
+        with pytest.raises(canopen.SdoAbortedError) as exc:
+            node.sdo[0x60C2][1].raw = 0
+        assert exc.value.code == 0x06090032
+        assert node.sdo[0x60C2][1].raw == 4
+        with pytest.raises(ObjectAccessError, match="0x60C2:1") as err:
+            r.drive.write_object(0x60C2, 1, 0)  # the drive API refuses it as the SDO does
+        assert err.value.code == 0x06090032
+        node.sdo[0x60C2][1].raw = 1
+        assert node.sdo[0x60C2][1].raw == 1
+    finally:
+        r.close()
+
+
+def test_touch_probe_disabling_an_edge_clears_its_status_and_keeps_its_value():
+    """0x60B8: clearing an edge's enable bit (probe 1 bits 4 / 5, probe 2 bits 12 / 13) clears that edge's stored
+    bit (and its toggle bit) in 0x60B9; the other edge's status and the latched positions 0x60BA-0x60BD stay."""
+    r = _pp_rig()
+    node = r.node
+    try:
+        node.sdo[0x60B8].raw = 0x0031  # probe 1: enable, both edges, first edge only
+        node.sdo[0x2014][3].raw = 1  # input 1 forced on: positive edge
+        r.sync(2)
+        node.sdo[0x2014][3].raw = 0  # ... and off: negative edge
+        r.sync(2)
+        assert node.sdo[0x60B9].raw == 0x7
+        positive, negative = node.sdo[0x60BA].raw, node.sdo[0x60BB].raw
+        node.sdo[0x60B8].raw = 0x0021  # positive edge disabled
+        assert node.sdo[0x60B9].raw == 0x5
+        node.sdo[0x60B8].raw = 0x0001  # negative edge disabled
+        assert node.sdo[0x60B9].raw == 0x1
+        assert (node.sdo[0x60BA].raw, node.sdo[0x60BB].raw) == (positive, negative)
+        node.sdo[0x60B8].raw = 0x1300  # probe 2: enable, continuous, positive edge
+        node.sdo[0x2014][3].raw = 2
+        r.sync(2)
+        assert node.sdo[0x60B9].raw == 0x4300  # enabled, positive edge stored, its toggle bit
+        latched = node.sdo[0x60BC].raw
+        node.sdo[0x60B8].raw = 0x0300  # positive edge disabled
+        assert node.sdo[0x60B9].raw == 0x0100
+        assert node.sdo[0x60BC].raw == latched
+    finally:
+        r.close()

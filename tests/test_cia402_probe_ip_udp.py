@@ -94,8 +94,9 @@ def test_change_on_setpoint_across_processes(master):
 
 def test_interpolated_position_across_processes(master):
     """IP: controlword + 0x60C1:1 in a synchronous RPDO, one record per 1 ms SYNC, 0x60C2 = 2 ms: a record sent
-    before bit 4 is ignored; bit 12 once bit 4 is set; each record is a 2 ms straight segment from the previous
-    one (100 units per cycle for records 200 apart); records that come faster than that wait in the buffer."""
+    before bit 4 is ignored; bit 12 once bit 4 is set, and the record of that frame is the first point; each
+    record is a 2 ms straight segment from the previous one (100 units per cycle for records 200 apart); records
+    that come faster than that wait in the buffer."""
     sdo, net = master.node.sdo, master.net
     master.enable(7)
     sdo[0x6040].raw = 0x0F
@@ -117,10 +118,10 @@ def test_interpolated_position_across_processes(master):
 
     assert cycle(0x0F, 500) == 0  # bit 4 not set: ignored
     assert not master.sw() & 0x1000
-    demands = [cycle(0x1F, 0)]
+    demands = [cycle(0x1F, 200)]  # the record of the frame that sets bit 4: the first point
     assert master.sw() & 0x1000
-    demands += [cycle(0x1F, r) for r in (200, 400, 600, 800)] + [cycle(0x1F, 800) for _ in range(4)]
-    assert demands == [0, 100, 200, 300, 400, 500, 600, 700, 800], demands
+    demands += [cycle(0x1F, r) for r in (400, 600, 800)] + [cycle(0x1F, 800) for _ in range(4)]
+    assert demands == [100, 200, 300, 400, 500, 600, 700, 800], demands
 
 
 def test_polarity_across_processes(master):

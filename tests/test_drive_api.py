@@ -128,3 +128,22 @@ def test_every_drive_object_is_declared_in_the_eds():
     from virtualaxis.drive.objects import missing_from_eds
 
     assert missing_from_eds(DEFAULT_EDS) == []
+
+
+def test_every_value_range_the_drive_enforces_is_declared_in_the_eds():
+    """A bound the drive refuses beyond (option codes, a 0 that would be a search or a stop that never ends, an
+    interpolation period of 0) is the EDS's LowLimit / HighLimit of the object too, so that a master or tool that
+    reads the EDS knows it (e.g. 0x6099:1 / :2 and 0x60C2:1 >= 1, as 0x6083 / 0x6084)."""
+    from virtualaxis.drive.commissioning import value_ranges
+    from virtualaxis.drive.core import DEFAULT_EDS
+    from virtualaxis.drive.objects import DTYPE_RANGES, SPECS, eds_limits
+
+    declared = eds_limits(DEFAULT_EDS)
+    undeclared = []
+    for key, (low, high) in value_ranges({}).items():
+        type_low, type_high = DTYPE_RANGES[SPECS[key].dtype]
+        eds_low, eds_high = declared.get(key, (None, None))
+        if (low > type_low and eds_low != low) or (high < type_high and eds_high != high):
+            undeclared.append((f"0x{key[0]:04X}:{key[1]}", (low, high), (eds_low, eds_high)))
+    assert undeclared == []
+    assert declared[(0x6099, 1)][0] == declared[(0x6099, 2)][0] == declared[(0x60C2, 1)][0] == 1

@@ -14,7 +14,8 @@ Brake control (objects 0x2040, 0x2041, 0x60FE; the brake's physics is
 - 0x60FE:1 bit 0 (set brake): the brake output (1 = brake applied). With 0x60FE:2 bit 0 set the master drives
   it: 1 applies the brake, 0 releases it; a release while the power stage is off is refused (SDO abort
   0x08000022) when the axis carries a standing load (``effects.force_offset_n``, e.g. a vertical axis), and a
-  brake released this way closes when the power stage switches off.
+  brake released this way closes when the power stage switches off: 0x60FE:1 bit 0 then reads 1 (applied) and
+  the master releases it again once the power stage is on. 0x60FE:1 bit 0 always shows the brake output.
 
 Without a brake in the axis config the delays are 0 and the drive enables and disables as without this module.
 

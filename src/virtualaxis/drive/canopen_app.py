@@ -9,8 +9,9 @@
   changed objects (statusword, parameters, ...) are copied by :meth:`Cia402Application.flush`, which the
   runtime calls after every drive cycle and every poll, and which the hooks call before an SDO upload and after
   a write.
-- EMCY: the drive's faults go out through ``slave.emcy`` (0x1001, 0x1003, 0x603F kept by the stack), a
-  fault reset through ``slave.emcy_reset``.
+- EMCY: the drive's faults go out through ``slave.emcy`` (0x1001, 0x1003, 0x603F kept by the stack), the
+  error reset through ``slave.emcy_reset``; when an error goes while others remain, the drive sets 0x603F
+  (an object of its own) and the application's bits of 0x1001 (:meth:`Cia402Application.set_error_register`).
 - NMT reset node: the drive restarts (application objects to defaults, state machine to switch on disabled).
 """
 
@@ -59,6 +60,7 @@ class Cia402Application(BaseApplication):
         self.slave = slave
         self.drive.emcy_sink = slave.emcy
         self.drive.emcy_reset_sink = slave.emcy_reset
+        self.drive.error_register_sink = self.set_error_register
         self._entries = {key: slave.entry(*key) for key in list(SPECS) + list(ALIASES) if key in slave.od.entries}
         #: keys whose OD entry is a REAL32/REAL64 (the drive may hold an int there)
         self._float_keys = frozenset(key for key, entry in self._entries.items() if entry.fmt in ("f", "d"))
@@ -168,6 +170,13 @@ class Cia402Application(BaseApplication):
         if self._loss_cycles is not None and cycles - self._cycles_at_sync >= self._loss_cycles:
             self._sync_loss_reported = True
             self.drive.communication_error("sync_loss", 0)
+
+    def set_error_register(self, register_bits: int) -> None:
+        """0x1001 = ``register_bits`` (the generic and class bits of the drive's errors still active) and the
+        communication bit the stack keeps for its own errors; no EMCY (errors remain)."""
+        slave = self.slave
+        if slave is not None:
+            slave.write(0x1001, 0, (register_bits | (int(slave.read(0x1001)) & 0x10)) & 0xFF)
 
     def has_error(self) -> bool:
         """The drive is in FAULT / FAULT REACTION ACTIVE or has a warning (the stack keeps 0x1001 set)."""

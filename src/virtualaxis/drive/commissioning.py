@@ -49,6 +49,7 @@ _VALUE_RANGES = {
     (0x2002, 0): (0, 2),
     (0x2012, 0): (0, 1),
     (0x2013, 0): (0, 1),
+    (0x60C2, 1): (1, DTYPE_RANGES["u8"][1]),  # interpolation period 0 would make every set-point a step
     (0x60C2, 2): (-6, 0),
     (0x60C0, 0): (0, 0),  # interpolation sub-mode: linear only
     (0x2014, 3): (0, 3),

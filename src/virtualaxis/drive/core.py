@@ -139,8 +139,10 @@ MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 
 MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
 #: warning EMCY of a set-point that cannot be planned (CiA 301 0x6320 parameter error; see refuse_setpoint)
 SETPOINT_REFUSED_EMCY = 0x6320
-#: order of the reactions to the objects of one RPDO: mode 0x6060 first, the controlword 0x6040 last
-_REACTION_ORDER = {0x6060: 0, 0x6040: 2}
+#: order of the reactions to the objects of one RPDO: mode 0x6060 first, then the targets, then the controlword
+#: 0x6040, then the interpolation data record 0x60C1 (judged with the frame's controlword: the record of the frame
+#: that sets enable ip is the first interpolation point)
+_REACTION_ORDER = {0x6060: 0, 0x6040: 2, 0x60C1: 3}
 #: (state value, controlword bits 0..3) -> transition: decode + table lookup once per combination
 _TRANSITIONS = {(state.value, bits): transition_for(state, decode(bits)) for state in Cia402State for bits in range(16)}
 
@@ -187,6 +189,8 @@ class Drive:
         self._observers: list[Callable[[str, DriveState], None]] = []
         self.emcy_sink: Callable[[int, int, bytes], None] | None = None  # (code, register bits, data)
         self.emcy_reset_sink: Callable[[], None] | None = None
+        #: (register bits): 0x1001 = the generic and class bits of the errors still active after one went
+        self.error_register_sink: Callable[[int], None] | None = None
         self.counters = {
             "illegal_controlword": 0,
             "overruns": 0,
@@ -201,7 +205,8 @@ class Drive:
         self._cycle_hooks: tuple[Callable[[Drive], None], ...] = ()  # (a new tuple on change: none built per cycle)
         self._switch_input: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None = None  # set_switch_input
         #: fault buffer, 0x603F, persistent causes, warnings and their EMCY
-        self.fault_manager = FaultManager(self._store, self.counters, self._emcy, self._emcy_reset)
+        self.fault_manager = FaultManager(self._store, self.counters, self._emcy, self._emcy_reset,
+                                          self._error_register)
         #: the holding brake's sequence (:mod:`~virtualaxis.drive.brake`) and the safe torque off input
         self.brake = BrakeControl(self.sim.brake is not None, cfg.effects.force_offset_n != 0.0)
         self.sto = SafeTorqueOff()
@@ -370,8 +375,10 @@ class Drive:
 
     def write_objects(self, items: list[tuple[int, int, int | float]], *, checked: bool = False) -> None:
         """Write several objects as ONE event (an RPDO): every value is stored first, then the reactions run
-        (mode 0x6060 first, the controlword 0x6040 last), so a controlword with the new-set-point bit and
-        the target 0x607A in one RPDO start the move to the NEW target."""
+        (mode 0x6060 first, the controlword 0x6040 after the targets, the interpolation data record 0x60C1
+        after the controlword), so a controlword with the new-set-point bit and the target 0x607A in one RPDO
+        start the move to the NEW target, and a record 0x60C1:1 in the RPDO whose controlword sets enable ip
+        (bit 4) is the first interpolation point."""
         with self._lock:
             keyed = []
             table = self.object_table
@@ -624,14 +631,14 @@ class Drive:
         self._hm.run = None
 
     def _update_brake_output(self) -> None:
-        """The brake output (:meth:`BrakeControl.released`) to the plant's brake, shown in 0x60FE:1 bit 0 while
-        the drive drives it."""
+        """The brake output (:meth:`BrakeControl.released`) to the plant's brake, shown in 0x60FE:1 bit 0 (1 =
+        applied) whoever drives it: a master's release that the power stage switching off ends reads 1 from
+        then on, as the brake is applied."""
         o = self.objects
         outputs, mask = int(o[OBJ_OUTPUTS]), int(o[OBJ_OUTPUT_MASK])
         released = self.brake.released(self._power, outputs, mask)
         self.sim.command_brake(released)
-        if not mask & SET_BRAKE:
-            self._store(OBJ_OUTPUTS, (outputs & ~SET_BRAKE) | (0 if released else SET_BRAKE))
+        self._store(OBJ_OUTPUTS, (outputs & ~SET_BRAKE) | (0 if released else SET_BRAKE))
 
     def _brake_cycle(self) -> None:
         """A cycle of the brake opening / closing: the position held with torque; once the delay has elapsed,
@@ -1037,6 +1044,10 @@ class Drive:
         if self.emcy_reset_sink is not None:
             self.emcy_reset_sink()
 
+    def _error_register(self, register_bits: int) -> None:
+        if self.error_register_sink is not None:
+            self.error_register_sink(register_bits)
+
     def _cycle(self) -> None:
         dt = self.cycle_s
         if self._power:
@@ -1264,7 +1275,7 @@ class Drive:
                 homed=self._hm.homed,
                 digital_inputs=int(o[(0x60FD, 0)]),
                 fault_active=self._state in (S.FAULT, S.FAULT_REACTION_ACTIVE),
-                error_code=int(o[(0x603F, 0)]),
+                error_code=self.fault_manager.fault_code(),
                 faults=tuple(self.fault_manager.records),
                 alarm_number=self.fault_manager.alarm,
             )

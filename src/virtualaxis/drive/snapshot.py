@@ -47,7 +47,7 @@ class DriveState:
     homed: bool
     digital_inputs: int  # 0x60FD
     fault_active: bool
-    error_code: int  # 0x603F
+    error_code: int  # 0x603F in FAULT: the newest fault not yet acknowledged (0: none; a warning is not a fault)
     faults: tuple  # FaultRecord, newest first (r0945 / r0947 / r0949)
     alarm_number: int  # 0x2031 (e.g. 7910 motor temperature alarm)
 

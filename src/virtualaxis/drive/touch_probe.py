@@ -15,7 +15,8 @@ drive-cycle sample). An edge forced by the master falls on the start of the cycl
 source (0 probe input, 1 index pulse; others refused), bit 4 / 5 latch at the positive / negative edge.
 0x60B9: bit 0 enabled, bit 1 / 2 positive / negative edge position stored, bit 6 / 7 toggled by every positive
 / negative edge stored (continuous mode). Enabling a probe (bit 0 rising) or an edge (bit 4 / 5 rising) re-arms
-it and clears its stored bits; disabling it clears its status.
+it and clears its stored bits; disabling a probe clears its status, disabling an edge (bit 4 / 5 cleared) that
+edge's stored and toggle bits (0x60BA-0x60BD keep the positions last latched).
 """
 
 from __future__ import annotations
@@ -89,6 +90,8 @@ class TouchProbe:
                 for edge in (0, 1):
                     if f & (0x10 << edge) and not o & (0x10 << edge):
                         status &= ~((0x2 << edge) << shift)  # this edge re-armed
+                    elif not f & (0x10 << edge):
+                        status &= ~((0x42 << edge) << shift)  # this edge disabled: stored and toggle bits off
         self.status = status
 
     def _level(self, n: int, x_m: float) -> bool:

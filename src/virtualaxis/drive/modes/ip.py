@@ -23,8 +23,10 @@ class InterpolatedPosition(OperatingMode):
     """IP (7), sub-mode 0x60C0 = 0 (linear): with controlword bit 4 (enable ip mode) every set-point written to
     0x60C1:1 (normally by a synchronous RPDO, one per SYNC) is the end of a straight segment of one
     interpolation period 0x60C2 from the end of the previous one. Set-points that arrive while a segment runs
-    wait in a first-in-first-out buffer of :data:`IP_BUFFER_RECORDS`; one more is refused (warning EMCY, SDO
-    abort). Bit 4 cleared: the buffer is dropped, the running segment completes and the axis holds its end.
+    wait in a first-in-first-out buffer of :data:`IP_BUFFER_RECORDS`; one more is refused (warning EMCY 0x6320,
+    SDO abort), and the next record taken clears that warning. A record written in the same RPDO as the
+    controlword that sets bit 4 is the first point (the drive reacts to the controlword before the record).
+    Bit 4 cleared: the buffer is dropped, the running segment completes and the axis holds its end.
     Halt (bit 8): the buffer is dropped and the axis brakes per 0x605D; released, it holds until the next
     set-point. Statusword bit 12 "ip mode active" (bit 4 taken in OPERATION ENABLED), bit 10 target reached
     (the last segment's end within 0x6067 for 0x6068; halted: at rest), bit 13 following error."""
@@ -85,6 +87,8 @@ class InterpolatedPosition(OperatingMode):
         else:
             ctx.refuse_setpoint(f"interpolation data record 0x60C1:1 = {value} refused: the buffer of "
                                 f"{IP_BUFFER_RECORDS} set-points is full")
+            return
+        ctx.accept_setpoint()  # (clears the warning of a record refused before)
 
     def cycle(self, ctx: ModeContext) -> None:
         if self.halting:
