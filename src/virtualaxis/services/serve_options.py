@@ -49,7 +49,8 @@ def add_arguments(p) -> None:
     g.add_argument("--http", nargs="?", const="127.0.0.1:8080", default=None, metavar="HOST:PORT",
                    help="serve the live drive page (docs/live-page.md); default off, 127.0.0.1:8080 without a value")
     g.add_argument("--http-writable", action="store_true",
-                   help="the live page may write objects (as SDO downloads); read-only otherwise")
+                   help="the live page may write objects (as SDO downloads) and, with --allow-fault-injection, "
+                        "inject faults; read-only otherwise")
     g.add_argument("--opcua", nargs="?", const="127.0.0.1:4840", default=None, metavar="HOST:PORT",
                    help="serve OPC UA (docs/opcua.md; needs the opcua extra); default off, 127.0.0.1:4840 without a "
                         "value")

@@ -22,6 +22,9 @@ converts them to SI units and appends them to a long ring of float64 rows (``sec
 scope streams from there and a recording is a slice of it, one row per drive cycle.
 
 The hook runs at the start of a drive cycle: the values it stores are those published by the cycle before.
+A row of the long ring holds one instant: the position loop's sample of a cycle (0x6062, 0x6064, 0x60F4) with
+the velocity, torque and current at that cycle's start (published by the cycle before), as ``virtualaxis
+simulate`` writes its traces.
 """
 
 from __future__ import annotations
@@ -175,6 +178,7 @@ class LongRing:
         self.lost = 0  # slots overwritten before the server process took them
         self._lost_until = 0  # rows before this sequence number may have gaps (a recording over them is refused)
         self._first_cycle: int | None = None
+        self._carry = np.full(3, np.nan)  # velocity, torque, current of the last slot taken [SI]
         self._lock = threading.Lock()  # drain vs. slice
 
     def drain(self) -> tuple[int, int]:
@@ -203,6 +207,14 @@ class LongRing:
             block[:, 4] = raw[:, 4] * (rated_nm * 1e-3)  # per mille of the rated torque
             block[:, 5] = raw[:, 5] * (rated_a * 1e-3)  # per mille of the rated current
             block[:, 6] = slots["sw"]
+            # one instant per row: a slot holds 0x6064 / 0x60F4 as the position loop sampled them at the start of
+            # its cycle, but velocity, torque and current at its end (the start of the next): row k takes those of
+            # the slot before (the model's and `simulate`'s convention; the first row after a start or a loss
+            # keeps its own)
+            dyn = block[:, 3:6]
+            prev = np.vstack((self._carry, dyn[:-1]))
+            self._carry = dyn[-1].copy()
+            block[:, 3:6] = np.where(np.isfinite(prev), prev, dyn)
             first = self.written
             if self._first_cycle is None:
                 cyc = raw[0, 6]
@@ -217,6 +229,7 @@ class LongRing:
 
     def _lose(self, n: int) -> None:
         self.lost += n
+        self._carry = np.full(3, np.nan)  # (the slot before the next one taken is gone)
         self._lost_until = self.written  # (the rows before it and after it are not contiguous)
 
     def oldest(self) -> int:

@@ -14,7 +14,8 @@ of a socket pair. What it costs serve's process:
   on the other core while the drive runs;
 - a **bridge thread**: the requests the server process forwards -- the object dictionary with its values,
   object writes (``--http-writable``: the SDO download's checks and abort codes) and fault-injection commands
-  (``--allow-fault-injection``) -- applied under the drive's lock, i.e. between two cycles, and answered.
+  (``--http-writable`` and ``--allow-fault-injection``) -- applied under the drive's lock, i.e. between two
+  cycles, and answered.
 
 The server process is serve's child (child.py): it ends on the socket pair's EOF, i.e. with serve even if serve
 is killed. If it ends on its own, serve prints one warning line and goes on serving CANopen (``server_process``
@@ -29,6 +30,7 @@ import json
 import math
 import socket
 import struct
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,7 +39,7 @@ from typing import Any
 from virtualaxis.services.child import ChildProcess
 from virtualaxis.services.http.frames import FrameLog
 from virtualaxis.services.http.ring import COLUMNS, STATE_BYTES, PageBlock, segment_size
-from virtualaxis.services.http.server import HttpRefusal, eds_notes
+from virtualaxis.services.http.server import HttpRefusal, check_json_type, eds_notes, parse_index
 
 STATE_PERIOD_S = 0.1  # state messages of an axis with a live stream open
 IDLE_STATE_EVERY = 10  # ... and every this many periods without one
@@ -48,6 +50,7 @@ _TYPE_NAMES = {0x1: "BOOL", 0x2: "INT8", 0x3: "INT16", 0x4: "INT32", 0x5: "UINT8
 _ABORT_INVALID_VALUE = 0x06090030
 _ABORT_TOO_HIGH = 0x06090031
 _ABORT_TOO_LOW = 0x06090032
+_REAL32_MAX = 3.4028234663852886e38
 
 
 @dataclass
@@ -117,8 +120,8 @@ class LivePageService:
                 ax.block.set_units(ax.drive)
             self._publish_state(ax)
         spec = {"shm": self._shm.name, "writable": self.writable, "ring_s": self.ring_s, "info": self.axes_info(),
-                "axes": [{"name": a.name, "cycle_s": float(a.drive.cycle_s), "force_actuator": _force(a)}
-                         for a in self.axes]}
+                "axes": [{"name": a.name, "cycle_s": float(a.drive.cycle_s), "force_actuator": _force(a),
+                          "fault_injection_allowed": _injection_allowed(a)} for a in self.axes]}
         try:  # (the server process holds the listening socket from now on)
             self._child.start("virtualaxis.services.http.server:server_child", ("init", spec), START_TIMEOUT_S,
                               pass_fds=(sock.detach(),))
@@ -243,13 +246,16 @@ class LivePageService:
         return out
 
     def axes_info(self) -> dict:
+        """``GET /api/axes``: the axes, the scope's columns, whether the page may write objects (``writable``) and
+        inject faults on an axis (``fault_injection``: serve runs with both ``--http-writable`` and
+        ``--allow-fault-injection``)."""
         from virtualaxis.drive.injection import KINDS
 
         return {
             "writable": self.writable,
             "columns": list(COLUMNS),
             "axes": [{"name": a.name, "node_id": a.node_id, "cycle_s": float(a.drive.cycle_s),
-                      "fault_injection": bool(a.injector is not None and a.injector.allowed),
+                      "fault_injection": self.writable and _injection_allowed(a),
                       "force_actuator": _force(a)}
                      for a in self.axes],
             "fault_kinds": list(KINDS),
@@ -314,7 +320,7 @@ class LivePageService:
         unknown = sorted(k for k in data if k not in ("index", "sub", "value"))
         if unknown:
             raise HttpRefusal(400, f"unknown key(s) {', '.join(map(repr, unknown))[:120]} (index, sub, value)")
-        index, sub = _index_of(data.get("index"), "index", 0xFFFF), _index_of(data.get("sub", 0), "sub", 0xFF)
+        index, sub = parse_index(data.get("index"), "index", 0xFFFF), parse_index(data.get("sub", 0), "sub", 0xFF)
         if "value" not in data:
             raise HttpRefusal(400, "value: missing")
         value = data["value"]
@@ -329,27 +335,40 @@ class LivePageService:
         entry = obj.subs.get(sub)
         if entry is None:
             raise refuse(0x06090011, "no such sub-index")
+        type_name = _TYPE_NAMES.get(entry.data_type, f"0x{entry.data_type:X}")
+
+        def out_of_range(v: float) -> HttpRefusal:
+            above = v > 0
+            return refuse(_ABORT_TOO_HIGH if above else _ABORT_TOO_LOW,
+                          f"{entry.name}: {_num(v)} is {'above' if above else 'below'} its range "
+                          f"{_range_text(entry, type_name)}")
+
         if entry.fmt is not None:
             if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise refuse(_ABORT_INVALID_VALUE, f"value must be a number (got {type(value).__name__})")
+                raise refuse(_ABORT_INVALID_VALUE, f"{entry.name}: value must be a number (got "
+                             f"{type(value).__name__})")
+            if isinstance(value, float) and math.isinf(value):  # (a JSON number beyond a float, e.g. 1e400)
+                raise out_of_range(value)
+            if isinstance(value, float) and math.isnan(value):
+                raise refuse(_ABORT_INVALID_VALUE, f"{entry.name}: value must be finite")
             if entry.fmt in "fd":
-                if not math.isfinite(value):
-                    raise refuse(_ABORT_INVALID_VALUE, "value must be finite")
                 value = float(value)
+                try:
+                    entry.encode(value)
+                except OverflowError:  # (beyond REAL32)
+                    raise out_of_range(value) from None
             else:
                 if isinstance(value, float):
                     if not value.is_integer():
                         raise refuse(_ABORT_INVALID_VALUE, f"{entry.name} needs an integer (got {value!r})")
                     value = int(value)
                 rng = type_range(entry.data_type)
-                if rng is not None and value > rng[1]:
-                    raise refuse(_ABORT_TOO_HIGH, f"{value} > {rng[1]} (type range)")
-                if rng is not None and value < rng[0]:
-                    raise refuse(_ABORT_TOO_LOW, f"{value} < {rng[0]} (type range)")
+                if rng is not None and not rng[0] <= value <= rng[1]:
+                    raise out_of_range(data["value"])  # (as given: 1e+39, not its digits)
             try:
                 payload = entry.encode(value)
             except (struct.error, OverflowError) as exc:
-                raise refuse(_ABORT_INVALID_VALUE, str(exc)) from None
+                raise refuse(_ABORT_INVALID_VALUE, f"{entry.name}: {exc}") from None
         elif isinstance(value, str):
             payload = entry.encode(value)
         else:
@@ -359,16 +378,25 @@ class LivePageService:
                 ax.slave.sdo_download(index, sub, payload)
                 now = entry.decode(ax.slave.sdo_upload(index, sub)) if entry.readable else None
         except SdoAbort as exc:
-            raise refuse(exc.code, exc.message or str(exc)) from None
+            message = exc.message or str(exc)
+            if exc.code in (_ABORT_TOO_HIGH, _ABORT_TOO_LOW) and not exc.message:
+                message = (f"{entry.name}: {_num(value)} is {'above' if exc.code == _ABORT_TOO_HIGH else 'below'} its "
+                           f"range {_range_text(entry, type_name)}")
+            raise refuse(exc.code, message) from None
         self.counters["writes"] += 1
         return {"ok": True, "index": f"0x{index:04X}", "sub": sub, "value": _plain(now)}
 
     def fault_command(self, ax: AxisPage, body: bytes, content_type: str) -> dict:
+        """A fault-injection command (MQTT ``fault/set``'s format; HttpRefusal 403 unless serve runs with both
+        ``--http-writable`` and ``--allow-fault-injection``, 400 for a malformed command, 422 if refused)."""
         from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
 
-        _check_json_type(content_type)
-        if ax.injector is None or not ax.injector.allowed:
-            raise HttpRefusal(403, "fault injection is off (serve with --allow-fault-injection)",
+        check_json_type(content_type)
+        missing = [flag for flag, on in (("--http-writable", self.writable),
+                                         ("--allow-fault-injection", _injection_allowed(ax))) if not on]
+        if missing:
+            raise HttpRefusal(403, "fault injection through the page is off: it needs serve with --http-writable "
+                              f"and --allow-fault-injection (missing: {' and '.join(missing)})",
                               abort_code="0x08000022")
         command, refusal = parse_fault_command(body)
         if refusal is not None:
@@ -393,21 +421,29 @@ def _plain(v: Any) -> Any:
     return v
 
 
-def _check_json_type(content_type: str) -> None:
-    ctype = (content_type or "application/json").split(";")[0].strip().lower()
-    if ctype not in ("application/json", ""):
-        raise HttpRefusal(415, f"Content-Type {ctype[:40]!r}: send application/json")
+def _injection_allowed(ax: AxisPage) -> bool:
+    """Whether serve runs the axis with ``--allow-fault-injection``."""
+    return bool(ax.injector is not None and ax.injector.allowed)
 
 
-def _index_of(v: Any, key: str, high: int) -> int:
-    """An object index / sub-index given as a number or a string ("0x6081", "24705")."""
-    if isinstance(v, str):
-        try:
-            v = int(v, 0)
-        except ValueError:
-            raise HttpRefusal(400, f"{key}: {v[:20]!r} is not a number") from None
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise HttpRefusal(400, f"{key}: must be an integer or a string like \"0x6081\" (got {type(v).__name__})")
-    if not 0 <= v <= high:
-        raise HttpRefusal(400, f"{key}: must be 0..0x{high:X} (got {v})")
-    return v
+def _range_text(entry: Any, type_name: str) -> str:
+    """The range of an entry's values: its EDS limits where it has them, else its data type's."""
+    from virtualaxis.canopen_slave.od import type_range
+
+    rng = type_range(entry.data_type)
+    if entry.fmt == "f":
+        rng = (-_REAL32_MAX, _REAL32_MAX)
+    elif entry.fmt == "d":
+        rng = (-sys.float_info.max, sys.float_info.max)
+    low = entry.low if entry.low is not None else rng[0] if rng else None
+    high = entry.high if entry.high is not None else rng[1] if rng else None
+    text = f"{'' if low is None else _num(low)} .. {'' if high is None else _num(high)}"
+    return text + ("" if entry.low is not None or entry.high is not None else f" ({type_name})")
+
+
+def _num(v: float) -> str:
+    """A number in a message: an integer in full, a float as Python writes it back (``1e+39``, ``0.1``) or, when
+    integral, without ``.0`` (``2000``)."""
+    if isinstance(v, int) or not math.isfinite(v) or abs(v) >= 1e16 or not v.is_integer():
+        return repr(v)
+    return str(int(v))

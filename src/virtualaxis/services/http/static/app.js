@@ -30,6 +30,7 @@ async function main() {
   page.cols = page.info.columns;
   const wanted = new URLSearchParams(location.search).get("axis");
   page.axis = page.info.axes.find((a) => a.name === wanted) || page.info.axes[0];
+  if (page.axis.force_actuator) CHANNELS.torque_meas = ["force", 1, "N"];  // (0x6077 of a force actuator: its force)
   $("axis-title").textContent = `${page.axis.name} (node ${page.axis.node_id})`;
   document.title = `${page.axis.name} - virtualaxis`;
   $("axis-tabs").innerHTML = page.info.axes.map((a) =>
@@ -126,8 +127,9 @@ function setupScope() {
   page.charts = [
     mk("Position", [ser("pos_cmd", "#1f5fd6", "mm"), {...ser("pos_fb", "#d6551f", "mm"), axis: {scale: "mm", label: "mm"}}], {}),
     mk("Following error", [{...ser("following_error", "#7a2fb8", "um"), axis: {scale: "um", label: "um"}}], {}),
-    mk("Speed, current, torque", [{...ser("vel_meas", "#0a8", "v"), axis: {scale: "v", label: "mm/s"}},
-      {...ser("current_q", "#c80", "a"), axis: {scale: "a", side: 1, label: "A / N m", grid: {show: false}}},
+    mk(`Speed, current, ${CHANNELS.torque_meas[0]}`, [{...ser("vel_meas", "#0a8", "v"), axis: {scale: "v", label: "mm/s"}},
+      {...ser("current_q", "#c80", "a"), axis: {scale: "a", side: 1, label: `A / ${CHANNELS.torque_meas[2]}`,
+        grid: {show: false}}},
       ser("torque_meas", "#888", "a")], {}),
   ];
   page.chartCols = [["pos_cmd", "pos_fb"], ["following_error"], ["vel_meas", "current_q", "torque_meas"]];
