@@ -51,10 +51,13 @@ def test_jobs_run_in_the_runtime_thread_in_order_and_a_failing_one_stops_nothing
     assert [r[0] for r in ran] == list(range(6))
     assert rt.stats.gap_jobs == 6 and rt.stats.gap_job_errors == 1
     assert "a side channel's bug" in caplog.text
-    # each in the gap: the next cycle at least the slack ahead, unless the job had waited its longest (forced)
+    # each in the gap: the next cycle at least the slack ahead, unless the job had waited its longest (forced).
+    # Measured by the job itself, a moment after the runtime's check: a preemption in between (a busy host: 47 us
+    # seen) takes from the slack it finds, so the median of the jobs is held to it, not each one
     forced_before = [0] + [r[3] for r in ran[:-1]]
-    unforced = [r[2] for r, before in zip(ran, forced_before, strict=True) if r[3] == before]
-    assert unforced and min(unforced) >= pacing.GAP_JOB_MIN_SLACK_S * 0.9, ran
+    unforced = sorted(r[2] for r, before in zip(ran, forced_before, strict=True) if r[3] == before)
+    assert unforced and unforced[len(unforced) // 2] >= pacing.GAP_JOB_MIN_SLACK_S * 0.9, ran
+    assert rt.stats.gap_job_min_slack_s >= pacing.GAP_JOB_MIN_SLACK_S  # (the runtime's own reading at its check)
 
 
 def test_a_job_waits_for_slack_and_then_no_longer_than_its_longest_wait(monkeypatch):

@@ -151,6 +151,7 @@ class RuntimeStats:
     gap_jobs: int = 0  # jobs of other threads run in the gap before the next cycle (run_in_gap)
     gap_jobs_forced: int = 0  # ... of them run outside their gap (no slack, or not after a SYNC's answer), late
     gap_job_errors: int = 0  # ... that raised (logged, the loop goes on)
+    gap_job_min_slack_s: float = float("inf")  # real time: the least time to the next cycle an unforced job was given
     started_s: float = field(default_factory=time.perf_counter)
 
     def as_dict(self) -> dict:
@@ -358,6 +359,8 @@ class Runtime:
         stats.gap_jobs += 1
         if forced:
             stats.gap_jobs_forced += 1
+        elif next_cycle is not None and next_cycle - now < stats.gap_job_min_slack_s:
+            stats.gap_job_min_slack_s = next_cycle - now
         try:
             job()
         except Exception:  # noqa: BLE001 - a side channel's job never stops the drive
