@@ -552,35 +552,45 @@ def test_a_publisher_stopped_for_long_neither_blocks_the_sampler_nor_loses_an_ev
     had been stopped for minutes at the usual 10 Hz), so the socket to it fills within a second; a blocking send
     then stopped the sampler for as long as the publisher. A fault raised meanwhile is published once the
     publisher runs again, and the state it publishes last is the drive's current one."""
-    import signal
-
     from virtualaxis.services import mqtt as mqtt_module
 
     monkeypatch.setattr(mqtt_module, "STATE_FORWARD_PERIOD_S", 0.001)  # read when the sampler starts
     sub = Subscriber(mosquitto.port)
     try:
         with _telemetry_at_1000_hz(mosquitto.url) as (ax, svc):
-            child = _publisher_process(os.getpid())
-            time.sleep(0.5)
-            os.kill(child, signal.SIGSTOP)
-            try:
-                c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+            with _publisher_stopped(ax, svc) as stopped:
                 time.sleep(1.5)
                 ax.drive.inject_fault(0x4210, 42)
                 time.sleep(1.5)
-                c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
                 waiting = len(getattr(svc, "backlog", ()))
-            finally:
-                os.kill(child, signal.SIGCONT)
             sub.wait(lambda: any(f["event"] == "fault" and f["emcy_code"] == "0x4210" for f in sub.of("faults")),
                      timeout=30.0)
             sub.wait(lambda: sub.of("state") and sub.of("state")[-1]["cia402_state"] == "FAULT", timeout=30.0)
             dropped = svc.messages_dropped
     finally:
         sub.close()
-    assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
+    assert stopped["rate"] > 800, stopped
     assert 1 <= waiting < 10, waiting  # the fault's event and snapshot, one current state: not 3 000 states
     assert dropped == 0
+
+
+@contextlib.contextmanager
+def _publisher_stopped(ax, svc):
+    """The publisher process of ``svc`` stopped (SIGSTOP) for the block, after 0.5 s of running; yields a dict
+    that holds, after the block, the sampler's ``rate`` [samples/s] while the publisher was stopped."""
+    import signal
+
+    child = _publisher_process(os.getpid())
+    time.sleep(0.5)
+    out: dict = {}
+    os.kill(child, signal.SIGSTOP)
+    try:
+        c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+        yield out
+        c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+        out["rate"] = (c1 - c0) / (t1 - t0)
+    finally:
+        os.kill(child, signal.SIGCONT)
 
 
 def _publisher_process(parent: int) -> int:
@@ -600,24 +610,15 @@ def test_a_stalled_publisher_process_does_not_stall_the_sampler(mosquitto):  # n
     1000 Hz telemetry. A wake sent at every sample fills the socket to the stopped process within ~0.3 s and then
     blocks the sampler; wakes to a publisher that far behind are not sent (counted), and what it missed is in the
     ring when it runs again."""
-    import signal
-
     with _telemetry_at_1000_hz(mosquitto.url) as (ax, svc):
-        child = _publisher_process(os.getpid())
-        time.sleep(0.5)
-        os.kill(child, signal.SIGSTOP)
-        try:
-            c0, t0 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
+        with _publisher_stopped(ax, svc) as stopped:
             time.sleep(2.0)
-            c1, t1 = svc.stats()[ax.axis.name]["samples_taken"], time.monotonic()
-        finally:
-            os.kill(child, signal.SIGCONT)
         skipped = svc.wakes_skipped
         published0 = svc.stats()[ax.axis.name]["samples_published"]
         end = time.monotonic() + 30.0  # (it runs at nice 10: on a busy host it may take a while to run again)
         while svc.stats()[ax.axis.name]["samples_published"] <= published0 + 2000 and time.monotonic() < end:
             time.sleep(0.05)
         published1 = svc.stats()[ax.axis.name]["samples_published"]
-    assert (c1 - c0) / (t1 - t0) > 800, (c1 - c0) / (t1 - t0)
+    assert stopped["rate"] > 800, stopped
     assert skipped > 0
     assert published1 > published0 + 2000, "the publisher did not take up the samples of its stop after SIGCONT"
