@@ -740,7 +740,7 @@ class MqttService:
                 self._flush_backlog()
             if not backlog:
                 try:
-                    if select.select((), (self._conn.fileno(),), (), 0)[1]:
+                    if self._writable():
                         self._conn.send_bytes(msg)
                         return
                 except (OSError, ValueError, AttributeError):  # the publisher process is gone: the drive goes on
@@ -758,12 +758,17 @@ class MqttService:
                 self.messages_dropped += 1
             backlog.append(item)
 
+    def _writable(self, timeout_s: float = 0.0) -> bool:
+        """Whether the publisher's message socket takes a message without blocking (at most a quarter full: what a
+        socket reports writable), waiting up to ``timeout_s``."""
+        return bool(select.select((), (self._conn.fileno(),), (), timeout_s)[1])
+
     def _flush_backlog(self) -> None:
         """Send the waiting messages while the publisher's socket takes them (under ``_send_lock``)."""
         backlog, conn = self.backlog, self._conn
         try:
             pending = self._pending_state
-            while backlog and select.select((), (conn.fileno(),), (), 0)[1]:
+            while backlog and self._writable():
                 item = backlog.popleft()
                 conn.send_bytes(item[1])
                 if pending.get(item[0]) is item:
@@ -782,7 +787,7 @@ class MqttService:
             with self._send_lock:
                 if self.backlog:
                     self._flush_backlog()
-                if self.backlog or not select.select((), (conn.fileno(),), (), 0)[1]:
+                if self.backlog or not self._writable():
                     self.wakes_skipped += 1
                     return
                 conn.send_bytes(b'{"kind": "tick"}')
@@ -878,8 +883,7 @@ class MqttService:
                 with self._send_lock:
                     while time.monotonic() < end:
                         self._flush_backlog()
-                        writable = select.select((), (self._conn.fileno(),), (), 0.05)[1]
-                        if writable and not self.backlog:
+                        if self._writable(0.05) and not self.backlog:
                             self._conn.send_bytes(json.dumps({"kind": "stop"}).encode())
                             break
             except (OSError, ValueError):

@@ -115,6 +115,15 @@ class HttpRefusal(Exception):
         self.extra = extra
 
 
+def check_fault_injection(writable: bool, allowed: bool) -> None:
+    """Fault injection through the page needs serve with ``--http-writable`` (``writable``) and
+    ``--allow-fault-injection`` (``allowed``): HttpRefusal 403 naming the missing flag otherwise."""
+    missing = [flag for flag, on in (("--http-writable", writable), ("--allow-fault-injection", allowed)) if not on]
+    if missing:
+        raise HttpRefusal(403, "fault injection through the page is off: it needs serve with --http-writable and "
+                          f"--allow-fault-injection (missing: {' and '.join(missing)})", abort_code="0x08000022")
+
+
 def parse_index(v: Any, key: str, high: int) -> int:
     """An object index / sub-index as a JSON integer or a string of ASCII digits, decimal (``"24705"``) or ``0x``
     and hexadecimal digits (``"0x6081"``); HttpRefusal 400 naming ``key`` for anything else (a float such as
@@ -580,14 +589,9 @@ class PageServer:
             if what == "fault":
                 self._only(method, "POST")
                 self._check_origin(headers)
-                missing = [flag for flag, on in (("--http-writable", self.writable),
-                                                 ("--allow-fault-injection", ax.fault_injection)) if not on]
-                if missing:
-                    raise HttpRefusal(403, f"fault injection through the page is off: it needs serve with "
-                                      f"--http-writable and --allow-fault-injection (missing: {' and '.join(missing)})",
-                                      abort_code="0x08000022")
+                check_fault_injection(self.writable, ax.fault_injection)
                 command = _fault_body(headers, body)
-                return _json(200, await self.forward("fault", ax, json.dumps(command).encode(), "application/json"))
+                return _json(200, await self.forward("fault", ax, json.dumps(command).encode()))
         raise HttpRefusal(404, f"no route {path[:80]!r} (the page is at /, the API under /api/axes)")
 
     @staticmethod
@@ -858,7 +862,7 @@ def _json(status: int, obj: Any):
     return status, "application/json", json.dumps(obj, default=str, allow_nan=False).encode(), {}
 
 
-def check_json_type(content_type: str | None) -> None:
+def _check_json_type(content_type: str | None) -> None:
     """A POST body's Content-Type must be ``application/json`` (parameters such as ``charset=utf-8`` aside);
     HttpRefusal 415 if it is another or missing (a browser sends a body of another site's page without a
     preflight only as text/plain, form data or with no Content-Type)."""
@@ -907,7 +911,7 @@ def _json_depth(text: str) -> int:
 def _json_body(headers: dict, body: bytes) -> Any:
     """The body as JSON: Content-Type application/json (415), UTF-8, at most MAX_JSON_DEPTH levels deep, no
     NaN / Infinity, no key twice (400)."""
-    check_json_type(headers.get("content-type"))
+    _check_json_type(headers.get("content-type"))
     try:
         text = body.decode("utf-8")
     except UnicodeDecodeError:

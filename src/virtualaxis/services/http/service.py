@@ -39,7 +39,7 @@ from typing import Any
 from virtualaxis.services.child import ChildProcess
 from virtualaxis.services.http.frames import FrameLog
 from virtualaxis.services.http.ring import COLUMNS, STATE_BYTES, PageBlock, segment_size
-from virtualaxis.services.http.server import HttpRefusal, check_json_type, eds_notes, parse_index
+from virtualaxis.services.http.server import HttpRefusal, check_fault_injection, eds_notes, parse_index
 
 STATE_PERIOD_S = 0.1  # state messages of an axis with a live stream open
 IDLE_STATE_EVERY = 10  # ... and every this many periods without one
@@ -275,7 +275,7 @@ class LivePageService:
                 elif kind == "write":
                     reply = ("ok", self.write(axis, msg[3]))
                 else:
-                    reply = ("ok", self.fault_command(axis, msg[3], msg[4]))
+                    reply = ("ok", self.fault_command(axis, msg[3]))
             except HttpRefusal as exc:
                 reply = ("refused", exc.status, str(exc), exc.extra)
             except Exception as exc:  # noqa: BLE001 - the client gets a 500, serve goes on
@@ -386,18 +386,13 @@ class LivePageService:
         self.counters["writes"] += 1
         return {"ok": True, "index": f"0x{index:04X}", "sub": sub, "value": _plain(now)}
 
-    def fault_command(self, ax: AxisPage, body: bytes, content_type: str) -> dict:
-        """A fault-injection command (MQTT ``fault/set``'s format; HttpRefusal 403 unless serve runs with both
-        ``--http-writable`` and ``--allow-fault-injection``, 400 for a malformed command, 422 if refused)."""
+    def fault_command(self, ax: AxisPage, body: bytes) -> dict:
+        """A fault-injection command as the server process checked and forwarded it (JSON, MQTT ``fault/set``'s
+        format); HttpRefusal 403 unless serve runs with both ``--http-writable`` and ``--allow-fault-injection``
+        (serve's own check: it holds the flags), 400 for a malformed command, 422 if refused."""
         from virtualaxis.services.mqtt import apply_fault_command, parse_fault_command
 
-        check_json_type(content_type)
-        missing = [flag for flag, on in (("--http-writable", self.writable),
-                                         ("--allow-fault-injection", _injection_allowed(ax))) if not on]
-        if missing:
-            raise HttpRefusal(403, "fault injection through the page is off: it needs serve with --http-writable "
-                              f"and --allow-fault-injection (missing: {' and '.join(missing)})",
-                              abort_code="0x08000022")
+        check_fault_injection(self.writable, _injection_allowed(ax))
         command, refusal = parse_fault_command(body)
         if refusal is not None:
             raise HttpRefusal(400, refusal.get("error", "malformed fault command"))
