@@ -133,6 +133,87 @@ def host_jitter(seconds: float = 3.0, period_s: float = 0.001, rt_priority: int 
     }
 
 
+def _stall_probe(cpu: int, seconds: float, rt_priority: int, out) -> None:
+    """One CPU's part of :func:`host_stalls`: :func:`_reference_work` back to back on ``cpu`` for ``seconds``,
+    start time and duration of every run sent through ``out``. A 10 ms sleep every 200 runs keeps a SCHED_FIFO
+    thread clear of the kernel's real-time throttling."""
+    os.sched_setaffinity(0, {cpu})
+    if rt_priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+    starts, runs = [], []
+    end = time.perf_counter() + seconds
+    k = 0
+    while True:
+        t0 = time.perf_counter()
+        if t0 >= end:
+            break
+        _reference_work()
+        starts.append(t0)
+        runs.append(time.perf_counter() - t0)
+        k += 1
+        if k % 200 == 0:
+            time.sleep(0.01)
+    out.send((np.asarray(starts), np.asarray(runs)))
+    out.close()
+
+
+def host_stalls(seconds: float = 5.0, rt_priority: int = 0, slow_factor: float = 3.0) -> dict:
+    """Whether the host slows this whole machine at once: :func:`_reference_work` back to back in one process per
+    CPU (pinned; SCHED_FIFO ``rt_priority``), every run slower than ``slow_factor`` x its CPU's median counted.
+    Slow runs on different CPUs within 2 ms of each other are one event of the machine (a hypervisor that
+    deschedules or shares the virtual CPUs), not of a process or a core; slow runs within 20 ms of each other are
+    one burst. Reports the bursts (length, the speed the first CPU kept through them) and the share of slow runs
+    that another CPU saw too. No sleeping is timed: a stretch here is not a wake-up from idle."""
+    import multiprocessing as mp
+
+    cpus = sorted(os.sched_getaffinity(0))
+    ctx = mp.get_context("spawn")
+    pipes, procs = [], []
+    for cpu in cpus:
+        recv, send = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_stall_probe, args=(cpu, seconds, rt_priority, send))
+        proc.start()
+        pipes.append(recv)
+        procs.append(proc)
+    data = [r.recv() for r in pipes]
+    for proc in procs:
+        proc.join()
+    slow = []
+    per_cpu = []
+    for cpu, (starts, runs) in zip(cpus, data):
+        med = float(np.median(runs))
+        mask = runs > slow_factor * med
+        slow.append(starts[mask])
+        per_cpu.append({"cpu": cpu, "runs": len(runs), "work_us_p50": med * 1e6,
+                        "work_us_p99": float(np.percentile(runs, 99)) * 1e6, "work_us_max": float(runs.max()) * 1e6,
+                        "slow_runs": int(mask.sum())})
+    coincident = 0
+    if len(slow) > 1 and len(slow[0]) and any(len(s) for s in slow[1:]):
+        others = np.sort(np.concatenate(slow[1:]))
+        for t in slow[0]:
+            i = np.searchsorted(others, t)
+            near = [abs(others[j] - t) for j in (i - 1, i) if 0 <= j < len(others)]
+            coincident += bool(near) and min(near) < 0.002
+    starts, runs = data[0]
+    med = float(np.median(runs))
+    idx = np.flatnonzero(runs > slow_factor * med)
+    bursts = []
+    if len(idx):
+        for g in np.split(idx, np.flatnonzero(np.diff(starts[idx]) > 0.02) + 1):
+            span = starts[g[-1]] + runs[g[-1]] - starts[g[0]]
+            bursts.append({"at_s": float(starts[g[0]] - starts[0]), "length_ms": float(span * 1e3),
+                           "slow_runs": len(g), "speed_kept": float((g[-1] - g[0] + 1) * med / span)})
+    wall = float(starts[-1] + runs[-1] - starts[0])
+    return {
+        "seconds": wall,
+        "rt_priority": rt_priority,
+        "cpus": per_cpu,
+        "slow_runs_seen_by_another_cpu": f"{coincident} of {len(slow[0])}" if len(cpus) > 1 else "one CPU",
+        "bursts": bursts,
+        "time_in_bursts": float(sum(b["length_ms"] for b in bursts) * 1e-3 / wall),
+    }
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process ``pid`` [s]."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()

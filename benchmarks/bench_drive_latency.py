@@ -15,6 +15,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
     python benchmarks/bench_drive_latency.py --cycle-cost --axes 1,3,7 --bytecodes   # the same as bytecodes
     python benchmarks/bench_drive_latency.py --host-jitter --rt-priority 20   # the host's own tail (see below)
+    python benchmarks/bench_drive_latency.py --host-stalls --rt-priority 20   # does the host slow all CPUs at once
 
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
@@ -35,6 +36,11 @@ lockstep, the cycles of SYNCs it answered but could not run). Writes a JSON besi
 then once per 1 ms as a drive cycle runs; the p99 of the paced runs against the back-to-back p50 is how much the
 host itself stretches a cycle (a shared virtual CPU: 5-15x at the 1 % level). The latency tails above cannot be
 smaller than this host's; state it beside them as ``--cycle-cost``.
+
+``--host-stalls``: no drive and no sleeping timed. The same workload back to back in one process per CPU; runs
+slower than 3x their CPU's median are counted, grouped into bursts, and matched across the CPUs. When nearly every
+slow run of one CPU has one on another within 2 ms, the host slows the whole virtual machine at once (a hypervisor
+sharing or descheduling its CPUs): no priority, pinning or idle setting inside the machine removes that tail.
 """
 
 from __future__ import annotations
@@ -68,6 +74,7 @@ from _master import (  # noqa: E402
     _cpu_model,
     cpu_seconds,
     host_jitter,
+    host_stalls,
     latency_stats,
     sdo,
     setup_csp,
@@ -413,6 +420,8 @@ def main() -> int:
     ap.add_argument("--host-jitter", action="store_true",
                     help="only the host's stretch of a fixed plain-Python workload paced at 1 ms (_master.host_jitter;"
                          " with --rt-priority N at SCHED_FIFO N)")
+    ap.add_argument("--host-stalls", action="store_true",
+                    help="only whether the host slows all CPUs at once (_master.host_stalls; --seconds, default 5)")
     ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
     ap.add_argument("--bytecodes", action="store_true",
                     help="--cycle-cost as Python bytecodes per axis and cycle (load-independent)")
@@ -430,6 +439,20 @@ def main() -> int:
               f"{res['wake_late_us_p99']:.0f} / max {res['wake_late_us_max']:.0f}")
         if args.json:
             Path(args.json).write_text(json.dumps({"machine": _machine(), "host_jitter": res}, indent=2))
+        return 0
+    if args.host_stalls:
+        res = host_stalls(seconds=5.0 if args.seconds == 60.0 else args.seconds, rt_priority=args.rt_priority)
+        for c in res["cpus"]:
+            print(f"CPU {c['cpu']}: {c['runs']} runs, p50 {c['work_us_p50']:.0f} / p99 {c['work_us_p99']:.0f} / max "
+                  f"{c['work_us_max']:.0f} us, {c['slow_runs']} slower than 3x p50")
+        print(f"slow runs of CPU {res['cpus'][0]['cpu']} that another CPU saw within 2 ms: "
+              f"{res['slow_runs_seen_by_another_cpu']}")
+        for bu in res["bursts"]:
+            print(f"  burst at {bu['at_s']:6.2f} s: {bu['length_ms']:5.1f} ms, {bu['slow_runs']} slow runs, "
+                  f"{bu['speed_kept'] * 100:.0f} % of the speed kept")
+        print(f"time in bursts: {res['time_in_bursts'] * 100:.2f} % of {res['seconds']:.1f} s")
+        if args.json:
+            Path(args.json).write_text(json.dumps({"machine": _machine(), "host_stalls": res}, indent=2))
         return 0
     if args.cycle_cost:
         res = cycle_cost(tuple(int(n) for n in args.axes.split(",")))
