@@ -180,7 +180,7 @@ def host_stalls(seconds: float = 5.0, rt_priority: int = 0, slow_factor: float =
         proc.join()
     slow = []
     per_cpu = []
-    for cpu, (starts, runs) in zip(cpus, data):
+    for cpu, (starts, runs) in zip(cpus, data, strict=True):
         med = float(np.median(runs))
         mask = runs > slow_factor * med
         slow.append(starts[mask])

@@ -822,8 +822,9 @@ def test_concurrent_recording_downloads_are_capped():
         u = urllib.parse.urlsplit(url)
         target = f"/api/axes/{AXIS}/recording.csv?from=0&to=3000"
         deadline = time.monotonic() + 30
-        while (st := request(url + target[1:])[0]) != 200 and time.monotonic() < deadline:
-            time.sleep(0.2)  # (the samples of the first 3 s)
+        while (st := request(url + target[1:], timeout_s=120)[0]) != 200 and time.monotonic() < deadline:
+            time.sleep(0.2)  # (the samples of the first 3 s; the first recording loads the trace writer: on a busy
+            # host the page's server, at nice 10, may take a minute for it)
         assert st == 200
         raw = f"GET {target} HTTP/1.1\r\nHost: {u.netloc}\r\n\r\n".encode()
         socks = [socket.create_connection((u.hostname, u.port), timeout=30) for _ in range(24)]
@@ -900,6 +901,54 @@ def test_numbers_are_plain_ascii_and_integers_are_json_integers():
             assert st == 200 and answer["active"] == [], answer
             st, answer = post(url, f"/api/axes/{AXIS}/fault", b'{"action": "inject", "kind": %s}' % kind.encode())
             assert st in (200, 422) and "kind" not in answer.get("error", "")[:5], (kind, answer)
+
+
+def test_expect_100_continue_gets_its_interim_answer_before_the_body_is_sent():
+    """RFC 9110 10.1.1: a client that sends ``Expect: 100-continue`` waits for ``100 Continue`` before it sends
+    the body (curl does so for bodies over 1 KiB); the server sends it and then the final answer. Any other
+    expectation is refused with 417 and nothing is written."""
+    with served("--http", "127.0.0.1:0", "--http-writable") as s:
+        url = page_url(s)
+        u = urllib.parse.urlsplit(url)
+        body = b'{"index": "0x6081", "sub": 0, "value": 4321}'
+        with socket.create_connection((u.hostname, u.port), timeout=20) as sock:
+            sock.sendall(f"POST /api/axes/{AXIS}/write HTTP/1.1\r\nHost: {u.netloc}\r\nContent-Type: "
+                         f"application/json\r\nExpect: 100-continue\r\nContent-Length: {len(body)}\r\n\r\n"
+                         .encode())
+            interim = b""
+            while not interim.endswith(b"\r\n\r\n"):  # (before the body: the old server sent nothing here)
+                chunk = sock.recv(1)
+                assert chunk, interim
+                interim += chunk
+            assert interim == b"HTTP/1.1 100 Continue\r\n\r\n"
+            sock.sendall(body)
+            data = b""
+            while chunk := sock.recv(65536):
+                data += chunk
+        assert data.startswith(b"HTTP/1.1 200 "), data[:200]
+        assert value_of(url, "0x6081") == 4321
+        st, answer = post(url, f"/api/axes/{AXIS}/write", b'{"index": "0x6081", "sub": 0, "value": 1234}',
+                          "Content-Type: application/json\r\nExpect: something-else\r\n")
+        assert st == 417 and "100-continue" in answer["error"], answer
+        assert value_of(url, "0x6081") == 4321
+
+
+def test_not_found_answers_name_what_exists():
+    """A 404 says what the client probably meant: the axis list without its trailing slash, an axis's resources,
+    a path with an empty first segment."""
+    with served("--http", "127.0.0.1:0") as s:
+        url = page_url(s)
+        st, body = _get(url, "/api/axes/")
+        assert st == 404 and "/api/axes (no trailing slash)" in body["error"], body
+        st, body = _get(url, f"/api/axes/{AXIS}/")
+        assert st == 404 and "recording.csv" in body["error"] and "objects" in body["error"], body
+        st, body = _get(url, f"/api/axes/{AXIS}/nothing")
+        assert st == 404 and "'nothing'" in body["error"] and "events" in body["error"], body
+        st, body = _get(url, "//api/axes")
+        assert st == 404 and "empty segment" in body["error"], body
+        st, objs = request(url + f"api/axes/{AXIS}/objects")
+        wo = [o for o in objs["objects"] if o["access"] == "wo"]
+        assert wo and all("value" not in o and "read_abort" not in o for o in wo), wo
 
 
 def test_refusals_beyond_4xx_are_answered_and_documented():

@@ -86,10 +86,13 @@ STATIC_TYPES = {
 }
 REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
            408: "Request Timeout", 409: "Conflict", 410: "Gone", 411: "Length Required", 413: "Content Too Large",
-           414: "URI Too Long", 415: "Unsupported Media Type", 422: "Unprocessable Content",
+           414: "URI Too Long", 415: "Unsupported Media Type", 417: "Expectation Failed",
+           422: "Unprocessable Content",
            431: "Request Header Fields Too Large", 500: "Internal Server Error", 501: "Not Implemented",
            503: "Service Unavailable", 505: "HTTP Version Not Supported"}
 
+
+AXIS_RESOURCES = ("objects", "recording.csv", "events", "live", "write", "fault")  # (/api/axes/NAME/...)
 
 # header fields a request may carry at most once (RFC 9112 6.3, 3.2; RFC 6455 4.2.1): a second one, even with the
 # same value, is refused; the others may repeat and are joined with ", " (RFC 9110 5.3)
@@ -404,7 +407,7 @@ class PageServer:
 
     async def _serve_one(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
-            method, raw_path, query, headers, body = await asyncio.wait_for(self._read_request(reader),
+            method, raw_path, query, headers, body = await asyncio.wait_for(self._read_request(reader, writer),
                                                                             READ_TIMEOUT_S)
         except HttpRefusal as exc:
             await self._refuse(writer, exc)
@@ -447,7 +450,7 @@ class PageServer:
         except asyncio.TimeoutError:
             writer.transport.abort()
 
-    async def _read_request(self, reader: asyncio.StreamReader):
+    async def _read_request(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
         try:
             line = await reader.readuntil(b"\n")
         except asyncio.LimitOverrunError:
@@ -502,27 +505,34 @@ class PageServer:
         cl = headers.get("content-length")
         if cl is not None and (not _DIGITS.fullmatch(cl) or len(cl) > 15):
             raise HttpRefusal(400, f"Content-Length {cl[:20]!r} is not a number")
+        expect = headers.get("expect")
+        if expect is not None and expect.lower() != "100-continue":
+            raise HttpRefusal(417, f"Expect {expect[:40]!r} cannot be met (only 100-continue is understood)")
         if method == "POST":
             if cl is None:
                 raise HttpRefusal(411, "POST needs a Content-Length header")
             if int(cl) > MAX_BODY_BYTES:
                 raise HttpRefusal(413, f"body of {int(cl)} bytes (at most {MAX_BODY_BYTES})")
+            if expect is not None and version == "HTTP/1.1" and int(cl):
+                # RFC 9110 10.1.1: the client waits for this interim answer before it sends the body
+                writer.write(b"HTTP/1.1 100 Continue\r\n\r\n")
             body = await reader.readexactly(int(cl))
         elif cl is not None and int(cl) != 0:
             raise HttpRefusal(400, f"{method} with a body")
-        split = urllib.parse.urlsplit(target)
         if not target.startswith("/"):
             raise HttpRefusal(400, f"request target {target[:60]!r} must be a path starting with /")
+        # origin-form (RFC 9112 3.2.1): absolute-path ["?" query]; not urlsplit, which reads "//x/y" as host x
+        path, _, query_text = target.partition("?")
         try:
-            urllib.parse.unquote(split.path, errors="strict")
+            urllib.parse.unquote(path, errors="strict")
         except UnicodeDecodeError:
-            raise HttpRefusal(400, f"path {split.path[:60]!r}: a percent-escape that is not UTF-8") from None
+            raise HttpRefusal(400, f"path {path[:60]!r}: a percent-escape that is not UTF-8") from None
         try:
-            query = urllib.parse.parse_qs(split.query, keep_blank_values=True, strict_parsing=False,
+            query = urllib.parse.parse_qs(query_text, keep_blank_values=True, strict_parsing=False,
                                           max_num_fields=16)
         except ValueError as exc:
             raise HttpRefusal(400, f"query: {exc}") from None
-        return method, split.path, query, headers, body
+        return method, path, query, headers, body
 
     def _check_host(self, headers: dict, version: str) -> None:
         """The Host header: one (checked when read), required with HTTP/1.1, a valid ``host[:port]`` (RFC 9112
@@ -567,9 +577,12 @@ class PageServer:
         if path == "/api/axes":
             self._only(method, "GET")
             return _json(200, self.info)
+        if path == "/api/axes/":
+            raise HttpRefusal(404, "no route '/api/axes/': the list of axes is /api/axes (no trailing slash)")
         if path.startswith("/api/axes/"):
-            if route is None:
-                raise HttpRefusal(404, f"no route {path[:80]!r} (see /api/axes)")
+            if route is None or not route[1]:
+                raise HttpRefusal(404, f"no route {path[:80]!r}: an axis's resources are /api/axes/NAME/"
+                                  f"{{{','.join(AXIS_RESOURCES)}}} (the axes: /api/axes)")
             ax = self._axis(route[0])
             what = route[1]
             if what == "objects":
@@ -592,6 +605,11 @@ class PageServer:
                 check_fault_injection(self.writable, ax.fault_injection)
                 command = _fault_body(headers, body)
                 return _json(200, await self.forward("fault", ax, json.dumps(command).encode()))
+            raise HttpRefusal(404, f"axis {route[0][:40]!r} has no resource {what[:40]!r} (it has "
+                              f"{', '.join(AXIS_RESOURCES)})")
+        if path.startswith("//"):
+            raise HttpRefusal(404, f"no route {path[:80]!r}: the path starts with an empty segment (//); the page "
+                              "is at /, the API under /api/axes")
         raise HttpRefusal(404, f"no route {path[:80]!r} (the page is at /, the API under /api/axes)")
 
     @staticmethod
@@ -1051,10 +1069,9 @@ def trace_csv(data: dict[str, np.ndarray]) -> bytes:
 
 
 def _load_trace_writer() -> None:
-    """Load (and compile) the trace writer before the first recording asks for it, at nice 19 (this thread only:
-    the CPU it takes at start goes to the drive first)."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    """Load (and compile) the trace writer before the first recording asks for it. At the server process's own
+    priority (nice 10, below the drive), not lower: a recording requested meanwhile waits for this load (the
+    import lock), and a thread niced further would hold it for minutes on a busy host."""
     trace_csv({"t": np.zeros(1), "x": np.zeros(1)})
 
 

@@ -419,7 +419,7 @@ async function loadParams() {
   const body = await r.json();
   $("od").tBodies[0].innerHTML = body.objects.map((o) => {
     const w = page.info.writable && ["rw", "wo", "rwr", "rww"].includes(o.access);
-    const val = o.value !== undefined ? o.value : (o.read_abort ? `abort ${o.read_abort}` : "");
+    const val = o.value !== undefined ? o.value : o.read_abort ? `abort ${o.read_abort}` : o.access === "wo" ? "(write only)" : "";
     return `<tr data-key="${o.index}:${o.sub}" data-text="${esc((o.index + " " + o.name + " " + o.object).toLowerCase())}">` +
       `<td>${o.index}</td><td>${o.sub}</td><td>${esc(o.name)}</td><td>${o.type}</td><td>${o.access}</td>` +
       `<td class="val">${esc(val)}</td><td>${o.low ?? ""}</td><td>${o.high ?? ""}</td><td>${esc(o.note)}</td>` +
