@@ -167,6 +167,8 @@ def test_sto_switches_torque_off_with_emcy_and_restart_interlock(vrig):
     vrig.sync(100)
     assert node.sdo[0x6077].raw != 0  # holding the weight
     node.sdo[0x2042].raw = 1
+    # before any further cycle: the statusword's STO bit 14 and 0x60FD bit 18 tell the same input
+    assert node.sdo[0x6041].raw & 0x4000 and node.sdo[0x60FD].raw & (1 << 18)
     vrig.sync(1)
     assert node.sdo[0x6077].raw == 0
     sw = vrig.sw()
@@ -178,6 +180,7 @@ def test_sto_switches_torque_off_with_emcy_and_restart_interlock(vrig):
     vrig.sync(5)
     assert vrig.sw() & 0x4F == 0x40
     node.sdo[0x2042].raw = 0
+    assert not node.sdo[0x6041].raw & 0x4000 and not node.sdo[0x60FD].raw & (1 << 18)
     node.sdo[0x6040].raw = 0x0F
     vrig.sync(20)
     sw = vrig.sw()

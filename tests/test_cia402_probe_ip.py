@@ -153,6 +153,7 @@ def test_polarity_inverts_targets_actual_values_and_limits_and_is_refused_in_ope
         node.sdo[0x6040].raw = 0x07
         r.wait(lambda: r.sw() & 0x6F == 0x23, sync=True)  # switched on
         node.sdo[0x607E].raw = 0x40  # velocity only: positions read as the table goes again
+        assert abs(node.sdo[0x6064].raw + 20_000) < 100  # (at once: the actual values follow the write)
         r.sync(1)
         assert abs(node.sdo[0x6064].raw + 20_000) < 100  # (the axis at rest, pulses off)
         node.sdo[0x6060].raw = 3

@@ -124,16 +124,21 @@ class Rig:
         time.sleep(0.001)  # let the master's receive thread take the TPDOs of the last SYNC
 
     def wait(self, predicate, timeout: float = 2.0, sync: bool = False):
-        """Wait until ``predicate()`` is true (sending SYNCs if ``sync``)."""
-        end = time.monotonic() + timeout
+        """Wait until ``predicate()`` is true. With ``sync``, one SYNC per check and ``timeout`` counted in drive
+        time: at most ``timeout`` / 1 ms SYNCs (a busy host makes each SYNC take longer, not the axis need more of
+        them; a wall-clock bound 20x that keeps a stuck runtime from hanging the test). Without, ``timeout`` s."""
+        end = time.monotonic() + (timeout * 20 + 30 if sync else timeout)
+        syncs = 0
         while True:
             value = predicate()
             if value:
                 return value
-            if time.monotonic() > end:
-                raise AssertionError("condition not reached in time")
+            if time.monotonic() > end or (sync and syncs >= timeout / 1e-3):
+                raise AssertionError(f"condition not reached in time ({syncs} SYNCs sent)" if sync
+                                     else "condition not reached in time")
             if sync:
                 self.sync(1)
+                syncs += 1
             else:
                 time.sleep(0.002)
 

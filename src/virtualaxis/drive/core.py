@@ -464,6 +464,7 @@ class Drive:
             self._mode_obj.on_interpolation_data(self.ctx, int(value) * self.setpoints.position_sign)
         elif index == 0x607E:
             self.setpoints.set_polarity(int(value))
+            self._publish_outputs()  # (the actual values in the new direction at once, not from the next cycle)
         elif index == 0x60B8:
             self.touch_probe.set_function(int(value))
             self._store((0x60B9, 0), self.touch_probe.status)
@@ -677,7 +678,7 @@ class Drive:
                 self.set_warning(STO_EMCY, True)
             elif was and not now:
                 self.set_warning(STO_EMCY, False)
-            self._update_statusword()
+            self._publish_outputs()  # (statusword bit 14 and 0x60FD bit 18 together, before the next cycle)
 
     def _start_stop(self, kind: str, then: Cia402State | str | None) -> None:
         """Stop FROM THE ACTUAL MOTION (see :mod:`virtualaxis.drive.reactions`); ``then``: the state once
