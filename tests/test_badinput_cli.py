@@ -366,8 +366,10 @@ CASES += [
      ["still.csv", "column pos_cmd", "does not move"]),
     ("diag-trace-epoch-time", ["diagnose", "--config", str(C4), "{T}/epoch.csv", "--out", "{T}/d"],
      ["epoch.csv", "column t", "subtract the start time"]),
+    ("diag-trace-inf", ["diagnose", "--config", str(C4), "{T}/inf.csv", "--out", "{T}/d"],
+     ["inf.csv", "row 5", "column pos_meas", "inf is not a finite number"]),
     ("diag-sidecar-axis-wrong-type", ["diagnose", "--config", str(C4), "{T}/sc2.csv", "--out", "{T}/d"],
-     ["sc2.toml", "column axis", "axis name"]),
+     ["sc2.toml", "key axis", "axis name"]),
     # serve / conformance / fault: refused before the bus opens (forever, hangs, tracebacks at the end before)
     ("serve-duration-inf", ["serve", "--config", str(C4), "--can", "virtual:a18", "--duration", "inf"],
      ["--duration", "finite"]),
@@ -417,6 +419,10 @@ def _setup(tmp: Path) -> None:
     epoch = [repr(float(r.split(",", 1)[0]) + 1.7e9) + "," + r.split(",", 1)[1] for r in good[1:]]
     (tmp / "epoch.csv").write_text("\n".join([good[0], *epoch]) + "\n")
     (tmp / "sc2.toml").write_text("axis = 5\n")
+    col = good[0].split(",").index("pos_meas")
+    inf = [r if i != 4 else ",".join("inf" if j == col else v for j, v in enumerate(r.split(",")))
+           for i, r in enumerate(good)]
+    (tmp / "inf.csv").write_text("\n".join(inf) + "\n")  # (row 5 of the file: its 4th data row)
 
 
 def _snapshot(tmp: Path) -> dict[str, bytes | None]:

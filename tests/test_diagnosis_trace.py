@@ -145,7 +145,7 @@ def test_motor_angle_of_another_axis(tmp_path):
 def test_sidecar_names_another_axis(tmp_path):
     p = _write(tmp_path / "run1.csv", HEADER, _good_rows())
     (tmp_path / "run1.toml").write_text('axis = "y-axis-of-mill-2"\nnotes = "x"\n')
-    with pytest.raises(InputError, match=r"run1\.toml: column axis: trace belongs to axis 'y-axis-of-mill-2'"):
+    with pytest.raises(InputError, match=r"run1\.toml: key axis: the trace belongs to axis 'y-axis-of-mill-2'"):
         read_trace(p, axis_name="seed000-hust")
     tr = read_trace(p)  # without an axis to compare with, the metadata is just kept
     assert tr.metadata["notes"] == "x"

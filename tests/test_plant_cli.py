@@ -36,9 +36,27 @@ def test_every_profile_kind_runs(tmp_path):
                  "chirp:amplitude_um=5,f0_hz=1,f1_hz=500", f"file:{moves}"):
         assert main(["simulate", "--config", str(SEED000), "--profile", spec, "--duration", "0.3",
                      "--out", str(tmp_path / "t.csv"), "--force"]) == 0, spec
-    assert main(["simulate", "--config", str(SEED000), "--profile", "circle:radius_mm=50,omega_rad_min=120",
-                 "--duration", "0.3", "--out", str(tmp_path / "c.csv")]) == 0
+    r = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "simulate", "--config", str(SEED000),
+                        "--profile", "circle:radius_mm=50,omega_rad_min=120", "--duration", "0.3",
+                        "--out", str(tmp_path / "c.csv")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
     assert (tmp_path / "c_x.csv").exists() and (tmp_path / "c_y.csv").exists()
+    assert f"-> {tmp_path / 'c_x.csv'}, {tmp_path / 'c_y.csv'}" in r.stdout  # (the files written, not --out)
+    assert not (tmp_path / "c.csv").exists()
+
+
+def test_demo_and_serve_refuse_what_they_would_not_do(tmp_path):
+    """demo: a stroke beyond the software position limit 0x607D (the target would be clamped, the comparison with
+    the offline simulation would fail) is refused; serve: --node-id with --axis and no --config names no axis."""
+    r = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "demo", "--stroke-mm", "297.5", "--no-pace",
+                        "--out", str(tmp_path / "d")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "(0, 297]" in r.stderr and "0x607D" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "virtualaxis.cli.main", "serve", "--can", "virtual:cli-test",
+                        "--node-id", "3", "--axis", f"X=2:{SEED000}", "--duration", "0.2"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--node-id 3" in r.stderr and "--config" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
 
 
 def test_move_file_errors_name_row_and_column(tmp_path):

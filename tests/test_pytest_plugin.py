@@ -113,6 +113,19 @@ def test_in_process_python_injection_api(virtual_axis):
         virtual_axis.sync(1)
 
 
+@pytest.mark.virtual_axis(node_id=1)
+def test_basenode402_changes_state_between_syncs(virtual_axis):
+    # (lockstep: the event-driven statusword TPDO must go out between SYNCs; canopen waits for it)
+    node = virtual_axis.node
+    node.setup_402_state_machine()
+    node.nmt.state = "OPERATIONAL"
+    node.op_mode = "PROFILED POSITION"
+    virtual_axis.sync(10)
+    node.state = "OPERATION ENABLED"
+    assert node.state == "OPERATION ENABLED"
+    node.state = "SWITCH ON DISABLED"
+
+
 @pytest.mark.virtual_axis(transport="udp", allow_fault_injection=False)
 def test_failing_test_still_cleans_up(virtual_axis):
     _record(virtual_axis)
@@ -132,7 +145,7 @@ def test_plugin_fixture_markers_parametrisation_and_cleanup(tmp_path):
     pids = tmp_path / "pids.txt"
     env = {"VA_PID_FILE": str(pids)}
     r = _pytest(["-k", "not interrupted", "test_user.py"], tmp_path, env)
-    assert "1 failed, 4 passed" in r.stdout, r.stdout[-4000:] + r.stderr[-2000:]
+    assert "1 failed, 5 passed" in r.stdout, r.stdout[-4000:] + r.stderr[-2000:]
     assert "deliberate failure" in r.stdout
     r = _pytest(["-k", "interrupted", "test_user.py"], tmp_path, {**env, "VA_INTERRUPT": "1"})
     assert r.returncode == 2 and "KeyboardInterrupt" in r.stdout + r.stderr, r.stdout[-3000:]

@@ -8,6 +8,7 @@ EDS says ``Granularity=8``), rebuilt only when its communication or mapping para
 from __future__ import annotations
 
 import struct
+import time
 from typing import TYPE_CHECKING
 
 from virtualaxis.canopen_slave import errors as ab
@@ -64,6 +65,7 @@ class Tpdo(Pdo):
         super().__init__(number, TPDO_COMM + number - 1, TPDO_MAP + number - 1)
         self.dirty = False                  # a mapped value changed since the last transmission
         self.last_tx_s = -1e30
+        self.held_since_wall_s: float | None = None  # (monotonic) when a change was first held by the inhibit time
         self.sync_count = 0
         self.started = False
 
@@ -269,6 +271,7 @@ class PdoEngine:
         self.slave.counters["tpdo_sent"] += 1
         tpdo.last_tx_s = now_s
         tpdo.dirty = False
+        tpdo.held_since_wall_s = None
 
     @staticmethod
     def _cyclic_due(tpdo, counter: int, counter_enabled: bool) -> bool:
@@ -297,7 +300,7 @@ class PdoEngine:
         """Event-driven TPDOs (change + inhibit time, event timer) and RPDO deadlines; OPERATIONAL only."""
         for tpdo in self.event_tpdos:
             if tpdo.dirty:
-                if now_s - tpdo.last_tx_s >= tpdo.inhibit_s:
+                if now_s - tpdo.last_tx_s >= tpdo.inhibit_s or self._inhibit_passed_on_the_wall(tpdo):
                     self._transmit(tpdo, now_s)
             elif tpdo.event_s > 0.0 and now_s - tpdo.last_tx_s >= tpdo.event_s:
                 self._transmit(tpdo, now_s)
@@ -307,6 +310,19 @@ class PdoEngine:
                 self.slave.counters["rpdo_timeouts"] += 1
                 self.slave.raise_comm_error(0x8250, rpdo.number, bytes((rpdo.number,)))
                 self.slave.communication_error("rpdo_timeout", rpdo.number)
+
+    @staticmethod
+    def _inhibit_passed_on_the_wall(tpdo: Tpdo) -> bool:
+        """The inhibit time is a minimum gap between frames on the bus: a change it holds goes out once the
+        inhibit time has passed since the change was first held, on the wall clock too. (In SYNC lockstep the
+        node's clock is the drive's, which stands still between SYNCs: a statusword change made by an SDO write
+        between two SYNCs would otherwise wait for the next SYNC.)"""
+        held = tpdo.held_since_wall_s
+        now = time.monotonic()
+        if held is None:
+            tpdo.held_since_wall_s = now
+            return False
+        return now - held >= tpdo.inhibit_s
 
     def on_operational(self) -> None:
         """Entering OPERATIONAL: every event-driven TPDO is sent once, SYNC counting restarts."""

@@ -89,7 +89,8 @@ def run(args) -> int:
                   f"{', '.join(active) or 'none'}; 0x603F = 0x{sdo[0x603F].raw:04X}")
         except canopen.SdoAbortedError as exc:
             hint = " (serve the drive with --allow-fault-injection)" if exc.code == 0x08000022 else ""
-            raise CliError(f"node {args.node_id} refused: SDO abort 0x{exc.code:08X} {exc}{hint}") from None
+            text = str(exc).removeprefix(f"Code 0x{exc.code:08X}").lstrip(", ")  # (canopen's text repeats the code)
+            raise CliError(f"node {args.node_id} refused: SDO abort 0x{exc.code:08X}: {text}{hint}") from None
         except canopen.SdoCommunicationError as exc:
             what = "does not answer" if "No SDO response" in str(exc) else "gives no valid SDO answer"
             raise CliError(f"node {args.node_id} {what} on {args.can}: {exc}") from None

@@ -27,7 +27,8 @@ def register(sub) -> None:
         help="axis config TOML of the main axis (default: configs/seed000-hust.toml)",
     )
     p.add_argument("--can", default="socketcan:vcan0", help="bus INTERFACE:CHANNEL (default socketcan:vcan0)")
-    p.add_argument("--node-id", type=int, default=1, help="node id of the main axis (default 1)")
+    p.add_argument("--node-id", type=int, default=None,
+                   help="node id of the main axis (default 1; with --axis, the main axis is served only with --config)")
     p.add_argument(
         "--axis",
         action="append",
@@ -88,6 +89,12 @@ def run(args) -> int:
 
     eds = Path(args.eds) if args.eds else DEFAULT_EDS
     _check_inputs(args, eds)
+    if args.node_id is not None and args.axis and args.config is None:
+        raise CliError(f"--node-id {args.node_id} is the main axis's node id, and with --axis but no --config "
+                       "there is no main axis (only the --axis axes are served): add --config FILE for a main "
+                       "axis on that node, or give each axis its node id in --axis NAME=ID:CONFIG")
+    if args.node_id is None:
+        args.node_id = 1
     if not 1 <= args.node_id <= 127:
         raise CliError(f"--node-id must be 1..127 (got {args.node_id})")
     if args.duration is not None and not 0 < args.duration < 1e9:  # (also nan and inf: "forever" is no --duration)

@@ -163,6 +163,7 @@ def run(args) -> int:
         write_text_atomic(args.json, json.dumps(summary, indent=2, allow_nan=False))
     rmse_um = first["rmse_tracking_error_m"] * 1e6
     max_um = first["max_tracking_error_m"] * 1e6
+    written = ", ".join(a["trace"] for a in summary_axes.values())  # (a circle: one trace per axis)
     print(f"simulated {dur:g} s in {wall:.2f} s wall; RMSE tracking error {rmse_um:.2f} um, max {max_um:.2f} um"
-          f" -> {out_path}")
+          f" -> {written}")
     return 0

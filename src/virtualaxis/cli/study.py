@@ -17,7 +17,7 @@ MAX_VALUES = 200
 
 
 def register(sub) -> None:
-    p = sub.add_parser("study", help="reproduce a seed study: kv-sweep, support-stiffness, feed-sweep")
+    p = sub.add_parser("study", help="reproduce a seed study: kv-sweep, support-stiffness, feed-sweep, inverter")
     p.add_argument("name", choices=("kv-sweep", "support-stiffness", "feed-sweep", "inverter"))
     add_config_argument(p)
     p.add_argument("--out", required=True, help="output folder")

@@ -271,8 +271,8 @@ def _check_sidecar(side: Path, meta: dict) -> dict:
 
     ax = meta.get("axis")
     if ax is not None and not isinstance(ax, str) and not (isinstance(ax, dict) and isinstance(ax.get("name"), str)):
-        raise _err(str(side), f"must be the axis name, a string, or a table with a string 'name' (got {ax!r})", None,
-                   "axis")
+        raise _err(str(side), f"key axis: must be the axis name, a string, or a table with a string 'name' (got "
+                   f"{ax!r})")
 
     def walk(key: str, v) -> None:
         if isinstance(v, dict):
@@ -282,7 +282,7 @@ def _check_sidecar(side: Path, meta: dict) -> dict:
             for i, x in enumerate(v):
                 walk(f"{key}[{i}]", x)
         elif isinstance(v, float) and not math.isfinite(v):
-            raise _err(str(side), f"must be a finite number (got {v!r})", None, key)
+            raise _err(str(side), f"key {key}: must be a finite number (got {v!r})")
 
     walk("", meta)
     return meta
@@ -301,6 +301,9 @@ def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: lis
     bad = ~np.isfinite(x)
     if not bad.any():
         return x
+    infinite = np.flatnonzero(np.isinf(x))
+    if infinite.size:  # (a number out of range is a corrupted value, not a missing one: not interpolated)
+        raise _err(path, f"{x[infinite[0]]} is not a finite number", int(infinite[0]) + 2, name)
     idx = np.flatnonzero(bad)
     if name in ("t", "pos_cmd") or bad.all():
         raise _err(path, "missing value (NaN or empty)", int(idx[0]) + 2, name)
@@ -391,9 +394,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     if axis_name and side_axis and side_axis != axis_name:
         raise _err(
             str(p.with_suffix(".toml")),
-            f"trace belongs to axis '{side_axis}', the config is for axis '{axis_name}'",
-            None,
-            "axis",
+            f"key axis: the trace belongs to axis '{side_axis}', the config is for axis '{axis_name}'",
         )
     unused = [k for k in meta if k not in SIDECAR_KEYS]
     if unused:
