@@ -366,6 +366,13 @@ CASES += [
      ["still.csv", "column pos_cmd", "does not move"]),
     ("diag-trace-epoch-time", ["diagnose", "--config", str(C4), "{T}/epoch.csv", "--out", "{T}/d"],
      ["epoch.csv", "column t", "subtract the start time"]),
+    # rows are the file's lines: blank lines before the bad one are counted, a row of empty fields is missing
+    ("diag-trace-blank-then-unsorted", ["diagnose", "--config", str(C4), "{T}/blank_unsorted.csv", "--out", "{T}/d"],
+     ["blank_unsorted.csv", "row 13", "column t", "time is not increasing"]),
+    ("diag-trace-blank-then-gap", ["diagnose", "--config", str(C4), "{T}/blank_gap.csv", "--out", "{T}/d"],
+     ["blank_gap.csv", "row 12", "column t", "between rows 11 and 12"]),
+    ("diag-trace-empty-fields-row", ["diagnose", "--config", str(C4), "{T}/commas.csv", "--out", "{T}/d"],
+     ["commas.csv", "row 9", "column t", "missing value"]),
     ("diag-trace-inf", ["diagnose", "--config", str(C4), "{T}/inf.csv", "--out", "{T}/d"],
      ["inf.csv", "row 5", "column pos_meas", "inf is not a finite number"]),
     ("diag-sidecar-axis-wrong-type", ["diagnose", "--config", str(C4), "{T}/sc2.csv", "--out", "{T}/d"],
@@ -423,6 +430,12 @@ def _setup(tmp: Path) -> None:
     inf = [r if i != 4 else ",".join("inf" if j == col else v for j, v in enumerate(r.split(",")))
            for i, r in enumerate(good)]
     (tmp / "inf.csv").write_text("\n".join(inf) + "\n")  # (row 5 of the file: its 4th data row)
+    body = good[1:]
+    swapped = body[:9] + [body[10], body[9]] + body[11:]  # lines 1-6: header + 5 rows, blank, then rows on
+    (tmp / "blank_unsorted.csv").write_text("\n".join([good[0], *swapped[:5], "", *swapped[5:]]) + "\n")
+    gap = body[:9] + body[10:]  # (a sample missing: a gap of two periods from line 11 to 12)
+    (tmp / "blank_gap.csv").write_text("\n".join([good[0], *gap[:5], "", *gap[5:]]) + "\n")
+    (tmp / "commas.csv").write_text("\n".join([good[0], *body[:7], "," * good[0].count(","), *body[7:]]) + "\n")
 
 
 def _snapshot(tmp: Path) -> dict[str, bytes | None]:

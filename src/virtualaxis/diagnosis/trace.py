@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -111,14 +112,17 @@ def _fast_chunk(lines: list[str], ncols: int, use: list[int]) -> np.ndarray | No
     return arr if arr.shape[0] == len(lines) else None
 
 
-def _careful_chunk(path: str, lines: list[str], first_line_no: int, header: list[str], use: list[int]) -> np.ndarray:
-    """Row-by-row parse naming the line and column of the first bad value (empty fields are NaN)."""
+def _careful_chunk(path: str, lines: list[str], first_line_no: int, header: list[str], use: list[int]
+                   ) -> tuple[np.ndarray, list[int]]:
+    """Row-by-row parse naming the line and column of the first bad value (empty fields are NaN; a blank line is
+    skipped, a row of empty fields is a row of missing values). Returns the rows and the file line of each."""
     rows: list[list[float]] = []
+    kept: list[int] = []
     reader = csv.reader(lines)
     try:
         for k, rec in enumerate(reader):
             line_no = first_line_no + k
-            if not rec or all(not x.strip() for x in rec):
+            if not rec or (len(rec) == 1 and not rec[0].strip()):
                 continue
             if len(rec) != len(header):
                 raise _err(path, f"has {len(rec)} fields, the header has {len(header)}", line_no)
@@ -130,15 +134,18 @@ def _careful_chunk(path: str, lines: list[str], first_line_no: int, header: list
                 except ValueError:
                     raise _err(path, f"not a number: {s!r}", line_no, header[i]) from None
             rows.append(vals)
+            kept.append(line_no)
     except csv.Error as exc:
         raise _err(path, f"not a readable CSV file ({exc})", first_line_no) from None
-    return np.asarray(rows, dtype=float).reshape(-1, len(use))
+    return np.asarray(rows, dtype=float).reshape(-1, len(use)), kept
 
 
-def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], list[str], np.ndarray, list[str]]:
+def _parse_csv(path: Path, max_samples: int | None = None
+               ) -> tuple[list[str], list[str], np.ndarray, list[str], np.ndarray | None]:
     """Stream a trace CSV in chunks of :data:`_CHUNK_LINES` lines (a progress bar on a terminal) keeping only the
-    known columns. Returns (header, kept column names, data, warnings). A file with more than ``max_samples``
-    rows (default :data:`MAX_TRACE_SAMPLES`) is refused, by its size before it is read where possible."""
+    known columns. Returns (header, kept column names, data, warnings, the file line of each data row or None when
+    row k is line k + 2). A file with more than ``max_samples`` rows (default :data:`MAX_TRACE_SAMPLES`) is
+    refused, by its size before it is read where possible."""
     from itertools import islice
 
     from tqdm import tqdm
@@ -162,6 +169,7 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
         raise _err(sp, f"cannot read ({exc.strerror})") from None
     warnings: list[str] = []
     chunks: list[np.ndarray] = []
+    row_lines: list[np.ndarray] | None = None
     n_rows = 0
     line_no = 1
     with fh, tqdm(total=size, desc=f"read {path.name}", unit="B", unit_scale=True, leave=False, disable=None,
@@ -211,7 +219,13 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
                                        "into segments or decimate it")
                 arr = _fast_chunk(lines, len(header), use)
                 if arr is None:
-                    arr = _careful_chunk(sp, lines, line_no, header, use)
+                    arr, kept = _careful_chunk(sp, lines, line_no, header, use)
+                    if len(kept) != len(lines) and row_lines is None:  # (a blank line: rows and lines part)
+                        row_lines = [np.arange(2, n_rows + 2)]
+                    if row_lines is not None:
+                        row_lines.append(np.asarray(kept, dtype=np.int64))
+                elif row_lines is not None:
+                    row_lines.append(np.arange(line_no, line_no + len(lines)))
                 chunks.append(arr)
                 n_rows += arr.shape[0]
                 if n_rows > limit:
@@ -228,7 +242,7 @@ def _parse_csv(path: Path, max_samples: int | None = None) -> tuple[list[str], l
     data = np.concatenate(chunks) if chunks else np.zeros((0, len(names)))
     if not data.shape[0]:
         raise _err(sp, "no data rows")
-    return header, names, data, warnings
+    return header, names, data, warnings, (np.concatenate(row_lines) if row_lines is not None else None)
 
 
 #: the top-level keys of a sidecar the diagnosis reads (others are reported as not used)
@@ -297,16 +311,18 @@ def sidecar_axis_name(meta: dict) -> str | None:
     return None
 
 
-def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: list[str]) -> np.ndarray:
+def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: list[str],
+               line: Callable[[int], int] = lambda i: i + 2) -> np.ndarray:
+    """``x`` with short runs of missing values interpolated (``line``: the file line of a data row)."""
     bad = ~np.isfinite(x)
     if not bad.any():
         return x
     infinite = np.flatnonzero(np.isinf(x))
     if infinite.size:  # (a number out of range is a corrupted value, not a missing one: not interpolated)
-        raise _err(path, f"{x[infinite[0]]} is not a finite number", int(infinite[0]) + 2, name)
+        raise _err(path, f"{x[infinite[0]]} is not a finite number", line(int(infinite[0])), name)
     idx = np.flatnonzero(bad)
     if name in ("t", "pos_cmd") or bad.all():
-        raise _err(path, "missing value (NaN or empty)", int(idx[0]) + 2, name)
+        raise _err(path, "missing value (NaN or empty)", line(int(idx[0])), name)
     # run lengths
     starts = idx[np.r_[True, np.diff(idx) > 1]]
     ends = idx[np.r_[np.diff(idx) > 1, True]]
@@ -317,13 +333,13 @@ def _fill_nans(path: str, name: str, t: np.ndarray, x: np.ndarray, warnings: lis
             path,
             f"{idx.size} missing values (NaN or empty), longest run {longest} samples; "
             f"at most {_MAX_NAN_RUN} in a row and 1 % in all are interpolated",
-            int(starts[k]) + 2,
+            line(int(starts[k])),
             name,
         )
     good = ~bad
     y = x.copy()
     y[bad] = np.interp(t[bad], t[good], x[good])
-    warnings.append(f"{name}: {idx.size} missing values interpolated (first at row {int(idx[0]) + 2})")
+    warnings.append(f"{name}: {idx.size} missing values interpolated (first at row {line(int(idx[0]))})")
     return y
 
 
@@ -350,26 +366,34 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         header, data = read_trace_npz(p, max_rows=MAX_TRACE_SAMPLES, columns=KNOWN_COLUMNS)
         names = [h for h in header if h in KNOWN_COLUMNS]
         warnings: list[str] = []
+        row_lines = None
     else:
-        header, names, data, warnings = _parse_csv(p)
+        header, names, data, warnings, row_lines = _parse_csv(p)
+
+    def line(i: int) -> int:
+        """The file line of data row ``i`` (blank lines skipped)."""
+        return int(row_lines[i]) if row_lines is not None else i + 2
+
     for col in ("t", "pos_cmd"):
         if col not in header:
             raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)})", 1, col)
     if not any(c in header for c in POSITION_COLUMNS):
         raise _err(sp, "needs at least one of the columns pos_meas, pos_fb, motor_pos", 1)
     if data.shape[0] < 16:
-        raise _err(sp, f"only {data.shape[0]} data rows (at least 16 needed)")
+        raise _err(sp, f"only {data.shape[0]} data row{'s' if data.shape[0] != 1 else ''} (at least 16 needed)")
     cols = {h: data[:, i] for i, h in enumerate(names)}
     extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns() and h not in DRIVE_WORDS]
-    if extra:
-        warnings.append(f"extra columns ignored: {', '.join(extra)}")
+    if any(extra):
+        warnings.append(f"extra columns ignored: {', '.join(h for h in extra if h)}")
+    if "" in extra:
+        warnings.append("a column without a name ignored (a trailing comma in the header?)")
     t = cols["t"]
-    _fill_nans(sp, "t", t, t, warnings)
+    _fill_nans(sp, "t", t, t, warnings, line)
     dt = np.diff(t)
     nonmono = np.flatnonzero(dt <= 0)
     if nonmono.size:
         i = int(nonmono[0]) + 1
-        raise _err(sp, f"time is not increasing ({float(t[i - 1])!r} then {float(t[i])!r})", i + 2, "t")
+        raise _err(sp, f"time is not increasing ({float(t[i - 1])!r} then {float(t[i])!r})", line(i), "t")
     dt_med = float(np.median(dt))
     check_sample_interval(sp, dt_med)
     quantum = float(np.spacing(max(abs(float(t[0])), abs(float(t[-1])))))
@@ -382,13 +406,14 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         i = int(gaps[0]) + 1
         raise _err(
             sp,
-            f"time gap of {dt[i - 1]:.6g} s (sample period {dt_med:.6g} s) between rows {i + 1} and {i + 2}",
-            i + 2,
+            f"time gap of {dt[i - 1]:.6g} s (sample period {dt_med:.6g} s) between rows {line(i - 1)} and "
+            f"{line(i)}",
+            line(i),
             "t",
         )
     for name in list(cols):
         if name != "t":
-            cols[name] = _fill_nans(sp, name, t, cols[name], warnings)
+            cols[name] = _fill_nans(sp, name, t, cols[name], warnings, line)
     meta = read_sidecar(p)
     side_axis = sidecar_axis_name(meta)
     if axis_name and side_axis and side_axis != axis_name:
