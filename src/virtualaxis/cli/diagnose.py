@@ -149,19 +149,32 @@ def run(args: argparse.Namespace) -> int:
     print(f"conclusion: {report['conclusion']}")
     for line in (report["headline"] if report["accepted"] else []):
         print(f"  {line}")
+    on = "held-out" if args.holdout or len(args.traces) > 1 else "fit"  # (one trace: no held-out data)
     for e in report["effects"]:
         if e["accepted"]:
-            print(f"    {e['name']} held-out RMSE per channel: {verdict_text(e['verdict'])}")
+            on_e = "held-out" if e.get("judged_on") == "holdout" else "fit"
+            print(f"    {e['name']} {on_e} RMSE per channel: {verdict_text(e['verdict'])}")
     if report.get("model_form_mismatch"):
         print(f"  {report['model_form_mismatch']['description']}")
     v = report["final"]["verdict"]
-    print(f"  held-out RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
-          f"{'' if v['improves'] or not report['accepted'] else ' (NOT an improvement in every channel)'}")
+    print(f"  {on} RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
+          f"{f' ({_improvement(v)})' if report['accepted'] else ''}")
     if report.get("calibrated_changes"):
         print(f"  calibrated.toml changes {', '.join(report['calibrated_changes'])} (report.json calibrated_diff)")
     hyb = report.get("hybrid")
     if hyb and hyb.get("model"):
-        print(f"  learned residual model {hyb['model']} on top: "
-              f"{'improves' if hyb['improves'] else 'does not improve'} every channel ({verdict_text(hyb['verdict'])})")
+        on_h = "held-out" if hyb.get("judged_on") == "holdout" else "fit"
+        print(f"  learned residual model {hyb['model']} on top, {on_h} RMSE: {_improvement(hyb['verdict'])} "
+              f"({verdict_text(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0
+
+
+def _improvement(verdict: dict) -> str:
+    """What a per-channel verdict says, in the terms it was decided in (each channel against its own noise)."""
+    better, worse = verdict.get("better_channels", []), verdict.get("worse_channels", [])
+    if worse:
+        return f"worse beyond its noise in {', '.join(worse)}"
+    if better:
+        return f"better beyond its noise in {', '.join(better)}, no channel worse beyond it"
+    return "no channel better or worse beyond its noise"

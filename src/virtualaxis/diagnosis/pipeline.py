@@ -363,10 +363,19 @@ def with_identified_controller(cfg: AxisConfig, checks: list[dict]) -> tuple[Axi
     return cfg.replace(control=merged), merged
 
 
-def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray]) -> None:
-    """An encoder's zero is arbitrary: shift measured motor_pos to the model's at the first sample."""
+def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray], lead_m: float) -> None:
+    """An encoder's zero is arbitrary: shift measured motor_pos so that it stands to a measured table-side position
+    (pos_fb, else pos_meas) as the model's does, at the first samples; without one, to the model's motor_pos there.
+    (The model starts at rest on the command: an axis already moving at the first sample would otherwise have its
+    following error taken for the encoder's zero.)"""
     if "motor_pos" in td.measured and "motor_pos" in pred:
-        off = float(np.median(td.measured["motor_pos"][:10] - pred["motor_pos"][:10]))
+        mp, mp_model = td.measured["motor_pos"][:10], pred["motor_pos"][:10]
+        side = next((c for c in ("pos_fb", "pos_meas") if c in td.measured and c in pred), None)
+        if side is not None and lead_m > 0:
+            k = 2 * math.pi / lead_m
+            off = float(np.median((mp - k * td.measured[side][:10]) - (mp_model - k * pred[side][:10])))
+        else:
+            off = float(np.median(mp - mp_model))
         if abs(off) > 1e-3:
             td.measured["motor_pos"] = td.measured["motor_pos"] - off
             tr.warnings.append(f"motor_pos offset of {off:.4g} rad removed (encoder zero)")
@@ -472,7 +481,7 @@ def baseline(cfg: AxisConfig, loaded: LoadedTraces, simulate: SimulateFn) -> Bas
     tds, traces = loaded.tds, loaded.traces
     preds = [simulate_trace(cfg, td, simulate) for td in tds]
     for td, tr, p in zip(tds, traces, preds, strict=True):
-        _align_motor_angle(td, tr, p)
+        _align_motor_angle(td, tr, p, cfg.mechanics.lead_m)
         missing = [c for c in td.measured if c not in p]
         if missing:
             tr.warnings.append(f"channels not produced by the model of this axis, ignored: {', '.join(missing)}")
