@@ -528,8 +528,9 @@ def test_at_real_time_priority_the_state_messages_are_made_in_the_runtime_thread
     try:
         sock = _ws_open(page_url(s), f"/api/axes/{AXIS}/live")
         cycles: list[int] = []
-        t_end = time.monotonic() + 4.0
-        while time.monotonic() < t_end:
+        t_end = time.monotonic() + 60.0  # (until 10 new ones came: 1 s on an idle host; on a busy one the page's
+        # server, at nice 10, gets little CPU: seen 3.5 per second beside four CPU-bound processes, fewer beside more)
+        while time.monotonic() < t_end and len({c for c in cycles if c > 0}) < 10:
             op, data = _ws_read(sock)
             msg = json.loads(data)
             if op == 0x1 and msg["event"] == "state":
@@ -539,9 +540,7 @@ def test_at_real_time_priority_the_state_messages_are_made_in_the_runtime_thread
         cm.__exit__(None, None, None)
     # (the page's server sends the newest state at its own pace: one serve has not replaced yet comes twice)
     assert all(b >= a for a, b in zip(cycles, cycles[1:], strict=False)), cycles
-    # 10 new ones per second with a stream open; at least 10 in 4 s where the page's server process (at nice 10)
-    # shares two cores with four CPU-bound processes (seen: 3.5 per second)
-    assert len({c for c in cycles if c > 0}) >= 10, cycles
+    assert len({c for c in cycles if c > 0}) >= 10, cycles  # (10 new ones per second on an idle host)
     runtime = json.loads(out.read_text())["runtime"]
     assert runtime["gap_jobs"] >= len(cycles) - 1 and runtime["gap_job_errors"] == 0, runtime
 
@@ -968,16 +967,17 @@ def test_refusals_beyond_4xx_are_answered_and_documented():
     assert "Retry-After" in doc and "Origin" in doc and "415" in doc
 
 
-def _stream(url: str, seconds: float, out: dict) -> None:
-    """Read one event stream for ``seconds``: scope sequence numbers and state messages."""
+def _stream(url: str, seconds: float, out: dict, min_states: int = 0) -> None:
+    """Read one event stream for ``seconds``, and on until ``min_states`` state messages came (at most 60 s: a busy
+    host gives the page's server, at nice 10, little CPU): scope sequence numbers and state messages."""
     u = urllib.parse.urlsplit(url)
     conn = http.client.HTTPConnection(u.hostname, u.port, timeout=10)
     conn.request("GET", u.path)
     r = conn.getresponse()
     out["status"] = r.status
-    end = time.monotonic() + seconds
+    end, last = time.monotonic() + seconds, time.monotonic() + 60.0
     event = None
-    while time.monotonic() < end:
+    while (now := time.monotonic()) < end or (out.get("states", 0) < min_states and now < last):
         line = r.fp.readline().decode()
         if line.startswith("event: "):
             event = line[7:].strip()
@@ -990,15 +990,15 @@ def _stream(url: str, seconds: float, out: dict) -> None:
     conn.close()
 
 
-def _live(url: str, axis: str, seconds: float, out: dict) -> None:
-    """Read one axis's WebSocket for ``seconds`` as the page does: scope sequence numbers (each message's samples
-    decoded) and state messages."""
+def _live(url: str, axis: str, seconds: float, out: dict, min_states: int = 0) -> None:
+    """Read one axis's WebSocket for ``seconds`` as the page does, and on until ``min_states`` state messages came
+    (at most 60 s): scope sequence numbers (each message's samples decoded) and state messages."""
     import base64
 
     sock = _ws_open(url, f"/api/axes/{axis}/live")
-    end = time.monotonic() + seconds
+    end, last = time.monotonic() + seconds, time.monotonic() + 60.0
     try:
-        while time.monotonic() < end:
+        while (now := time.monotonic()) < end or (out.get("states", 0) < min_states and now < last):
             op, data = _ws_read(sock)
             msg = json.loads(data)
             if msg["event"] == "scope":
@@ -1018,13 +1018,13 @@ def test_ten_tabs_on_three_axes_get_every_cycle():
     with served(*axes, "--http", "127.0.0.1:0") as s:
         url = page_url(s)
         outs = [{} for _ in range(10)]
-        threads = [threading.Thread(target=_live, args=(url, "XYZ"[i % 3], 3.0, outs[i])) if i % 5 else
-                   threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i]))
+        threads = [threading.Thread(target=_live, args=(url, "XYZ"[i % 3], 3.0, outs[i], 10)) if i % 5 else
+                   threading.Thread(target=_stream, args=(f"{url}api/axes/{'XYZ'[i % 3]}/events", 3.0, outs[i], 10))
                    for i in range(10)]
         for t in threads:
             t.start()
         for t in threads:
-            t.join(30)
+            t.join(90)
         for i, out in enumerate(outs):
             assert out.get("status", 200) == 200 and out.get("states", 0) >= 10, (i, out.get("states"))
             chunks = out["scope"]

@@ -217,7 +217,9 @@ def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  
     port = mosquitto.port
     mosquitto.stop()  # absent at start
     ax = ServedAxis()
-    st = settings(f"mqtt://127.0.0.1:{port}", buffer_samples=60)
+    # (reconnect backoff 0.1 s doubling to 4 s: the broker is started, and the test's subscriber is on it, in the
+    # >= 1.6 s between two attempts, however busy the host)
+    st = settings(f"mqtt://127.0.0.1:{port}", buffer_samples=60, backoff_max_s=4.0)
     svc = MqttService(st, [(ax.axis.name, 3, ax.drive, None)]).start()
     ch = svc.channels[0]
     try:
@@ -227,9 +229,9 @@ def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  
         cycles = ax.drive.counters["cycles"]
         assert cycles > 900
         # the subscriber must be there before the publisher reconnects: start the broker right after a failed
-        # attempt (the next one is >= 0.8 s away with backoff 0.1 s doubling to 1 s)
+        # attempt (after the 5th failure the next attempt is >= 1.6 s away)
         attempts = ch.connect_attempts
-        end = time.monotonic() + 5
+        end = time.monotonic() + 10
         while ch.connect_attempts < max(attempts + 1, 5) and time.monotonic() < end:
             time.sleep(0.002)
         mosquitto.start()
@@ -243,7 +245,7 @@ def test_broker_absent_at_start_then_killed_and_restarted_mid_move(mosquitto):  
         mosquitto.stop(kill=True)
         time.sleep(1.5)  # 150 samples taken meanwhile: 60 kept, the rest dropped
         attempts = ch.connect_attempts
-        sub.wait(lambda: ch.connect_attempts > attempts + 1, timeout=5)  # a retry failed: next one >= 0.8 s away
+        sub.wait(lambda: ch.connect_attempts > attempts + 1, timeout=15)  # a retry failed: next one >= 1.6 s away
         mosquitto.start()
         sub.resubscribe()
         assert ch.connects == 1, "the publisher reconnected before the test's subscriber: test timing invalid"
