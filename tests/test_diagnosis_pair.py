@@ -68,3 +68,26 @@ def test_the_report_plots_force_against_speed_per_direction_with_the_fitted_law(
         assert d["line"]["slope_n_s_per_m"] == pytest.approx(200.0, rel=0.15)
     assert "note" not in fvs  # the calibrated law has both mechanisms
     assert (Path(report["_out"]) / "force_vs_speed.png").stat().st_size > 1000
+
+
+def test_the_law_over_the_bins_carries_every_viscous_term_of_the_model():
+    """The force-vs-speed law is what the model's drive force carries at speed: the friction law plus the motor
+    bearings' damping reflected through the screw (B_m / r^2: 1e-3 N m s/rad at a 16 mm lead is 154 N s/m) and
+    the guide's; the data's slope on a clean axis is their sum, not the friction section's alone."""
+    import math
+
+    import numpy as np
+
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.diagnosis.bench import BALLSCREW_CONFIG
+    from virtualaxis.diagnosis.friction_law import friction_law_n
+
+    cfg = load_axis_config(BALLSCREW_CONFIG)
+    mech = cfg.mechanics
+    law = friction_law_n(cfg, np.array([0.05, 0.10, -0.05, -0.10]))
+    reflected = mech.motor_viscous_nm_s_per_rad / (mech.lead_m / (2 * math.pi)) ** 2
+    for hi, lo in ((1, 0), (3, 2)):  # (Stribeck has decayed at these speeds: the slope is viscous only)
+        slope = (law[hi] - law[lo]) / (0.10 if hi == 1 else -0.10) * 2
+        assert slope == pytest.approx(cfg.friction.viscous_n_s_per_m + mech.table_viscous_n_s_per_m + reflected,
+                                      rel=1e-6)
+    assert reflected > 100.0  # (the case the note got wrong: 154 N s/m beside a 200 N s/m friction term)

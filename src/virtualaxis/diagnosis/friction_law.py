@@ -60,18 +60,30 @@ def _drive_force(cfg: AxisConfig, td: TraceData) -> np.ndarray | None:
     return None
 
 
+def _damping_n_s_per_m(cfg: AxisConfig) -> float:
+    """The model's viscous damping outside the friction law, as a force on the table [N s/m]: the linear guide's,
+    and on a screw axis the motor bearings' (B_m reflected through the lead: B_m / r^2)."""
+    mech = cfg.mechanics
+    c = mech.table_viscous_n_s_per_m
+    if cfg.actuator.kind != "force" and mech.lead_m > 0:
+        c += mech.motor_viscous_nm_s_per_rad / (mech.lead_m / (2 * math.pi)) ** 2
+    return c
+
+
 def friction_law_n(cfg: AxisConfig, v: np.ndarray) -> np.ndarray:
-    """The config's sliding friction force at speeds ``v`` [N] (Coulomb, Stribeck, viscous; per direction)."""
+    """The config's speed-dependent force at speeds ``v`` [N]: the friction law (Coulomb, Stribeck, viscous; per
+    direction) and the viscous damping of the guide and the motor bearings, all of which the drive force carries."""
     f = cfg.friction
+    damping = _damping_n_s_per_m(cfg) * v
     if not f.enabled:
-        return np.zeros_like(v)
+        return damping
     pos = v >= 0
     fc = np.where(pos, f.coulomb_n, f.coulomb_negative_n if f.coulomb_negative_n >= 0 else f.coulomb_n)
     fvn = f.viscous_negative_n_s_per_m if f.viscous_negative_n_s_per_m >= 0 else f.viscous_n_s_per_m
     fv = np.where(pos, f.viscous_n_s_per_m, fvn)
     vs = max(f.stribeck_velocity_m_s, 1e-9)
     st = f.stribeck_n * np.exp(-np.abs(v / vs) ** f.stribeck_exponent)
-    return np.sign(v) * (fc + st) + fv * v
+    return np.sign(v) * (fc + st) + fv * v + damping
 
 
 def _line(v: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,9 +170,10 @@ def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str]
     if not out["directions"]:
         return None
     if notes:
-        what = ", ".join(accepted) if accepted else "the model"
-        out["note"] = (f"force vs speed: the friction law of {what} misses a mechanism the binned data show ("
-                       + "; ".join(notes) + "): an accepted value may be the sum of two mechanisms")
+        fitted = [a for a in accepted or [] if "friction" in a]
+        out["note"] = ("force vs speed: the calibrated model's friction law misses a mechanism the binned data show ("
+                       + "; ".join(notes) + ")" + (f": the value of {', '.join(fitted)} may be the sum of two "
+                                                   "mechanisms" if fitted else ""))
     return out
 
 
