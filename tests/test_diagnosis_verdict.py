@@ -66,3 +66,22 @@ def test_a_force_offset_is_a_load_against_plus_x():
     off = simulate_command(fx.EFFECTS["force_offset"].apply(cfg, {"force_offset_n": 60.0}), t, pos, seed=0)
     # at standstill the drive holds the load: its force settles about +60 N above the nominal's
     assert abs(np.mean(off["force_drive"][-100:] - base["force_drive"][-100:]) - 60.0) < 3.0
+
+
+def test_a_gap_a_learned_model_predicts_held_out_is_concluded_systematic_not_no_effect():
+    """No library effect accepted: a learned residual model that removes most of a position channel's held-out
+    residual shows a systematic gap ("unexplained systematic gap"), one that removes a little does not, and one
+    judged on its own fit trace proves nothing."""
+    from virtualaxis.diagnosis.pipeline import _unexplained_gap
+
+    def hyb(ratio: float, judged_on: str = "holdout", better: tuple = ("pos_meas",)) -> dict:
+        ch = {"pos_meas": {"before": 65.5e-6, "after": 65.5e-6 * ratio, "ratio": ratio, "worse": False}}
+        return {"model": "mlp_lagged", "judged_on": judged_on, "improves": bool(better),
+                "verdict": {"channels": ch, "better_channels": list(better), "worse_channels": []}}
+
+    gap = _unexplained_gap(hyb(0.066))
+    assert gap and gap["channel"] == "pos_meas" and "65.5 -> 4.32 um" in gap["description"], gap
+    assert _unexplained_gap(hyb(0.92)) is None  # (a clean axis: the learned model takes 8 %)
+    assert _unexplained_gap(hyb(0.066, judged_on="fit")) is None  # (one trace: fitted and judged on itself)
+    assert _unexplained_gap(hyb(0.066, better=())) is None
+    assert _unexplained_gap(None) is None

@@ -154,8 +154,9 @@ def run(args: argparse.Namespace) -> int:
         if e["accepted"]:
             on_e = "held-out" if e.get("judged_on") == "holdout" else "fit"
             print(f"    {e['name']} {on_e} RMSE per channel: {verdict_text(e['verdict'])}")
-    if report.get("model_form_mismatch"):
-        print(f"  {report['model_form_mismatch']['description']}")
+    for finding in ("model_form_mismatch", "unexplained_gap"):
+        if report.get(finding):
+            print(f"  {report[finding]['description']}")
     v = report["final"]["verdict"]
     print(f"  {on} RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
           f"{f' ({_improvement(v)})' if report['accepted'] else ''}")
