@@ -373,6 +373,12 @@ CASES += [
      ["blank_gap.csv", "row 12", "column t", "between rows 11 and 12"]),
     ("diag-trace-empty-fields-row", ["diagnose", "--config", str(C4), "{T}/commas.csv", "--out", "{T}/d"],
      ["commas.csv", "row 9", "column t", "missing value"]),
+    ("diag-trace-semicolons", ["diagnose", "--config", str(C4), "{T}/semi.csv", "--out", "{T}/d"],
+     ["semi.csv", "row 1", "separated by semicolons", "comma-separated"]),
+    ("diag-trace-units-in-header", ["diagnose", "--config", str(C4), "{T}/units.csv", "--out", "{T}/d"],
+     ["units.csv", "row 1", "without units", "'t [SI]'"]),
+    ("diag-trace-upper-case", ["diagnose", "--config", str(C4), "{T}/upper.csv", "--out", "{T}/d"],
+     ["upper.csv", "column t", "'T' is not it", "lower case"]),
     ("diag-trace-inf", ["diagnose", "--config", str(C4), "{T}/inf.csv", "--out", "{T}/d"],
      ["inf.csv", "row 5", "column pos_meas", "inf is not a finite number"]),
     ("diag-sidecar-axis-wrong-type", ["diagnose", "--config", str(C4), "{T}/sc2.csv", "--out", "{T}/d"],
@@ -430,6 +436,11 @@ def _setup(tmp: Path) -> None:
     inf = [r if i != 4 else ",".join("inf" if j == col else v for j, v in enumerate(r.split(",")))
            for i, r in enumerate(good)]
     (tmp / "inf.csv").write_text("\n".join(inf) + "\n")  # (row 5 of the file: its 4th data row)
+    (tmp / "semi.csv").write_text("\n".join(r.replace(",", ";") for r in good) + "\n")
+    names = good[0].split(",")
+    (tmp / "units.csv").write_text("\n".join([",".join(f"{n} [SI]" for n in names), *good[1:]]) + "\n")
+    (tmp / "upper.csv").write_text("\n".join([",".join(n if n == "pos_meas" else n.upper() for n in names),
+                                              *good[1:]]) + "\n")
     body = good[1:]
     swapped = body[:9] + [body[10], body[9]] + body[11:]  # lines 1-6: header + 5 rows, blank, then rows on
     (tmp / "blank_unsorted.csv").write_text("\n".join([good[0], *swapped[:5], "", *swapped[5:]]) + "\n")

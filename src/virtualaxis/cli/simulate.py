@@ -27,8 +27,8 @@ def register(sub) -> None:
     add_config_argument(p)
     p.add_argument("--profile", required=True, help="sine:..., ptp:..., step:..., chirp:..., circle:..., file:F.csv")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the profile's own)")
-    p.add_argument("--out", required=True, help="trace file: .csv, or .npz for a NumPy archive (a circle writes"
-                   " <stem>_x<suffix> and <stem>_y<suffix>)")
+    p.add_argument("--out", required=True, help="trace file: .csv (.txt, .dat or no suffix: CSV too), or .npz for a "
+                   "NumPy archive (a circle writes <stem>_x<suffix> and <stem>_y<suffix>)")
     p.add_argument("--json", default=None, help="summary JSON")
     p.add_argument("--seed", type=int, default=None, help="noise seed (default: simulation.seed of the config)")
     p.add_argument("--extras", action="store_true", help="also write internal signals (currents, friction, ...)")

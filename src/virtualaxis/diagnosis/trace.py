@@ -194,8 +194,16 @@ def _parse_csv(path: Path, max_samples: int | None = None
             use = [i for i, h in enumerate(header) if h in KNOWN_COLUMNS]
             names = [header[i] for i in use]
             if not use:
+                for sep, what in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+                    if sum(h.strip() in KNOWN_COLUMNS for h in first.rstrip("\r\n").split(sep)) >= 2:
+                        raise _err(sp, f"the header is separated by {what}: a trace is comma-separated (CSV with "
+                                       "',' between fields and '.' as the decimal point)", 1)
+                lower = [h for h in header if h.lower() in KNOWN_COLUMNS or h.split("[")[0].split("(")[0].strip()
+                         in KNOWN_COLUMNS]
+                hint = (f"; column names are lower case, without units ({lower[0]!r}: the units are fixed, see "
+                        "docs/reference/trace-format.md)" if lower else "")
                 raise _err(sp, f"no known column in the header ({', '.join(header)[:200]}); expected "
-                               f"{', '.join(KNOWN_COLUMNS)}", 1)
+                               f"{', '.join(KNOWN_COLUMNS)}{hint}", 1)
             bar.update(len(first.encode("utf-8", "replace")))
             line_no = 2
             while True:
@@ -376,7 +384,9 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
 
     for col in ("t", "pos_cmd"):
         if col not in header:
-            raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)})", 1, col)
+            near = next((h for h in header if h.lower() == col or h.split("[")[0].split("(")[0].strip() == col), None)
+            hint = f"; {near!r} is not it: column names are lower case, without units" if near else ""
+            raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)}){hint}", 1, col)
     if not any(c in header for c in POSITION_COLUMNS):
         raise _err(sp, "needs at least one of the columns pos_meas, pos_fb, motor_pos", 1)
     if data.shape[0] < 16:
