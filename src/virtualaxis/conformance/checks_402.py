@@ -445,7 +445,8 @@ def pv_move(ctx: Context) -> str:
 @check("402-CSP-1", "modes", "CiA 402 (cyclic synchronous position); CL 22",
        "CSP, RPDO1 target advanced +/-50 mm/s (toward the middle of the travel) every SYNC for 0.4 s",
        "the axis follows: bit 12 = 1, "
-       "|position - target| < 1 mm while moving and < 0x6067 after the stream stops")
+       "|position - target| < 1 mm while moving (median after the first 0.1 s) and < 0x6067 after the stream "
+       "stops")
 def csp_follow(ctx: Context) -> str:
     mo = Motion(ctx)
     try:
@@ -457,7 +458,11 @@ def csp_follow(ctx: Context) -> str:
         pairs = mo.tracking()
         if not pairs:
             raise Fail("no TPDO1 (statusword + position) answered the stream's SYNCs")
-        err = abs(pairs[-1][0] - pairs[-1][1].pos)
+        # the lag while moving at speed: the median over the stream's last three quarters (past the first 0.1 s,
+        # where the lag builds up), so that one late answer of a busy host (its position from before a stall)
+        # does not stand for the drive's tracking
+        steady = sorted(abs(t - s.pos) for t, s in pairs[len(pairs) // 4:])
+        err = steady[len(steady) // 2]
         mo.step_units = 0.0
         mo.run_syncs(300)
         s2 = mo.last()
@@ -467,7 +472,7 @@ def csp_follow(ctx: Context) -> str:
         if d * (s2.pos - p0) < ctx.mm(10):
             raise Fail(f"moved {s2.pos - p0} units for a 20 mm stream")
         if err > ctx.mm(1):
-            raise Fail(f"{err:.0f} units behind the target while moving at 50 mm/s (expected < 1 mm)")
+            raise Fail(f"{err:.0f} units behind the target while moving at 50 mm/s (median; expected < 1 mm)")
         if final > max(ctx.read(0x6067), ctx.mm(0.05)):
             raise Fail(f"settled {final} units from the target")
         return f"lag {err:.0f} units while moving, {final} units after; bit 12 set"
