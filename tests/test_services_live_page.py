@@ -104,8 +104,9 @@ def test_page_in_chromium_follows_enable_csp_move_fault_and_records_a_trace(tmp_
             with Browser.launch(downloads) as browser:
                 tab = browser.open(url)
                 tab.wait_for("window.livePage && window.livePage.stateMessages > 0")
+                # (the first state message may predate the node's boot-up: INITIALISING, then PRE-OPERATIONAL)
+                tab.wait_for("document.querySelector('#nmt-state').textContent === 'PRE-OPERATIONAL'")
                 assert tab.text("#cia402-state") == "SWITCH ON DISABLED"
-                assert tab.text("#nmt-state") == "PRE-OPERATIONAL"
                 with LockstepMaster(net, [NODE], mode="csp") as m:  # PDOs by SDO, NMT start, enable
                     tab.wait_for("document.querySelector('#cia402-state').textContent === 'OPERATION ENABLED'")
                     assert tab.text("#nmt-state") == "OPERATIONAL"
