@@ -58,15 +58,12 @@ def run(args) -> int:
 
     from virtualaxis.cli.main import CliError
     from virtualaxis.config import load_axis_config
-    from virtualaxis.drive.commissioning import commissioned_travel_m
+    from virtualaxis.drive.commissioning import commissioned_travel_m, switch_positions_m
     from virtualaxis.drive.settings import drive_settings
     from virtualaxis.runtime.axes import DEFAULT_CONFIG
 
     cfg = load_axis_config(args.config or DEFAULT_CONFIG)
-    st = drive_settings(cfg)
-    half_m = cfg.axis.stroke_m / 2
-    max_mm = 1000 * commissioned_travel_m(cfg, (-half_m + st.limit_switch_inset_m, half_m - st.limit_switch_inset_m,
-                                                st.home_switch_position_m))[1]
+    max_mm = 1000 * commissioned_travel_m(cfg, switch_positions_m(cfg, drive_settings(cfg)))[1]
     if not 0 < args.stroke_mm <= max_mm:
         raise CliError(f"--stroke-mm must be in (0, {max_mm:g}] for {cfg.axis.name}: the drive's software position "
                        f"limit 0x607D:2 (limits.travel_max_m, kept inside the limit switch)")

@@ -149,11 +149,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"conclusion: {report['conclusion']}")
     for line in (report["headline"] if report["accepted"] else []):
         print(f"  {line}")
-    on = "held-out" if args.holdout or len(args.traces) > 1 else "fit"  # (one trace: no held-out data)
+    on = _judged_on("holdout" if any(t["role"] == "holdout" for t in report["traces"]) else "fit")
     for e in report["effects"]:
         if e["accepted"]:
-            on_e = "held-out" if e.get("judged_on") == "holdout" else "fit"
-            print(f"    {e['name']} {on_e} RMSE per channel: {verdict_text(e['verdict'])}")
+            print(f"    {e['name']} {_judged_on(e.get('judged_on'))} RMSE per channel: {verdict_text(e['verdict'])}")
     for finding in ("model_form_mismatch", "unexplained_gap"):
         if report.get(finding):
             print(f"  {report[finding]['description']}")
@@ -164,11 +163,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"  calibrated.toml changes {', '.join(report['calibrated_changes'])} (report.json calibrated_diff)")
     hyb = report.get("hybrid")
     if hyb and hyb.get("model"):
-        on_h = "held-out" if hyb.get("judged_on") == "holdout" else "fit"
-        print(f"  learned residual model {hyb['model']} on top, {on_h} RMSE: {_improvement(hyb['verdict'])} "
+        print(f"  learned residual model {hyb['model']} on top, {_judged_on(hyb.get('judged_on'))} RMSE: "
+              f"{_improvement(hyb['verdict'])} "
               f"({verdict_text(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0
+
+
+def _judged_on(judged_on: str | None) -> str:
+    """The data a figure was judged on, as the report says it (``"holdout"`` or ``"fit"``)."""
+    return "held-out" if judged_on == "holdout" else "fit"
 
 
 def _improvement(verdict: dict) -> str:

@@ -98,6 +98,11 @@ _MAX_HEADER_CHARS = 65536
 _CHUNK_LINES = 50_000
 
 
+def _meant_column(header_name: str) -> str:
+    """The column name a header entry written with a unit or in another case stands for (``"T [s]"`` -> ``"t"``)."""
+    return header_name.split("[")[0].split("(")[0].strip().lower()
+
+
 def _fast_chunk(lines: list[str], ncols: int, use: list[int]) -> np.ndarray | None:
     """Parse a chunk of well-formed numeric lines in C; None when any line needs the careful path."""
     for ln in lines:
@@ -198,10 +203,9 @@ def _parse_csv(path: Path, max_samples: int | None = None
                     if sum(h.strip() in KNOWN_COLUMNS for h in first.rstrip("\r\n").split(sep)) >= 2:
                         raise _err(sp, f"the header is separated by {what}: a trace is comma-separated (CSV with "
                                        "',' between fields and '.' as the decimal point)", 1)
-                lower = [h for h in header if h.lower() in KNOWN_COLUMNS or h.split("[")[0].split("(")[0].strip()
-                         in KNOWN_COLUMNS]
-                hint = (f"; column names are lower case, without units ({lower[0]!r}: the units are fixed, see "
-                        "docs/reference/trace-format.md)" if lower else "")
+                meant = [h for h in header if _meant_column(h) in KNOWN_COLUMNS]
+                hint = (f"; column names are lower case, without units ({meant[0]!r}: the units are fixed, see "
+                        "docs/reference/trace-format.md)" if meant else "")
                 raise _err(sp, f"no known column in the header ({', '.join(header)[:200]}); expected "
                                f"{', '.join(KNOWN_COLUMNS)}{hint}", 1)
             bar.update(len(first.encode("utf-8", "replace")))
@@ -384,7 +388,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
 
     for col in ("t", "pos_cmd"):
         if col not in header:
-            near = next((h for h in header if h.lower() == col or h.split("[")[0].split("(")[0].strip() == col), None)
+            near = next((h for h in header if _meant_column(h) == col), None)
             hint = f"; {near!r} is not it: column names are lower case, without units" if near else ""
             raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)}){hint}", 1, col)
     if not any(c in header for c in POSITION_COLUMNS):

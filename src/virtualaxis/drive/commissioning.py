@@ -116,6 +116,13 @@ def lead_m(cfg: AxisConfig) -> float:
     return cfg.mechanics.lead_m if cfg.mechanics.lead_m > 0 else 0.01
 
 
+def switch_positions_m(cfg: AxisConfig, st: DriveSettings) -> tuple[float, float, float]:
+    """Plant positions where the negative / positive limit switch and the home switch act [m]: the limit switches
+    ``limit_switch_inset_m`` inside the ends of the stroke."""
+    half, inset = cfg.axis.stroke_m / 2, st.limit_switch_inset_m
+    return -half + inset, half - inset, st.home_switch_position_m
+
+
 def commissioned_travel_m(cfg: AxisConfig, switch_at_m: tuple[float, float, float]) -> tuple[float, float]:
     """The default software limits 0x607D [m]: the config's ``limits.travel_*_m``, kept
     :data:`SOFT_LIMIT_INSIDE_SWITCH_M` inside the hardware limit switches (a commissioned axis reaches

@@ -71,6 +71,7 @@ from virtualaxis.drive.commissioning import (
     lead_m,
     plain_int_keys,
     power_unit_limit,
+    switch_positions_m,
     value_ranges,
 )
 from virtualaxis.drive.fault_manager import MOTOR_TEMPERATURE_ALARM, FaultManager
@@ -163,9 +164,8 @@ class Drive:
         self.cfg = cfg
         self.name = name or cfg.axis.name
         self.settings = drive_settings(cfg)
-        half, inset = cfg.axis.stroke_m / 2, self.settings.limit_switch_inset_m
         #: plant positions where the negative / positive limit switch and the home switch act [m]
-        self._switch_at_m = (-half + inset, half - inset, self.settings.home_switch_position_m)
+        self._switch_at_m = switch_positions_m(cfg, self.settings)
         self._end_stops_m = end_stops(cfg)[:2]  # plant positions of the hard end stops [m]
         self.sim = AxisSimulator(cfg, seed=seed, initial_position_m=initial_position_m, discrete=discrete)
         # compile the kernel now (a cold numba cache takes seconds), not in the first SYNC of a running bus
