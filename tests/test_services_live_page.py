@@ -543,7 +543,10 @@ def test_at_real_time_priority_the_state_messages_are_made_in_the_runtime_thread
     assert all(b >= a for a, b in zip(cycles, cycles[1:], strict=False)), cycles
     assert len({c for c in cycles if c > 0}) >= 10, cycles  # (10 new ones per second on an idle host)
     runtime = json.loads(out.read_text())["runtime"]
-    assert runtime["gap_jobs"] >= len(cycles) - 1 and runtime["gap_job_errors"] == 0, runtime
+    # (a state sent twice was made once; cycles 0 is the zeroed block before any state, and the service makes
+    # one itself as it starts)
+    made = {c for c in cycles if c > 0}
+    assert runtime["gap_jobs"] >= len(made) - 1 and runtime["gap_job_errors"] == 0, (runtime, cycles)
 
 
 def test_read_only_page_refuses_writes_and_fault_injection():

@@ -5,8 +5,9 @@ A python-can ``virtual`` or ``udp_multicast`` bus delivers a frame as fast as th
 several frames wait, sends the one with the lowest identifier first. :class:`BitRateBus` wraps the served bus
 so that a master that would overload a real bus sees the delays and the overload here:
 
-- ``send`` queues the frame (never blocks the drive thread); a transmitter thread puts it on the wire on a
-  virtual bus timeline: the frame starts when the bus is idle (after the previous frame of this node and
+- ``send`` hands the frame to a transmitter thread through a C queue (it never blocks the drive thread and
+  costs it about what a send on the bare bus does); the transmitter works out the frame's length (compiled,
+  without the interpreter lock) and puts it on the wire on a virtual bus timeline: the frame starts when the bus is idle (after the previous frame of this node and
   after every frame received from other nodes), among the frames waiting at that moment the lowest
   identifier wins (arbitration), and it is handed to the wrapped bus when its last bit would have been sent
   (start + bits / bit rate). The release can be late by the host's sleep granularity (~0.1 ms), the timeline
@@ -33,13 +34,17 @@ so that a master that would overload a real bus sees the delays and the overload
 from __future__ import annotations
 
 import heapq
-import re
+import itertools
+import queue
 import threading
 import time
 from collections import deque
 
 import can
+import numpy as np
+from numba import njit
 
+from virtualaxis import jitcache  # noqa: F401 - numba's cache errors made non-fatal
 from virtualaxis.runtime.frames import frame_problem
 
 #: frames waiting for the bus beyond which ``send`` refuses (a controller's transmit buffer) [frames]
@@ -49,62 +54,79 @@ LOAD_WINDOW_S = 1.0
 _CRC15_POLY = 0x4599
 
 
-def _crc15_table() -> tuple[int, ...]:
-    """CRC-15/CAN (polynomial 0x4599, MSB first, initial 0) of every byte pushed through the register."""
-    table = []
-    for byte in range(256):
-        crc = byte << 7
-        for _ in range(8):
-            crc = ((crc << 1) ^ _CRC15_POLY) if crc & 0x4000 else (crc << 1)
-            crc &= 0x7FFF
-        table.append(crc)
-    return tuple(table)
+@njit(cache=True, nogil=True)
+def _frame_bits_kernel(ident: int, extended: bool, remote: bool, dlc: int, n_data: int, data_hi: int,
+                       data_lo: int, worst: bool) -> int:
+    """Bits of a classical CAN frame from its fields (``data_hi`` / ``data_lo``: the first / last four data
+    bytes, big-endian, zero-padded): the bits from SOF to the CRC laid out one by one, the CRC-15 shifted
+    through them, one stuff bit after every 5 equal bits (the stuff bit starts the next run), then CRC
+    delimiter, ACK slot and delimiter, EOF and intermission. Compiled without the GIL: the transmitter thread
+    works it out while the runtime thread runs."""
+    seq = np.empty(128, np.uint8)
+    n = 0
+    seq[n] = 0  # SOF
+    n += 1
+    if extended:
+        base = (ident >> 18) & 0x7FF
+        for i in range(10, -1, -1):
+            seq[n] = (base >> i) & 1
+            n += 1
+        seq[n] = 1  # SRR
+        seq[n + 1] = 1  # IDE
+        n += 2
+        for i in range(17, -1, -1):
+            seq[n] = (ident >> i) & 1
+            n += 1
+        seq[n] = 1 if remote else 0  # RTR
+        seq[n + 1] = 0  # r1
+        seq[n + 2] = 0  # r0
+        n += 3
+    else:
+        for i in range(10, -1, -1):
+            seq[n] = (ident >> i) & 1
+            n += 1
+        seq[n] = 1 if remote else 0  # RTR
+        seq[n + 1] = 0  # IDE
+        seq[n + 2] = 0  # r0
+        n += 3
+    for i in range(3, -1, -1):
+        seq[n] = (dlc >> i) & 1
+        n += 1
+    for k in range(n_data):
+        word = data_hi if k < 4 else data_lo
+        byte = (word >> (8 * (3 - (k % 4)))) & 0xFF
+        for i in range(7, -1, -1):
+            seq[n] = (byte >> i) & 1
+            n += 1
+    crc = 0
+    for k in range(n):
+        feedback = seq[k] ^ ((crc >> 14) & 1)
+        crc = (crc << 1) & 0x7FFF
+        if feedback:
+            crc ^= _CRC15_POLY
+    for i in range(14, -1, -1):
+        seq[n] = (crc >> i) & 1
+        n += 1
+    if worst:
+        stuff = (n - 1) // 4
+    else:
+        stuff = 0
+        run = 0
+        last = 2
+        for k in range(n):
+            b = seq[k]
+            run = run + 1 if b == last else 1
+            last = b
+            if run == 5:
+                stuff += 1
+                last = 1 - b
+                run = 1
+    return n + stuff + 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
 
 
-_CRC15_TABLE = _crc15_table()
 #: frame_bits results kept for frames seen before (SYNC, heartbeat, SDO, a drive at rest) [entries]
 _CACHE_LIMIT = 4096
 _cache: dict[tuple, int] = {}
-_LONG_RUN = re.compile(r"0{4,}|1{4,}")  # only runs of 4 or more equal bits can take a stuff bit
-
-
-def _crc15(value: int, n: int) -> int:
-    """CRC-15/CAN of the ``n`` bits of ``value`` (the first bit sent is its most significant)."""
-    crc = 0
-    head = n % 8
-    for i in range(head - 1, -1, -1):  # the bits before the first whole byte, one at a time
-        if ((value >> (n - head + i)) & 1) ^ (crc >> 14):
-            crc = ((crc << 1) ^ _CRC15_POLY) & 0x7FFF
-        else:
-            crc = (crc << 1) & 0x7FFF
-    table = _CRC15_TABLE
-    for shift in range(n - head - 8, -1, -8):
-        crc = ((crc << 8) & 0x7FFF) ^ table[((crc >> 7) ^ (value >> shift)) & 0xFF]
-    return crc
-
-
-def _stuff_bits(bits: str) -> int:
-    """Stuff bits CAN inserts into ``bits`` (SOF .. CRC): one of the opposite level after every 5 equal bits,
-    and that stuff bit starts the next run. Counted per run of equal bits: a run of ``length`` takes a stuff bit
-    after its first ``5 - carry`` bits and then after every 5 more (``carry`` = 1: the run right before it ended
-    with a stuff bit, which has this run's level). Runs shorter than 4 never take one (nor pass a carry on),
-    so only the runs of 4 or more are looked at."""
-    stuff = carry = 0
-    previous_end = -1
-    for m in _LONG_RUN.finditer(bits):
-        start, end = m.span()
-        if start != previous_end:
-            carry = 0
-        length = end - start
-        first = 5 - carry
-        if length >= first:
-            k = (length - first) // 5
-            stuff += 1 + k
-            carry = 1 if length == first + 5 * k else 0
-        else:
-            carry = 0
-        previous_end = end
-    return stuff
 
 
 def frame_bits(msg: can.Message, stuffing: str = "computed") -> int:
@@ -116,24 +138,10 @@ def frame_bits(msg: can.Message, stuffing: str = "computed") -> int:
     cached = _cache.get(key)
     if cached is not None:
         return cached
-    rtr = 1 if msg.is_remote_frame else 0
-    if msg.is_extended_id:
-        ident = msg.arbitration_id & 0x1FFFFFFF
-        # SOF, base id (11), SRR, IDE, extension (18), RTR, r1, r0
-        value = (((ident >> 18) << 2 | 0b11) << 18 | (ident & 0x3FFFF)) << 3 | rtr << 2
-        n = 1 + 11 + 2 + 18 + 3
-    else:
-        value = ((msg.arbitration_id & 0x7FF) << 1 | rtr) << 2  # SOF, id (11), RTR, IDE, r0
-        n = 1 + 11 + 3
-    value = value << 4 | dlc
-    n += 4
-    if data:
-        value = value << (8 * n_data) | int.from_bytes(data, "big")
-        n += 8 * n_data
-    value = value << 15 | _crc15(value, n)
-    n += 15
-    stuff = (n - 1) // 4 if stuffing == "worst" else _stuff_bits(format(value, f"0{n}b"))
-    bits = n + stuff + 1 + 2 + 7 + 3  # CRC delimiter, ACK slot + delimiter, EOF, intermission
+    padded = int.from_bytes(data.ljust(8, b"\x00"), "big")
+    ident = msg.arbitration_id & (0x1FFFFFFF if msg.is_extended_id else 0x7FF)
+    bits = _frame_bits_kernel(ident, bool(msg.is_extended_id), bool(msg.is_remote_frame), dlc, len(data),
+                              padded >> 32, padded & 0xFFFFFFFF, stuffing == "worst")
     if len(_cache) >= _CACHE_LIMIT:
         _cache.clear()
     _cache[key] = bits
@@ -160,14 +168,21 @@ class BitRateBus(can.BusABC):
         self.tx_queue_limit = tx_queue_limit
         self.channel_info = f"{getattr(inner, 'channel_info', 'bus')} at {bitrate} bit/s"
         super().__init__(channel=None)
-        self._lock = threading.Condition()
-        #: frames queued by send(), in the order (and so the time) they were queued: (priority, seq, queued_s, msg,
-        #: bits); ``_ready``: a heap of the frames that were waiting when the bus last went idle (arbitration among
-        #: them: the lowest identifier). Both O(1) / O(log n) per frame: a linear scan of a backlog under the lock
-        #: blocked the runtime's send() and made the backlog grow (a docs-only tester's two CSP axes, 25 % load)
-        self._queued: deque[tuple[int, int, float, can.Message, int]] = deque()
-        self._ready: list[tuple[int, int, float, can.Message, int]] = []
-        self._seq = 0
+        #: the timeline, the wire and the counters; held only for a few assignments (a plain lock: the
+        #: transmitter is woken by ``_inbox``, not by this lock)
+        self._lock = threading.Lock()
+        #: frames handed over by send(), in the order they were queued: (priority, seq, queued_s, msg); the
+        #: transmitter thread alone takes them (a C queue: a put is a fraction of a microsecond and wakes the
+        #: transmitter only if it waits). ``_pending``: taken from the inbox, not yet among the ready frames;
+        #: ``_ready``: a heap of the frames that were waiting when the bus last went idle (arbitration among
+        #: them: the lowest identifier). O(1) / O(log n) per frame: a linear scan of a backlog under a lock
+        #: that send() needs too blocked the runtime's send() and made the backlog grow (a docs-only tester's
+        #: two CSP axes, 25 % load)
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending: deque[tuple[int, int, float, can.Message]] = deque()
+        self._ready: list[tuple[int, int, float, can.Message]] = []
+        self._sent_count = itertools.count(1)  # next(): atomic in CPython, from any sending thread
+        self._done = 0  # frames taken off the transmit queue (sent or refused by the wrapped bus); transmitter only
         self._idle_s = time.perf_counter()   # the bus timeline: when the last frame (any node) ended
         #: frames on the wire (load accounting): (start, end, bits), non-overlapping, in order; the last
         #: LOAD_WINDOW_S and any still ahead of the present
@@ -179,31 +194,38 @@ class BitRateBus(can.BusABC):
         #: the wrapped bus checks every frame it delivers (runtime.frames); else they are checked here
         self.checks_frames = bool(getattr(inner, "checks_frames", False))
         self.frames_tx = self.frames_rx = self.bits_tx = self.bits_rx = 0
-        self.tx_refused = 0
+        self._inner_refused = 0  # frames the wrapped bus refused; the transmitter's count
+        self._full_refused = 0  # frames send() refused (queue full); the sending threads' count
         self.queue_max = 0
         self.delay_sum_s = 0.0
         self.delay_max_s = 0.0
         self.peak_load = 0.0
         self._peak_checked_s = self._t0
         self._stop = False
+        _frame_bits_kernel(0, False, False, 0, 0, 0, 0, False)  # compiled (or loaded) now, not at the first frame
         self._thread = threading.Thread(target=self._transmitter, name="can-bitrate-tx", daemon=True)
         self._thread.start()
 
     # ------------------------------------------------------------------ python-can interface
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        bits = frame_bits(msg, self.stuffing)
+        """Queue ``msg`` for the wire (never blocks); ``can.CanOperationError`` when :attr:`tx_queue_limit`
+        frames already wait. Its length and priority are worked out by the transmitter thread, off the
+        sender's path."""
+        seq = next(self._sent_count)
+        waiting = seq - 1 - self._done - self._full_refused
+        if waiting >= self.tx_queue_limit:
+            self._full_refused += 1
+            raise can.CanOperationError("CAN transmit queue full (bus overloaded)")
+        if waiting + 1 > self.queue_max:
+            self.queue_max = waiting + 1
         priority = ((msg.arbitration_id & 0x1FFFFFFF) << 1) if msg.is_extended_id else \
             ((msg.arbitration_id & 0x7FF) << 19)   # an 11-bit id beats an extended one with the same base id
-        with self._lock:
-            waiting = len(self._queued) + len(self._ready)
-            if waiting >= self.tx_queue_limit:
-                self.tx_refused += 1
-                raise can.CanOperationError("CAN transmit queue full (bus overloaded)")
-            self._seq += 1
-            self._queued.append((priority, self._seq, time.perf_counter(), msg, bits))
-            if waiting + 1 > self.queue_max:
-                self.queue_max = waiting + 1
-            self._lock.notify()
+        self._inbox.put((priority, seq, time.perf_counter(), msg))
+
+    @property
+    def tx_refused(self) -> int:
+        """Frames not sent: refused by :meth:`send` (queue full) or by the wrapped bus."""
+        return self._full_refused + self._inner_refused
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         msg = self.inner.recv(timeout)
@@ -254,9 +276,8 @@ class BitRateBus(can.BusABC):
         return frames
 
     def shutdown(self) -> None:
-        with self._lock:
-            self._stop = True
-            self._lock.notify_all()
+        self._stop = True
+        self._inbox.put(None)  # (wakes the transmitter)
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
         self.inner.shutdown()
@@ -292,34 +313,53 @@ class BitRateBus(can.BusABC):
         bits = sum(b for start, end, b in self._window if start >= since and end <= now)
         return bits / (self.bitrate * max(now - since, 1e-3))
 
+    def _take_inbox(self, block: bool) -> None:
+        """Move the frames handed over by send() to ``_pending`` (``block``: wait up to 0.1 s for one)."""
+        inbox, pending = self._inbox, self._pending
+        try:
+            if block:
+                item = inbox.get(timeout=0.1)
+                if item is None:
+                    return
+                pending.append(item)
+            while True:
+                item = inbox.get_nowait()
+                if item is not None:
+                    pending.append(item)
+        except queue.Empty:
+            return
+
     def _transmitter(self) -> None:
         lock = self._lock
         perf = time.perf_counter
-        while True:
+        pending, ready = self._pending, self._ready
+        inner_send = self.inner.send
+        stuffing = self.stuffing
+        while not self._stop:
+            self._take_inbox(block=not pending and not ready)
+            if not pending and not ready:
+                continue
             with lock:
-                queued, ready = self._queued, self._ready
-                while not queued and not ready and not self._stop:
-                    lock.wait(0.1)
-                if self._stop:
-                    return
                 # the bus goes idle at ``start``; ready frames were all queued by the previous start <= idle
-                start = self._idle_s if ready else max(self._idle_s, queued[0][2])
-                while queued and queued[0][2] <= start:
-                    heapq.heappush(ready, queued.popleft())
+                start = self._idle_s if ready else max(self._idle_s, pending[0][2])
+                while pending and pending[0][2] <= start:
+                    heapq.heappush(ready, pending.popleft())
                 # arbitration: among the frames waiting when the bus goes idle, the lowest identifier
-                entry = heapq.heappop(ready)
-                _prio, _seq, queued_s, msg, bits = entry
+                _prio, _seq, queued_s, msg = heapq.heappop(ready)
+                bits = frame_bits(msg, stuffing)
                 end = start + bits / self.bitrate
                 self._idle_s = end
             remaining = end - perf()
             if remaining > 0:
                 time.sleep(remaining)
             try:
-                self.inner.send(msg)
+                inner_send(msg)
             except (can.CanError, OSError, ValueError):
-                self.tx_refused += 1
+                self._inner_refused += 1
+                self._done += 1
                 continue
             with lock:
+                self._done += 1
                 self.frames_tx += 1
                 self.bits_tx += bits
                 delay = end - queued_s
