@@ -7,11 +7,11 @@ so that a master that would overload a real bus sees the delays and the overload
 
 - ``send`` hands the frame to a transmitter thread through a C queue (it never blocks the drive thread and
   costs it about what a send on the bare bus does); the transmitter works out the frame's length (compiled,
-  without the interpreter lock) and puts it on the wire on a virtual bus timeline: the frame starts when the bus is idle (after the previous frame of this node and
-  after every frame received from other nodes), among the frames waiting at that moment the lowest
-  identifier wins (arbitration), and it is handed to the wrapped bus when its last bit would have been sent
-  (start + bits / bit rate). The release can be late by the host's sleep granularity (~0.1 ms), the timeline
-  itself is exact (no drift, no throughput lost to late wake-ups).
+  without the interpreter lock) and puts it on the wire on a virtual bus timeline: the frame starts when the
+  bus is idle (after the previous frame of this node and after every frame received from other nodes), among
+  the frames waiting at that moment the lowest identifier wins (arbitration), and it is handed to the wrapped
+  bus when its last bit would have been sent (start + bits / bit rate). The release can be late by the host's
+  sleep granularity (~0.1 ms), the timeline itself is exact (no drift, no throughput lost to late wake-ups).
 - Frame length: CAN 2.0A/B data or remote frame: SOF, arbitration field, control field, data, CRC-15, CRC
   delimiter, ACK, EOF and the 3-bit intermission; stuff bits either computed from the frame's actual bits
   (``stuffing="computed"``, the default: the CRC-15 is computed and every run of 5 equal bits from SOF to the
