@@ -6,14 +6,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 
 import canopen
 import pytest
-from test_drive_rig import Rig
+from test_drive_rig import Rig, seed_config, seed_discrete
 
 from virtualaxis.drive.core import DEFAULT_EDS
-from virtualaxis.runtime import BusOpenError, open_bus, parse_bus_spec
+from virtualaxis.runtime import AxisNode, BusOpenError, Runtime, open_bus, parse_bus_spec
 
 pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
@@ -194,4 +195,25 @@ def test_real_time_mode_runs_every_cycle_and_counts_late_ones():
     assert stats.overruns >= stats.skipped
     assert stats.cycles + stats.skipped >= 250  # >= 0.3 s of 1 ms deadlines
     assert drive.counters["cycles"] >= stats.cycles  # (plus the SYNC-free boot cycles: none here)
-    assert stats.overruns + stats.skipped == drive.counters["overruns"]
+    assert stats.overruns == drive.counters["overruns"]  # (the cycles given up are overruns too)
+
+
+def test_real_time_cycles_given_up_are_counted_as_overruns_by_the_runtime_and_the_drive():
+    """A loop stalled for longer than ``max_lag_s`` gives the missed cycles up (``skipped``); they are overruns
+    in the runtime's statistics (serve's JSON) as in the drive's 0x2110:2, one count each."""
+    bus = open_bus(f"virtual:va-skip-{os.getpid()}-{time.monotonic_ns()}")
+    rt = Runtime(bus, [AxisNode(bus, 1, seed_config(), discrete=seed_discrete(), name="A1")], max_lag_s=0.05)
+    drive = rt.axes[0].drive
+    rt.start()
+    try:
+        time.sleep(0.1)
+        stalled = threading.Event()
+        rt.run_in_gap(lambda: (time.sleep(0.3), stalled.set()))  # the runtime thread held for 0.3 s
+        assert stalled.wait(10.0)
+        time.sleep(0.1)
+    finally:
+        rt.stop()
+    stats = rt.stats
+    assert stats.skipped >= 200, stats.skipped  # ~250 of the 300 cycles of the stall given up
+    assert stats.overruns >= stats.skipped
+    assert drive.counters["overruns"] == stats.overruns

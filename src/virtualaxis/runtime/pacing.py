@@ -644,6 +644,7 @@ class Runtime:
                         # count the cycles given up
                         lost = int((t - next_cycle) / period)
                         stats.skipped += lost
+                        stats.overruns += lost
                         for ax in axes:
                             ax.drive.record_overrun(lost)
                         next_cycle += lost * period
