@@ -54,6 +54,15 @@ LOAD_WINDOW_S = 1.0
 _CRC15_POLY = 0x4599
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _put_bits(seq: np.ndarray, n: int, value: int, count: int) -> int:
+    """The ``count`` low bits of ``value``, most significant first, into ``seq`` from ``n``; the next free index."""
+    for i in range(count - 1, -1, -1):
+        seq[n] = (value >> i) & 1
+        n += 1
+    return n
+
+
 @njit(cache=True, nogil=True)
 def _frame_bits_kernel(ident: int, extended: bool, remote: bool, dlc: int, n_data: int, data_hi: int,
                        data_lo: int, worst: bool) -> int:
@@ -63,50 +72,27 @@ def _frame_bits_kernel(ident: int, extended: bool, remote: bool, dlc: int, n_dat
     delimiter, ACK slot and delimiter, EOF and intermission. Compiled without the GIL: the transmitter thread
     works it out while the runtime thread runs."""
     seq = np.empty(128, np.uint8)
-    n = 0
-    seq[n] = 0  # SOF
-    n += 1
-    if extended:
-        base = (ident >> 18) & 0x7FF
-        for i in range(10, -1, -1):
-            seq[n] = (base >> i) & 1
-            n += 1
-        seq[n] = 1  # SRR
-        seq[n + 1] = 1  # IDE
-        n += 2
-        for i in range(17, -1, -1):
-            seq[n] = (ident >> i) & 1
-            n += 1
-        seq[n] = 1 if remote else 0  # RTR
-        seq[n + 1] = 0  # r1
-        seq[n + 2] = 0  # r0
-        n += 3
-    else:
-        for i in range(10, -1, -1):
-            seq[n] = (ident >> i) & 1
-            n += 1
-        seq[n] = 1 if remote else 0  # RTR
-        seq[n + 1] = 0  # IDE
-        seq[n + 2] = 0  # r0
-        n += 3
-    for i in range(3, -1, -1):
-        seq[n] = (dlc >> i) & 1
-        n += 1
-    for k in range(n_data):
-        word = data_hi if k < 4 else data_lo
-        byte = (word >> (8 * (3 - (k % 4)))) & 0xFF
-        for i in range(7, -1, -1):
-            seq[n] = (byte >> i) & 1
-            n += 1
+    rtr = 1 if remote else 0
+    n = _put_bits(seq, 0, 0, 1)  # SOF
+    if extended:  # base id, SRR, IDE, id extension, RTR, r1, r0
+        n = _put_bits(seq, n, (ident >> 18) & 0x7FF, 11)
+        n = _put_bits(seq, n, 0b11, 2)
+        n = _put_bits(seq, n, ident & 0x3FFFF, 18)
+        n = _put_bits(seq, n, rtr << 2, 3)
+    else:  # id, RTR, IDE, r0
+        n = _put_bits(seq, n, ident & 0x7FF, 11)
+        n = _put_bits(seq, n, rtr << 2, 3)
+    n = _put_bits(seq, n, dlc, 4)
+    n = _put_bits(seq, n, data_hi >> (8 * (4 - min(n_data, 4))), 8 * min(n_data, 4))
+    if n_data > 4:
+        n = _put_bits(seq, n, data_lo >> (8 * (8 - n_data)), 8 * (n_data - 4))
     crc = 0
     for k in range(n):
         feedback = seq[k] ^ ((crc >> 14) & 1)
         crc = (crc << 1) & 0x7FFF
         if feedback:
             crc ^= _CRC15_POLY
-    for i in range(14, -1, -1):
-        seq[n] = (crc >> i) & 1
-        n += 1
+    n = _put_bits(seq, n, crc, 15)
     if worst:
         stuff = (n - 1) // 4
     else:
