@@ -19,7 +19,11 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
 
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
-latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus).
+latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus). With the emulation on, ``wire floor``
+is the least SYNC -> TPDO time the bus itself allows each node (:func:`wire_floor_us`: the k-th node's TPDO2
+waits for the k - 1 with lower identifiers, 95 bits each without stuff bits): at 1 Mbit/s 95 us times k, so the
+third of 3 axes cannot answer within 285 us (28.5 % of a 1 ms cycle) nor the seventh of 7 within 665 us (33 % of
+2 ms), however fast the drive.
 
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
 lead error, thermal growth, an extra resonance; sensor noise). Latency = the TPDO's kernel receive
@@ -182,9 +186,10 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
             "syncs": n_sync,
             "serve_cpu_share_of_one_core": (cpu1 - cpu0) / (wall1 - wall0),
         }
-        for nid, cob in zip(node_ids, tpdo_cobs, strict=True):
+        for k_th, (nid, cob) in enumerate(zip(node_ids, tpdo_cobs, strict=True), start=1):
             result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
                                     if k != "latency_us_p999"}
+            result[f"node{nid}"]["wire_floor_us"] = wire_floor_us(k_th, bitrate)
             for k, key in enumerate(("drive_cycles", "drive_overruns")):
                 a, b = counts0[nid][k], counts1[nid][k]
                 result[f"node{nid}"][key] = None if a is None or b is None else (b - a) & 0xFFFFFFFF
@@ -214,6 +219,19 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         "master_max_sync_gap_ms": result["master_max_sync_gap_ms"],
     }
     return result
+
+
+#: bits of a classical CAN frame with 6 data bytes (TPDO2: statusword + position) without stuff bits: SOF,
+#: identifier, RTR, IDE, r0, DLC, 48 data bits, CRC-15, CRC delimiter, ACK slot + delimiter, EOF, intermission
+TPDO2_MIN_BITS = 1 + 11 + 3 + 4 + 48 + 15 + 1 + 2 + 7 + 3
+
+
+def wire_floor_us(k_th: int, bitrate: int | None) -> float:
+    """The least SYNC -> TPDO time the emulated bus allows the ``k_th`` node's TPDO2 [us]: when every node's
+    TPDO is ready at once, arbitration sends them lowest identifier first, so the k-th waits for k - 1 others and
+    then takes its own frame time (stuff bits and the SYNC's own frame time not counted: a lower bound). 0 without
+    the emulation."""
+    return 1e6 * k_th * TPDO2_MIN_BITS / bitrate if bitrate else 0.0
 
 
 def _drive_counts(bus, reply: SdoReply, nid: int) -> tuple[int | None, int | None]:
@@ -484,7 +502,7 @@ def main() -> int:
     print(f"\nmachine: {machine['nproc']} cores, {machine['cpu']}, load average {machine['load_average_at_end']}")
     print(
         f"{'SYNC':>7} {'axes':>4} {'node':>4} {'p50 us':>8} {'p99 us':>8} {'max us':>9} {'missed':>7} {'late':>6} "
-        f"{'cycles':>7} {'overrun':>7} {'SDO p50 us':>10} {'CPU':>6} {'master gap ms':>13}"
+        f"{'cycles':>7} {'overrun':>7} {'SDO p50 us':>10} {'CPU':>6} {'master gap ms':>13} {'wire floor us':>13}"
     )
     for r in results:
         for nid in range(1, r["axes"] + 1):
@@ -494,7 +512,7 @@ def main() -> int:
                 f"{n['latency_us_p99']:>8.0f} {n['latency_us_max']:>9.0f} {n['missed_cycles']:>7} {n['late_tpdos']:>6} "
                 f"{n.get('drive_cycles', -1):>7} {n.get('drive_overruns', -1):>7} {r['sdo_rtt_us_p50']:>10.0f} "
                 f"{r['serve_cpu_share_of_one_core'] * 100:>5.0f}% "
-                f"{r['master_max_sync_gap_ms']:>13.2f}"
+                f"{r['master_max_sync_gap_ms']:>13.2f} {n.get('wire_floor_us', 0.0):>13.0f}"
             )
     if args.json:  # (only when asked: a profiling or trial run must not replace the committed figures)
         Path(args.json).write_text(json.dumps({"machine": machine, "args": vars(args), "results": results},
