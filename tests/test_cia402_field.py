@@ -544,6 +544,40 @@ def test_rpdo_deadline_and_pdo_length_errors_never_hide_the_fault_code_and_clear
         r.close()
 
 
+def test_a_fault_reset_while_a_communication_error_lasts_sends_no_error_reset():
+    """CiA 301: EMCY 0x0000 says no error is left. A fault reset that acknowledges the drive's fault while a
+    communication error lasts (an RPDO deadline) leaves 0x1001 = 0x11 and 0x603F = that error's code and sends
+    no EMCY (a docs-only master's case: a SYNC loss in PRE-OPERATIONAL got EMCY 0x0000 with register 0x11); the
+    EMCY 0x0000 goes out when the communication error clears too."""
+    r = Rig()
+    try:
+        node = r.node
+        node.sdo[0x6007].raw = 0  # no drive reaction to the RPDO deadline: only the stack's EMCY
+        node.sdo[0x1401][5].raw = 30  # RPDO2 deadline 30 ms
+        node.nmt.state = "OPERATIONAL"
+        node.sdo[0x2010].raw = 0x3220  # an injected DC-link undervoltage: FAULT
+        r.emcy.wait_for(0x3220)
+        r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)
+        _raw_rpdo2(r, 0x00, 0)
+        n0 = len(r.emcy.codes())
+        r.wait(lambda: 0x8250 in r.emcy.codes()[n0:], timeout=2.0)  # the RPDO stays away: deadline error
+        node.sdo[0x2010].raw = 0  # the fault's cause gone; fault reset
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.sdo[0x6040].raw = 0x80
+        r.wait(lambda: r.sw() & 0x4F == 0x40, timeout=2.0)  # SWITCH ON DISABLED
+        time.sleep(0.1)
+        assert 0x0000 not in r.emcy.codes()[n0:], [hex(c) for c in r.emcy.codes()[n0:]]
+        assert node.sdo[0x1001].raw == 0x11 and node.sdo[0x603F].raw == 0x8250
+        node.nmt.state = "OPERATIONAL"
+        n1 = len(r.emcy.codes())
+        _raw_rpdo2(r, 0x00, 0)  # the RPDO is back: now nothing is left
+        r.wait(lambda: 0x0000 in r.emcy.codes()[n1:], timeout=2.0)
+        assert node.sdo[0x1001].raw == 0 and node.sdo[0x603F].raw == 0
+        node.sdo[0x1401][5].raw = 0
+    finally:
+        r.close()
+
+
 def test_every_target_the_default_software_limits_allow_is_reached_without_a_limit_switch():
     """Item 5 / a docs-only master: with the defaults, 0x607D lies inside the hardware limit switches (before:
     +-300 mm with the switches at +-298 mm, so a PP move to the legal target 300000 faulted 0xFF11). A PP

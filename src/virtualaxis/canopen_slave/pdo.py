@@ -331,10 +331,9 @@ class PdoEngine:
             tpdo.sync_count = 0
             tpdo.started = False
             tpdo.last_tx_s = -1e30
-        for rpdo in self.rpdos:
+        for rpdo in self.rpdos:  # (a deadline error still active stays so until its RPDO comes: ``timed_out``)
             rpdo.pending = None
             rpdo.last_rx_s = None
-            rpdo.timed_out = False
 
 
 def _clamp(entry: Entry):

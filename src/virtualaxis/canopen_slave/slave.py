@@ -342,16 +342,31 @@ class CanopenSlave:
         """The application reports an error of its own (a drive in fault or with a warning)."""
         return bool(self.app.has_error())
 
+    def set_application_error_code(self, code: int) -> None:
+        """0x603F as the application holds it (the code of its newest error, 0 with none): 0 shows the newest
+        communication error still active instead (reset with it, :meth:`clear_comm_error`), as 0x603F tells the
+        errors still active."""
+        if (0x603F, 0) not in self.od.entries:
+            return
+        from_comm = not code and bool(self._comm_errors)
+        self.write(0x603F, 0, next(reversed(self._comm_errors)) if from_comm else code)
+        self._error_code_from_comm = from_comm
+
     def emcy_reset(self) -> None:
-        """Send EMCY 0x0000 (error reset / no error) and clear 0x1001 (and 0x603F); a communication error still
-        present keeps its bits (generic + communication) in 0x1001."""
-        register = 0x11 if self._comm_errors else 0
-        self.write(0x1001, 0, register)
+        """The application's errors are gone: with no communication error left either, EMCY 0x0000 (error
+        reset / no error) and 0x1001 = 0x603F = 0. A communication error still present keeps 0x1001's generic
+        and communication bits and shows its code in 0x603F, and no EMCY goes out (0x0000 would tell the master
+        that no error is left; it goes out when that error clears, :meth:`clear_comm_error`)."""
+        if self._comm_errors:
+            self.write(0x1001, 0, 0x11)
+            self.set_application_error_code(0)
+            return
+        self.write(0x1001, 0, 0)
         if (0x603F, 0) in self.od.entries:
             self.write(0x603F, 0, 0)
         self._error_code_from_comm = False
         if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
-            self.emcy_producer.produce(0x0000, register, b"", self._now)
+            self.emcy_producer.produce(0x0000, 0, b"", self._now)
 
     def raise_comm_error(self, code: int, source: int = 0, data: bytes = b"") -> None:
         """A communication error (SYNC timeout 0x8100, heartbeat / life guarding 0x8130): EMCY with the

@@ -26,6 +26,8 @@ from virtualaxis.drive.objects import SPECS
 SYNC_LOSS_PERIODS = 5
 #: ... and at least this long [s] (chosen: a busy host delays a SYNC by a few ms, rarely by tens of ms)
 SYNC_LOSS_MIN_S = 0.050
+#: the error code object: the drive's newest error, which the stack completes with its communication errors
+ERROR_CODE_KEY = (0x603F, 0)
 #: the objects the drive serves (its own and the manufacturer aliases)
 _DRIVE_KEYS = frozenset(SPECS) | frozenset(ALIASES)
 
@@ -104,8 +106,12 @@ class Cia402Application(BaseApplication):
         float_keys = self._float_keys
         for key, value in changes:  # (few per cycle: the outputs went in as the cycle published them)
             entry = self._entries.get(key)
-            if entry is not None:
-                slave.write_entry(entry, float(value) if key in float_keys else value)
+            if entry is None:
+                continue
+            if key == ERROR_CODE_KEY:  # (0 with a communication error active: the stack shows that one's code)
+                slave.set_application_error_code(int(value))
+                continue
+            slave.write_entry(entry, float(value) if key in float_keys else value)
 
     # ------------------------------------------------------------------ CanopenApplication hooks
     def validate_write(self, index: int, sub: int, value) -> None:
