@@ -404,3 +404,31 @@ def test_touch_probe_disabling_an_edge_clears_its_status_and_keeps_its_value():
         assert node.sdo[0x60BC].raw == latched
     finally:
         r.close()
+
+
+def test_latched_probe_positions_follow_a_polarity_change_as_the_actual_position_does():
+    """0x60BA-0x60BD read as 0x6064 does: a latch taken at the actual position reads the same value as 0x6064
+    after 0x607E bit 7 changes too (a docs-only master found the latch keeping its old sign)."""
+    r = _pp_rig()
+    node = r.node
+    try:
+        node.sdo[0x607A].raw = 10_000  # to 10 mm, then switched on (0x607E is refused in operation)
+        node.sdo[0x6040].raw = 0x1F
+        node.sdo[0x6040].raw = 0x0F
+        r.wait(lambda: r.sw() & 0x400, sync=True, timeout=10)
+        node.sdo[0x6040].raw = 0x07
+        r.wait(lambda: r.sw() & 0x6F == 0x23, sync=True)
+        node.sdo[0x60B8].raw = 0x0031  # probe 1: enable, both edges, first edge only
+        node.sdo[0x2014][3].raw = 1  # input 1 forced on: positive edge at the actual position
+        r.sync(2)
+        at = node.sdo[0x6064].raw
+        assert abs(at - 10_000) < 100 and abs(node.sdo[0x60BA].raw - at) <= 1
+        node.sdo[0x607E].raw = 0x80
+        assert node.sdo[0x6064].raw == -at
+        assert abs(node.sdo[0x60BA].raw + at) <= 1, (node.sdo[0x60BA].raw, at)
+        node.sdo[0x607E].raw = 0xC0  # bit 7 unchanged: the latch stays
+        assert abs(node.sdo[0x60BA].raw + at) <= 1
+        node.sdo[0x607E].raw = 0x00
+        assert abs(node.sdo[0x60BA].raw - at) <= 1
+    finally:
+        r.close()

@@ -463,7 +463,11 @@ class Drive:
         elif index == 0x60C1:
             self._mode_obj.on_interpolation_data(self.ctx, int(value) * self.setpoints.position_sign)
         elif index == 0x607E:
+            sign_before = self.setpoints.position_sign
             self.setpoints.set_polarity(int(value))
+            if self.setpoints.position_sign != sign_before:  # the latched probe positions read as 0x6064 does
+                for latch in LATCH_INDEX.values():
+                    self._store((latch, 0), _i32(-int(self.objects[(latch, 0)])))
             self._publish_outputs()  # (the actual values in the new direction at once, not from the next cycle)
         elif index == 0x60B8:
             self.touch_probe.set_function(int(value))
