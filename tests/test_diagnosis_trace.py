@@ -152,9 +152,14 @@ def test_sidecar_names_another_axis(tmp_path):
 
 
 def test_ragged_row(tmp_path):
+    """A row with more or fewer fields than the header names its line and the column concerned."""
     p = tmp_path / "a.csv"
     p.write_text("t,pos_cmd,pos_meas\n0,0,0\n0.001,0,0,5\n")
-    with pytest.raises(InputError, match=r"row 3: has 4 fields"):
+    with pytest.raises(InputError, match=r"row 3: column pos_meas: has 4 fields, the header has 3: 1 beyond"):
+        read_trace(p)
+    p.write_text("t,pos_cmd,pos_meas\n0,0,0\n0.001,0,0\n0.002,0\n")
+    with pytest.raises(InputError, match=r"row 4: column pos_meas: has 2 fields, the header has 3: no value for "
+                       r"pos_meas"):
         read_trace(p)
 
 

@@ -114,8 +114,10 @@ def config_markdown() -> str:
     data = {p.stem: tomllib.loads(p.read_text()) for p in presets}
     out = [HEADER, "# Axis config\n\n",
            "An axis config is a TOML file, one table per section. A physical value has its unit in its key and "
-           "may carry its source: `lead_m = { value = 0.016, source = \"seed 000 Table 2\" }`. Units of other "
-           "spellings are converted (`_mm`, `_um`, `_per_min`, ...). Errors name the file and the key.\n\n",
+           "may carry its source: `lead_m = { value = 0.016, source = \"seed 000 Table 2\" }`. A value in another "
+           "unit keeps the key and names its unit: `lead_m = { value = 16, unit = \"mm\" }` is converted (the "
+           "units each key accepts are in its error message); a key spelt with another unit (`lead_mm`) is "
+           "refused as unknown. Errors name the file and the key.\n\n",
            "## Presets (`configs/`)\n\n| preset | axis name | what it is |\n|---|---|---|\n"]
     for p in presets:
         first = next((ln[1:].strip() for ln in p.read_text().splitlines() if ln.startswith("#")), "")

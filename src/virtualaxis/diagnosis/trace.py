@@ -129,8 +129,13 @@ def _careful_chunk(path: str, lines: list[str], first_line_no: int, header: list
             line_no = first_line_no + k
             if not rec or (len(rec) == 1 and not rec[0].strip()):
                 continue
-            if len(rec) != len(header):
-                raise _err(path, f"has {len(rec)} fields, the header has {len(header)}", line_no)
+            if len(rec) < len(header):
+                missing = header[len(rec):]
+                raise _err(path, f"has {len(rec)} fields, the header has {len(header)}: no value for "
+                           f"{', '.join(missing)}", line_no, missing[0])
+            if len(rec) > len(header):
+                raise _err(path, f"has {len(rec)} fields, the header has {len(header)}: {len(rec) - len(header)} "
+                           f"beyond the last column", line_no, header[-1])
             vals = []
             for i in use:
                 s = rec[i].strip()
