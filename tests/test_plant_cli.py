@@ -104,6 +104,12 @@ def test_frf_and_studies_write_tables_and_plots(tmp_path):
     assert main(["study", "feed-sweep", "--config", str(SEED000), "--out", str(tmp_path / "f"),
                  "--values", "1000,6000"]) == 0
     assert (tmp_path / "f" / "feed_sweep.csv").exists()
+    # every study gives CSV + JSON + PNG (the README's promise)
+    assert main(["study", "inverter", "--config", str(SEED000), "--out", str(tmp_path / "i"),
+                 "--values", "1000"]) == 0
+    for folder, stem in (("s", "support_stiffness"), ("k", "kv_sweep"), ("f", "feed_sweep"), ("i", "inverter")):
+        names = {p.name for p in (tmp_path / folder).iterdir()}
+        assert {f"{stem}.csv", f"{stem}.json"} <= names and any(n.endswith(".png") for n in names), (stem, names)
 
 
 def test_the_command_parser_loads_neither_numba_nor_scipy() -> None:

@@ -1,4 +1,6 @@
-"""``virtualaxis study kv-sweep|support-stiffness|feed-sweep``: the seed papers' studies (CSV + JSON + PNG)."""
+"""``virtualaxis study kv-sweep|support-stiffness|feed-sweep|inverter``: the seed papers' studies (CSV + JSON +
+PNG). The figures the papers report for their own axes (seed 004 for kv-sweep, seed 000 for feed-sweep) are printed
+and plotted beside the results as those papers' axes' figures: on another axis they are a scale, not a target."""
 
 from __future__ import annotations
 
@@ -106,20 +108,31 @@ def _run(args, cfg, vals, stem: str, out: Path) -> int:
         plot_xy(out / f"{stem}_timing.png", [1e3 * d for d in ts["delays_s"]],
                 {"optimum kv (equal weights)": ts["optimum_kv_per_min"]}, "error read at [ms] after the move",
                 "optimum kv [1/min]", f"{cfg.axis.name}: when is the static error read?",
-                paper={"paper: 2725 1/min": ([0, 1e3 * ts["delays_s"][-1]], [ts["paper_kv_per_min"]] * 2)})
+                paper={"seed 004's axis: 2725 1/min": ([0, 1e3 * ts["delays_s"][-1]], [ts["paper_kv_per_min"]] * 2)})
         inside = ts["delays_within_tolerance_s"]
-        print("  error read d after the move (equal weights): optimum within 10 % of the paper for d = "
+        print("  error read d after the move (equal weights): optimum within 10 % of seed 004's for d = "
               + (", ".join(f"{1e3 * d:.0f}" for d in inside) + " ms" if inside else "none of 0..400 ms"))
-        print(f"cost optimum at kv = {doc['optimum_kv_per_min']:g} 1/min (paper: {doc['paper_optimum_kv_per_min']:g}); "
+        print(f"cost optimum at kv = {doc['optimum_kv_per_min']:g} 1/min (seed 004's axis: "
+              f"{doc['paper_optimum_kv_per_min']:g}); "
               f"relative spans: {json.dumps({k: round(v, 3) for k, v in doc['relative_span'].items()})}")
         for name, r in doc["weight_sensitivity"]["readings"].items():
             lo, hi = r["optimum_range_kv_per_min"]
             print(f"  weights open ({name}): optimum {lo:g}..{hi:g}"
-                  f" 1/min; {100 * r['share_of_weights_within_tolerance']:.0f} % of weight triples within 10 % of the"
-                  f" paper; closest to equal weights: {r['closest_weights_within_tolerance']}")
+                  f" 1/min; {100 * r['share_of_weights_within_tolerance']:.0f} % of weight triples within 10 % of"
+                  f" seed 004's; closest to equal weights: {r['closest_weights_within_tolerance']}")
     elif args.name == "inverter":
         rows = seeds.inverter_study(cfg, vals or (1000, 6000))
         doc = {"rows": rows, "paper": "seed 000 Fig. 6: SVPWM sector / dwell time / compare thresholds, six switches"}
+        feeds = [r["feed_mm_min"] for r in rows]
+        plot_xy(out / f"{stem}.png", feeds,
+                {"averaged: RMS E": [r["averaged_rms_tracking_error_um"] for r in rows],
+                 "switching (SVPWM): RMS E": [r["svpwm_rms_tracking_error_um"] for r in rows]},
+                "feed [mm/min]", "tracking error [um]", f"{cfg.axis.name}: averaged vs switching inverter")
+        plot_xy(out / f"{stem}_ripple.png", feeds,
+                {"averaged": [r["averaged_current_ripple_rms_a"] for r in rows],
+                 "switching (SVPWM)": [r["svpwm_current_ripple_rms_a"] for r in rows]},
+                "feed [mm/min]", "i_q ripple within PWM periods, RMS [A]",
+                f"{cfg.axis.name}: current ripple of the inverter models")
         for r in rows:
             print(f"F{r['feed_mm_min']:.0f}: ripple {r['svpwm_current_ripple_rms_a']:.3f} A RMS (switching) vs 0 "
                   f"(averaged); tracking RMS {r['averaged_rms_tracking_error_um']:.2f} / "
@@ -134,11 +147,12 @@ def _run(args, cfg, vals, stem: str, out: Path) -> int:
                 {"ours: max |E|": [r["max_abs_tracking_error_um"] for r in rows],
                  "ours: RMS E": [r["rms_tracking_error_um"] for r in rows]},
                 "feed [mm/min]", "tracking error [um]", f"{cfg.axis.name}: 100 mm sine",
-                paper={"paper: measured |E| (MAE/RE)": ([r["feed_mm_min"] for r in rows],
+                paper={"seed 000's axis: measured |E| (MAE/RE)": ([r["feed_mm_min"] for r in rows],
                                                        [r["paper_measured_magnitude_um"] for r in rows])})
         for r in rows:
             print(f"F{r['feed_mm_min']:.0f}: max {r['max_abs_tracking_error_um']:.1f} um, RMS "
-                  f"{r['rms_tracking_error_um']:.1f} um (paper measured ~{r['paper_measured_magnitude_um']:.0f} um)")
+                  f"{r['rms_tracking_error_um']:.1f} um (seed 000's axis measured "
+                  f"~{r['paper_measured_magnitude_um']:.0f} um)")
     _write_rows(out / f"{stem}.csv", doc["rows"])
     (out / f"{stem}.json").write_text(json.dumps({"config": str(args.config), **doc}, indent=2))
     return 0
