@@ -85,6 +85,12 @@ def test_a_joint_refit_runs_through_the_cli_on_a_terminal_and_in_a_log(pair_runs
         assert rep["joint_refit"], "both effects accepted: they are refitted jointly"
     assert "conclusion: coulomb_friction + viscous_friction" in log_out
     assert "conclusion: coulomb_friction + viscous_friction" in tty_out
+    # where the nominal model's gap concentrates: the report's most concentrated bin per channel, on the console
+    rep = json.loads((log_dir / "report.json").read_text())
+    assert any(rep["where_summary"].values()), rep["where_summary"]
+    for ch, bins in rep["where_summary"].items():
+        if bins:
+            assert f"{ch} {100 * bins[0]['share']:.0f} % in {bins[0]['dimension']} {bins[0]['bin']}" in log_out, log_out
     # in a log: a line per stage, none per candidate, no carriage-return bar
     lines = log_err.splitlines()
     assert "\r" not in log_err

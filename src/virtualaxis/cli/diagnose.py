@@ -156,6 +156,9 @@ def run(args: argparse.Namespace) -> int:
     for finding in ("model_form_mismatch", "unexplained_gap"):
         if report.get(finding):
             print(f"  {report[finding]['description']}")
+    where = _where_line(report.get("where_summary") or {})
+    if where:
+        print(f"  {where}")
     v = report["final"]["verdict"]
     print(f"  {on} RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
           f"{f' ({_improvement(v)})' if report['accepted'] else ''}")
@@ -168,6 +171,18 @@ def run(args: argparse.Namespace) -> int:
               f"({verdict_text(hyb['verdict'])})")
     print(f"wrote {paths['json']}, {paths['html']}, {paths['toml']}")
     return 0
+
+
+def _where_line(summary: dict) -> str:
+    """Where the nominal model's gap concentrates, per channel its most concentrated bin (report.json
+    ``where_summary``): the place to look when no effect, or an unexpected one, explains it."""
+    parts = []
+    for ch, bins in summary.items():
+        if bins:
+            b = bins[0]
+            parts.append(f"{ch} {100 * b['share']:.0f} % in {b['dimension']} {b['bin']} ({b['concentration']:.1f}x "
+                         "its share of the samples)")
+    return ("the nominal model's gap concentrates: " + "; ".join(parts)) if parts else ""
 
 
 def _judged_on(judged_on: str | None) -> str:
