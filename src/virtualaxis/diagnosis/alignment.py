@@ -5,7 +5,7 @@ prediction of the trace (``TraceData.post``, see :func:`apply_post`), and report
 - **Sample alignment of a channel**: drive traces differ in which sample a value belongs to (force row ``k`` =
   force applied during ``[k-1, k)`` or ``[k, k+1)``). A controller-output or velocity channel whose residual energy
   falls by more than :data:`SHIFT_Z` standard errors when the prediction is moved by one sample (and not further
-  at two) on the pooled traces is aligned, with a warning, unless a position channel prefers a move too (then it
+  at two, and by less than half as much when moved the other way) on the pooled traces is aligned, with a warning, unless a position channel prefers a move too (then it
   is a dead time, an effect the library fits).
   Position channels are never shifted.
 - **Speed estimator's form**: the model's ``vel_meas`` is the table's velocity; a drive reports an estimate, e.g.
@@ -95,8 +95,9 @@ SHIFT_Z = 5.0
 
 def _best_shift(tds: list[TraceData], preds: list[dict[str, np.ndarray]], ch: str) -> tuple[int, float]:
     """(+-1, z) when moving the prediction of ``ch`` by one sample lowers the pooled residual energy by more than
-    :data:`SHIFT_Z` standard errors of that difference (the residual's correlation time allowed for) and a
-    move by two samples does not lower it further; else (0, best z)."""
+    :data:`SHIFT_Z` standard errors of that difference (the residual's correlation time allowed for), a move by
+    two samples does not lower it further and a move the other way gains less than half as much; else (0, best
+    z)."""
     ssr = {k: 0.0 for k in (-2, -1, 0, 1, 2)}
     dd = {k: 0.0 for k in (-1, 1)}
     n = 0
@@ -125,7 +126,10 @@ def _best_shift(tds: list[TraceData], preds: list[dict[str, np.ndarray]], ch: st
         z = (ssr[0] - ssr[k]) / (2.0 * sigma * math.sqrt(dd[k]) * math.sqrt(tau))
         if z > best_z:
             best, best_z = k, z
-    if best and best_z > SHIFT_Z and ssr[2 * best] >= ssr[best]:
+    # a recording convention moves the channel one way: the other way must gain less than half as much (a
+    # chatter of the prediction that either move lines up with the recorded one gains alike both ways)
+    one_way = best and (ssr[0] - ssr[-best]) < 0.5 * (ssr[0] - ssr[best])
+    if best and best_z > SHIFT_Z and ssr[2 * best] >= ssr[best] and one_way:
         return best, best_z
     return 0, best_z
 
