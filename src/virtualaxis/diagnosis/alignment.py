@@ -5,8 +5,8 @@ prediction of the trace (``TraceData.post``, see :func:`apply_post`), and report
 - **Sample alignment of a channel**: drive traces differ in which sample a value belongs to (force row ``k`` =
   force applied during ``[k-1, k)`` or ``[k, k+1)``). A controller-output or velocity channel whose residual energy
   falls by more than :data:`SHIFT_Z` standard errors when the prediction is moved by one sample (and not further
-  at two, and by less than half as much when moved the other way) on the pooled traces is aligned, with a warning, unless a position channel prefers a move too (then it
-  is a dead time, an effect the library fits).
+  at two, and by less than half as much when moved the other way) on the pooled traces is aligned, with a
+  warning, unless a position channel prefers a move too (then it is a dead time, an effect the library fits).
   Position channels are never shifted.
 - **Speed estimator's form**: the model's ``vel_meas`` is the table's velocity; a drive reports an estimate, e.g.
   ``(q[k] - q[k-1]) / T`` or ``(q[k] - q[k-2]) / 2T`` of its position. When the estimate formed from the model's
