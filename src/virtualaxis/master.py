@@ -90,6 +90,7 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
         self._frames = 0
         self._received = 0
         self._what = ""
+        self._ended = False  # the transfer under way was aborted: no segment request may follow
 
     def _limit_s(self) -> float:
         if self.transfer_timeout_s is not None:
@@ -106,6 +107,11 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
             self._frames = 0
             self._received = 0
             self._what = f"0x{b[2] << 8 | b[1]:04X}:{b[3]}" if len(b) >= 4 and ccs != 4 else self._what
+            self._ended = False
+        elif ccs in (0, 3) and self._ended:
+            # a segment of a transfer the server aborted: canopen's stream sends the closing segment of an
+            # aborted download when it is collected, and would wait out a response timeout in a finalizer
+            raise canopen.SdoCommunicationError(f"the transfer of {self._what or 'an object'} was aborted")
         super().send_request(request)
 
     def read_response(self) -> bytes:
@@ -129,6 +135,7 @@ class BoundedSdoClient(canopen.sdo.SdoClient):
         if len(response) != 8:
             self._fail(f"malformed SDO response: {len(response)} byte(s) [{response.hex(' ')}]; an SDO frame has 8")
         if response[0] == 0x80:  # abort transfer
+            self._ended = True
             raise canopen.SdoAbortedError(struct.unpack_from("<L", response, 4)[0])
         self._received += 1
         self.unanswered_in_row = 0

@@ -8,18 +8,21 @@ Last resort: any other exception is printed as one ``internal error: ...`` line 
 traceback only with ``--debug`` or ``VIRTUALAXIS_DEBUG=1``); such a line is a bug to report, each user
 mistake has its own check. SIGTERM, SIGHUP and the other terminating signals Python can catch are handled like
 SIGINT (``KeyboardInterrupt``), so that outputs being written are removed instead of left truncated; the exit
-status is 130 (SIGINT) or 128 + the signal's number (143 for SIGTERM, 129 for SIGHUP). An OS error that reaches
+status is 130 (SIGINT) or 128 + the signal's number (143 for SIGTERM, 129 for SIGHUP); an interrupt that arrives
+while a finalizer runs (which the interpreter would drop) is raised again until it is taken. An OS error that reaches
 this level (no space left, no permission, a name too long) is one ``error:`` line naming the file, exit 2.
 """
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import os
 import signal
 import sys
 import threading
+import time
 import traceback
 
 from virtualaxis.cli.errors import CliError, StdoutError
@@ -84,8 +87,43 @@ class _Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
+#: an interrupt not yet taken by :func:`main` is raised again this often [s] (see :func:`_redeliver`)
+REDELIVER_S = 0.2
+_pending: dict[str, int | None] = {"signum": None}
+
+
 def _on_terminate(signum, frame) -> None:
+    _note_pending(signum)
     raise _Terminated(signum)
+
+
+def _on_sigint(signum, frame) -> None:
+    _note_pending(signum)
+    raise KeyboardInterrupt
+
+
+def _note_pending(signum: int) -> None:
+    if _pending["signum"] is None:
+        _pending["signum"] = signum
+        threading.Thread(target=_redeliver, args=(signum,), name="interrupt-redelivery", daemon=True).start()
+
+
+def _redeliver(signum: int) -> None:
+    """The interpreter drops an exception raised in a finalizer (``__del__``): an interrupt that arrives while one
+    runs (``canopen`` sends an SDO request and waits for its answer when it collects an aborted transfer's stream)
+    would be lost and the command would run on to the end. Until :func:`main` has taken it, it is raised again
+    every :data:`REDELIVER_S` (``_thread.interrupt_main`` calls the handler in the main thread; once the handlers
+    are back at their defaults it does nothing)."""
+    while True:
+        time.sleep(REDELIVER_S)
+        if _pending["signum"] != signum:
+            return
+        _thread.interrupt_main(signum)
+
+
+def _taken() -> None:
+    """:func:`main` has the interrupt: no redelivery."""
+    _pending["signum"] = None
 
 
 #: signals whose default action ends the process and which Python can catch: each ends a command like SIGINT
@@ -101,6 +139,9 @@ TERMINATING_SIGNALS = tuple(
 def _install_signal_handlers() -> dict[int, object]:
     """Terminating signals raise :class:`_Terminated`; returns the previous handlers."""
     old: dict[int, object] = {}
+    _taken()
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (the same KeyboardInterrupt, redelivered)
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
     for sig in TERMINATING_SIGNALS:
         if signal.getsignal(sig) != signal.SIG_DFL:  # ignored (nohup) or handled by the caller: left alone
             continue
@@ -193,11 +234,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except _Terminated as exc:
+        _taken()
         if argv is None:  # (the process's own command line: it ends now; a caller of main([...]) keeps its handlers)
             _default_signals()
         print(f"terminated ({signal.Signals(exc.signum).name}); incomplete outputs removed", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
+        _taken()
         if argv is None:
             _default_signals()
         print("interrupted; incomplete outputs removed", file=sys.stderr)
@@ -229,6 +272,7 @@ def main(argv: list[str] | None = None) -> int:
               "with --debug for the traceback)", file=sys.stderr)
         return 1
     finally:
+        _taken()
         if isinstance(sys.stdout, _GuardedStdout):
             sys.stdout = real_stdout
         if threading.current_thread() is threading.main_thread():
