@@ -133,6 +133,9 @@ CASES: list[tuple[str, list[str], list[str]]] = [
      ["distance_um", "must not be 0"]),
     # ---- a trace without its header row (before: 'row 1: column 0: duplicate column name')
     ("diag-trace-no-header", DIAG + ["{T}/no_header.csv"], ["no_header.csv", "row 1", "header row is missing"]),
+    # ---- an unknown option is the command's error, with its help (before: the top level's)
+    ("conformance-unknown-option", ["conformance", "--bogus"],
+     ["error: virtualaxis conformance: unrecognized arguments: --bogus", "virtualaxis conformance --help"]),
     ("conformance-json-is-eds", ["conformance", "--can", "virtual:nobody", "--eds", "{T}/e.eds", "--json",
                                  "{T}/hard.eds", "--force"], ["--json", "hard.eds", "also an input"]),
 ]

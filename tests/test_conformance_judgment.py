@@ -10,6 +10,7 @@ import time
 import canopen
 import pytest
 
+from virtualaxis.conformance import runner
 from virtualaxis.conformance.runner import Context, run_checks
 from virtualaxis.conformance.suite import select
 from virtualaxis.master import DEFAULT_EDS
@@ -137,6 +138,27 @@ def test_an_aborted_download_sends_no_segment_afterwards():
     assert not any("set aside" in line for line in res.trace + again.trace), again.trace[-5:]
     # (a download segment with no data, last: 0x0D / 0x1D; outside a transfer the node aborts it 0x05040001)
     assert not [f.hex(" ") for f in seen if f[0] in (0x0D, 0x1D)], [f.hex(" ") for f in seen if f[0] >> 5 == 0]
+
+
+@pytest.mark.parametrize("lockstep", [False, True], ids=["node-in-real-time", "node-in-lockstep"])
+def test_lockstep_pacing_against_a_node_that_keeps_its_own_time_is_named_before_any_check(lockstep):
+    """--pacing lockstep judges timings in SYNCs: against a node served in real time the heartbeat and event-timer
+    checks failed as if the node were wrong (6 heartbeats in 0.7 s of node time). The probe before the checks
+    names the mismatch for a node in real time and passes a node in lockstep."""
+    with start_virtual_axis(transport="virtual", lockstep=lockstep) as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        ctx = Context(net, axis.node_id, str(DEFAULT_EDS), lockstep=True)
+        try:
+            problem = runner.pacing_problem(ctx)
+            (res,) = run_checks(ctx, select("301-HB-1")) if not problem else (None,)
+        finally:
+            ctx.stop_sync()
+            net.disconnect()
+    if lockstep:
+        assert problem is None and res.status == "pass", (problem, res)
+    else:
+        assert problem and "keeps its own time" in problem and "--pacing realtime" in problem, problem
 
 
 class _SlowMaster(Context):

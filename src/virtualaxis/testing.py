@@ -180,7 +180,11 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
         raise ValueError(f"virtual_axis: transport must be 'virtual' or 'udp' (got {transport!r})")
     cfg_path = preset_path(config) if config is not None else Path(DEFAULT_CONFIG)
     if not cfg_path.is_file():
-        raise ValueError(f"virtual_axis: config {cfg_path} not found")
+        from virtualaxis.resources import project_file
+
+        presets = ", ".join(sorted(p.stem for p in project_file("configs").glob("*.toml")))
+        raise ValueError(f"virtual_axis: config {cfg_path} not found (a relative path is taken from "
+                         f"{Path.cwd()}; or name a preset: {presets})")
     runtime = bus = proc = err_file = None
     net = canopen.Network()
     try:

@@ -52,9 +52,20 @@ class _Parser(argparse.ArgumentParser):
     choice) is ONE line ``error: <command>: <what argparse says>`` and exit status 2, not a usage block followed
     by a differently prefixed line. Sub-parsers inherit the class."""
 
+    #: the commands' parsers by name (set on the top-level parser by :func:`build_parser`)
+    command_parsers: dict[str, argparse.ArgumentParser] = {}
+
     def error(self, message: str):  # noqa: D401 - argparse's hook
         hint = f" (see {self.prog} --help)"
         self.exit(2, f"error: {self.prog}: {' '.join(message.split())}{hint}\n")
+
+    def parse_args(self, args=None, namespace=None):
+        """An argument no parser knows is the command's error (its prog and help), not the top level's."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            owner = self.command_parsers.get(getattr(ns, "command", None) or "", self)
+            owner.error(f"unrecognized arguments: {' '.join(extras)}")
+        return ns
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -76,6 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet
             raise
         mod.register(sub)
+    parser.command_parsers = dict(sub.choices)
     return parser
 
 

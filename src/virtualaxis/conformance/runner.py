@@ -762,6 +762,41 @@ def write_json(path: Path, results: list[Result], meta: dict) -> None:
                                 "checks": [asdict(r) for r in results]}, indent=2))
 
 
+#: pacing probe: heartbeat period asked for [ms], SYNCs sent first, then the wall time without SYNC [s] and the
+#: heartbeats in it that show a node keeping its own time (20 ms: ~15 expected of a node in real time)
+PACING_PROBE_HEARTBEAT_MS = 20
+PACING_PROBE_SYNCS = 5
+PACING_PROBE_QUIET_S = 0.3
+PACING_PROBE_OWN_TIME = 5
+
+
+def pacing_problem(ctx: Context) -> str | None:
+    """Lockstep pacing judges every timing in node time (SYNC counts): a node that keeps its own time would fail
+    the timed checks (``301-HB-1``, ``301-PDO-7``) for the master's mistake. Asked before the checks: after a
+    boot and a few SYNCs, with the heartbeat at :data:`PACING_PROBE_HEARTBEAT_MS` and no SYNC for
+    :data:`PACING_PROBE_QUIET_S`, a lockstep node sends no heartbeat (its clock waits for the next SYNC); one
+    that sends :data:`PACING_PROBE_OWN_TIME` or more runs on its own clock. Returns what to do then, else None
+    (also in real-time pacing, which judges on the wall clock)."""
+    if not ctx.lockstep:
+        return None
+    boot(ctx)
+    try:
+        ctx.write(0x1017, 0, PACING_PROBE_HEARTBEAT_MS)
+        for _ in range(PACING_PROBE_SYNCS):
+            ctx.sync_once()
+            time.sleep(0.002)
+        mark = ctx.frames.mark()
+        time.sleep(PACING_PROBE_QUIET_S)
+        n = len(ctx.frames.since(mark, ctx.hb_cob))
+    finally:
+        boot(ctx)
+    if n < PACING_PROBE_OWN_TIME:
+        return None
+    return (f"node {ctx.node_id} keeps its own time ({n} heartbeats of {PACING_PROBE_HEARTBEAT_MS} ms in "
+            f"{PACING_PROBE_QUIET_S:g} s without SYNC), but --pacing lockstep judges timings in SYNCs: run with "
+            "--pacing realtime, or serve the node with --lockstep")
+
+
 def identity(ctx: Context) -> dict[str, str]:
     """The node's identity for a report: device type 0x1000, identity 0x1018:1..4, names 0x1008 / 0x100A (those
     it answers)."""
