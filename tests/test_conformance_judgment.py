@@ -161,6 +161,28 @@ def test_lockstep_pacing_against_a_node_that_keeps_its_own_time_is_named_before_
         assert problem and "keeps its own time" in problem and "--pacing realtime" in problem, problem
 
 
+def test_a_node_that_goes_away_mid_run_stops_the_run_instead_of_failing_every_later_check():
+    """A node whose process ended failed every later check as the node's behaviour (a docs-only tester killed
+    serve 14 s into a run: 15 failures over 140 s). After a failed check the suite asks the node for 0x1000; no
+    answer ends the run as an error of the run."""
+    with start_virtual_axis(transport="virtual") as axis:
+        net = canopen.Network()
+        net.connect(**axis.bus_kwargs)
+        ctx = Context(net, axis.node_id, str(DEFAULT_EDS), lockstep=False, sdo_timeout_s=0.2)
+        try:
+            axis.runtime.stop()  # the node is gone
+            t0 = time.monotonic()
+            with pytest.raises(runner.RunStopped) as exc:
+                run_checks(ctx, select("301-ID-1,301-ID-2,301-NMT-1,301-SDO-1,301-SDO-2"))
+            took = time.monotonic() - t0
+        finally:
+            ctx.stop_sync()
+            net.disconnect()
+    assert "does not answer any more" in str(exc.value) and "301-ID-1" in str(exc.value), exc.value
+    assert len(exc.value.results) == 1 and exc.value.results[0].status == "fail"
+    assert took < 15.0, took
+
+
 class _SlowMaster(Context):
     """A master on a loaded host in real time: each SYNC leaves 2 ms late, so its 1 ms set-point stream sends
     about one set-point in three periods, with no gap long enough to be seen as a pause."""

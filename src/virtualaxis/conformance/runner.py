@@ -642,8 +642,8 @@ MAX_STALLED_SDO = 2
 
 class RunStopped(Exception):  # noqa: N818 - the name says what happened
     """The run cannot go on: the node's SDO server is broken (a transfer that never ends, or
-    :data:`MAX_UNANSWERED_SDO` exchanges left unanswered). An error of the run, not a result of a check; the
-    results so far are in :attr:`results`."""
+    :data:`MAX_UNANSWERED_SDO` exchanges left unanswered), or the node no longer answers after a check failed. An
+    error of the run, not a result of a check; the results so far are in :attr:`results`."""
 
     def __init__(self, message: str, results: list[Result]):
         super().__init__(message)
@@ -740,7 +740,24 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
                 boot(ctx)
             except Exception:  # noqa: BLE001
                 pass
+            gone = _node_gone(ctx)
+            if gone is not None:
+                raise RunStopped(f"node {ctx.node_id}: {gone}; the run stopped after {chk.id} failed "
+                                 f"({len(results)} check(s) run)", results)
     return results
+
+
+def _node_gone(ctx: Context) -> str | None:
+    """After a failed check: whether the node still answers an SDO read of 0x1000 (with the run's SDO timeout
+    and retries); a node that has gone (its process ended, unplugged) would fail every later check as if it
+    behaved wrongly, so its absence ends the run instead. None while it answers (an abort is an answer too)."""
+    try:
+        ctx.read(0x1000)
+    except canopen.SdoAbortedError:
+        return None
+    except (canopen.SdoCommunicationError, SdoTransferOverrun) as exc:
+        return f"does not answer any more (SDO read 0x1000: {exc})"
+    return None
 
 
 def line(res: Result) -> str:
