@@ -511,17 +511,23 @@ def test_communication_errors_clear_themselves_and_never_hide_the_fault_code():
         r.close()
 
 
+def _rpdo_deadline_rig() -> Rig:
+    """OPERATIONAL, RPDO2 with a 30 ms deadline and no drive reaction to it (0x6007 = 0: only the stack's EMCY)."""
+    r = Rig()
+    r.node.sdo[0x6007].raw = 0
+    r.node.sdo[0x1401][5].raw = 30
+    r.node.nmt.state = "OPERATIONAL"
+    return r
+
+
 def test_rpdo_deadline_and_pdo_length_errors_never_hide_the_fault_code_and_clear_0x603f():
     """The rule of docs/canopen.md for every communication EMCY, not only 0x81xx (before: the RPDO deadline
     0x8250 and a short RPDO 0x8210 replaced a fault's 0x3220 in 0x603F, and after the RPDO came back 0x603F
     kept 0x8250 while 0x1001 read 0): a communication error takes 0x603F only while the application has no
     error of its own, and its clearing resets 0x603F with 0x1001."""
-    r = Rig()
+    r = _rpdo_deadline_rig()
     try:
         node = r.node
-        node.sdo[0x6007].raw = 0  # no drive reaction to the RPDO deadline: only the stack's EMCY
-        node.sdo[0x1401][5].raw = 30  # RPDO2 deadline 30 ms
-        node.nmt.state = "OPERATIONAL"
         _raw_rpdo2(r, 0x06, 0)
         r.emcy.wait_for(0x8250)
         assert node.sdo[0x603F].raw == 0x8250 and node.sdo[0x1001].raw == 0x11
@@ -549,12 +555,9 @@ def test_a_fault_reset_while_a_communication_error_lasts_sends_no_error_reset():
     communication error lasts (an RPDO deadline) leaves 0x1001 = 0x11 and 0x603F = that error's code and sends
     no EMCY (a docs-only master's case: a SYNC loss in PRE-OPERATIONAL got EMCY 0x0000 with register 0x11); the
     EMCY 0x0000 goes out when the communication error clears too."""
-    r = Rig()
+    r = _rpdo_deadline_rig()
     try:
         node = r.node
-        node.sdo[0x6007].raw = 0  # no drive reaction to the RPDO deadline: only the stack's EMCY
-        node.sdo[0x1401][5].raw = 30  # RPDO2 deadline 30 ms
-        node.nmt.state = "OPERATIONAL"
         node.sdo[0x2010].raw = 0x3220  # an injected DC-link undervoltage: FAULT
         r.emcy.wait_for(0x3220)
         r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)
