@@ -9,8 +9,9 @@ traceback only with ``--debug`` or ``VIRTUALAXIS_DEBUG=1``); such a line is a bu
 mistake has its own check. SIGTERM, SIGHUP and the other terminating signals Python can catch are handled like
 SIGINT (``KeyboardInterrupt``), so that outputs being written are removed instead of left truncated; the exit
 status is 130 (SIGINT) or 128 + the signal's number (143 for SIGTERM, 129 for SIGHUP); an interrupt that arrives
-while a finalizer runs (which the interpreter would drop) is raised again until it is taken. An OS error that reaches
-this level (no space left, no permission, a name too long) is one ``error:`` line naming the file, exit 2.
+while a finalizer runs (which the interpreter drops) is raised again once the finalizer has returned. An OS error
+that reaches this level (no space left, no permission, a name too long) is one ``error:`` line naming the file,
+exit 2.
 """
 
 from __future__ import annotations
@@ -99,43 +100,36 @@ class _Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
-#: an interrupt not yet taken by :func:`main` is raised again this often [s] (see :func:`_redeliver`)
-REDELIVER_S = 0.2
-_pending: dict[str, int | None] = {"signum": None}
-
-
 def _on_terminate(signum, frame) -> None:
-    _note_pending(signum)
     raise _Terminated(signum)
 
 
-def _on_sigint(signum, frame) -> None:
-    _note_pending(signum)
-    raise KeyboardInterrupt
+#: an interrupt dropped in a finalizer is raised again this long after [s]
+RAISE_AGAIN_AFTER_S = 0.02
 
 
-def _note_pending(signum: int) -> None:
-    if _pending["signum"] is None:
-        _pending["signum"] = signum
-        threading.Thread(target=_redeliver, args=(signum,), name="interrupt-redelivery", daemon=True).start()
+def _interrupt_main_soon(signum: int) -> None:
+    time.sleep(RAISE_AGAIN_AFTER_S)
+    _thread.interrupt_main(signum)
 
 
-def _redeliver(signum: int) -> None:
-    """The interpreter drops an exception raised in a finalizer (``__del__``): an interrupt that arrives while one
-    runs (``canopen`` sends an SDO request and waits for its answer when it collects an aborted transfer's stream)
-    would be lost and the command would run on to the end. Until :func:`main` has taken it, it is raised again
-    every :data:`REDELIVER_S` (``_thread.interrupt_main`` calls the handler in the main thread; once the handlers
-    are back at their defaults it does nothing)."""
-    while True:
-        time.sleep(REDELIVER_S)
-        if _pending["signum"] != signum:
+def _raise_dropped_again(previous_hook):
+    """A ``sys.unraisablehook`` that raises an interrupt again when the interpreter dropped it: an exception raised
+    in a finalizer (``__del__``) is only reported, so a Ctrl-C or SIGTERM that arrives while one runs (``canopen``
+    sends an SDO request and waits for its answer when it collects an aborted transfer's stream) would be lost
+    and the command would run on to the end. ``_thread.interrupt_main``, from a thread of its own, has the main
+    thread call the signal's handler again once the finalizer has returned (dropped again: again). Other
+    unraisable exceptions go to ``previous_hook``."""
+
+    def hook(unraisable) -> None:
+        exc = unraisable.exc_value
+        if isinstance(exc, KeyboardInterrupt) and threading.current_thread() is threading.main_thread():
+            # (from another thread, a moment later: in this one the handler would run, and raise, inside this hook)
+            _thread.start_new_thread(_interrupt_main_soon, (getattr(exc, "signum", signal.SIGINT),))
             return
-        _thread.interrupt_main(signum)
+        previous_hook(unraisable)
 
-
-def _taken() -> None:
-    """:func:`main` has the interrupt: no redelivery."""
-    _pending["signum"] = None
+    return hook
 
 
 #: signals whose default action ends the process and which Python can catch: each ends a command like SIGINT
@@ -151,9 +145,6 @@ TERMINATING_SIGNALS = tuple(
 def _install_signal_handlers() -> dict[int, object]:
     """Terminating signals raise :class:`_Terminated`; returns the previous handlers."""
     old: dict[int, object] = {}
-    _taken()
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (the same KeyboardInterrupt, redelivered)
-        old[signal.SIGINT] = signal.signal(signal.SIGINT, _on_sigint)
     for sig in TERMINATING_SIGNALS:
         if signal.getsignal(sig) != signal.SIG_DFL:  # ignored (nohup) or handled by the caller: left alone
             continue
@@ -231,8 +222,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get("VIRTUALAXIS_DEBUG", "") not in ("", "0")
     old_handlers: dict[int, object] = {}
+    old_unraisable = sys.unraisablehook
     if threading.current_thread() is threading.main_thread():
         old_handlers = _install_signal_handlers()
+        sys.unraisablehook = _raise_dropped_again(old_unraisable)
     from virtualaxis.cli.outputs import reset_claims
 
     reset_claims()
@@ -246,13 +239,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except _Terminated as exc:
-        _taken()
         if argv is None:  # (the process's own command line: it ends now; a caller of main([...]) keeps its handlers)
             _default_signals()
         print(f"terminated ({signal.Signals(exc.signum).name}); incomplete outputs removed", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
-        _taken()
         if argv is None:
             _default_signals()
         print("interrupted; incomplete outputs removed", file=sys.stderr)
@@ -284,12 +275,12 @@ def main(argv: list[str] | None = None) -> int:
               "with --debug for the traceback)", file=sys.stderr)
         return 1
     finally:
-        _taken()
         if isinstance(sys.stdout, _GuardedStdout):
             sys.stdout = real_stdout
         if threading.current_thread() is threading.main_thread():
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
+            sys.unraisablehook = old_unraisable
 
 
 def _one_line(exc: BaseException) -> str:
