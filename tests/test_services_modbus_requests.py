@@ -120,6 +120,20 @@ def test_frames_of_another_protocol_are_skipped_and_the_stream_stays_in_step(ser
     assert [tid for tid, _ in answers] == [1, 3]
 
 
+
+@pytest.mark.parametrize("in_pieces", [0, 1], ids=["one-send", "byte-by-byte"])
+def test_frames_without_a_function_code_are_skipped_and_the_stream_stays_in_step(server, in_pieces):
+    """An MBAP length of 0 (not even the unit id) or 1 (the unit id only) frames no request, but the frame still
+    ends where its length says: the requests after it are answered (a docs-only tester's valid request after a
+    length-0 header went unanswered, and after a length-1 one none in the same segment)."""
+    read = struct.pack(">BHH", 3, 40110 - 40001, 1)
+    no_unit = struct.pack(">HHH", 2, 0, 0)
+    unit_only = struct.pack(">HHHB", 4, 0, 1, 1)
+    answers = _exchange(server, [_adu(1, read), no_unit, _adu(3, read), unit_only, _adu(5, read), _adu(6, read)],
+                        4, in_pieces=in_pieces)
+    assert [tid for tid, _ in answers] == [1, 3, 5, 6]
+    assert all(pdu[:2] == bytes([3, 2]) for _, pdu in answers)
+
 @pytest.fixture
 def fresh():
     s = Server({1: make_drive()})

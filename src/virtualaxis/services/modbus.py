@@ -395,8 +395,9 @@ def pipelining_server_class(server_class):
     answered one after the other; a request pymodbus cannot decode or that has no function code of the map is
     answered in its place: exception 01 for a function code the map does not serve (0x00, 0x80..0xFF and every
     other code), 03 for a request of a served function whose PDU is too short or too long. A frame of another
-    protocol (protocol id not 0) is skipped; a length field below 2 (no function code) leaves nothing to frame
-    by, and the bytes received are dropped. A request longer than Modbus allows (a PDU of more than 253 bytes)
+    protocol (protocol id not 0) is skipped, and so is a frame whose length field is below 2 (no function code:
+    nothing to answer; the frame still ends where its length says, and the requests after it are answered). A
+    request longer than Modbus allows (a PDU of more than 253 bytes)
     is still framed by its length and answered (exception 03 from its count or length). If pymodbus' handler is
     not the one this was written for (3.16), its own is used."""
     import asyncio
@@ -448,17 +449,17 @@ def pipelining_server_class(server_class):
                 data, self._partial = self._partial + data, b""
             total, n = 0, len(data)
             decode = self.framer.decoder.decode
-            while n - total >= 7:
-                tid, pid, length, unit = struct.unpack_from(">HHHB", data, total)
-                if length < 2:
-                    return used  # no function code, no frame boundary to go by: what was received is dropped
+            while n - total >= 6:
+                tid, pid, length = struct.unpack_from(">HHH", data, total)
                 end = total + 6 + length
                 if end > n:
                     break  # the rest of this frame has not arrived yet
+                if length < 2 or pid != 0:
+                    total = end  # no function code (nothing to answer), or not a Modbus frame: skipped
+                    continue
+                unit = data[total + 6]
                 pdu_bytes = data[total + 7 : end]
                 total = end
-                if pid != 0:
-                    continue  # not a Modbus frame
                 fc = pdu_bytes[0]
                 if fc not in SUPPORTED_FUNCTIONS:
                     request = Refusal(fc, 3, unit, tid)
