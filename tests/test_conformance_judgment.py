@@ -3,6 +3,7 @@ late and SDO answers that arrive during another exchange are not taken for the n
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 import time
@@ -46,15 +47,22 @@ class _DelayLine:
         self.thread.join(2.0)
 
 
-def _run_one(axis, check_id: str) -> object:
+@contextlib.contextmanager
+def _master(axis, context_class=Context, *, lockstep: bool = False, **kwargs):
+    """The suite's master context on ``axis``' bus (``kwargs``: more of its options), closed after use."""
     net = canopen.Network()
     net.connect(**axis.bus_kwargs)
-    ctx = Context(net, axis.node_id, str(DEFAULT_EDS), lockstep=False)
+    ctx = context_class(net, axis.node_id, str(DEFAULT_EDS), lockstep=lockstep, **kwargs)
     try:
-        (res,) = run_checks(ctx, select(check_id))
+        yield ctx
     finally:
         ctx.stop_sync()
         net.disconnect()
+
+
+def _run_one(axis, check_id: str) -> object:
+    with _master(axis) as ctx:
+        (res,) = run_checks(ctx, select(check_id))
     return res
 
 
@@ -146,15 +154,9 @@ def test_lockstep_pacing_against_a_node_that_keeps_its_own_time_is_named_before_
     checks failed as if the node were wrong (6 heartbeats in 0.7 s of node time). The probe before the checks
     names the mismatch for a node in real time and passes a node in lockstep."""
     with start_virtual_axis(transport="virtual", lockstep=lockstep) as axis:
-        net = canopen.Network()
-        net.connect(**axis.bus_kwargs)
-        ctx = Context(net, axis.node_id, str(DEFAULT_EDS), lockstep=True)
-        try:
+        with _master(axis, lockstep=True) as ctx:
             problem = runner.pacing_problem(ctx)
             (res,) = run_checks(ctx, select("301-HB-1")) if not problem else (None,)
-        finally:
-            ctx.stop_sync()
-            net.disconnect()
     if lockstep:
         assert problem is None and res.status == "pass", (problem, res)
     else:
@@ -166,18 +168,12 @@ def test_a_node_that_goes_away_mid_run_stops_the_run_instead_of_failing_every_la
     serve 14 s into a run: 15 failures over 140 s). After a failed check the suite asks the node for 0x1000; no
     answer ends the run as an error of the run."""
     with start_virtual_axis(transport="virtual") as axis:
-        net = canopen.Network()
-        net.connect(**axis.bus_kwargs)
-        ctx = Context(net, axis.node_id, str(DEFAULT_EDS), lockstep=False, sdo_timeout_s=0.2)
-        try:
+        with _master(axis, sdo_timeout_s=0.2) as ctx:
             axis.runtime.stop()  # the node is gone
             t0 = time.monotonic()
             with pytest.raises(runner.RunStopped) as exc:
                 run_checks(ctx, select("301-ID-1,301-ID-2,301-NMT-1,301-SDO-1,301-SDO-2"))
             took = time.monotonic() - t0
-        finally:
-            ctx.stop_sync()
-            net.disconnect()
     assert "does not answer any more" in str(exc.value) and "301-ID-1" in str(exc.value), exc.value
     assert len(exc.value.results) == 1 and exc.value.results[0].status == "fail"
     assert took < 15.0, took
@@ -200,13 +196,7 @@ def test_a_master_that_sends_too_few_set_points_is_a_run_error():
     of the 20 mm, which is the master's miss, not the node's: the check is a run error naming the set-points
     sent, never a failure of the node."""
     with start_virtual_axis(transport="virtual") as axis:
-        net = canopen.Network()
-        net.connect(**axis.bus_kwargs)
-        ctx = _SlowMaster(net, axis.node_id, str(DEFAULT_EDS), lockstep=False)
-        try:
+        with _master(axis, _SlowMaster) as ctx:
             (res,) = run_checks(ctx, select("402-CSP-1"))
-        finally:
-            ctx.stop_sync()
-            net.disconnect()
     assert res.status == "error" and res.failure_type == "run", res
     assert "the master or the host" in res.detail, res

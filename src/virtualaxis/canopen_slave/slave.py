@@ -357,15 +357,9 @@ class CanopenSlave:
         reset / no error) and 0x1001 = 0x603F = 0. A communication error still present keeps 0x1001's generic
         and communication bits and shows its code in 0x603F, and no EMCY goes out (0x0000 would tell the master
         that no error is left; it goes out when that error clears, :meth:`clear_comm_error`)."""
-        if self._comm_errors:
-            self.write(0x1001, 0, 0x11)
-            self.set_application_error_code(0)
-            return
-        self.write(0x1001, 0, 0)
-        if (0x603F, 0) in self.od.entries:
-            self.write(0x603F, 0, 0)
-        self._error_code_from_comm = False
-        if self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
+        self.write(0x1001, 0, 0x11 if self._comm_errors else 0)
+        self.set_application_error_code(0)
+        if not self._comm_errors and self.nmt_state in (NMT_STATE.PRE_OPERATIONAL, NMT_STATE.OPERATIONAL):
             self.emcy_producer.produce(0x0000, 0, b"", self._now)
 
     def raise_comm_error(self, code: int, source: int = 0, data: bytes = b"") -> None:
