@@ -270,6 +270,21 @@ def test_homing_methods(method, x0_m, home_m):
         r.close()
 
 
+@pytest.mark.parametrize("method", [35, 37])
+def test_homing_on_the_current_position_shows_the_home_offset_with_the_attained_bits(method):
+    """21: methods 35 / 37 are attained with the controlword that starts them; from then on the statusword
+    (0/1/1) and the actual position (0x6064 = 0x607C) tell the same: a SYNC answered before the next drive cycle
+    carries both (the conformance check 402-HM-1 saw SW 0x1637 with the old 0x6064 in one TPDO)."""
+    r = _homing_rig(method, 0.0123)
+    try:
+        node = r.node
+        node.sdo[0x6040].raw = 0x1F  # (lockstep: no drive cycle runs until the next SYNC)
+        assert r.sw() & 0x3400 == 0x1400
+        assert node.sdo[0x6064].raw == 1234
+    finally:
+        r.close()
+
+
 def test_homing_with_base_node_402_homing_call():
     """21: the canopen master's own homing() (CW 0x1F, waits on bits 10/12/13) under a running SYNC."""
     r = _homing_rig(20, 0.01)

@@ -287,3 +287,79 @@ def test_a_backlog_drains_at_the_bit_rate(request):
         assert waits[-3] < 2e-3, waits[-5:]
     finally:
         bus.shutdown()
+
+
+def test_a_thread_that_took_the_transmission_over_releases_each_frame_at_its_wire_time(request):
+    channel = f"va-bitrate-driven-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
+    rx = can.Bus(interface="virtual", channel=channel)
+    try:
+        tx.take_over()
+        assert tx.driven
+        frames = {cob: _msg(cob, 8, fill) for cob, fill in ((0x500, 0x11), (0x300, 0x22), (0x181, 0x33))}
+        t_sent = time.perf_counter()
+        for m in frames.values():
+            tx.send(m)
+        assert rx.recv(0.05) is None  # (no thread releases them now: 50 ms, the bus carries one frame per ms)
+        # the first frame found the bus idle: its last bit passes bits / bit rate after it was queued
+        due = tx.release_due(t_sent)
+        assert due is not None and rx.recv(0.05) is None
+        assert tx.release_due(due - 1e-6) == due and rx.recv(0.05) is None  # not a microsecond early
+        nxt = tx.release_due(due)
+        assert rx.recv(0.5).arbitration_id == 0x500
+        # the two others waited for the idle bus: the lower identifier won, right after the first frame
+        assert nxt == pytest.approx(due + frame_bits(frames[0x181]) / 125_000, abs=1e-12)
+        assert rx.recv(0.05) is None
+        assert tx.release_due(nxt + 1.0) is None  # (a caller that comes late releases every frame due by then)
+        assert [rx.recv(0.5).arbitration_id for _ in range(2)] == [0x181, 0x300]
+        assert tx.stats()["frames_sent"] == 3
+        # handed back: the transmitter thread releases the frames again
+        tx.hand_back()
+        assert not tx.driven
+        tx.send(_msg(0x182, 2))
+        got = rx.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x182
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+def test_the_runtime_releases_the_emulated_frames_in_its_own_loop_while_it_runs(request):
+    from test_drive_rig import seed_config, seed_discrete
+
+    from virtualaxis.runtime import AxisNode, Runtime
+
+    channel = f"va-bitrate-runtime-{id(request)}"
+    bus = BitRateBus(can.Bus(interface="virtual", channel=channel), 1_000_000)
+    master = can.Bus(interface="virtual", channel=channel)
+    rt = Runtime(bus, [AxisNode(bus, 5, seed_config(), discrete=seed_discrete(), name="A5")])
+    rt.start()
+    try:
+        end = time.monotonic() + 5.0
+        while not bus.driven:
+            assert time.monotonic() < end, "the runtime did not take the transmission over"
+            time.sleep(0.005)
+        sent = bus.stats()["frames_sent"]
+        for _ in range(20):  # SDO upload of 0x1000 (device type): each answer is released by the runtime's loop
+            master.send(can.Message(arbitration_id=0x605, data=b"\x40\x00\x10\x00\x00\x00\x00\x00",
+                                    is_extended_id=False))
+            end = time.monotonic() + 2.0
+            while True:
+                msg = master.recv(max(0.0, end - time.monotonic()))
+                assert msg is not None, "no SDO answer"
+                if msg.arbitration_id == 0x585:
+                    break
+            assert msg.data[0] == 0x43 and msg.data[1:4] == b"\x00\x10\x00"
+        assert bus.stats()["frames_sent"] >= sent + 20
+    finally:
+        rt.stop()
+    try:
+        assert not bus.driven  # handed back when the loop ended: the bus's thread releases its frames again
+        bus.send(can.Message(arbitration_id=0x185, data=b"\x01", is_extended_id=False))
+        end = time.monotonic() + 2.0
+        while (got := master.recv(max(0.0, end - time.monotonic()))) is not None and got.arbitration_id != 0x185:
+            pass  # (heartbeats and the like sent before it)
+        assert got is not None
+    finally:
+        master.shutdown()
+        bus.shutdown()

@@ -38,4 +38,6 @@ def test_a_child_that_computes_nothing_is_given_up_after_its_timeout(tests_on_pa
     t0 = time.monotonic()
     with pytest.raises(OSError, match=r"--test 127\.0\.0\.1:1: the test server did not start in [0-9]+ s"):
         child.start("child_entries:asleep_then_ready", ("init", 30.0), 2.0)
-    assert time.monotonic() - t0 < 8.0  # (a busy host may stretch the child's own start-up past the 2 s)
+    # before the 5 x 2 s that a child still computing gets (a busy host may stretch the child's own start-up, its
+    # imports, past the 2 s: 8.0 s once with the suite on two workers)
+    assert time.monotonic() - t0 < 9.5

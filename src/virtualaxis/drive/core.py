@@ -269,7 +269,7 @@ class Drive:
             self.ctx = ModeContext(
                 objects=self.objects, setpoints=self.setpoints, cycle_s=self.cycle_s, params=self._params,
                 switches=self._switches, travel_room_m=self.travel_room_m, refuse_setpoint=self.refuse_setpoint,
-                accept_setpoint=self.accept_setpoint, on_homed=lambda: self._notify("homed"),
+                accept_setpoint=self.accept_setpoint, on_homed=self._on_homed,
                 stroke_m=self.cfg.axis.stroke_m, index_pulse_offset_m=self.settings.index_pulse_offset_m)
             #: touch probes 0x60B8-0x60BD, latching at the plant's inner rate (current-loop cycles)
             self.touch_probe = TouchProbe(self.sim.current_cycles_per_cycle, self.settings.index_pulse_offset_m,
@@ -968,6 +968,13 @@ class Drive:
             log.exception("drive %s: fault handling after a cycle exception failed", self.name)
             self._state = S.FAULT
             self._store((0x6041, 0), STATE_BITS[S.FAULT] | 0x210)
+
+    def _on_homed(self) -> None:
+        """A homing run attained its home point: the actual values follow the new position reference at once
+        (methods 35 / 37 are attained by the controlword that starts them, before the next cycle: a SYNC answered
+        meanwhile carries the statusword that tells it and 0x6064 = 0x607C together); then the observers hear it."""
+        self._publish_outputs()
+        self._notify("homed")
 
     def _restore_plant_if_not_finite(self) -> None:
         """If the plant state holds NaN/inf (a diverged integration), put the axis at rest at the last finite

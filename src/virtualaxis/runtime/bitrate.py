@@ -5,9 +5,11 @@ A python-can ``virtual`` or ``udp_multicast`` bus delivers a frame as fast as th
 several frames wait, sends the one with the lowest identifier first. :class:`BitRateBus` wraps the served bus
 so that a master that would overload a real bus sees the delays and the overload here:
 
-- ``send`` hands the frame to a transmitter thread through a C queue (it never blocks the drive thread and
-  costs it about what a send on the bare bus does); the transmitter works out the frame's length (compiled,
-  without the interpreter lock) and puts it on the wire on a virtual bus timeline: the frame starts when the
+- ``send`` queues the frame through a C queue (it never blocks the drive thread and costs it about what a send on
+  the bare bus does). The frames are released by :meth:`BitRateBus.release_due`: called by a transmitter thread,
+  or, after :meth:`BitRateBus.take_over`, by a loop that wakes on time anyway (the runtime's: no second thread's
+  wake-up and interpreter-lock hand-over per frame). It works out the frame's length (compiled) and puts it on the
+  wire on a virtual bus timeline: the frame starts when the
   bus is idle (after the previous frame of this node and after every frame received from other nodes), among
   the frames waiting at that moment the lowest identifier wins (arbitration), and it is handed to the wrapped
   bus when its last bit would have been sent (start + bits / bit rate). The release can be late by the host's
@@ -188,9 +190,11 @@ class BitRateBus(can.BusABC):
         self.peak_load = 0.0
         self._peak_checked_s = self._t0
         self._stop = False
+        #: the frame on the wire now: (end, bits, queued_s, msg), chosen and not yet handed to the wrapped bus
+        self._in_flight: tuple[float, int, float, can.Message] | None = None
+        self._driven = False  # a caller of take_over() releases the frames, not the transmitter thread
         _frame_bits_kernel(0, False, False, 0, 0, 0, 0, False)  # compiled (or loaded) now, not at the first frame
-        self._thread = threading.Thread(target=self._transmitter, name="can-bitrate-tx", daemon=True)
-        self._thread.start()
+        self._start_transmitter()
 
     # ------------------------------------------------------------------ python-can interface
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
@@ -302,6 +306,8 @@ class BitRateBus(can.BusABC):
     def _take_inbox(self, block: bool) -> None:
         """Move the frames handed over by send() to ``_pending`` (``block``: wait up to 0.1 s for one)."""
         inbox, pending = self._inbox, self._pending
+        if not block and inbox.empty():
+            return
         try:
             if block:
                 item = inbox.get(timeout=0.1)
@@ -315,31 +321,38 @@ class BitRateBus(can.BusABC):
         except queue.Empty:
             return
 
-    def _transmitter(self) -> None:
-        lock = self._lock
-        perf = time.perf_counter
+    def release_due(self, now: float) -> float | None:
+        """Hand every frame whose last bit has passed at ``now`` (``time.perf_counter``) to the wrapped bus;
+        returns when the next waiting frame's last bit passes (``None``: none waits). Called by one thread at a
+        time: the transmitter thread, or the thread that took the transmission over (:meth:`take_over`).
+
+        The bus goes idle at ``start`` (the end of the last frame, or the queueing of the first frame after an
+        idle bus); among the frames queued by then, the lowest identifier wins (arbitration) and its last bit
+        passes ``bits / bitrate`` later. The choice is made once: a frame queued after ``start`` waits for the
+        next round, as on the wire."""
+        self._take_inbox(block=False)
         pending, ready = self._pending, self._ready
-        inner_send = self.inner.send
-        stuffing = self.stuffing
-        while not self._stop:
-            self._take_inbox(block=not pending and not ready)
-            if not pending and not ready:
-                continue
-            with lock:
-                # the bus goes idle at ``start``; ready frames were all queued by the previous start <= idle
-                start = self._idle_s if ready else max(self._idle_s, pending[0][2])
-                while pending and pending[0][2] <= start:
-                    heapq.heappush(ready, pending.popleft())
-                # arbitration: among the frames waiting when the bus goes idle, the lowest identifier
-                _prio, _seq, queued_s, msg = heapq.heappop(ready)
-                bits = frame_bits(msg, stuffing)
-                end = start + bits / self.bitrate
-                self._idle_s = end
-            remaining = end - perf()
-            if remaining > 0:
-                time.sleep(remaining)
+        lock = self._lock
+        while True:
+            flight = self._in_flight
+            if flight is None:
+                if not pending and not ready:
+                    return None
+                with lock:
+                    start = self._idle_s if ready else max(self._idle_s, pending[0][2])
+                    while pending and pending[0][2] <= start:
+                        heapq.heappush(ready, pending.popleft())
+                    _prio, _seq, queued_s, msg = heapq.heappop(ready)
+                    bits = frame_bits(msg, self.stuffing)
+                    end = start + bits / self.bitrate
+                    self._idle_s = end
+                flight = self._in_flight = (end, bits, queued_s, msg)
+            end, bits, queued_s, msg = flight
+            if end > now:
+                return end
+            self._in_flight = None
             try:
-                inner_send(msg)
+                self.inner.send(msg)
             except (can.CanError, OSError, ValueError):
                 self._inner_refused += 1
                 self._done += 1
@@ -352,7 +365,47 @@ class BitRateBus(can.BusABC):
                 self.delay_sum_s += delay
                 if delay > self.delay_max_s:
                     self.delay_max_s = delay
-                self._account(end, bits, perf())
+                self._account(end, bits, time.perf_counter())
+
+    def take_over(self) -> None:
+        """From now on the calling thread releases the frames: it calls :meth:`release_due` in its own loop and
+        waits no longer than until the time that returns (the transmitter thread stops). A runtime whose loop
+        wakes on time anyway releases them on time without a second thread's wake-up per frame (and its
+        interpreter lock hand-over). :meth:`hand_back` starts the transmitter thread again."""
+        if self._driven:
+            return
+        self._driven = True
+        self._inbox.put(None)  # (wakes the transmitter, which then stops)
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+
+    def hand_back(self) -> None:
+        """The transmitter thread releases the frames again (after :meth:`take_over`)."""
+        if not self._driven or self._stop:
+            return
+        self._driven = False
+        self._start_transmitter()
+
+    @property
+    def driven(self) -> bool:
+        """Whether a caller of :meth:`take_over` releases the frames (else the transmitter thread)."""
+        return self._driven
+
+    def _start_transmitter(self) -> None:
+        self._thread = threading.Thread(target=self._transmitter, name="can-bitrate-tx", daemon=True)
+        self._thread.start()
+
+    def _transmitter(self) -> None:
+        perf = time.perf_counter
+        sleep = time.sleep
+        while not self._stop and not self._driven:
+            due = self.release_due(perf())
+            if due is None:
+                self._take_inbox(block=True)
+                continue
+            remaining = due - perf()
+            if remaining > 0:
+                sleep(remaining)
 
     # ------------------------------------------------------------------ report
     def load(self) -> float:

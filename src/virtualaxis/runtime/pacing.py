@@ -52,6 +52,13 @@ frame between threads (7 axes at 1 ms: SYNC -> TPDO p50 ~0.85 -> ~0.43 ms, CPU o
 core, BENCHMARKS.md). Other buses (python-can ``virtual``), or ``read_in_loop=False``: a ``can.Notifier``
 thread reads the bus and wakes the loop.
 
+Emulated CAN timing (:class:`~virtualaxis.runtime.bitrate.BitRateBus`): while the loop runs, it releases the
+bus's frames itself (``take_over``): it wakes when the next frame's last bit has passed on the emulated wire, as
+it wakes for a drive cycle, and releases the frames that fell due between two axes' cycles or SYNC answers. A
+transmit thread of the bus's own did it with a wake-up and an interpreter-lock hand-over per frame, and waited
+for the lock while the loop computed (3 axes at 1 ms, 7 at 2 ms: late answers about halved, BENCHMARKS.md).
+The bus's thread takes over again when the loop ends.
+
 Nothing dies silently: an exception escaping a drive's cycle (``drive.step``) or its object copy
 (``app.flush``) is caught, logged with its traceback (logger ``virtualaxis.runtime``; the first
 :data:`LOGGED_TRACEBACKS` per axis, then every 1000th), counted (:attr:`RuntimeStats.drive_exceptions`,
@@ -325,6 +332,9 @@ class Runtime:
         self._opened = False
         self._fd = -1  # the bus's receive descriptor when the loop reads the bus itself (-1: a Notifier does)
         self._bus_drain = None  # the bus's own drain(limit, on_error) -> frames, when it has one
+        #: while the loop runs on a bus that lets it release the frames itself (``release_due(now)`` -> next due
+        #: time, see :class:`~virtualaxis.runtime.bitrate.BitRateBus`): that function, else None
+        self._release: Callable[[float], float | None] | None = None
         self._t0 = time.perf_counter()
         self.lock = threading.RLock()  # held while the loop works; take it to touch the axes from outside
         self._gap_jobs: collections.deque = collections.deque()  # (submitted at [perf_counter s], job)
@@ -507,6 +517,8 @@ class Runtime:
                 ax.slave.apply_sync()
                 stepping.append((ax, counters))
                 continue
+            if self._release is not None:  # (the first axes' TPDOs may be due on the wire by now)
+                self._release_frames()
             self._flush(ax)
             ax.slave.apply_sync()
             self._flush(ax)
@@ -526,6 +538,8 @@ class Runtime:
                     self._step(ax, n)
                 ax.slave.poll_timers(self._clock(ax, now))  # what fell due in these cycles goes out now, in order
                 self._flush(ax)
+                if self._release is not None:
+                    self._release_frames()
                 if ax is axes0:
                     self.stats.cycles += n * len(counters)
             stepping.clear()
@@ -612,9 +626,27 @@ class Runtime:
         except (OSError, ValueError):  # the bus was closed under the loop: stop() follows
             self._stop.wait(timeout_s)
 
+    def _release_frames(self) -> float | None:
+        """The frames whose time on the emulated wire has passed out now; when the next one is due (None: none
+        waits, or the bus releases its frames itself)."""
+        release = self._release
+        return None if release is None else release(time.perf_counter())
+
     def _run(self, duration_s: float | None = None) -> RuntimeStats:
         self.open()
         _fine_timer_slack()
+        take_over = getattr(self.bus, "take_over", None)
+        if callable(take_over) and callable(getattr(self.bus, "release_due", None)):
+            take_over()  # (the loop releases the emulated bus's frames: it wakes on time anyway)
+            self._release = self.bus.release_due
+        try:
+            return self._loop(duration_s)
+        finally:
+            if self._release is not None:
+                self._release = None
+                self.bus.hand_back()
+
+    def _loop(self, duration_s: float | None) -> RuntimeStats:
         direct = self._fd >= 0
         end = None if duration_s is None else time.perf_counter() + duration_s
         period = self.period_s
@@ -660,6 +692,8 @@ class Runtime:
                                 ax.drive.record_overrun()
                         for ax in axes:
                             self._step(ax, 1)
+                            if self._release is not None:
+                                self._release_frames()
                             if len(axes) > 1 and self._frames_waiting():
                                 # a frame arrived meanwhile (a SYNC?): answer it before the next axis's
                                 # cycle, so no SYNC waits for the cycles of every axis
@@ -673,22 +707,27 @@ class Runtime:
                         t = perf()
                     stats.next_deadline_s = next_cycle
                     stats.checked_s = t
+            due = self._release_frames()
             t = perf()
             answered_sync = stats.syncs != syncs0
             if answered_sync:
                 self._sync_answered_s = t
             if self._gap_jobs:
                 self._run_gap_job(t, None if self.lockstep else next_cycle, answered_sync)
+                due = self._release_frames()
                 t = perf()
             stats.loops += 1
             stats.busy_s += t - t_busy
-            # wait for the next cycle (real time) or for a frame / the timer tick (both modes)
+            # wait for the next cycle (real time) or for a frame / the timer tick (both modes), or until the
+            # next emulated frame is due on the wire
             deadline = t + self.idle_poll_s if self.lockstep else min(next_cycle, t + self.idle_poll_s)
+            if due is not None and due < deadline:
+                deadline = due
             remaining = deadline - t
             spin = 0.0 if self.lockstep else self.spin_s  # (lockstep: no deadline to meet, nothing to spin for)
             if remaining > spin:
                 self._wait(remaining - spin)
             if spin:
                 while not self._frames_waiting() and perf() < deadline:
-                    sleep(0)  # yields the GIL (other threads: side channels, the bit-rate transmitter)
+                    sleep(0)  # yields the GIL (other threads: side channels, a Notifier)
         return stats
