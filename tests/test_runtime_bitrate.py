@@ -363,3 +363,83 @@ def test_the_runtime_releases_the_emulated_frames_in_its_own_loop_while_it_runs(
     finally:
         master.shutdown()
         bus.shutdown()
+
+
+def test_a_late_release_holds_the_next_frame_back_by_as_much_up_to_one_frame_time(request):
+    """A receiver of a real bus never sees two frames closer than the second one's frame time: when a release
+    comes late, the next frame follows a frame time after it (a docs-only tester measured TPDOs of one SYNC 23-85 us
+    apart at 1 Mbit/s, where each takes ~100 us); further behind the timeline than one frame time it catches up."""
+    channel = f"va-bitrate-spacing-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
+    rx = can.Bus(interface="virtual", channel=channel)
+    try:
+        tx.take_over()
+        frames = [_msg(0x181, 8, 0x11), _msg(0x182, 8, 0x22), _msg(0x183, 8, 0x33), _msg(0x184, 8, 0x44)]
+        dur = [frame_bits(m) / 125_000 for m in frames]
+        t_sent = time.perf_counter()
+        for m in frames:
+            tx.send(m)
+        end1 = tx.release_due(t_sent)
+        late = 0.4 * dur[1]  # the first release comes late by less than a frame time
+        second = tx.release_due(end1 + late)
+        assert rx.recv(0.5).arbitration_id == 0x181
+        end2 = end1 + dur[1]  # (where the second frame ends on the timeline)
+        assert second == pytest.approx(end1 + late + dur[1], abs=1e-9) and second > end2
+        # further behind (the second release 1.5 frame times after its end): the third frame follows one frame time
+        # behind the timeline, not a frame time after that release
+        third = tx.release_due(end2 + 1.5 * dur[1])
+        assert rx.recv(0.5).arbitration_id == 0x182
+        end3 = end2 + dur[2]
+        assert third == pytest.approx(end3 + dur[2], abs=1e-9) and third < end2 + 1.5 * dur[1] + dur[2]
+        assert tx.release_due(third) is not None and rx.recv(0.5).arbitration_id == 0x183
+        # a caller that comes very late releases what is due at once (the throughput stays the bit rate)
+        assert tx.release_due(third + 1.0) is None and rx.recv(0.5).arbitration_id == 0x184
+    finally:
+        tx.shutdown()
+        rx.shutdown()
+
+
+def test_a_burst_handed_over_at_once_takes_the_wire_one_frame_after_the_other(request):
+    """A master that does not emulate its side hands five RPDOs and a SYNC over at once; on the wire they ran one
+    after the other, so this node's answer starts after the last of them ends (a docs-only tester saw answers
+    at 125 kbit/s sooner than the SYNC and the TPDO take on the wire)."""
+    channel = f"va-bitrate-burst-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
+    master = can.Bus(interface="virtual", channel=channel)
+    try:
+        tx.take_over()
+        burst = [_msg(0x201 + k, 8, 0x5A) for k in range(5)] + [_msg(0x080, 0)]
+        burst_s = sum(frame_bits(m) for m in burst) / 125_000  # ~5.5 ms
+        for m in burst:
+            master.send(m)
+        for _ in burst:
+            assert tx.recv(1.0) is not None  # (each takes its bus time as it is received)
+        t_queued = time.perf_counter()
+        answer = _msg(0x181, 6, 0x33)
+        tx.send(answer)
+        due = tx.release_due(t_queued)
+        # the first frame of the burst ended at its receive time; the other five took their frame times after it
+        assert due >= t_queued - 1e-3 + burst_s - frame_bits(burst[0]) / 125_000 + frame_bits(answer) / 125_000, \
+            (due - t_queued, burst_s)
+    finally:
+        tx.shutdown()
+        master.shutdown()
+
+
+def test_the_peak_load_never_reads_below_a_load_already_reported(request):
+    channel = f"va-bitrate-peak-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 1_000_000)
+    try:
+        tx.take_over()
+        t0 = time.perf_counter()
+        for k in range(60):  # ~7 ms of frames
+            tx.send(_msg(0x181, 8, k))
+        assert tx.release_due(t0 + 1.0) is None
+        time.sleep(0.05)
+        shown = tx.stats()["load_percent"]
+        assert shown > 0.0
+        time.sleep(1.1)  # the frames have left the 1 s window
+        s = tx.stats()
+        assert s["load_percent"] < shown and s["peak_load_percent"] >= shown, (s, shown)
+    finally:
+        tx.shutdown()

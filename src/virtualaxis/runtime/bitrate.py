@@ -13,14 +13,18 @@ so that a master that would overload a real bus sees the delays and the overload
   bus is idle (after the previous frame of this node and after every frame received from other nodes), among
   the frames waiting at that moment the lowest identifier wins (arbitration), and it is handed to the wrapped
   bus when its last bit would have been sent (start + bits / bit rate). The release can be late by the host's
-  sleep granularity (~0.1 ms), the timeline itself is exact (no drift, no throughput lost to late wake-ups).
+  wake-up latency (tens of us); the next frame then follows no sooner than its own frame time after it (as a
+  receiver sees frames on a real bus), up to one frame time behind the timeline; beyond, the release catches up.
+  The timeline itself is exact (no drift, no throughput lost to late wake-ups).
 - Frame length: CAN 2.0A/B data or remote frame: SOF, arbitration field, control field, data, CRC-15, CRC
   delimiter, ACK, EOF and the 3-bit intermission; stuff bits either computed from the frame's actual bits
   (``stuffing="computed"``, the default: the CRC-15 is computed and every run of 5 equal bits from SOF to the
   CRC gets one stuff bit) or the worst case (``stuffing="worst"``: one per 4 bits after the first).
-- Frames received from other nodes take bus time too: they push the idle time of the timeline and count in
-  the bus load. A frame that is not a classical CAN frame (:func:`~virtualaxis.runtime.frames.frame_problem`)
-  never was on the wire: it takes no bus time (the runtime counts it as malformed).
+- Frames received from other nodes take bus time too: a frame ends at its receive timestamp, or right after the
+  frames before it when a burst arrived at once (a sender that does not emulate its side hands its frames over
+  faster than the wire carries them); it pushes the idle time of the timeline and counts in the bus load. A
+  frame that is not a classical CAN frame (:func:`~virtualaxis.runtime.frames.frame_problem`) never was on the
+  wire: it takes no bus time (the runtime counts it as malformed).
 - Bus load: every frame (sent or received) occupies an interval of the wire as long as its bits; intervals
   never overlap (a received frame that ended, by its timestamp, while the wire was still busy is placed right
   after), so no window holds more bits than the bit rate carries: the load is at most 100 %. Frames that
@@ -193,6 +197,7 @@ class BitRateBus(can.BusABC):
         #: the frame on the wire now: (end, bits, queued_s, msg), chosen and not yet handed to the wrapped bus
         self._in_flight: tuple[float, int, float, can.Message] | None = None
         self._driven = False  # a caller of take_over() releases the frames, not the transmitter thread
+        self._last_release_s = -1.0  # when the last frame was handed to the wrapped bus (the caller's clock)
         _frame_bits_kernel(0, False, False, 0, 0, 0, 0, False)  # compiled (or loaded) now, not at the first frame
         self._start_transmitter()
 
@@ -241,9 +246,13 @@ class BitRateBus(can.BusABC):
         with self._lock:
             self.frames_rx += 1
             self.bits_rx += bits
-            if end > self._idle_s:  # (a frame that ended before the bus fell idle only counts for the load)
-                self._idle_s = end
-            self._account(end, bits, now)
+            # on the wire after the frames before it (a master that does not emulate its side hands over a burst
+            # at once: its frames were on the wire one after the other, the last one ends after them all)
+            placed = self._account(end, bits, now)
+            if placed is None:
+                placed = end
+            if placed > self._idle_s:  # (a frame that ended before the bus fell idle only counts for the load)
+                self._idle_s = placed
 
     def fileno(self) -> int:
         return self.inner.fileno()
@@ -274,14 +283,15 @@ class BitRateBus(can.BusABC):
         super().shutdown()
 
     # ------------------------------------------------------------------ the wire
-    def _account(self, end_s: float, bits: int, now: float) -> None:
+    def _account(self, end_s: float, bits: int, now: float) -> float | None:
         """A frame of ``bits`` that ended at ``end_s`` on the wire (load): placed after the previous frame if
-        they would overlap (see the module doc); under the lock."""
+        they would overlap (see the module doc); returns where it ends on the wire (None: beyond capacity, not
+        placed); under the lock."""
         duration = bits / self.bitrate
         end = max(end_s, self._wire_end_s + duration, self._t0 + duration)
         if end > now + LOAD_WINDOW_S:
             self.frames_beyond_capacity += 1
-            return
+            return None
         self._wire_end_s = end
         self._wire_bits += bits
         window = self._window
@@ -292,16 +302,18 @@ class BitRateBus(can.BusABC):
         if now - self._peak_checked_s >= 0.1:   # peak of the 1 s load, sampled every 0.1 s
             self._peak_checked_s = now
             if now - self._t0 >= LOAD_WINDOW_S:
-                load = self._load_at(now)
-                if load > self.peak_load:
-                    self.peak_load = load
+                self._load_at(now)
+        return end
 
     def _load_at(self, now: float) -> float:
         """Fraction of the last :data:`LOAD_WINDOW_S` before ``now`` (since the start, if shorter) the wire
         was busy: the frames that lie wholly inside it; under the lock."""
         since = max(now - LOAD_WINDOW_S, self._t0)
         bits = sum(b for start, end, b in self._window if start >= since and end <= now)
-        return bits / (self.bitrate * max(now - since, 1e-3))
+        load = bits / (self.bitrate * max(now - since, 1e-3))
+        if load > self.peak_load:  # (every load reported or sampled: the peak never reads below one shown)
+            self.peak_load = load
+        return load
 
     def _take_inbox(self, block: bool) -> None:
         """Move the frames handed over by send() to ``_pending`` (``block``: wait up to 0.1 s for one)."""
@@ -323,13 +335,15 @@ class BitRateBus(can.BusABC):
 
     def release_due(self, now: float) -> float | None:
         """Hand every frame whose last bit has passed at ``now`` (``time.perf_counter``) to the wrapped bus;
-        returns when the next waiting frame's last bit passes (``None``: none waits). Called by one thread at a
-        time: the transmitter thread, or the thread that took the transmission over (:meth:`take_over`).
+        returns when the next waiting frame is due (``None``: none waits). Called by one thread at a time: the
+        transmitter thread, or the thread that took the transmission over (:meth:`take_over`).
 
         The bus goes idle at ``start`` (the end of the last frame, or the queueing of the first frame after an
         idle bus); among the frames queued by then, the lowest identifier wins (arbitration) and its last bit
         passes ``bits / bitrate`` later. The choice is made once: a frame queued after ``start`` waits for the
-        next round, as on the wire."""
+        next round, as on the wire. A frame is released no sooner than its own frame time after the previous
+        one (a receiver of a real bus never sees two frames closer together): a late release delays the next
+        by as much, up to one frame time behind the timeline."""
         self._take_inbox(block=False)
         pending, ready = self._pending, self._ready
         lock = self._lock
@@ -348,9 +362,15 @@ class BitRateBus(can.BusABC):
                     self._idle_s = end
                 flight = self._in_flight = (end, bits, queued_s, msg)
             end, bits, queued_s, msg = flight
-            if end > now:
-                return end
+            # a receiver sees this node's frames at least a frame time apart: a release that came late holds the
+            # next frame back by as much, up to one frame time behind the timeline (beyond, it catches up: the
+            # throughput stays the bit rate)
+            due = self._last_release_s + bits / self.bitrate
+            due = end if due <= end else min(due, end + bits / self.bitrate)
+            if due > now:
+                return due
             self._in_flight = None
+            self._last_release_s = now
             try:
                 self.inner.send(msg)
             except (can.CanError, OSError, ValueError):
