@@ -20,10 +20,11 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
 latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus). With the emulation on, ``wire floor``
-is the least SYNC -> TPDO time the bus itself allows each node (:func:`wire_floor_us`: the k-th node's TPDO2
-waits for the k - 1 with lower identifiers, 95 bits each without stuff bits): at 1 Mbit/s 95 us times k, so the
-third of 3 axes cannot answer within 285 us (28.5 % of a 1 ms cycle) nor the seventh of 7 within 665 us (33 % of
-2 ms), however fast the drive.
+is the least SYNC -> TPDO time the bus itself allows each node (:func:`wire_floor_us`): the master hands its
+RPDOs and then the SYNC over at once, and on the wire they run one after the other (95 bits per RPDO2, 47 for the
+SYNC, without stuff bits); then the k-th node's TPDO2 waits for the k - 1 with lower identifiers and takes its own
+95 bits. At 1 Mbit/s the third of 3 axes cannot answer within 3 x 95 + 47 + 3 x 95 = 617 us of the SYNC's send, nor
+the seventh of 7 (six RPDOs: the spindle has none) within 6 x 95 + 47 + 7 x 95 = 1 282 us, however fast the drive.
 
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
 lead error, thermal growth, an extra resonance; sensor noise). Latency = the TPDO's kernel receive
@@ -189,7 +190,8 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
         for k_th, (nid, cob) in enumerate(zip(node_ids, tpdo_cobs, strict=True), start=1):
             result[f"node{nid}"] = {k: v for k, v in latency_stats(clock.times[cob], sync_times, period_s).items()
                                     if k != "latency_us_p999"}
-            result[f"node{nid}"]["wire_floor_us"] = wire_floor_us(k_th, bitrate)
+            result[f"node{nid}"]["wire_floor_us"] = wire_floor_us(
+                k_th, bitrate, sum(1 for x in x0.values() if x is not None))
             for k, key in enumerate(("drive_cycles", "drive_overruns")):
                 a, b = counts0[nid][k], counts1[nid][k]
                 result[f"node{nid}"][key] = None if a is None or b is None else (b - a) & 0xFFFFFFFF
@@ -226,12 +228,19 @@ def run_case(period_s: float, n_axes: int, seconds: float, config: Path, port: i
 TPDO2_MIN_BITS = 1 + 11 + 3 + 4 + 48 + 15 + 1 + 2 + 7 + 3
 
 
-def wire_floor_us(k_th: int, bitrate: int | None) -> float:
-    """The least SYNC -> TPDO time the emulated bus allows the ``k_th`` node's TPDO2 [us]: when every node's
-    TPDO is ready at once, arbitration sends them lowest identifier first, so the k-th waits for k - 1 others and
-    then takes its own frame time (stuff bits and the SYNC's own frame time not counted: a lower bound). 0 without
-    the emulation."""
-    return 1e6 * k_th * TPDO2_MIN_BITS / bitrate if bitrate else 0.0
+#: bits of a SYNC frame (no data) without stuff bits
+SYNC_MIN_BITS = TPDO2_MIN_BITS - 48
+
+
+def wire_floor_us(k_th: int, bitrate: int | None, rpdos_ahead: int = 0) -> float:
+    """The least time from the master's SYNC send to the ``k_th`` node's TPDO2 that the emulated bus allows [us]:
+    the ``rpdos_ahead`` RPDO2 frames (6 data bytes, as TPDO2) the master handed over just before the SYNC and the
+    SYNC itself run on the wire first; then, every node's TPDO being ready at once, arbitration sends them lowest
+    identifier first, so the k-th waits for k - 1 others and takes its own frame time (stuff bits not counted: a
+    lower bound). 0 without the emulation."""
+    if not bitrate:
+        return 0.0
+    return 1e6 * ((rpdos_ahead + k_th) * TPDO2_MIN_BITS + SYNC_MIN_BITS) / bitrate
 
 
 def _drive_counts(bus, reply: SdoReply, nid: int) -> tuple[int | None, int | None]:
