@@ -20,11 +20,12 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
 With 7 axes the 7th is the spindle (``configs/spindle.toml``, profile velocity mode at 3000 rpm); the others
 are feed axes in CSP. ``--bitrate`` passes the emulated CAN bit rate to ``serve`` (default 0 here: the raw
 latency of the runtime; 1000000 adds the frame times of a 1 Mbit/s bus). With the emulation on, ``wire floor``
-is the least SYNC -> TPDO time the bus itself allows each node (:func:`wire_floor_us`): the master hands its
+is the least SYNC -> TPDO time the emulated bus allows each node (:func:`wire_floor_us`): the master hands its
 RPDOs and then the SYNC over at once, and on the wire they run one after the other (95 bits per RPDO2, 47 for the
-SYNC, without stuff bits); then the k-th node's TPDO2 waits for the k - 1 with lower identifiers and takes its own
-95 bits. At 1 Mbit/s the third of 3 axes cannot answer within 3 x 95 + 47 + 3 x 95 = 617 us of the SYNC's send, nor
-the seventh of 7 (six RPDOs: the spindle has none) within 6 x 95 + 47 + 7 x 95 = 1 282 us, however fast the drive.
+SYNC, without stuff bits; the first of them counts as ended when it arrived); then the k-th node's TPDO2 waits for
+the k - 1 with lower identifiers and takes its own 95 bits. At 1 Mbit/s the third of 3 axes cannot answer within
+2 x 95 + 47 + 3 x 95 = 522 us of the SYNC's send, nor the seventh of 7 (six RPDOs: the spindle has none) within
+5 x 95 + 47 + 7 x 95 = 1 187 us, however fast the drive.
 
 Every plant effect of the config is switched on (backlash, friction, cogging and the [effects] section:
 lead error, thermal growth, an extra resonance; sensor noise). Latency = the TPDO's kernel receive
@@ -235,12 +236,15 @@ SYNC_MIN_BITS = TPDO2_MIN_BITS - 48
 def wire_floor_us(k_th: int, bitrate: int | None, rpdos_ahead: int = 0) -> float:
     """The least time from the master's SYNC send to the ``k_th`` node's TPDO2 that the emulated bus allows [us]:
     the ``rpdos_ahead`` RPDO2 frames (6 data bytes, as TPDO2) the master handed over just before the SYNC and the
-    SYNC itself run on the wire first; then, every node's TPDO being ready at once, arbitration sends them lowest
-    identifier first, so the k-th waits for k - 1 others and takes its own frame time (stuff bits not counted: a
-    lower bound). 0 without the emulation."""
+    SYNC itself run on the wire first, one after the other; the first of them counts as ended when it arrived (the
+    emulation cannot tell a master that emulates its side, and hands a frame over at its end, from one that does
+    not). Then, every node's TPDO being ready at once, arbitration sends them lowest identifier first, so the k-th
+    waits for k - 1 others and takes its own frame time. Stuff bits not counted: a lower bound. 0 without the
+    emulation."""
     if not bitrate:
         return 0.0
-    return 1e6 * ((rpdos_ahead + k_th) * TPDO2_MIN_BITS + SYNC_MIN_BITS) / bitrate
+    ahead = (rpdos_ahead - 1) * TPDO2_MIN_BITS + SYNC_MIN_BITS if rpdos_ahead else 0
+    return 1e6 * (ahead + k_th * TPDO2_MIN_BITS) / bitrate
 
 
 def _drive_counts(bus, reply: SdoReply, nid: int) -> tuple[int | None, int | None]:
