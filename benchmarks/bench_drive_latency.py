@@ -14,6 +14,7 @@ target per axis, a slow sine so that the plant works) and timestamps the synchro
     python benchmarks/bench_drive_latency.py --scale --seconds 8 --rounds 3   # the same, 3 interleaved rounds
     python benchmarks/bench_drive_latency.py --cycle-cost          # in-process cost per cycle and axis (1/2/4/7)
     python benchmarks/bench_drive_latency.py --cycle-cost --axes 1,3,7 --bytecodes   # the same as bytecodes
+    python benchmarks/bench_drive_latency.py --cycle-cost --axes 3 --split   # where it goes, timed in place
     python benchmarks/bench_drive_latency.py --host-jitter --rt-priority 20   # the host's own tail (see below)
     python benchmarks/bench_drive_latency.py --host-stalls --rt-priority 20   # does the host slow all CPUs at once
 
@@ -427,6 +428,66 @@ def cycle_bytecodes(axis_counts=(1, 3, 7), cycles: int = 100) -> list[dict]:
     return out
 
 
+#: the parts of a communication cycle that --split times in place: (class path, public method, label)
+SPLIT_PARTS = (
+    ("virtualaxis.canopen_slave.slave.CanopenSlave", "receive", "frames received (RPDO, SYNC) into the slave"),
+    ("virtualaxis.canopen_slave.slave.CanopenSlave", "poll", "slave poll (queued frames, timers)"),
+    ("virtualaxis.canopen_slave.slave.CanopenSlave", "transmit_sync", "SYNC answer: TPDO packed and sent"),
+    ("virtualaxis.canopen_slave.slave.CanopenSlave", "apply_sync", "RPDO applied to the drive"),
+    ("virtualaxis.drive.core.Drive", "step", "drive cycle (modes, plant, monitors, outputs)"),
+    ("virtualaxis.drive.canopen_app.Cia402Application", "flush", "OD mirror flushes"),
+)
+
+
+def cycle_split(axes: int = 3, cycles: int = 3000) -> dict:
+    """Where one communication cycle's CPU goes, per axis: :func:`cycle_cost`'s cycle with each part of
+    :data:`SPLIT_PARTS` timed in place (wall time around each call, in a loop of one thread; the parts do not
+    nest, except that the RPDO's application flushes the mirror too). In place, not in isolation: the same part
+    run alone in a loop costs a fraction (caches stay warm), so only this says what a cut of a part would buy."""
+    import importlib
+
+    from virtualaxis.runtime import pacing
+
+    spent: dict[str, float] = {label: 0.0 for *_, label in SPLIT_PARTS}
+    total = [0.0]
+    originals = []
+    tt = time.perf_counter  # (wall time of this one thread: a CPU-time clock is a system call, 1-2 us per read here)
+
+    def timed(fn, label):
+        def wrapper(*a, **k):
+            t0 = tt()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[label] += tt() - t0
+        return wrapper
+
+    for path, name, label in SPLIT_PARTS:
+        mod, _, cls_name = path.rpartition(".")
+        cls = getattr(importlib.import_module(mod), cls_name)
+        originals.append((cls, name, getattr(cls, name), label))
+    poll_once = pacing.Runtime.poll_once
+    try:
+        for cls, name, fn, label in originals:
+            setattr(cls, name, timed(fn, label))
+
+        def whole(self) -> None:
+            t0 = tt()
+            try:
+                poll_once(self)
+            finally:
+                total[0] += tt() - t0
+        pacing.Runtime.poll_once = whole
+        cycle_cost((axes,), cycles=cycles, repeats=1)
+    finally:
+        for cls, name, fn, _label in originals:
+            setattr(cls, name, fn)
+        pacing.Runtime.poll_once = poll_once
+    n = (300 + cycles) * axes  # (cycle_cost's warm-up cycles included)
+    parts = {label: 1e6 * v / n for label, v in spent.items()}
+    return {"axes": axes, "cycles": cycles, "per_axis_cycle_us": 1e6 * total[0] / n, "parts_us": parts}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -456,7 +517,20 @@ def main() -> int:
     ap.add_argument("--axes", default="1,2,4,7", help="--cycle-cost: the axis counts, comma-separated")
     ap.add_argument("--bytecodes", action="store_true",
                     help="--cycle-cost as Python bytecodes per axis and cycle (load-independent)")
+    ap.add_argument("--split", action="store_true",
+                    help="--cycle-cost split into its parts, timed in place (first of --axes; see cycle_split)")
     args = ap.parse_args()
+    if args.cycle_cost and args.split:
+        r = cycle_split(int(args.axes.split(",")[0]))
+        print(f"{r['axes']} axes: {r['per_axis_cycle_us']:.1f} us per axis and communication cycle (timed; "
+              "--cycle-cost without the timing is the reference)")
+        for label, us in r["parts_us"].items():
+            print(f"  {us:7.2f} us  {label}")
+        print(f"  {r['per_axis_cycle_us'] - sum(r['parts_us'].values()):7.2f} us  the rest: the runtime's loop and "
+              "the timing's own cost (the mirror flushes inside the RPDO's application counted twice)")
+        if args.json:
+            Path(args.json).write_text(json.dumps({"machine": _machine(), "cycle_split": r}, indent=2))
+        return 0
     if args.cycle_cost and args.bytecodes:
         for r in cycle_bytecodes(tuple(int(n) for n in args.axes.split(","))):
             print(f"{r['axes']:>4} axes: {r['bytecodes_per_axis']:.0f} Python bytecodes per axis and cycle")
