@@ -617,6 +617,7 @@ def refit_accepted(problem: SelectionProblem, ctx: RoundContext, accepted: list[
         progress(ProgressEvent("joint_refit", round=ctx.round, effects=tuple(s.effect for s in accepted)))
     n_sims = 0
     first = None
+    at_bound: dict[str, list[str]] = {}  # of the joint values in use: effect -> parameters at a bound
     for _ in range(JOINT_PASSES):
         joint = joint_refit(problem.cfg, accepted, problem.traces, problem.fit_idx, problem.holdout_idx, ctx.weights,
                             problem.settings, problem.simulate, runner)
@@ -630,10 +631,15 @@ def refit_accepted(problem: SelectionProblem, ctx: RoundContext, accepted: list[
         if not joint["accepted"]:
             break
         accepted = steps
+        at_bound = {}
+        for key in joint["at_bound"]:
+            effect, _, param = key.partition(fx.JOINT_SEP)
+            at_bound.setdefault(effect, []).append(param)
         if joint["fit_cost_joint"] > 0.9 * joint["fit_cost_sequential"]:
             break
     kept, dropped, k_sims = backward_step(problem.cfg, accepted, problem.traces, problem.fit_idx,
-                                          problem.holdout_idx, ctx.weights, problem.settings, problem.simulate)
+                                          problem.holdout_idx, ctx.weights, problem.settings, problem.simulate,
+                                          at_bound)
     return Refit(tuple(kept), first, tuple({"round": ctx.round, **d} for d in dropped), n_sims + k_sims)
 
 
@@ -756,12 +762,16 @@ def _rebuild(cfg: AxisConfig, steps: list[Step]) -> list[Step]:
 
 
 def backward_step(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], fit_idx: list[int],
-                  holdout_idx: list[int], w: Weights, settings: FitSettings, simulate: SimulateFn
-                  ) -> tuple[list[Step], list[dict], int]:
+                  holdout_idx: list[int], w: Weights, settings: FitSettings, simulate: SimulateFn,
+                  at_bound: dict[str, list[str]] | None = None) -> tuple[list[Step], list[dict], int]:
     """Try removing each accepted effect (the others kept at their values): one that no longer pays its way —
     the held-out weighted energy without it rises by less than ``min_gain`` of what the full model leaves, or
     the information criterion does not rise — is dropped (an early pick that a later, better effect explains).
-    Returns (kept steps, dropped effects with their figures, simulations run)."""
+    ``at_bound``: the parameters of each effect that the joint refit left at a bound of their range (effect ->
+    names); such an effect is dropped too, by the rule every candidate is judged by (a screw stiffness factor of
+    1.96 +- 0.04 under the bound 2: accepted at 1.91 +- 0.04 beside a mass error, the joint refit moved it there;
+    a docs-only tester's two-mass axis without screw torsion). Returns (kept steps, dropped effects with their
+    figures, simulations run)."""
     idx = holdout_idx or fit_idx
     n_sims = 0
 
@@ -777,7 +787,8 @@ def backward_step(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData]
     # MIN_SIGNIFICANCE standard errors) was standing in for a bias of another effect's sequential fit
     for s in list(accepted):
         change = fx.relative_change(s.effect, cfg, s.values)
-        why = [w_ for w_ in fx.implausible(s.effect, cfg, s.values, s.stderr, []) if "standard errors" in w_]
+        why = [w_ for w_ in fx.implausible(s.effect, cfg, s.values, s.stderr, (at_bound or {}).get(s.effect, []))
+               if "standard errors" in w_ or "at the bound" in w_]
         if len(accepted) >= 2 and (change < fx.MIN_RELATIVE_CHANGE or why):
             k = accepted.index(s)
             dropped.append({"effect": s.effect, "values": s.values, "heldout_energy_rise_without": math.nan,
@@ -848,6 +859,7 @@ def joint_refit(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData], 
         "heldout_cost_sequential": seq_hold, "heldout_cost_joint": joint_hold,
         "fit_ssr_joint": dict(r.fit_ssr or {}), "heldout_ssr_joint": dict(r.holdout_ssr or {}),
         "error": r.error, "seconds": r.seconds, "n_sims": r.n_sims, "steps": steps,
+        "at_bound": list(r.at_bound),  # ("effect" + JOINT_SEP + "param") at a bound of its range
     }
 
 
