@@ -4,6 +4,7 @@ reporting the load of a master's traffic from another process."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -289,12 +290,23 @@ def test_a_backlog_drains_at_the_bit_rate(request):
         bus.shutdown()
 
 
-def test_a_thread_that_took_the_transmission_over_releases_each_frame_at_its_wire_time(request):
-    channel = f"va-bitrate-driven-{id(request)}"
-    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
-    rx = can.Bus(interface="virtual", channel=channel)
+@contextlib.contextmanager
+def _taken_over(request, name: str, bitrate: int):
+    """A bus whose frames the test releases by hand (``take_over``, then ``release_due``) and a second node on its
+    channel."""
+    channel = f"va-bitrate-{name}-{id(request)}"
+    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), bitrate)
+    other = can.Bus(interface="virtual", channel=channel)
     try:
         tx.take_over()
+        yield tx, other
+    finally:
+        tx.shutdown()
+        other.shutdown()
+
+
+def test_a_thread_that_took_the_transmission_over_releases_each_frame_at_its_wire_time(request):
+    with _taken_over(request, "driven", 125_000) as (tx, rx):
         assert tx.driven
         frames = {cob: _msg(cob, 8, fill) for cob, fill in ((0x500, 0x11), (0x300, 0x22), (0x181, 0x33))}
         t_sent = time.perf_counter()
@@ -319,9 +331,6 @@ def test_a_thread_that_took_the_transmission_over_releases_each_frame_at_its_wir
         tx.send(_msg(0x182, 2))
         got = rx.recv(2.0)
         assert got is not None and got.arbitration_id == 0x182
-    finally:
-        tx.shutdown()
-        rx.shutdown()
 
 
 def test_the_runtime_releases_the_emulated_frames_in_its_own_loop_while_it_runs(request):
@@ -369,11 +378,7 @@ def test_a_late_release_holds_the_next_frame_back_by_as_much_up_to_one_frame_tim
     """A receiver of a real bus never sees two frames closer than the second one's frame time: when a release
     comes late, the next frame follows a frame time after it (a docs-only tester measured TPDOs of one SYNC 23-85 us
     apart at 1 Mbit/s, where each takes ~100 us); further behind the timeline than one frame time it catches up."""
-    channel = f"va-bitrate-spacing-{id(request)}"
-    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
-    rx = can.Bus(interface="virtual", channel=channel)
-    try:
-        tx.take_over()
+    with _taken_over(request, "spacing", 125_000) as (tx, rx):
         frames = [_msg(0x181, 8, 0x11), _msg(0x182, 8, 0x22), _msg(0x183, 8, 0x33), _msg(0x184, 8, 0x44)]
         dur = [frame_bits(m) / 125_000 for m in frames]
         t_sent = time.perf_counter()
@@ -394,20 +399,13 @@ def test_a_late_release_holds_the_next_frame_back_by_as_much_up_to_one_frame_tim
         assert tx.release_due(third) is not None and rx.recv(0.5).arbitration_id == 0x183
         # a caller that comes very late releases what is due at once (the throughput stays the bit rate)
         assert tx.release_due(third + 1.0) is None and rx.recv(0.5).arbitration_id == 0x184
-    finally:
-        tx.shutdown()
-        rx.shutdown()
 
 
 def test_a_burst_handed_over_at_once_takes_the_wire_one_frame_after_the_other(request):
     """A master that does not emulate its side hands five RPDOs and a SYNC over at once; on the wire they ran one
     after the other, so this node's answer starts after the last of them ends (a docs-only tester saw answers
     at 125 kbit/s sooner than the SYNC and the TPDO take on the wire)."""
-    channel = f"va-bitrate-burst-{id(request)}"
-    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 125_000)
-    master = can.Bus(interface="virtual", channel=channel)
-    try:
-        tx.take_over()
+    with _taken_over(request, "burst", 125_000) as (tx, master):
         burst = [_msg(0x201 + k, 8, 0x5A) for k in range(5)] + [_msg(0x080, 0)]
         burst_s = sum(frame_bits(m) for m in burst) / 125_000  # ~5.5 ms
         for m in burst:
@@ -421,16 +419,10 @@ def test_a_burst_handed_over_at_once_takes_the_wire_one_frame_after_the_other(re
         # the first frame of the burst ended at its receive time; the other five took their frame times after it
         assert due >= t_queued - 1e-3 + burst_s - frame_bits(burst[0]) / 125_000 + frame_bits(answer) / 125_000, \
             (due - t_queued, burst_s)
-    finally:
-        tx.shutdown()
-        master.shutdown()
 
 
 def test_the_peak_load_never_reads_below_a_load_already_reported(request):
-    channel = f"va-bitrate-peak-{id(request)}"
-    tx = BitRateBus(can.Bus(interface="virtual", channel=channel), 1_000_000)
-    try:
-        tx.take_over()
+    with _taken_over(request, "peak", 1_000_000) as (tx, _other):
         t0 = time.perf_counter()
         for k in range(60):  # ~7 ms of frames
             tx.send(_msg(0x181, 8, k))
@@ -441,5 +433,3 @@ def test_the_peak_load_never_reads_below_a_load_already_reported(request):
         time.sleep(1.1)  # the frames have left the 1 s window
         s = tx.stats()
         assert s["load_percent"] < shown and s["peak_load_percent"] >= shown, (s, shown)
-    finally:
-        tx.shutdown()
