@@ -716,6 +716,15 @@ def split_joint(values: dict[str, float]) -> dict[str, dict[str, float]]:
     return out
 
 
+def split_joint_names(names: list[str]) -> dict[str, list[str]]:
+    """``["a/x", "b/y", "a/z"]`` -> ``{"a": ["x", "z"], "b": ["y"]}``: a joint fit's parameter names by effect."""
+    out: dict[str, list[str]] = {}
+    for k in names:
+        e, _, p = k.partition(JOINT_SEP)
+        out.setdefault(e, []).append(p)
+    return out
+
+
 #: effects fitted as cos/sin components and reported as amplitude/phase: (cos, sin, amplitude, phase) names
 _POLAR = {"lead_error": ("periodic_cos_m", "periodic_sin_m", "lead_error_periodic_m", "lead_error_periodic_phase_rad"),
           "torque_ripple": ("cogging_cos_nm", "cogging_sin_nm", "cogging_amplitude_nm", "cogging_phase_rad")}

@@ -492,9 +492,9 @@ def judge_pair(r: CandidateResult, best: Judged | None, ctx: RoundContext, setti
     d = judge_one(r, 0.0, ctx, settings)
     parts = fx.split_joint(r.values)
     errs = fx.split_joint(r.stderr)
+    at_bound = fx.split_joint_names(r.at_bound)
     why = [f"{e}: {w}" for e, v in parts.items()
-           for w in fx.implausible(e, cur, v, errs.get(e, {}), [k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
-                                                                 if k.startswith(e + fx.JOINT_SEP)])]
+           for w in fx.implausible(e, cur, v, errs.get(e, {}), at_bound.get(e, []))]
     why += [f"{e} changes the model by only {100 * fx.relative_change(e, cur, v):.1f} %"
             for e, v in parts.items() if fx.relative_change(e, cur, v) < fx.MIN_RELATIVE_CHANGE]
     s = dataclasses.replace(d.score, implausible=d.score.implausible + tuple(why))
@@ -513,14 +513,14 @@ def pair_steps(cur: AxisConfig, pair: Judged, scored: tuple[Judged, ...]) -> tup
     r = pair.result
     alone = {d.effect: {"values": d.result.values, "heldout_gain": d.score.gain} for d in scored}
     values, errs = fx.split_joint(r.values), fx.split_joint(r.stderr)
+    at_bound = fx.split_joint_names(r.at_bound)
     steps, rounds = [], []
     c = cur
     for e, v in values.items():
         c = fx.EFFECTS[e].apply(c, v)
         steps.append(Step(e, v, errs.get(e, {}), c, r.fit_metrics, r.holdout_metrics))
         part = dataclasses.replace(r, effect=e, values=v, stderr=errs.get(e, {}),
-                                   at_bound=[k.partition(fx.JOINT_SEP)[2] for k in r.at_bound
-                                             if k.startswith(e + fx.JOINT_SEP)])
+                                   at_bound=at_bound.get(e, []))
         rounds.append([dataclasses.replace(
             pair, result=part, pays=True, fitted_alone=alone.get(e),
             chosen_because=f"accepted with {', '.join(x for x in values if x != e)}: {r.effect} fitted jointly")])
@@ -631,10 +631,7 @@ def refit_accepted(problem: SelectionProblem, ctx: RoundContext, accepted: list[
         if not joint["accepted"]:
             break
         accepted = steps
-        at_bound = {}
-        for key in joint["at_bound"]:
-            effect, _, param = key.partition(fx.JOINT_SEP)
-            at_bound.setdefault(effect, []).append(param)
+        at_bound = fx.split_joint_names(joint["at_bound"])
         if joint["fit_cost_joint"] > 0.9 * joint["fit_cost_sequential"]:
             break
     kept, dropped, k_sims = backward_step(problem.cfg, accepted, problem.traces, problem.fit_idx,

@@ -365,8 +365,9 @@ class BitRateBus(can.BusABC):
             # a receiver sees this node's frames at least a frame time apart: a release that came late holds the
             # next frame back by as much, up to one frame time behind the timeline (beyond, it catches up: the
             # throughput stays the bit rate)
-            due = self._last_release_s + bits / self.bitrate
-            due = end if due <= end else min(due, end + bits / self.bitrate)
+            frame_s = bits / self.bitrate
+            due = self._last_release_s + frame_s
+            due = end if due <= end else min(due, end + frame_s)
             if due > now:
                 return due
             self._in_flight = None
