@@ -46,17 +46,18 @@ def _effective_mass_kg(cfg: AxisConfig) -> float:
     return m
 
 
-def _drive_force(cfg: AxisConfig, td: TraceData) -> np.ndarray | None:
-    meas = td.measured
-    if "force_drive" in meas:
-        return meas["force_drive"]
+def _drive_force(cfg: AxisConfig, channels: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The axial drive force [N] of a trace's channels (measured or the model's): the force channel, else the
+    torque or the q current through the lead (ideal screw); None without any of them."""
+    if "force_drive" in channels:
+        return channels["force_drive"]
     lead = cfg.mechanics.lead_m
     if lead <= 0:
         return None
-    if "torque_meas" in meas:
-        return meas["torque_meas"] * 2 * math.pi / lead
-    if "current_q" in meas:
-        return meas["current_q"] * cfg.motor.kt_nm_per_a * 2 * math.pi / lead
+    if "torque_meas" in channels:
+        return channels["torque_meas"] * 2 * math.pi / lead
+    if "current_q" in channels:
+        return channels["current_q"] * cfg.motor.kt_nm_per_a * 2 * math.pi / lead
     return None
 
 
@@ -96,77 +97,119 @@ def _line(v: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.n
     return coef, np.sqrt(np.maximum(np.diag(cov), 0.0))
 
 
-def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str] | None = None) -> dict | None:
+def _beyond_inertia(cfg: AxisConfig, td: TraceData, channels: dict[str, np.ndarray], m: float
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(speed, force beyond inertia) of one trace's ``channels`` (the measured ones or the model's prediction of
+    them), reversals and the smoothing's edges left out; None without a drive force or a position."""
+    force = _drive_force(cfg, channels)
+    pos = channels.get("pos_meas", channels.get("pos_fb"))
+    if force is None or pos is None or td.t.size < 50:
+        return None
+    dt = float(td.t[1] - td.t[0])
+    n = max(1, int(round(SMOOTH_S / dt)))
+    k = np.ones(n) / n
+    x = np.convolve(pos, k, mode="same")
+    v = np.gradient(x, dt)
+    a = np.gradient(np.convolve(v, k, mode="same"), dt)
+    f_ext = td.force_ext if td.force_ext is not None else 0.0
+    y = np.convolve(force, k, mode="same") - m * a + f_ext
+    sgn = np.sign(v)
+    rev = np.zeros(v.size, dtype=bool)
+    half = int(round(REVERSAL_S / dt))
+    for i in np.flatnonzero(np.diff(sgn) != 0):
+        rev[max(0, i - half):i + half + 1] = True
+    keep = ~rev
+    keep[:n] = keep[-n:] = False
+    return v[keep], y[keep]
+
+
+def _binned(v: np.ndarray, y: np.ndarray, sign: float, edges: np.ndarray) -> list[dict]:
+    """The samples of one direction (``sign`` +1 / -1) binned over |speed| on ``edges``: mean speed, mean force
+    (in the direction of motion), its standard error and the sample count of every bin with 5 samples or more."""
+    sel = v >= edges[0] if sign > 0 else v <= -edges[0]
+    sp, fo = np.abs(v[sel]), sign * y[sel]
+    idx = np.clip(np.digitize(sp, edges) - 1, 0, len(edges) - 2)
+    bins = []
+    for b in range(len(edges) - 1):
+        mask = idx == b
+        if mask.sum() < 5:
+            continue
+        vals = fo[mask]
+        bins.append({"speed_m_s": float(sp[mask].mean()), "force_n": float(vals.mean()),
+                     "stderr_n": float(vals.std(ddof=1) / math.sqrt(mask.sum())), "samples": int(mask.sum())})
+    return bins
+
+
+def _bin_line(bins: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted line through ``bins``: (intercept, slope) and their standard errors."""
+    bv = np.array([b["speed_m_s"] for b in bins])
+    bf = np.array([b["force_n"] for b in bins])
+    bw = np.array([1.0 / max(b["stderr_n"], 1e-9) ** 2 for b in bins])
+    return _line(bv, bf, bw)
+
+
+def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str] | None = None,
+                   predictions: list[dict[str, np.ndarray]] | None = None) -> dict | None:
     """The binned force beyond inertia per direction and the friction law of ``cfg`` (the calibrated model) over
     it; None when the traces have no drive force or no measured position. ``accepted``: the accepted effects (the
-    note names them)."""
-    vs, fs = [], []
+    note names them). ``predictions``: the calibrated model's prediction of each trace's channels (in the order
+    of ``traces``); the same estimate run on them is what the data are judged against (``model_line``), so that
+    what the estimate itself makes of an axis (its compliance, the smoothing, the reflected inertia) is not
+    taken for a missed mechanism. Without them the data are judged against the law."""
     m = _effective_mass_kg(cfg)
-    for td in traces:
-        force = _drive_force(cfg, td)
-        pos = td.measured.get("pos_meas", td.measured.get("pos_fb"))
-        if force is None or pos is None or td.t.size < 50:
+    data, model = [], []
+    for i, td in enumerate(traces):
+        got = _beyond_inertia(cfg, td, td.measured, m)
+        if got is None:
             continue
-        dt = float(td.t[1] - td.t[0])
-        n = max(1, int(round(SMOOTH_S / dt)))
-        k = np.ones(n) / n
-        x = np.convolve(pos, k, mode="same")
-        v = np.gradient(x, dt)
-        a = np.gradient(np.convolve(v, k, mode="same"), dt)
-        f_ext = td.force_ext if td.force_ext is not None else 0.0
-        y = np.convolve(force, k, mode="same") - m * a + f_ext
-        sgn = np.sign(v)
-        rev = np.zeros(v.size, dtype=bool)
-        flips = np.flatnonzero(np.diff(sgn) != 0)
-        half = int(round(REVERSAL_S / dt))
-        for i in flips:
-            rev[max(0, i - half):i + half + 1] = True
-        keep = ~rev
-        keep[:n] = keep[-n:] = False
-        vs.append(v[keep])
-        fs.append(y[keep])
-    if not vs:
+        data.append(got)
+        if predictions is not None:
+            pred = _beyond_inertia(cfg, td, predictions[i], m)
+            if pred is not None:
+                model.append(pred)
+    if not data:
         return None
-    v, y = np.concatenate(vs), np.concatenate(fs)
+    v, y = np.concatenate([d[0] for d in data]), np.concatenate([d[1] for d in data])
+    vm = np.concatenate([d[0] for d in model]) if model else None
+    ym = np.concatenate([d[1] for d in model]) if model else None
     vmax = float(np.max(np.abs(v))) if v.size else 0.0
     if vmax <= 0:
         return None
-    out: dict = {"mass_kg": m, "directions": {}}
+    out: dict = {"mass_kg": m, "directions": {}, "judged_against": "model" if model else "law"}
     notes: list[str] = []
-    for name, sel in (("positive", v >= MIN_SPEED_SHARE * vmax), ("negative", v <= -MIN_SPEED_SHARE * vmax)):
-        if sel.sum() < 4 * N_BINS:
+    edges = np.linspace(MIN_SPEED_SHARE * vmax, vmax, N_BINS + 1)
+    for name, sign in (("positive", 1.0), ("negative", -1.0)):
+        if int((v >= edges[0]).sum() if sign > 0 else (v <= -edges[0]).sum()) < 4 * N_BINS:
             continue
-        sp, fo = np.abs(v[sel]), y[sel] if name == "positive" else -y[sel]
-        edges = np.linspace(MIN_SPEED_SHARE * vmax, vmax, N_BINS + 1)
-        idx = np.clip(np.digitize(sp, edges) - 1, 0, N_BINS - 1)
-        bins = []
-        for b in range(N_BINS):
-            mask = idx == b
-            if mask.sum() < 5:
-                continue
-            vals = fo[mask]
-            bins.append({"speed_m_s": float(sp[mask].mean()), "force_n": float(vals.mean()),
-                         "stderr_n": float(vals.std(ddof=1) / math.sqrt(mask.sum())), "samples": int(mask.sum())})
+        bins = _binned(v, y, sign, edges)
         if len(bins) < 3:
             continue
         bv = np.array([b["speed_m_s"] for b in bins])
         bf = np.array([b["force_n"] for b in bins])
-        bw = np.array([1.0 / max(b["stderr_n"], 1e-9) ** 2 for b in bins])
-        sign = 1.0 if name == "positive" else -1.0
         law = np.abs(friction_law_n(cfg, sign * bv))
-        (a0, b0), (sa, sb) = _line(bv, bf, bw)
+        (a0, b0), (sa, sb) = _bin_line(bins)
         (la, lb), _ = _line(bv, law, np.ones_like(bv))
         d = {"bins": bins, "law_n": law.tolist(), "line": {"intercept_n": float(a0), "intercept_stderr_n": float(sa),
              "slope_n_s_per_m": float(b0), "slope_stderr_n_s_per_m": float(sb)},
              "law_line": {"intercept_n": float(la), "slope_n_s_per_m": float(lb)}}
+        ref_name, (ra, rb), (rsa, rsb) = "the law's", (la, lb), (0.0, 0.0)
+        if vm is not None:
+            mbins = _binned(vm, ym, sign, edges)
+            if len(mbins) >= 3:
+                (ra, rb), (rsa, rsb) = _bin_line(mbins)
+                ref_name = "the model's"
+                d["model_bins"] = mbins
+                d["model_line"] = {"intercept_n": float(ra), "intercept_stderr_n": float(rsa),
+                                   "slope_n_s_per_m": float(rb), "slope_stderr_n_s_per_m": float(rsb)}
         out["directions"][name] = d
         scale = max(float(np.abs(bf).mean()), 1e-9)
         top = float(bv.max())
-        if abs(a0 - la) > MISSED_SHARE * scale and abs(a0 - la) > 3 * sa:
-            notes.append(f"{name} direction: the data's force at zero speed is {a0:.3g} N, the law's {la:.3g} N")
-        if abs(b0 - lb) * top > MISSED_SHARE * scale and abs(b0 - lb) > 3 * sb:
-            notes.append(f"{name} direction: the data's force rises by {b0 * top:.3g} N up to {top:.3g} m/s, the law's "
-                         f"by {lb * top:.3g} N")
+        se_a, se_b = math.hypot(sa, rsa), math.hypot(sb, rsb)
+        if abs(a0 - ra) > MISSED_SHARE * scale and abs(a0 - ra) > 3 * se_a:
+            notes.append(f"{name} direction: the data's force at zero speed is {a0:.3g} N, {ref_name} {ra:.3g} N")
+        if abs(b0 - rb) * top > MISSED_SHARE * scale and abs(b0 - rb) > 3 * se_b:
+            notes.append(f"{name} direction: the data's force rises by {b0 * top:.3g} N up to {top:.3g} m/s, "
+                         f"{ref_name} by {rb * top:.3g} N")
     if not out["directions"]:
         return None
     if notes:
@@ -194,6 +237,9 @@ def plot_png(data: dict) -> bytes:
         e = [2 * b["stderr_n"] for b in d["bins"]]
         ax.errorbar(v, f, yerr=e, fmt="o", label="measured, binned")
         ax.plot(v, d["law_n"], "-", label="fitted law")
+        if d.get("model_bins"):  # the calibrated model's simulation through the same estimate
+            ax.plot([b["speed_m_s"] for b in d["model_bins"]], [b["force_n"] for b in d["model_bins"]], "s--",
+                    mfc="none", label="calibrated model, binned")
         ax.set_title(f"{name} direction")
         ax.set_xlabel("|speed| [m/s]")
         ax.set_ylabel("force beyond inertia [N]")

@@ -767,8 +767,9 @@ def build_report(*, cfg: AxisConfig, loaded: LoadedTraces, check: CheckResult, b
                 "accepted on its held-out gain. Record a fit trace that excites it (a mode: a rapid move with short "
                 "jerk phases, or a sine sweep through its band; a Stribeck velocity: slow reversals) to pin it "
                 "down"]
-    # the binned force vs speed per direction with the calibrated friction law over it
-    fvs = friction_law.force_vs_speed(sel.final_cfg, tds, accepted_names)
+    # the binned force vs speed per direction with the calibrated friction law over it, judged against the
+    # calibrated model's own prediction run through the same estimate
+    fvs = friction_law.force_vs_speed(sel.final_cfg, tds, accepted_names, verification.final_preds)
     if fvs and fvs.get("note"):
         notes = notes + [fvs["note"]]
     final_fit = cumulative[-1]["fit_after"] if cumulative else base_fit
