@@ -11,15 +11,15 @@ Data path of one cycle (what to read, in order):
    per mode: PP, PV, PT, HM, CSP, CSV, CST), both on the drive's
    :class:`~virtualaxis.drive.mode_context.ModeContext` -> the set-point channel with its limiters
    (:mod:`~virtualaxis.drive.setpoints`) -> plant (``AxisSimulator.advance``);
-3. monitors: travel (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed) and
-   ``Drive._monitor`` (following error, standstill, target reached via the mode object, temperature,
-   DC link) -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F, causes, warnings,
+3. monitors (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed, following error,
+   standstill, motor temperature, DC link; each returns its events, which the drive applies in order) and the
+   mode object's target reached -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F, causes, warnings,
    EMCY) and the state machine's fault reaction (reaction class per fault, :mod:`~virtualaxis.drive.faults`);
 4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
    application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
 
 :class:`Drive` runs the power drive state machine, the object access and the orchestration of one
-position-loop cycle, and keeps the following-error, standstill, temperature and DC-link monitors; the
+position-loop cycle; the
 parameters in SI units are :mod:`~virtualaxis.drive.parameters`.
 Its objects (0x6xxx, 0x2xxx) live in :attr:`Drive.objects`; the CANopen application
 (:mod:`virtualaxis.drive.canopen_app`) mirrors them into the slave's object dictionary, and services
@@ -74,7 +74,7 @@ from virtualaxis.drive.commissioning import (
     switch_positions_m,
     value_ranges,
 )
-from virtualaxis.drive.fault_manager import MOTOR_TEMPERATURE_ALARM, FaultManager
+from virtualaxis.drive.fault_manager import FaultManager
 from virtualaxis.drive.faults import COMMUNICATION_FAULTS, FaultRecord
 from virtualaxis.drive.gain_bounds import loop_gain_bounds
 from virtualaxis.drive.mode_context import ModeContext
@@ -135,9 +135,6 @@ assert not set(_OUTPUT_KEYS) & set(ALIASES_BACK)
 #: string value: hashing a str is cheaper than an Enum member, and this runs every cycle)
 _STATE_SW = {state.value: bits | 0x10 | 0x200 for state, bits in STATE_BITS.items()}
 
-MOTOR_AMBIENT_C = 20.0
-MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
-MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
 #: warning EMCY of a set-point that cannot be planned (CiA 301 0x6320 parameter error; see refuse_setpoint)
 SETPOINT_REFUSED_EMCY = 0x6320
 #: order of the reactions to the objects of one RPDO: mode 0x6060 first, then the targets, then the controlword
@@ -283,10 +280,9 @@ class Drive:
             self.setpoints.demand_m = self.sim.state.position_m
             self.setpoints.demand_v = 0.0
             self.setpoints.last_vff = 0.0
-            self._motor_rise_k = 0.0
+            self._thermal = mon.MotorTemperature()
             self._vz_timer = SpeedZeroDetector()
-            self._ss_timer = WindowTimer()
-            self._rest_timer = WindowTimer()
+            self._standstill = mon.StandstillMonitor()
             # the mode objects and their set-point state (0x6060 value -> mode object; see drive.modes)
             self._modes = modes.make_modes(self.cycle_s, self.setpoints.demand_m)
             self._mode_obj = self._modes[0]
@@ -730,12 +726,15 @@ class Drive:
         return self._mode == HM and (self._hm.in_progress() or self._hm.stopping_after_error(self.ctx))
 
     def _apply_monitor_event(self, event: mon.Event) -> None:
-        """A monitor's event: a fault (with its persistent cause), a cause gone, or a limit switch reached
-        (fault, or warning + quick stop staying enabled)."""
+        """A monitor's event: a fault (with its persistent cause), a cause gone, the temperature alarm changed, or
+        a limit switch reached (fault, or warning + quick stop staying enabled)."""
         if isinstance(event, mon.FaultEvent):
             self._raise_fault(event.code, event.value, cause=event.cause)
         elif isinstance(event, mon.CauseCleared):
             self.fault_manager.clear_cause(event.code, event.cause)
+        elif isinstance(event, mon.AlarmChanged):  # (a warning's change updates the alarm itself)
+            self.fault_manager.temperature_alarm = event.number
+            self.fault_manager.update_alarm()
         elif event.fault:
             self._raise_fault(event.code, event.switches)
         else:
@@ -923,7 +922,7 @@ class Drive:
     def add_motor_heat(self, rise_k: float) -> None:
         """Raise the motor winding temperature by ``rise_k`` [K] (the thermal model cools it from there)."""
         with self._lock:
-            self._motor_rise_k += rise_k
+            self._thermal.add_heat(rise_k)
 
     def set_switch_input(self, fn: Callable[[bool, bool, bool], tuple[bool, bool, bool]] | None) -> None:
         """Put ``fn`` between the switch positions and the drive's inputs: it gets the (negative limit, positive
@@ -1107,6 +1106,9 @@ class Drive:
         self._params_dirty = False
 
     def _monitor(self, ax, dt: float) -> None:
+        """The per-cycle monitors after the plant (:mod:`~virtualaxis.drive.monitoring`), their events applied as
+        each returns them: following error and standstill (position control), target reached (the mode object's
+        bit 10), speed = 0, motor temperature, DC link."""
         pc, ctx = self._pc, self.ctx
         fe_m = ax.following_error_m
         in_position_control = (
@@ -1114,50 +1116,27 @@ class Drive:
             and self.setpoints.control == CONTROL_MODE.POSITION
             and (self._state is S.OPERATION_ENABLED or self._state is S.QUICK_STOP_ACTIVE)
         )
-        # following error 0x6065 / 0x6066 (position control only)
         if in_position_control:
-            ctx.fe_exceeded = ctx.fe_timer.update(abs(fe_m) > pc.fe_window_m, dt, pc.fe_time_s)
-            if ctx.fe_exceeded:
-                self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
+            ctx.fe_exceeded, event = mon.FollowingErrorMonitor.check(fe_m, ctx.fe_timer, dt, pc)
+            if event is not None:
+                self._apply_monitor_event(event)
         elif ctx.fe_timer.held_s:
             ctx.fe_timer.held_s = 0.0
-        # standstill monitoring (p2542/p2543): demand at rest for 0x2007 ms, |FE| > 0x2006 -> following error
-        if in_position_control and self.setpoints.demand_v == 0.0 and self._stop is None:
-            at_rest = self._rest_timer.update(True, dt, pc.standstill_time_s)
-            if at_rest and abs(fe_m) > pc.standstill_window_m and self._state is S.OPERATION_ENABLED:
-                self._raise_fault(0x8611, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
-        elif self._rest_timer.held_s:
-            self._rest_timer.held_s = 0.0
-        # target reached / velocity reached (the mode object's definition of bit 10)
+        event = self._standstill.check(fe_m, dt, pc,
+                                       in_position_control and self.setpoints.demand_v == 0.0 and self._stop is None,
+                                       self._state is S.OPERATION_ENABLED)
+        if event is not None:
+            self._apply_monitor_event(event)
         ctx.target_reached = self._mode_obj.target_reached(ctx, ax, dt)
         ctx.speed_zero = self._vz_timer.update(
             ax.velocity_m_s, dt, pc.velocity_threshold_m_s, pc.velocity_threshold_time_s
         )
-        # motor temperature (first-order winding model, chosen: rated current -> 100 K rise)
-        if pc.pmsm:
-            i2 = ax.current_q_a * ax.current_q_a + ax.current_d_a * ax.current_d_a
-            rise_ss = MOTOR_RISE_AT_RATED_K * i2 / (pc.rated_current_a * pc.rated_current_a)
-            self._motor_rise_k += dt / MOTOR_THERMAL_TAU_S * (rise_ss - self._motor_rise_k)
-        temp = MOTOR_AMBIENT_C + self._motor_rise_k
         fm = self.fault_manager
-        causes = fm.causes
-        alarm = MOTOR_TEMPERATURE_ALARM if temp >= pc.temperature_alarm_c else 0
-        if alarm != fm.temperature_alarm:  # (a warning's change updates the alarm itself)
-            fm.temperature_alarm = alarm
-            fm.update_alarm()
-        if temp >= pc.temperature_fault_c:
-            if 0x4310 not in causes:
-                self._raise_fault(0x4310, int(temp * 10), cause="motor temperature")
-        elif causes.get(0x4310) == "motor temperature":
-            del causes[0x4310]
-        # DC link
-        vdc = ax.dc_link_v
-        if vdc > pc.dc_over_v or vdc < pc.dc_under_v or causes:
-            for code, bad in ((0x3210, vdc > pc.dc_over_v), (0x3220, vdc < pc.dc_under_v)):
-                if bad and code not in causes:
-                    self._raise_fault(code, int(vdc * 1000), cause="dc link")
-                elif not bad and causes.get(code) == "dc link":
-                    del causes[code]
+        for event in self._thermal.check(ax.current_q_a, ax.current_d_a, dt, pc, fm.temperature_alarm,
+                                         fm.causes.get(0x4310)):
+            self._apply_monitor_event(event)
+        for event in mon.DcLinkMonitor.check(ax.dc_link_v, pc, fm.causes):
+            self._apply_monitor_event(event)
 
     # ================================================================================ outputs
     def _update_statusword(self) -> None:
@@ -1239,7 +1218,7 @@ class Drive:
             fe_u,
             (1 if neg else 0) | (2 if pos else 0) | (4 if home else 0) | self.touch_probe.input_bits
             | (STO_INPUT_BIT if self.sto.sources else 0),
-            round((MOTOR_AMBIENT_C + self._motor_rise_k) * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
+            round(self._thermal.temperature_c * 100.0) / 100.0,  # 0.01 K steps (round(t, 2): 2x the cost)
             self.fault_manager.alarm,
             self.counters["cycles"] & 0xFFFFFFFF,
             o[(0x6074, 0)] if self._mode in TORQUE_MODES else torque_pm,  # torque demand (torque modes: theirs)
@@ -1280,7 +1259,7 @@ class Drive:
                 current_a=ax.current_q_a * vs,
                 following_error_m=self._fe_m * ps,
                 dc_link_v=ax.dc_link_v,
-                motor_temperature_c=MOTOR_AMBIENT_C + self._motor_rise_k,
+                motor_temperature_c=self._thermal.temperature_c,
                 target_reached=bool(int(o[(0x6041, 0)]) & 0x400),
                 internal_limit_active=bool(int(o[(0x6041, 0)]) & 0x800),
                 warning=bool(int(o[(0x6041, 0)]) & 0x80),

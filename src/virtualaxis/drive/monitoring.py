@@ -14,15 +14,31 @@
   inverter switches off, as SINAMICS does.)
 - **Position objects**: 0x6064 / 0x6062 are 32-bit; a position beyond their range saturates (never wraps)
   and raises fault 0x8600 (F07493) once.
-- (Following error, standstill, target reached, temperature and DC link are in ``Drive._monitor``.)
+- **Following error** 0x6065 window / 0x6066 time, in position control only -> fault 0x8611 (F07452) with the
+  following error in position units; and the **standstill monitor** (SINAMICS p2542 / p2543 as 0x2006 / 0x2007):
+  the demand at rest for 0x2007, the following error beyond 0x2006 -> the same fault.
+- **Motor temperature**: a first-order winding model (rated current -> :data:`MOTOR_RISE_AT_RATED_K` in steady
+  state, time constant :data:`MOTOR_THERMAL_TAU_S`): alarm A07910 from 0x2021, fault 0x4310 (F07011, a persistent
+  cause) from 0x2022.
+- **DC link**: over- and undervoltage against the power unit's limits -> faults 0x3210 / 0x3220 (persistent causes).
+- (Target reached is the mode object's, speed = 0 :class:`~virtualaxis.drive.profiles.SpeedZeroDetector`.)
 
 Each monitor is a small object whose ``check`` returns an event (:class:`FaultEvent`, :class:`CauseCleared`,
-:class:`LimitSwitchEvent`) or None; the drive applies the events (``Drive._apply_monitor_event``).
+:class:`LimitSwitchEvent`, :class:`AlarmChanged`), a tuple of events, or None; the drive applies the events
+(``Drive._apply_monitor_event``) in the order the monitors run, so that a fault raised by one is seen by the next.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from virtualaxis.drive.fault_manager import MOTOR_TEMPERATURE_ALARM
+from virtualaxis.drive.objects import clamp_to_dtype
+from virtualaxis.drive.profiles import WindowTimer
+
+if TYPE_CHECKING:
+    from virtualaxis.drive.parameters import DriveParameters
 
 LIMIT_CODES = (0xFF10, 0xFF11)  # negative, positive switch
 I32_MAX = 0x7FFFFFFF
@@ -58,7 +74,24 @@ class LimitSwitchEvent:
     fault: bool
 
 
-Event = FaultEvent | CauseCleared | LimitSwitchEvent
+@dataclass(frozen=True)
+class AlarmChanged:
+    """The motor-temperature alarm number shown in 0x2031 (0: none) changed."""
+
+    number: int
+
+
+Event = FaultEvent | CauseCleared | LimitSwitchEvent | AlarmChanged
+#: no events (a monitor's common answer; no allocation per cycle)
+NO_EVENTS: tuple[Event, ...] = ()
+#: the following-error fault (F07452), also the standstill monitor's
+FOLLOWING_ERROR_FAULT = 0x8611
+
+MOTOR_AMBIENT_C = 20.0
+MOTOR_RISE_AT_RATED_K = 100.0  # chosen: rated current heats the winding by 100 K in steady state
+MOTOR_THERMAL_TAU_S = 600.0  # chosen: winding thermal time constant
+MOTOR_TEMPERATURE_CAUSE = "motor temperature"
+DC_LINK_CAUSE = "dc link"
 
 
 class LimitSwitchMonitor:
@@ -119,3 +152,92 @@ class OverspeedMonitor:
         elif cause_now == OverspeedMonitor.CAUSE:
             return CauseCleared(0x8401, OverspeedMonitor.CAUSE)
         return None
+
+
+class FollowingErrorMonitor:
+    """Following error 0x6065 / 0x6066 against the window timer the mode objects read (``ModeContext.fe_timer``:
+    PP shows bit 13 from it)."""
+
+    @staticmethod
+    def check(fe_m: float, timer: WindowTimer, dt_s: float, pc: DriveParameters) -> tuple[bool, FaultEvent | None]:
+        """In position control: (exceeded, fault 0x8611 while exceeded)."""
+        exceeded = timer.update(abs(fe_m) > pc.fe_window_m, dt_s, pc.fe_time_s)
+        if exceeded:
+            return True, FaultEvent(FOLLOWING_ERROR_FAULT, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
+        return False, None
+
+
+class StandstillMonitor:
+    """The demand at rest for 0x2007 in position control, the following error beyond 0x2006 in OPERATION
+    ENABLED -> fault 0x8611."""
+
+    def __init__(self) -> None:
+        self.timer = WindowTimer()
+
+    def check(self, fe_m: float, dt_s: float, pc: DriveParameters, demand_at_rest: bool,
+              operation_enabled: bool) -> FaultEvent | None:
+        """``demand_at_rest``: position control, the demand speed 0 and no stop running."""
+        timer = self.timer
+        if not demand_at_rest:
+            if timer.held_s:
+                timer.held_s = 0.0
+            return None
+        at_rest = timer.update(True, dt_s, pc.standstill_time_s)
+        if at_rest and abs(fe_m) > pc.standstill_window_m and operation_enabled:
+            return FaultEvent(FOLLOWING_ERROR_FAULT, clamp_to_dtype(fe_m * pc.inv_u, "i32"))
+        return None
+
+
+class MotorTemperature:
+    """The winding temperature model and its alarm (0x2021) and fault (0x2022) thresholds."""
+
+    def __init__(self) -> None:
+        self.rise_k = 0.0  # above ambient [K]
+
+    @property
+    def temperature_c(self) -> float:
+        return MOTOR_AMBIENT_C + self.rise_k
+
+    def add_heat(self, rise_k: float) -> None:
+        self.rise_k += rise_k
+
+    def check(self, current_q_a: float, current_d_a: float, dt_s: float, pc: DriveParameters, alarm_now: int,
+              cause_now: str | None) -> tuple[Event, ...]:
+        """One cycle of the model (with the currents of a PMSM; a force actuator keeps its temperature), then the
+        alarm's change and the fault or its cause gone. ``alarm_now``: the alarm shown; ``cause_now``: the
+        persistent cause recorded for 0x4310."""
+        if pc.pmsm:
+            i2 = current_q_a * current_q_a + current_d_a * current_d_a
+            rise_ss = MOTOR_RISE_AT_RATED_K * i2 / (pc.rated_current_a * pc.rated_current_a)
+            self.rise_k += dt_s / MOTOR_THERMAL_TAU_S * (rise_ss - self.rise_k)
+        temp = MOTOR_AMBIENT_C + self.rise_k
+        alarm = MOTOR_TEMPERATURE_ALARM if temp >= pc.temperature_alarm_c else 0
+        if temp >= pc.temperature_fault_c:
+            fault: Event | None = (FaultEvent(0x4310, int(temp * 10), cause=MOTOR_TEMPERATURE_CAUSE)
+                                   if cause_now is None else None)
+        elif cause_now == MOTOR_TEMPERATURE_CAUSE:
+            fault = CauseCleared(0x4310, MOTOR_TEMPERATURE_CAUSE)
+        else:
+            fault = None
+        if alarm != alarm_now:
+            return (AlarmChanged(alarm),) if fault is None else (AlarmChanged(alarm), fault)
+        return NO_EVENTS if fault is None else (fault,)
+
+
+class DcLinkMonitor:
+    """DC-link over- (0x3210) and undervoltage (0x3220), each a persistent cause while it lasts."""
+
+    CODES = (0x3210, 0x3220)
+
+    @staticmethod
+    def check(vdc_v: float, pc: DriveParameters, causes: dict[int, str]) -> tuple[Event, ...]:
+        over, under = vdc_v > pc.dc_over_v, vdc_v < pc.dc_under_v
+        if not (over or under or causes):
+            return NO_EVENTS
+        events: list[Event] = []
+        for code, bad in ((0x3210, over), (0x3220, under)):
+            if bad and code not in causes:
+                events.append(FaultEvent(code, int(vdc_v * 1000), cause=DC_LINK_CAUSE))
+            elif not bad and causes.get(code) == DC_LINK_CAUSE:
+                events.append(CauseCleared(code, DC_LINK_CAUSE))
+        return tuple(events)
