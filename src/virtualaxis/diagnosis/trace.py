@@ -433,6 +433,7 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
     for name in list(cols):
         if name != "t":
             cols[name] = _fill_nans(sp, name, t, cols[name], warnings, line)
+    check_wraps(sp, cols, line)  # (before any resampling blurs a wrap into a fast swing)
     meta = read_sidecar(p)
     side_axis = sidecar_axis_name(meta)
     if axis_name and side_axis and side_axis != axis_name:
@@ -566,6 +567,54 @@ def check_units(trace: Trace, cfg) -> None:
                 sp, f"current {float(iq[bad][0]):g} A is over 20 x the rated current (unit?)", _first_row(bad),
                 "current_q",
             )
+
+
+#: channels that a recorder may have held in a fixed-width integer (counts scaled to SI): a value that overflowed
+#: it wraps to the other end of its range (the motor angle is left out: an angle may wrap by design)
+WRAP_CHANNELS = ("current_q", "torque_meas", "force_drive", "vel_meas")
+#: unwrapped, the channel's largest step must be below this share of its range (a continuous signal) ...
+WRAP_SMOOTH_SHARE = 0.25
+#: ... and it must reach beyond the recorded range by more than this share of the range (values that did not fit)
+WRAP_BEYOND_SHARE = 0.05
+
+
+def check_wraps(path: str, columns: dict[str, np.ndarray], line: Callable[[int], int]) -> None:
+    """A channel whose value wrapped around the integer range it was recorded in (a 16-bit current counter that
+    overflowed: +32767 mA, then -32768 mA) is refused, naming the row: taken as it stands, a wrapped sample is a
+    full-range spike that no model follows.
+
+    The test unwraps the channel with its range as the period (a step of more than half the range is carried
+    across it, as ``numpy.unwrap`` does): a wrapped channel comes out continuous (every step below
+    :data:`WRAP_SMOOTH_SHARE` of the range) and reaches beyond the range it was recorded in (by more than
+    :data:`WRAP_BEYOND_SHARE` of it). A current that switches between two levels (a torque square wave) comes out
+    as one level within its range, a spike as a dip within it: no wrap. A channel whose noise alone moves it by
+    half its range from one sample to the next cannot be told apart and passes."""
+    for col in WRAP_CHANNELS:
+        x = columns.get(col)
+        if x is None or x.size < 8:
+            continue
+        lo, hi = float(np.min(x)), float(np.max(x))
+        d = np.diff(x)
+        width = (hi - lo) + float(np.median(np.abs(d)))  # the range the values wrap in: lowest to highest + a step
+        if not width > 0.0 or not np.any(np.abs(d) > 0.5 * width):
+            continue
+        u = np.unwrap(x, period=width)
+        if float(np.max(np.abs(np.diff(u)))) >= WRAP_SMOOTH_SHARE * width:
+            continue
+        beyond = max(float(np.max(u)) - hi, lo - float(np.min(u)))
+        if beyond <= WRAP_BEYOND_SHARE * width:
+            continue
+        i = int(np.flatnonzero(np.abs(d) > 0.5 * width)[0])
+        unit = CHANNEL_UNITS.get(col, "")
+        raise _err(
+            path,
+            f"jumps from {float(x[i]):.6g} to {float(x[i + 1]):.6g} {unit} between two samples, across its whole "
+            f"range ({lo:.6g} .. {hi:.6g} {unit}), and runs on smoothly beyond that range once carried across it "
+            f"(by up to {beyond:.3g} {unit}): the value wrapped around the integer range it was recorded in "
+            "(a 16-bit counter?); record it in a wider type, or unwrap it",
+            line(i + 1),
+            col,
+        )
 
 
 def write_trace(path: str | Path, columns: dict[str, np.ndarray], order: tuple[str, ...] = KNOWN_COLUMNS) -> None:
