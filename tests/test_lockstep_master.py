@@ -4,12 +4,14 @@ measured trace returned."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from served_drive import served
 
 from virtualaxis.diagnosis.trace import read_trace
-from virtualaxis.master import LockstepMaster, SetpointError, connect, gcode_setpoints
+from virtualaxis.master import LockstepError, LockstepMaster, SetpointError, connect, gcode_setpoints
 
 
 def _ramp(n: int, v_m_s: float, period_s: float = 0.001) -> np.ndarray:
@@ -89,3 +91,34 @@ def test_gcode_setpoints_refuse_what_they_cannot_run(tmp_path):
     assert sp.shape[1] == 1 and sp[0, 0] == 0.0 and abs(sp[-1, 0] - 0.010) < 1e-12
     v = np.diff(sp[:, 0]) / 0.001
     assert abs(v.max() - 0.1) < 1e-3 and np.all(v >= -1e-12)
+
+
+def test_a_drive_that_opens_its_holding_brake_first_is_enabled(tmp_path):
+    """A vertical axis whose brake opens in 200 ms (0x2040 commissioned from the config) stays SWITCHED ON for that
+    long after 0x0F; the master waits for it in drive time (``enable_timeout_s``), and a shorter wait is a clear
+    LockstepError naming the statusword."""
+    from virtualaxis.config import load_axis_config
+    from virtualaxis.runtime.axes import DEFAULT_CONFIG
+
+    weight_n = load_axis_config(DEFAULT_CONFIG).mechanics.table_mass_kg * 9.80665
+    cfg = tmp_path / "vertical.toml"
+    cfg.write_text(Path(DEFAULT_CONFIG).read_text() + f"""
+[effects]
+force_offset_n = {{ value = {weight_n:.2f}, source = "table mass x g: a vertical axis" }}
+brake_holding_force_n = {{ value = 3000.0, source = "test: brake holding 2 x the weight" }}
+brake_opening_time_s = {{ value = 0.2, source = "test: a large brake" }}
+brake_closing_time_s = {{ value = 0.05, source = "test" }}
+""")
+    with served("--lockstep", "--config", str(cfg)) as s:
+        net = connect(s.spec)
+        try:
+            with pytest.raises(LockstepError, match=r"controlword 0x0F: statuswords node 1: 0x0633 after 100 SYNCs"):
+                with LockstepMaster(net, 1, mode="csp", enable_timeout_s=0.1):
+                    pass
+            with LockstepMaster(net, 1, mode="csp") as m:
+                assert m.node_ids == (1,)
+                trace = m.run(_ramp(200, 0.02))
+                assert np.all(trace.statusword & 0x6F == 0x27)
+                assert trace.position_m[-1, 0] - trace.position_m[0, 0] > 1e-3
+        finally:
+            net.disconnect()

@@ -275,7 +275,9 @@ class LockstepMaster:
     :meth:`configure` (called on entry) writes by SDO, in PRE-OPERATIONAL: 0x1006 = ``period_s``, 0x60C2 = the
     same period, 0x6060 = the mode, RPDO1 = controlword + target (0x607A CSP, 0x60FF CSV, 0x6071 CST; synchronous),
     TPDO1 = statusword + 0x6064, TPDO2 = 0x606C + 0x6077 (both on every SYNC); then NMT start and the enable
-    sequence (fault reset if needed, 0x06, 0x07, 0x0F, one SYNC each) with the target on the actual position.
+    sequence (fault reset if needed, then 0x06, 0x07, 0x0F, each sent on every SYNC until every node shows its state,
+    for at most ``enable_timeout_s`` of drive time: a drive that opens its holding brake first stays SWITCHED ON for
+    its brake opening delay) with the target on the actual position.
     Every step sends each node's RPDO1, one SYNC, and waits (``answer_timeout_s`` of wall time) for every node's
     TPDO1 and TPDO2: the master may be as slow as the host makes it, the drives see one communication cycle per
     SYNC. Units: positions in m, velocities in m/s (``units_per_m`` drive units per m, default 1e6: 1 um), torques
@@ -284,12 +286,15 @@ class LockstepMaster:
 
     def __init__(self, network: canopen.Network, node_ids: int | list[int] | tuple[int, ...], *, mode: str = "csp",
                  period_s: float = 0.001, units_per_m: float = 1e6, answer_timeout_s: float = 5.0,
-                 eds: str = DEFAULT_EDS):
+                 eds: str = DEFAULT_EDS, enable_timeout_s: float = 2.0):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)} (got {mode!r})")
         if not 0.0 < period_s <= 0.1:
             raise ValueError(f"period_s must be > 0 and <= 0.1 s (got {period_s})")
+        if not 0.0 < enable_timeout_s <= 3600.0:
+            raise ValueError(f"enable_timeout_s must be > 0 and <= 3600 s (got {enable_timeout_s})")
         self.network = network
+        self.enable_timeout_s = enable_timeout_s
         self.node_ids = (node_ids,) if isinstance(node_ids, int) else tuple(node_ids)
         if not self.node_ids:
             raise ValueError("no node ids")
@@ -317,7 +322,11 @@ class LockstepMaster:
 
     # ---------------------------------------------------------------- set-up
     def __enter__(self) -> LockstepMaster:
-        self.configure()
+        try:
+            self.configure()
+        except BaseException:  # (nothing to exit from: the answer listener goes now)
+            self.close()
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
@@ -357,9 +366,12 @@ class LockstepMaster:
         time.sleep(0.01)
         self.enable()
 
-    def enable(self, max_syncs: int = 50) -> None:
+    def enable(self, max_syncs: int | None = None) -> None:
         """Fault reset when needed, then 0x06, 0x07, 0x0F until every node is OPERATION ENABLED (at most
-        ``max_syncs`` SYNCs per step); CSP targets held on the actual position."""
+        ``max_syncs`` SYNCs per step; by default those of ``enable_timeout_s``); CSP targets held on the actual
+        position."""
+        if max_syncs is None:
+            max_syncs = max(1, math.ceil(self.enable_timeout_s / self.period_s))
         answer = self.step_raw()
         if any(sw & 0x4F == 0x08 for sw in self._statuswords(answer).values()):
             self._cw = 0x80
@@ -377,7 +389,8 @@ class LockstepMaster:
                 if all(sw & _STATE_MASK == want[cw] for sw in sws.values()):
                     break
             else:
-                raise LockstepError(f"controlword 0x{cw:02X}: statuswords {self._hex(sws)} after {max_syncs} SYNCs")
+                raise LockstepError(f"controlword 0x{cw:02X}: statuswords {self._hex(sws)} after {max_syncs} SYNCs "
+                                    f"({max_syncs * self.period_s:g} s of drive time, enable_timeout_s)")
 
     def close(self) -> None:
         if self._answers is not None:
