@@ -323,6 +323,37 @@ def test_interpolated_position_refused_record_warning_clears_on_the_next_accepte
         r.close()
 
 
+def test_interpolated_position_refused_record_warning_goes_with_the_mode():
+    """IP: the warning of a record refused by the full buffer (statusword bit 7, 0x2031 = 7470) belongs to IP; a
+    change to PP, where no record can clear it, clears it (EMCY 0x0000), and the drive enables in PP with bit 7
+    off."""
+    import canopen
+    import pytest
+
+    r = _ip_rig()
+    node = r.node
+    try:
+        node.sdo[0x6040].raw = 0x1F
+        for k in range(1, 18):
+            node.sdo[0x60C1][1].raw = 100 * k
+        with pytest.raises(canopen.SdoAbortedError):
+            node.sdo[0x60C1][1].raw = 1_800
+        r.emcy.wait_for(0x6320)
+        r.sync(1)
+        assert r.sw() & 0x80 and node.sdo[0x2031].raw == 7470
+        node.sdo[0x6040].raw = 0x07  # disable operation, then PP
+        r.sync(20)
+        node.sdo[0x6060].raw = 1
+        r.sync(1)
+        assert not r.sw() & 0x80 and node.sdo[0x2031].raw == 0 and node.sdo[0x603F].raw == 0
+        node.sdo[0x6040].raw = 0x0F
+        r.sync(20)
+        assert r.sw() & 0x6F == 0x27 and not r.sw() & 0x80
+        assert 0 in _emcy_codes_after(r, 0x6320)
+    finally:
+        r.close()
+
+
 def test_interpolated_position_record_in_the_frame_that_enables_ip_is_the_first_point():
     """IP with RPDO1 = controlword + 0x60C1:1 (synchronous): the record of the frame whose controlword raises bit 4
     is the first interpolation point (one period 0x60C2 from the demand), not dropped; the next record is one

@@ -872,6 +872,8 @@ class Drive:
         self._mode = mode
         self._mode_obj = self._modes.get(mode, self._modes[0])
         self._store((0x6061, 0), mode)
+        if SETPOINT_REFUSED_EMCY in self.fault_manager.warnings:  # (the refused set-point was the old mode's)
+            self.set_warning(SETPOINT_REFUSED_EMCY, False)
         if self._state == S.OPERATION_ENABLED and self._stop is None:
             self._enter_mode(mode)
         self._update_statusword()
