@@ -306,6 +306,11 @@ def test_exception_codes_and_last_error_register():
         assert srv.last_error()[:2] == (2, 40110 - 40001)
         assert ro.exc(ro.client.write_register(40361 - 40001, 200, device_id=1)) == 4
         assert ro.last_error()[0] == 1
+        # writes disabled: the address is checked first (02 for a register outside the map, FC06 and FC16 alike)
+        assert ro.exc(ro.client.write_register(0, 1, device_id=1)) == 2
+        assert ro.last_error()[:2] == (7, 0)
+        assert ro.exc(ro.client.write_registers(40360 - 40001, [1, 2, 3], device_id=1)) == 4  # all mapped
+        assert ro.exc(ro.client.write_registers(40120 - 40001, [0] * 5, device_id=1)) == 2  # crosses a hole
         assert drive.get_parameter("kv_1000_per_min") == kv
         # unknown unit id: gateway target failed to respond
         assert srv.exc(c.read_holding_registers(109, count=1, device_id=9)) == 0x0B

@@ -82,6 +82,7 @@ class RegisterAccess:
             REASON_WRITES_DISABLED,
             RegisterError,
             View,
+            check_mapped,
             read_block,
             write_block,
         )
@@ -104,6 +105,7 @@ class RegisterAccess:
                     words = read_block(link, address, count, View(link))
                 return b"\x00" + struct.pack(f">{len(words)}H", *words)
             if not self.writable:
+                check_mapped(address, len(values))  # (02 for an address outside the map, as with writes on)
                 raise RegisterError(REASON_WRITES_DISABLED, "writes are disabled", address=address)
             write_block(link, address, list(values))
             return b"\x00"

@@ -315,6 +315,7 @@ class Register:
     read: Callable[[View], float]
     write: ObjectWrite | Callable[[AxisLink, int], None] | None = None
     source: str = ""  # drive object / Siemens counterpart
+    value_range: tuple[int, int] | None = None  # the values a write may carry where narrower than the type's
 
     @property
     def words(self) -> int:
@@ -460,8 +461,8 @@ CUSTOM_CHECKS: dict[Callable, Callable[[AxisLink, int], None]] = {
 P = _pos_factor
 
 
-def _r(number, name, dtype, scaling, meaning, read, write=None, source=""):
-    return Register(number, name, dtype, scaling, meaning, read, write, source)
+def _r(number, name, dtype, scaling, meaning, read, write=None, source="", value_range=None):
+    return Register(number, name, dtype, scaling, meaning, read, write, source, value_range)
 
 
 REGISTERS: tuple[Register, ...] = (
@@ -502,8 +503,8 @@ REGISTERS: tuple[Register, ...] = (
     _r(40321, "CURRENT_LIMIT", "u16", "0.1 A", "current limit", lambda v: v.param("current_limit_a") * 10,
        ObjectWrite(0x6073, 0, _current_factor), "p0640 / 0x6073"),
     _r(40324, "REF_SPEED", "u16", "1 rpm", "reference speed (100 % of 40101 / 40111); kept by the Modbus "
-       "server, default the motor's rated speed", lambda v: v.link.reference_speed_rpm, _write_reference_speed,
-       "p2000"),
+       "server, default the motor's rated speed; 1..65535", lambda v: v.link.reference_speed_rpm,
+       _write_reference_speed, "p2000", (1, 65535)),
     # ---- monitoring block (40340 ... 40383, contiguous)
     _r(40340, "SPEED_SET_RPM", "i16", "1 rpm", "speed set-point (motor)",
        lambda v: v.s.velocity_demand_m_s * v.link.rpm_per_m_s(), None, "r0020"),
@@ -605,9 +606,9 @@ REGISTERS: tuple[Register, ...] = (
     # ---- fault injection (40600 ... 40609; writes refused unless serve --allow-fault-injection)
     _r(40600, "FI_DUTY", "u16", "1 per mille", "duty cycle of the next injection (0 or 1000: permanent; else "
        "intermittent, active for duty x period of every period)", lambda v: v.link.fault_duty_permille,
-       _write_fault_duty, "0x5FF2"),
+       _write_fault_duty, "0x5FF2", (0, 1000)),
     _r(40601, "FI_PERIOD", "u32", "1 ms", "period of the intermittent variant (2..3600000)",
-       lambda v: v.link.fault_period_ms, _write_fault_period, "0x5FF3"),
+       lambda v: v.link.fault_period_ms, _write_fault_period, "0x5FF3", (2, 3_600_000)),
     _r(40603, "FI_MAGNITUDE", "i32", "kind-specific", "magnitude of the next injection (brake force [N], limit "
        "switch side, heating [K/s], bus-off time [ms]; 0: the kind's default)", lambda v: v.link.fault_magnitude,
        _write_fault_magnitude, "0x5FF4"),
@@ -654,14 +655,20 @@ def read_block(link: AxisLink, address: int, count: int, view: View | None = Non
     return out
 
 
-def decode_writes(link: AxisLink, address: int, values: list[int]) -> list[tuple[Register, int]]:
-    """The (register, value) writes that ``values`` at ``address`` make; checks the addresses, the pairing
-    of 32-bit values, writability and the register ranges (not yet the drive's validation)."""
-    for a in range(address, address + len(values)):
+def check_mapped(address: int, count: int) -> None:
+    """Every register of ``count`` from ``address`` is in the map (exception 02 otherwise: the address check comes
+    before any other check of a write, as the Modbus application protocol's processing diagrams have it)."""
+    for a in range(address, address + count):
         if a not in BY_ADDRESS:
             raise RegisterError(
                 REASON_UNKNOWN_REGISTER, f"register {a + 40001} (address {a}) is not in the map", address=a
             )
+
+
+def decode_writes(link: AxisLink, address: int, values: list[int]) -> list[tuple[Register, int]]:
+    """The (register, value) writes that ``values`` at ``address`` make; checks the addresses, the pairing
+    of 32-bit values, writability and the register ranges (not yet the drive's validation)."""
+    check_mapped(address, len(values))
     out = []
     i = 0
     while i < len(values):
@@ -879,11 +886,14 @@ MACHINE_READABLE_FIELDS = ("register", "address", "words", "name", "type", "sign
 def register_rows() -> list[dict]:
     """The register map as plain rows (one per register or 32-bit pair), the content of ``docs/modbus-map.csv``
     and ``docs/modbus-map.json``: ``register`` Modicon number of the first word, ``address`` its PDU address
-    (0-based), ``words`` 1 or 2 (high word first), ``min`` / ``max`` the value range of the type, ``access`` R or
-    RW (RW: written with ``--modbus-writable``)."""
+    (0-based), ``words`` 1 or 2 (high word first), ``min`` / ``max`` the values the register holds (its type's
+    range, or the narrower range a write is checked against), ``access`` R or RW (RW: written with
+    ``--modbus-writable``)."""
     rows = []
     for r in REGISTERS:
         _, lo, hi = DTYPES[r.dtype]
+        if r.value_range is not None:
+            lo, hi = r.value_range
         rows.append({"register": r.number, "address": r.address, "words": r.words, "name": r.name,
                      "type": r.dtype, "signed": r.dtype.startswith("i"), "min": lo, "max": hi,
                      "access": "RW" if r.writable else "R", "scaling": r.scaling, "meaning": r.meaning,
