@@ -131,8 +131,14 @@ async def full(url: str, out: dict) -> None:
             out["inject_unknown"] = "Good"
         except ua.UaStatusCodeError as exc:
             out["inject_unknown"] = _code_name(exc.code)
+        try:  # an intermittent fault needs its period
+            await methods.call_method(inject, ua.Variant("encoder_loss", ua.VariantType.String), 0.5, 0.0, 0.0)
+            out["inject_no_period"] = "Good"
+        except ua.UaStatusCodeError as exc:
+            out["inject_no_period"] = _code_name(exc.code)
+        # a permanent one (Duty 1) has none: PeriodS 0 is accepted
         out["inject_active"] = await methods.call_method(
-            inject, ua.Variant("encoder_loss", ua.VariantType.String), 1.0, 1.0, 0.0)
+            inject, ua.Variant("encoder_loss", ua.VariantType.String), 1.0, 0.0, 0.0)
         end = time.monotonic() + 10
         while sum(e["kind"] == "fault" for e in events) < 2 and time.monotonic() < end:
             await asyncio.sleep(0.05)

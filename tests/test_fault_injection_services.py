@@ -365,8 +365,11 @@ def test_fault_command_form_and_application_without_io():
     inj = FaultInjector(drive, allowed=True)
     r = apply_fault_command(inj, {"action": "inject", "kind": "limit_switch", "options": {"magnitude": 1.0}})
     assert r["ok"] is True and r["active"] == ["limit_switch"]
-    r = apply_fault_command(inj, {"action": "inject", "kind": 4, "options": {"period_s": 0.001}})
+    r = apply_fault_command(inj, {"action": "inject", "kind": 4, "options": {"duty": 0.5, "period_s": 0.001}})
     assert r["ok"] is False and r["abort_code"] == "0x06090030" and "period_s" in r["error"]
+    # a permanent fault has no period: any value is accepted, 0 included (as OPC UA's PeriodS 0 with Duty 1)
+    r = apply_fault_command(inj, {"action": "inject", "kind": 4, "options": {"duty": 1.0, "period_s": 0.0}})
+    assert r["ok"] is True and "dc_link_undervoltage" in r["active"], r
     r = apply_fault_command(inj, {"action": "clear", "kind": None, "options": {}})
     assert r == {"action": "clear", "ok": True, "active": []}
     inj.allowed = False

@@ -113,6 +113,7 @@ def test_browse_subscribe_write_and_fault_event_from_other_processes():
 
     # fault injection by method, the fault as an event
     assert r["inject_unknown"] == "BadInvalidArgument"
+    assert r["inject_no_period"] == "BadInvalidArgument"
     assert r["inject_active"] == ["encoder_loss"]
     faults = [e for e in r["events"] if e["kind"] == "fault"]
     assert len(faults) == 2, r["events"]  # from the axis object and from the Server object

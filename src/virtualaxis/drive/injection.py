@@ -174,15 +174,19 @@ class FaultInjector:
         return self._cycles * self.drive.cycle_s
 
     def inject(self, kind: str, *, duty: float = 1.0, period_s: float = 1.0, magnitude: float | None = None) -> None:
-        """Inject ``kind`` (see :data:`KINDS`); ``duty`` < 1 makes it intermittent with ``period_s`` [s]."""
+        """Inject ``kind`` (see :data:`KINDS`); ``duty`` < 1 makes it intermittent with ``period_s`` [s] (a permanent
+        fault, ``duty`` 1, has no period: ``period_s`` is not used, 0 included)."""
         if not self.allowed:
             raise InjectionRefused(ABORT_DEVICE_STATE, "fault injection is off (serve with --allow-fault-injection)")
         if kind not in KINDS:
             raise InjectionRefused(ABORT_VALUE_INVALID, f"unknown fault kind {kind!r} (known: {', '.join(KINDS)})")
         if not (isinstance(duty, (int, float)) and 0.0 < duty <= 1.0):
             raise InjectionRefused(ABORT_VALUE_INVALID, f"duty must be in (0, 1] (got {duty!r})")
-        if not (isinstance(period_s, (int, float)) and math.isfinite(period_s) and 0.002 <= period_s <= 3600):
-            raise InjectionRefused(ABORT_VALUE_INVALID, f"period_s must be 0.002..3600 s (got {period_s!r})")
+        if duty == 1.0:
+            period_s = 1.0  # (permanent: not used)
+        elif not (isinstance(period_s, (int, float)) and math.isfinite(period_s) and 0.002 <= period_s <= 3600):
+            raise InjectionRefused(ABORT_VALUE_INVALID, f"period_s must be 0.002..3600 s for an intermittent fault "
+                                                        f"(got {period_s!r})")
         if magnitude is not None and not math.isfinite(magnitude):
             raise InjectionRefused(ABORT_VALUE_INVALID, "magnitude must be finite")
         with self.drive.lock, self._lock:

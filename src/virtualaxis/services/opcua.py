@@ -865,7 +865,8 @@ class AddressSpace:
             self._method(axis, "inject"),
             [arg("Kind", ua.VariantType.String, f"fault kind: {kinds}"),
              arg("Duty", ua.VariantType.Double, "fraction of each period the fault is present, (0, 1]; 1 permanent"),
-             arg("PeriodS", ua.VariantType.Double, "period of an intermittent fault [s], 0.002..3600"),
+             arg("PeriodS", ua.VariantType.Double, "period of an intermittent fault [s], 0.002..3600; "
+                 "not used with Duty 1 (0 accepted)"),
              arg("Magnitude", ua.VariantType.Double, "kind-specific magnitude, 0 for the default")],
             [active])
         self.own.add(m.nodeid)
