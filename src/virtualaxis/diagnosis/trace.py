@@ -77,8 +77,12 @@ class Trace:
         return [c for c in RESIDUAL_CHANNELS if c in self.columns]
 
     def max_speed_m_s(self) -> float:
-        v = np.gradient(self.pos_cmd, self.t) if self.t.size > 2 else np.zeros(1)
-        return float(np.max(np.abs(v)))
+        """The command's top speed [m/s]; 0 for a command that does not move (a gradient over time stamps that
+        are not exactly uniform leaves a rounding residue of a constant)."""
+        x = self.pos_cmd
+        if self.t.size <= 2 or float(np.max(x) - np.min(x)) == 0.0:
+            return 0.0
+        return float(np.max(np.abs(np.gradient(x, self.t))))
 
 
 def _err(path: str, msg: str, row: int | None = None, column: str | None = None) -> InputError:
@@ -96,6 +100,11 @@ _MAX_BYTES_PER_ROW = 512
 _MAX_HEADER_CHARS = 65536
 #: lines parsed per chunk (bounded memory while reading; the progress bar advances per chunk)
 _CHUNK_LINES = 50_000
+
+
+#: unit suffixes a header may carry after a column name (``pos_meas_m``, ``current_q_a``)
+UNIT_SUFFIXES = frozenset({"s", "ms", "us", "m", "mm", "um", "nm", "rad", "deg", "rev", "m_s", "mm_s", "mm_min",
+                           "nm_m", "n_m", "n", "a", "ma", "v", "rpm"})
 
 
 def _meant_column(header_name: str) -> str:
@@ -402,6 +411,14 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
         raise _err(sp, f"only {data.shape[0]} data row{'s' if data.shape[0] != 1 else ''} (at least 16 needed)")
     cols = {h: data[:, i] for i, h in enumerate(names)}
     extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns() and h not in DRIVE_WORDS]
+    for h in extra:  # a measured channel named with its unit would be dropped unseen: refused instead
+        meant = _meant_column(h)
+        if meant not in KNOWN_COLUMNS:
+            meant = next((c for c in KNOWN_COLUMNS
+                          if meant.startswith(c + "_") and meant[len(c) + 1:] in UNIT_SUFFIXES), meant)
+        if meant in KNOWN_COLUMNS and meant not in header:
+            raise _err(sp, f"column {h!r} is not a trace column; {meant!r} is (column names are lower case, without "
+                           "units: every column is in SI units, docs/reference/trace-format.md)", 1, h)
     if any(extra):
         warnings.append(f"extra columns ignored: {', '.join(h for h in extra if h)}")
     if "" in extra:
@@ -523,17 +540,21 @@ def check_units(trace: Trace, cfg) -> None:
             lead = cfg.mechanics.lead_m
             if lead > 0:
                 expect = 2 * math.pi / lead
-                slope = float(np.polyfit(cmd, mp, 1)[0])
+                # against a measured position where there is one: the command leads the motion by the loop's lag,
+                # which on a short trace from rest is a large share of the travel
+                ref_col = next((c for c in ("pos_fb", "pos_meas") if c in trace.columns
+                                and float(np.ptp(trace.columns[c])) > 0.5 * span), "pos_cmd")
+                slope = float(np.polyfit(trace.columns[ref_col], mp, 1)[0])
                 if not 0.8 < abs(slope) / expect < 1.25:
                     raise _err(
                         sp,
-                        f"motor_pos turns {abs(slope):.4g} rad per metre of pos_cmd, the config's lead "
+                        f"motor_pos turns {abs(slope):.4g} rad per metre of {ref_col}, the config's lead "
                         f"{lead:g} m gives {expect:.4g} rad/m: motor_pos must be in rad, or the trace is "
                         "from another axis",
                         None,
                         "motor_pos",
                     )
-                if slope < 0:
+                if float(np.polyfit(cmd, mp, 1)[0]) < 0:  # (the direction against the command itself)
                     trace.warnings.append("motor_pos turns negatively with pos_cmd: sign flipped")
                     trace.columns["motor_pos"] = -mp
     vmax_cmd = trace.max_speed_m_s()
