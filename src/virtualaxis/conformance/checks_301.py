@@ -614,7 +614,10 @@ def _sync_for(ctx: Context, period: float, duration: float) -> list[float]:
 _SIZES = {odm.BOOLEAN: 1, odm.INTEGER8: 1, odm.UNSIGNED8: 1, odm.INTEGER16: 2, odm.UNSIGNED16: 2,
           odm.INTEGER32: 4, odm.UNSIGNED32: 4, odm.REAL32: 4, odm.INTEGER64: 8, odm.UNSIGNED64: 8,
           odm.REAL64: 8}
-_SKIP_WRITE = {0x1010, 0x1011, 0x6040, 0x1F51, 0x1F50}  # store / restore / controlword: side effects
+#: not written back: store / restore parameters, program control and data, the controlword (side effects), and
+#: the fault-injection channel of docs/fault-injection.md (0x5FF0 inject, 0x5FF1 clear: commands, whose value read
+#: back is no state; 0x5FF2..0x5FF6 its options and status)
+_SKIP_WRITE = {0x1010, 0x1011, 0x6040, 0x1F51, 0x1F50, *range(0x5FF0, 0x5FF7)}
 
 
 def _eds_entries(ctx: Context) -> list:
@@ -640,10 +643,10 @@ def eds_listed(ctx: Context) -> str:
         name = f"0x{idx:04X}:{sub} {var.name}"
         n += 1
         try:
-            data = ctx.node.sdo.upload(idx, sub)
+            data, size = ctx.sized_read(idx, sub)
             readable = True
         except canopen.SdoAbortedError as exc:
-            data, readable = b"", False
+            data, size, readable = b"", 0, False
             if exc.code == 0x08000024:  # no data available (e.g. an empty error history entry): it exists
                 continue
             if var.access_type == "wo":
@@ -654,14 +657,18 @@ def eds_listed(ctx: Context) -> str:
                 continue
         if readable and var.access_type == "wo":
             problems.append(f"{name}: wo in the EDS but readable")
-        if readable and var.data_type in _SIZES and len(data) != _SIZES[var.data_type]:
-            problems.append(f"{name}: {len(data)} bytes, EDS data type 0x{var.data_type:04X} has "
-                            f"{_SIZES[var.data_type]}")
-            continue
+        if readable and var.data_type in _SIZES:
+            want = _SIZES[var.data_type]
+            if size is None and len(data) >= want:  # (no size indicated: the data type's bytes of the four sent)
+                data, size = data[:want], want
+            if size != want:
+                problems.append(f"{name}: {len(data) if size is None else size} bytes, EDS data type "
+                                f"0x{var.data_type:04X} has {want}")
+                continue
         if idx in _SKIP_WRITE or not readable:
             continue
         try:
-            ctx.node.sdo.download(idx, sub, data)
+            ctx.raw_write(idx, sub, data)
             wrote, code = True, 0
         except canopen.SdoAbortedError as exc:
             wrote, code = False, exc.code
@@ -712,7 +719,7 @@ def eds_unlisted(ctx: Context) -> str:
     answered = []
     for idx, sub in probes:
         try:
-            data = ctx.node.sdo.upload(idx, sub)
+            data = ctx.raw_read(idx, sub)
             answered.append(f"0x{idx:04X}:{sub} -> {data.hex()}")
         except canopen.SdoAbortedError as exc:
             expected = ABORT_NO_SUB if sub else ABORT_NO_OBJECT

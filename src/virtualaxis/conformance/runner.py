@@ -421,17 +421,30 @@ class Context:
 
     def raw_read(self, index: int, sub: int) -> bytes:
         """SDO upload of raw bytes (no EDS needed for the entry)."""
+        return self.sized_read(index, sub)[0]
+
+    def sized_read(self, index: int, sub: int) -> tuple[bytes, int | None]:
+        """SDO upload of raw bytes as the node sent them, and the size it indicated (None: an expedited answer
+        without a size, CiA 301 allows it): not cut to the EDS' data type, as ``SdoClient.upload`` cuts a longer
+        answer."""
+        def upload() -> tuple[bytes, int | None]:
+            with self.node.sdo.open(index, sub, buffering=0) as fp:
+                size = fp.size
+                data = fp.read()
+            return data, size
+
         try:
-            data = self.node.sdo.upload(index, sub)
+            data, size = self._sdo(upload, f"SDO upload 0x{index:04X}:{sub}")
         except canopen.SdoAbortedError as exc:
             self.note(f"SDO upload 0x{index:04X}:{sub} -> abort 0x{exc.code:08X}")
             raise
         self.note(f"SDO upload 0x{index:04X}:{sub} -> {data.hex(' ')}")
-        return data
+        return data, size
 
     def raw_write(self, index: int, sub: int, data: bytes) -> None:
         try:
-            self.node.sdo.download(index, sub, data)
+            self._sdo(lambda: self.node.sdo.download(index, sub, data),
+                      f"SDO download 0x{index:04X}:{sub} [{data.hex(' ')}]")
         except canopen.SdoAbortedError as exc:
             self.note(f"SDO download 0x{index:04X}:{sub} [{data.hex(' ')}] -> abort 0x{exc.code:08X}")
             raise
