@@ -349,3 +349,34 @@ def test_injection_refused_without_the_flag():
         finally:
             net.disconnect()
     assert s.returncode == 0, s.stderr[-2000:]
+
+
+@pytest.mark.parametrize("kind", ["encoder_loss", "dc_link_undervoltage"])
+def test_a_persistent_cause_faults_the_drive_again_after_an_nmt_reset_node(kind):
+    """A real drive whose encoder is still unplugged faults again right after a power-on reset: NMT Reset Node
+    restarts the drive (fault buffer cleared), the injected cause persists, and the drive is back in FAULT with
+    its EMCY code in 0x603F; it cannot be enabled until the injection is cleared."""
+    code = 0x7305 if kind == "encoder_loss" else 0x3220
+    with served("--allow-fault-injection") as s:
+        net = connect(s.spec)
+        try:
+            node = canopen.BaseNode402(NODE, str(DEFAULT_EDS))
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            net.add_node(node)
+            inj = RemoteInjector(node)
+            inj.inject(kind)
+            _wait(lambda: node.sdo[0x6041].raw & FAULT_MASK == FAULT)
+            net.send_message(0x000, bytes((0x81, NODE)))  # NMT reset node
+            time.sleep(0.5)
+            _wait(lambda: node.sdo[0x6041].raw & FAULT_MASK == FAULT and node.sdo[0x603F].raw == code)
+            assert inj.active == [kind]
+            for cw in (0x80, 0x00, 0x06, 0x07, 0x0F):  # a fault reset is refused while the cause persists
+                node.sdo[0x6040].raw = cw
+                time.sleep(0.02)
+            assert node.sdo[0x6041].raw & FAULT_MASK == FAULT
+            inj.clear(kind)
+            node.sdo[0x6040].raw = 0x80
+            _wait(lambda: node.sdo[0x6041].raw & FAULT_MASK == SOD)
+        finally:
+            net.disconnect()
+

@@ -70,6 +70,8 @@ KINDS: dict[str, int] = {
     "safe_torque_off": 11,
 }
 KIND_NAMES = {v: k for k, v in KINDS.items()}
+#: kinds whose cause persists in the drive (a fault reset is refused while it lasts, a power-on reset finds it again)
+PERSISTENT_KINDS = frozenset({"encoder_loss", "dc_link_undervoltage", "dc_link_overvoltage"})
 
 #: EMCY code a master sees for each kind (the one raised directly or by the drive's monitor / stack)
 EMCY_OF_KIND: dict[str, int] = {
@@ -254,7 +256,11 @@ class FaultInjector:
 
     def _continuous(self, inj: Injection) -> None:
         drive = self.drive
-        if inj.kind == "following_error":
+        if inj.kind in PERSISTENT_KINDS:  # the cause outlives a power-on reset (NMT reset node): faults again
+            code = EMCY_OF_KIND[inj.kind]
+            if code not in drive.causes:
+                drive.raise_fault(code, 0, cause=f"injected {inj.kind}")
+        elif inj.kind == "following_error":
             sim = drive.simulator
             base = float(drive.read_object(0x2011, 0))
             sim.set_external_force(base + self._brake_force(inj))
@@ -290,7 +296,7 @@ class FaultInjector:
         inj.present = present
         drive, kind = self.drive, inj.kind
         code = EMCY_OF_KIND[kind]
-        if kind in ("encoder_loss", "dc_link_undervoltage", "dc_link_overvoltage"):
+        if kind in PERSISTENT_KINDS:
             if present:
                 if code not in drive.causes:
                     drive.raise_fault(code, 0, cause=f"injected {kind}")
