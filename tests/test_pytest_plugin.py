@@ -153,3 +153,51 @@ def test_plugin_fixture_markers_parametrisation_and_cleanup(tmp_path):
     assert len(served) == 3
     time.sleep(0.2)
     assert not [p for p in served if _alive(p)], "a served drive outlived its test"
+
+
+KILLED_TEST = '''
+import os
+import time
+
+import pytest
+
+
+@pytest.mark.virtual_axis(transport="udp")
+def test_runs_until_the_job_is_cancelled(virtual_axis):
+    with open(os.environ["VA_PID_FILE"], "w") as fh:
+        fh.write(str(virtual_axis.process.pid))
+    time.sleep(120)
+'''
+
+
+def test_a_test_run_ended_by_sigterm_leaves_no_served_drive(tmp_path):
+    """A CI job cancelled or timed out ends pytest with SIGTERM (or SIGKILL): no clean-up of pytest's runs, and
+    the served drive must not live on."""
+    import signal
+
+    (tmp_path / "test_killed.py").write_text(KILLED_TEST)
+    pids = tmp_path / "pid.txt"
+    src = str(ROOT / "src")
+    pythonpath = os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH", "")) if p)
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        pids.unlink(missing_ok=True)
+        run = subprocess.Popen([sys.executable, "-m", "pytest", "-q", "-s", "-p", "no:cacheprovider",
+                                *_plugin_args(), "test_killed.py"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL,
+                               env={**os.environ, "PYTHONPATH": pythonpath, "VA_PID_FILE": str(pids)})
+        try:
+            deadline = time.monotonic() + 120
+            while not (pids.exists() and pids.read_text()):
+                assert run.poll() is None and time.monotonic() < deadline, "the test never served its drive"
+                time.sleep(0.1)
+            served = int(pids.read_text())
+            assert _alive(served)
+            run.send_signal(sig)
+            run.wait(30)
+            deadline = time.monotonic() + 15
+            while _alive(served) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert not _alive(served), f"the served drive outlived pytest ended by {sig.name}"
+        finally:
+            if run.poll() is None:
+                run.kill()

@@ -27,7 +27,9 @@ clock: for what only real time shows, e.g. latency); or ``lockstep=True|False``,
 ``virtual_axis`` with ``indirect=True`` and a dict of the same keywords parametrises it.
 
 Clean-up runs when the test fails and on Ctrl-C: the child process is terminated (killed after 10 s), buses
-are shut down; children still alive at interpreter exit are killed.
+are shut down; children still alive at interpreter exit are killed. A test run that is itself killed (SIGTERM or
+SIGKILL: a CI job cancelled or timed out) runs no clean-up; on Linux its served drive is then sent SIGTERM by the
+kernel (``PR_SET_PDEATHSIG``), so nothing outlives the run.
 """
 
 from __future__ import annotations
@@ -52,6 +54,30 @@ import pytest
 
 _CHILDREN: set[subprocess.Popen] = set()
 _CLI = [sys.executable, "-c", "import sys; from virtualaxis.cli.main import main; sys.exit(main())"]
+
+
+def _die_with_parent():
+    """A ``preexec_fn`` that has the child sent SIGTERM when this process dies however it dies (Linux
+    ``PR_SET_PDEATHSIG``): a test run ended by SIGTERM or SIGKILL (a CI job cancelled or timed out) runs no
+    clean-up of its own, and its served drive would live on. None where the call does not exist."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+    import signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def arm() -> None:  # (in the child, between fork and exec)
+        prctl(1, int(signal.SIGTERM), 0, 0, 0)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the parent died before the call: nobody would send it
+            os._exit(1)
+
+    return arm
 
 
 def _kill_children() -> None:
@@ -217,7 +243,7 @@ def start_virtual_axis(*, transport: str = "virtual", config: str | Path | None 
             # silent or hung one cannot hold the start-up past ready_timeout_s
             err_file = tempfile.TemporaryFile(mode="w+")
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err_file, text=True,
-                                    env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                    env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent())
             _CHILDREN.add(proc)
             lines: queue.Queue[str] = queue.Queue()
 
