@@ -38,3 +38,14 @@ def test_the_check_table_of_the_docs_is_the_suite():
     want = ["| " + " | ".join(x.replace("|", "\\|") for x in (f"`{c.id}`", c.family, c.clause, c.stimulus,
                                                               c.expected)) + " |" for c in select(None)]
     assert rows[:len(want)] == want
+
+
+def test_only_a_full_id_selects_that_check_alone():
+    from virtualaxis.conformance.suite import select
+
+    ids = [c.id for c in select("301-SDO-1")]
+    assert ids == ["301-SDO-1"]
+    assert {"301-SDO-1", "301-SDO-10", "301-SDO-11"} <= {c.id for c in select("301-SDO")}
+    assert [c.id for c in select("402-FLD-1,301-SDO-1")] == [c.id for c in select(None)
+                                                          if c.id in ("402-FLD-1", "301-SDO-1")]
+    assert {c.family for c in select("limits")} == {"limits"}

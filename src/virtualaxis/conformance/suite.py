@@ -9,8 +9,14 @@ from virtualaxis.conformance.runner import REGISTRY, Check
 
 
 def select(ids: str | None) -> list[Check]:
-    """Checks whose id or family matches one of the comma-separated patterns (prefix match); all without."""
+    """Checks whose id or family matches one of the comma-separated patterns; all without. A pattern that is a
+    check's id selects that check alone (``301-SDO-1``, not ``301-SDO-10``); any other is an id prefix
+    (``301-SDO``) or a family."""
     if not ids:
         return list(REGISTRY)
     pats = [p.strip() for p in ids.split(",") if p.strip()]
-    return [c for c in REGISTRY if any(c.id == p or c.id.startswith(p) or c.family == p for p in pats)]
+    known = {c.id for c in REGISTRY}
+    exact = {p for p in pats if p in known}
+    prefixes = [p for p in pats if p not in known]
+    return [c for c in REGISTRY if c.id in exact or c.family in prefixes
+            or any(c.id.startswith(p) for p in prefixes)]
