@@ -85,3 +85,32 @@ def test_the_model_line_is_reported_beside_the_data_and_the_law(tmp_path, direct
     assert len(d["law_n"]) == len(d["bins"])
     png = friction_law.plot_png({"directions": {direction: d}})
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 1000
+
+
+def test_an_offset_of_the_effort_channels_is_named_as_a_constant_force(tmp_path):
+    """A current sensor with an offset (the torque computed from it shifted alike): +80 N at the table in every
+    motion. The positive direction's force at zero speed rises by 80 N, the negative's falls by as much; the note
+    names a constant force of about +80 N, not a second friction mechanism."""
+    import csv
+    import math
+
+    cfg = load_axis_config(BALLSCREW_CONFIG)
+    (trace,) = _traces(tmp_path, BALLSCREW_CONFIG, "own")[:1]  # the sine: both directions
+    torque_nm = 80.0 * cfg.mechanics.lead_m / (2 * math.pi)
+    with open(trace) as fh:
+        rows = list(csv.reader(fh))
+    header = rows[0]
+    shift = {"torque_meas": torque_nm, "current_q": torque_nm / cfg.motor.kt_nm_per_a}
+    for r in rows[1:]:
+        for col, add in shift.items():
+            if col in header:
+                k = header.index(col)
+                r[k] = repr(float(r[k]) + add)
+    shifted = tmp_path / "offset.csv"
+    with shifted.open("w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    judged = _judged(BALLSCREW_CONFIG, str(shifted), against_model=True)
+    assert "constant force of +" in judged["note"], judged.get("note")
+    assert judged["constant_force_n"]["value_n"] == pytest.approx(80.0, abs=15.0), judged["constant_force_n"]
+    assert abs(judged["constant_force_n"]["symmetric_n"]) < 15.0
+    assert "may be the sum of two mechanisms" not in judged["note"]

@@ -91,3 +91,18 @@ def test_the_law_over_the_bins_carries_every_viscous_term_of_the_model():
         assert slope == pytest.approx(cfg.friction.viscous_n_s_per_m + mech.table_viscous_n_s_per_m + reflected,
                                       rel=1e-6)
     assert reflected > 100.0  # (the case the note got wrong: 154 N s/m beside a 200 N s/m friction term)
+
+
+@pytest.mark.background("diagnose_friction_pair")
+def test_each_accepted_effects_figures_are_the_verified_models_as_it_was_added(report):
+    """The per-effect before / after RMSE (and the headline's change) of an accepted effect are the verified
+    model's when the effect was added, with the final values: the report cannot say an accepted effect made a
+    channel worse while the model it belongs to is better."""
+    accepted = [e for e in report["effects"] if e["accepted"]]
+    assert [c["after"] for c in report["cumulative"]] == [e["name"] for e in accepted]
+    for e, c in zip(accepted, report["cumulative"], strict=True):
+        for ch, m in c["heldout_after"].items():
+            assert e["heldout"]["rmse_after"][ch] == pytest.approx(m["rmse"]), (e["name"], ch)
+        for ch, m in c["heldout_before"].items():
+            assert e["heldout"]["rmse_before"][ch] == pytest.approx(m["rmse"]), (e["name"], ch)
+        assert "heldout_round" in e

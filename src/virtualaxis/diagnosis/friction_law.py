@@ -177,6 +177,7 @@ def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str]
         return None
     out: dict = {"mass_kg": m, "directions": {}, "judged_against": "model" if model else "law"}
     notes: list[str] = []
+    gaps: dict[str, tuple[float, float]] = {}  # direction -> (data's intercept - the reference's, its standard error)
     edges = np.linspace(MIN_SPEED_SHARE * vmax, vmax, N_BINS + 1)
     for name, sign in (("positive", 1.0), ("negative", -1.0)):
         if int((v >= edges[0]).sum() if sign > 0 else (v <= -edges[0]).sum()) < 4 * N_BINS:
@@ -202,6 +203,7 @@ def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str]
                 d["model_line"] = {"intercept_n": float(ra), "intercept_stderr_n": float(rsa),
                                    "slope_n_s_per_m": float(rb), "slope_stderr_n_s_per_m": float(rsb)}
         out["directions"][name] = d
+        gaps[name] = (a0 - ra, math.hypot(sa, rsa))
         scale = max(float(np.abs(bf).mean()), 1e-9)
         top = float(bv.max())
         se_a, se_b = math.hypot(sa, rsa), math.hypot(sb, rsb)
@@ -212,12 +214,38 @@ def force_vs_speed(cfg: AxisConfig, traces: list[TraceData], accepted: list[str]
                          f"{ref_name} by {rb * top:.3g} N")
     if not out["directions"]:
         return None
+    offset = _constant_force(gaps, out["directions"])
+    if offset is not None:
+        out["constant_force_n"] = offset
     if notes:
         fitted = [a for a in accepted or [] if "friction" in a]
-        out["note"] = ("force vs speed: the calibrated model's friction law misses a mechanism the binned data show ("
-                       + "; ".join(notes) + ")" + (f": the value of {', '.join(fitted)} may be the sum of two "
-                                                   "mechanisms" if fitted else ""))
+        text = ("force vs speed: the calibrated model's friction law misses a mechanism the binned data show ("
+                + "; ".join(notes) + ")")
+        if offset is not None:
+            text += (f": the two directions' gaps at zero speed differ by 2 x {offset['value_n']:.3g} N, a constant "
+                     f"force of {offset['value_n']:+.3g} N +- {offset['stderr_n']:.2g} N along +x in every motion (a "
+                     "load the model does not have, or an offset of the current / torque / force channel), with "
+                     f"{offset['symmetric_n']:+.3g} N of friction at zero speed in both directions")
+        elif fitted:
+            text += f": the value of {', '.join(fitted)} may be the sum of two mechanisms"
+        out["note"] = text
     return out
+
+
+def _constant_force(gaps: dict[str, tuple[float, float]], directions: dict) -> dict | None:
+    """A constant force along +x shows at zero speed as +F in the positive direction's force and -F in the
+    negative's (each taken in its direction of motion), friction as the same amount in both: from the two
+    directions' intercept gaps ``gaps`` (data - reference, standard error), F = (g+ - g-) / 2 and the symmetric
+    part (g+ + g-) / 2; None unless both directions were binned and F is beyond 3 standard errors and
+    :data:`MISSED_SHARE` of the binned force."""
+    if "positive" not in gaps or "negative" not in gaps:
+        return None
+    (gp, sp), (gn, sn) = gaps["positive"], gaps["negative"]
+    f, se = 0.5 * (gp - gn), 0.5 * math.hypot(sp, sn)
+    scale = max(np.mean([abs(b["force_n"]) for d in directions.values() for b in d["bins"]]), 1e-9)
+    if abs(f) <= 3 * se or abs(f) <= MISSED_SHARE * scale:
+        return None
+    return {"value_n": float(f), "stderr_n": float(se), "symmetric_n": float(0.5 * (gp + gn))}
 
 
 def plot_png(data: dict) -> bytes:
