@@ -160,8 +160,9 @@ def run(args: argparse.Namespace) -> int:
     if where:
         print(f"  {where}")
     v = report["final"]["verdict"]
-    print(f"  {on} RMSE nominal -> calibrated, per channel: {verdict_text(v)}"
-          f"{f' ({_improvement(v)})' if report['accepted'] else ''}")
+    per_channel = verdict_text(v)
+    print(f"  {on} RMSE nominal -> calibrated: {_improvement(v)} ({per_channel})" if report["accepted"]
+          else f"  {on} RMSE nominal -> calibrated, per channel: {per_channel}")
     if report.get("calibrated_changes"):
         print(f"  calibrated.toml changes {', '.join(report['calibrated_changes'])} (report.json calibrated_diff)")
     hyb = report.get("hybrid")
