@@ -13,8 +13,9 @@ Data path of one cycle (what to read, in order):
    (:mod:`~virtualaxis.drive.setpoints`) -> plant (``AxisSimulator.advance``);
 3. monitors (:mod:`~virtualaxis.drive.monitoring`: limit switches, position range, overspeed, following error,
    standstill, motor temperature, DC link; each returns its events, which the drive applies in order) and the
-   mode object's target reached -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F, causes, warnings,
-   EMCY) and the state machine's fault reaction (reaction class per fault, :mod:`~virtualaxis.drive.faults`);
+   mode object's target reached -> the fault manager (:mod:`~virtualaxis.drive.fault_manager`: buffer, 0x603F,
+   causes, warnings, EMCY) and the state machine's fault reaction (reaction class per fault,
+   :mod:`~virtualaxis.drive.faults`);
 4. statusword (state bits + the mode object's bits 10/12/13) and actual values -> objects -> the CANopen
    application copies them into the OD (:mod:`~virtualaxis.drive.canopen_app`) -> TPDO.
 
