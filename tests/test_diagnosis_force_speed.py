@@ -12,8 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from trace_files import read_rows, simulated, write_rows
 
-from virtualaxis.cli.main import main
 from virtualaxis.config import load_axis_config
 from virtualaxis.diagnosis import friction_law, pipeline
 from virtualaxis.diagnosis.bench import BALLSCREW_CONFIG
@@ -31,13 +31,7 @@ def _with(text: str, key: str, old: float, new: float) -> str:
 
 def _traces(tmp_path: Path, config: Path, tag: str) -> list[str]:
     """One trace per profile, written by the CLI (sensor noise on, as a measurement has it)."""
-    paths = []
-    for i, profile in enumerate(PROFILES):
-        out = tmp_path / f"{tag}{i}.csv"
-        assert main(["simulate", "--config", str(config), "--profile", profile, "--duration", "4",
-                     "--out", str(out)]) == 0
-        paths.append(str(out))
-    return paths
+    return [str(simulated(tmp_path / f"{tag}{i}.csv", profile, 4, config)) for i, profile in enumerate(PROFILES)]
 
 
 def _judged(model_path: Path, trace: str, against_model: bool) -> dict:
@@ -91,24 +85,19 @@ def test_an_offset_of_the_effort_channels_is_named_as_a_constant_force(tmp_path)
     """A current sensor with an offset (the torque computed from it shifted alike): +80 N at the table in every
     motion. The positive direction's force at zero speed rises by 80 N, the negative's falls by as much; the note
     names a constant force of about +80 N, not a second friction mechanism."""
-    import csv
     import math
 
     cfg = load_axis_config(BALLSCREW_CONFIG)
     (trace,) = _traces(tmp_path, BALLSCREW_CONFIG, "own")[:1]  # the sine: both directions
     torque_nm = 80.0 * cfg.mechanics.lead_m / (2 * math.pi)
-    with open(trace) as fh:
-        rows = list(csv.reader(fh))
-    header = rows[0]
+    header, rows = read_rows(Path(trace))
     shift = {"torque_meas": torque_nm, "current_q": torque_nm / cfg.motor.kt_nm_per_a}
-    for r in rows[1:]:
+    for r in rows:
         for col, add in shift.items():
             if col in header:
                 k = header.index(col)
                 r[k] = repr(float(r[k]) + add)
-    shifted = tmp_path / "offset.csv"
-    with shifted.open("w", newline="") as fh:
-        csv.writer(fh).writerows(rows)
+    shifted = write_rows(tmp_path / "offset.csv", header, rows)
     judged = _judged(BALLSCREW_CONFIG, str(shifted), against_model=True)
     assert "constant force of +" in judged["note"], judged.get("note")
     assert judged["constant_force_n"]["value_n"] == pytest.approx(80.0, abs=15.0), judged["constant_force_n"]

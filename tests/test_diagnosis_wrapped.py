@@ -4,11 +4,11 @@ the same trace before it wrapped) are read."""
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 
 import numpy as np
 import pytest
+from trace_files import read_rows, simulated, write_rows
 
 from virtualaxis.cli.main import main
 from virtualaxis.diagnosis.bench import BALLSCREW_CONFIG
@@ -17,40 +17,23 @@ from virtualaxis.diagnosis.trace import read_trace
 FAST_PTP = "ptp:distance_mm=100,feed_mm_min=12000,accel_m_s2=3,jerk_m_s3=60"
 
 
-def _read(path: Path) -> tuple[list[str], np.ndarray]:
-    with path.open() as fh:
-        rows = csv.reader(fh)
-        header = next(rows)
-        return header, np.array([[float(v) for v in r] for r in rows])
-
-
-def _write(path: Path, header: list[str], data: np.ndarray) -> Path:
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        w.writerows(data.tolist())
-    return path
-
-
 @pytest.fixture(scope="module")
 def trace(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("wrap") / "ptp.csv"
-    assert main(["simulate", "--config", str(BALLSCREW_CONFIG), "--profile", FAST_PTP, "--duration", "3",
-                 "--out", str(out)]) == 0
-    return out
+    return simulated(tmp_path_factory.mktemp("wrap") / "ptp.csv", FAST_PTP, 3)
 
 
 def _wrapped(trace: Path, out: Path) -> tuple[Path, int]:
     """The trace with current_q held in a 16-bit counter whose 32767 counts are 80 % of the peak current; returns
     the file and the file line of the first wrapped sample."""
-    header, data = _read(trace)
+    header, rows = read_rows(trace)
+    data = np.array(rows, dtype=float)
     k = header.index("current_q")
     q = 0.8 * float(np.max(np.abs(data[:, k]))) / 32767
     counts = np.round(data[:, k] / q).astype(np.int64)
     wrapped = (counts + 32768) % 65536 - 32768
     first = int(np.flatnonzero(wrapped != counts)[0])
     data[:, k] = wrapped * q
-    return _write(out, header, data), first + 2  # (line 1: the header)
+    return write_rows(out, header, data), first + 2  # (line 1: the header)
 
 
 def test_a_wrapped_current_is_refused_naming_file_row_and_column(trace, tmp_path, capsys):
@@ -72,7 +55,8 @@ def test_the_same_trace_before_it_wrapped_is_read(trace):
 
 @pytest.mark.parametrize("shape", ["square", "spike"])
 def test_a_square_wave_and_a_spike_are_no_wrap(trace, tmp_path, shape):
-    header, data = _read(trace)
+    header, rows = read_rows(trace)
+    data = np.array(rows, dtype=float)
     t, k = data[:, header.index("t")], header.index("current_q")
     noise = np.random.default_rng(1).normal(0.0, 0.05, t.size)
     if shape == "square":  # a torque test switching between +-20 A every 0.25 s
@@ -80,4 +64,4 @@ def test_a_square_wave_and_a_spike_are_no_wrap(trace, tmp_path, shape):
     else:  # one sample at 30 A on a trace within +-5 A
         data[:, k] = np.clip(data[:, k], -5.0, 5.0)
         data[t.size // 2, k] = 30.0
-    read_trace(_write(tmp_path / f"{shape}.csv", header, data))
+    read_trace(write_rows(tmp_path / f"{shape}.csv", header, data))
