@@ -93,6 +93,9 @@ def children(pid: int) -> list[int]:
     """The child processes of process ``pid`` (of all its threads), from /proc."""
     out = []
     for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out += [int(p) for p in f.read().split()]
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(p) for p in f.read().split()]
+        except (FileNotFoundError, ProcessLookupError):  # a thread that ended meanwhile: it has no children
+            continue
     return out
