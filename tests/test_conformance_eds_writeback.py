@@ -56,3 +56,19 @@ def test_an_answer_longer_than_the_eds_data_type_is_named(tmp_path):
         check = _eds_check(axis, tmp_path, eds)
     assert check["status"] == "fail", check
     assert "0x6064:0" in check["detail"] and "4 bytes, EDS data type 0x0003 has 2" in check["detail"], check
+
+
+def test_a_failure_on_a_node_left_in_fault_says_so(tmp_path):
+    """A persistent fault (encoder loss injected before the run: it survives the suite's NMT reset) stops every
+    move; the failure message of a move check says what the statusword tells, FAULT with its error code, beside
+    the behaviour it missed."""
+    with start_virtual_axis(transport="udp", lockstep=True) as axis:
+        axis.injectors[axis.node_id].inject("encoder_loss")
+        js = tmp_path / "pp.json"
+        subprocess.run([*CLI, "conformance", "--can", axis.bus_spec, "--node-id", str(axis.node_id), "--pacing",
+                        "lockstep", "--only", "402-PP-1", "--json", str(js)], capture_output=True, text=True,
+                       timeout=300)
+    (check,) = json.loads(js.read_text())["checks"]
+    assert check["status"] == "fail", check
+    assert "after the check the node shows FAULT (statusword 0x" in check["detail"], check
+    assert "error code 0x603F = 0x7305" in check["detail"], check

@@ -681,6 +681,26 @@ def _run_stopped(ctx: Context, chk: Check, results: list[Result]) -> RunStopped 
                       results)
 
 
+def _fault_state(ctx: Context) -> str:
+    """After a failed check: ``"; after the check the node shows FAULT (...)"`` when its statusword tells a fault
+    (FAULT or FAULT REACTION ACTIVE, with 0x603F where the EDS lists it), so that a message about a move that did
+    not start is read with the fault that stopped it; "" otherwise or when the node does not answer."""
+    try:
+        sw = int(ctx.poll(0x6041))
+    except Exception:  # noqa: BLE001 - a hint only: the failure stands as it is
+        return ""
+    state = {0x08: "FAULT", 0x0F: "FAULT REACTION ACTIVE"}.get(sw & 0x4F)
+    if state is None:
+        return ""
+    code = ""
+    if 0x603F in ctx.od:
+        try:
+            code = f", error code 0x603F = 0x{int(ctx.poll(0x603F)):04X}"
+        except Exception:  # noqa: BLE001
+            code = ""
+    return f"; after the check the node shows {state} (statusword 0x{sw:04X}{code})"
+
+
 def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result], None] | None = None) -> list[Result]:
     """Run ``checks`` in order; a check's exception other than Fail/Skip is a failure naming it. A node whose
     SDO server is broken ends the run with :class:`RunStopped` (bounded by the SDO timeout: one transfer lasts
@@ -741,6 +761,8 @@ def run_checks(ctx: Context, checks: list[Check], *, progress: Callable[[Result]
         if missed is not None:  # real time: not the node's failure when the master did not send its stimulus
             ctx.note(f"failure not judged: {detail}")
             status, detail, failure_type = "error", missed, "run"
+        elif status == "fail" and failure_type == "behaviour":
+            detail += _fault_state(ctx)
         res = Result(chk.id, chk.family, chk.clause, status, detail, list(ctx.trace[-40:]),
                      time.monotonic() - t0, list(ctx.retries), failure_type)
         results.append(res)
