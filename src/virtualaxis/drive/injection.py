@@ -257,9 +257,7 @@ class FaultInjector:
     def _continuous(self, inj: Injection) -> None:
         drive = self.drive
         if inj.kind in PERSISTENT_KINDS:  # the cause outlives a power-on reset (NMT reset node): faults again
-            code = EMCY_OF_KIND[inj.kind]
-            if code not in drive.causes:
-                drive.raise_fault(code, 0, cause=f"injected {inj.kind}")
+            self._raise_persistent(inj.kind)
         elif inj.kind == "following_error":
             sim = drive.simulator
             base = float(drive.read_object(0x2011, 0))
@@ -298,8 +296,7 @@ class FaultInjector:
         code = EMCY_OF_KIND[kind]
         if kind in PERSISTENT_KINDS:
             if present:
-                if code not in drive.causes:
-                    drive.raise_fault(code, 0, cause=f"injected {kind}")
+                self._raise_persistent(kind)
             else:
                 drive.clear_cause(f"injected {kind}")
         elif kind == "over_current":
@@ -326,6 +323,12 @@ class FaultInjector:
                 self._recover_from_bus_off()
             elif present and self.slave is None:
                 drive.communication_error("bus_off", 0)
+
+    def _raise_persistent(self, kind: str) -> None:
+        """The fault of a persistent kind with its cause, unless the drive holds that cause already."""
+        code = EMCY_OF_KIND[kind]
+        if code not in self.drive.causes:
+            self.drive.raise_fault(code, 0, cause=f"injected {kind}")
 
     def _release(self, kind: str) -> None:
         inj = self._active.pop(kind, None)
