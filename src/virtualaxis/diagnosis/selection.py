@@ -765,10 +765,9 @@ def backward_step(cfg: AxisConfig, accepted: list[Step], traces: list[TraceData]
     the held-out weighted energy without it rises by less than ``min_gain`` of what the full model leaves, or
     the information criterion does not rise — is dropped (an early pick that a later, better effect explains).
     ``at_bound``: the parameters of each effect that the joint refit left at a bound of their range (effect ->
-    names); such an effect is dropped too, by the rule every candidate is judged by (a screw stiffness factor of
-    1.96 +- 0.04 under the bound 2: accepted at 1.91 +- 0.04 beside a mass error, the joint refit moved it there;
-    a docs-only tester's two-mass axis without screw torsion). Returns (kept steps, dropped effects with their
-    figures, simulations run)."""
+    names); such an effect is dropped too, by the rule every candidate is judged by (a value within one standard
+    error of its bound is no answer, wherever the joint refit moved it). Returns (kept steps, dropped effects with
+    their figures, simulations run)."""
     idx = holdout_idx or fit_idx
     n_sims = 0
 
