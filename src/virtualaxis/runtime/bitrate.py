@@ -168,8 +168,7 @@ class BitRateBus(can.BusABC):
         #: transmitter only if it waits). ``_pending``: taken from the inbox, not yet among the ready frames;
         #: ``_ready``: a heap of the frames that were waiting when the bus last went idle (arbitration among
         #: them: the lowest identifier). O(1) / O(log n) per frame: a linear scan of a backlog under a lock
-        #: that send() needs too blocked the runtime's send() and made the backlog grow (a docs-only tester's
-        #: two CSP axes, 25 % load)
+        #: that send() needs too would block the runtime's send() and let the backlog grow
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._pending: deque[tuple[int, int, float, can.Message]] = deque()
         self._ready: list[tuple[int, int, float, can.Message]] = []
