@@ -146,31 +146,42 @@ def test_plant_faults_send_emcy_on_the_configured_cob_id(rig, code, register_bit
     assert rig.sw() & 0x4F == 0x40
 
 
+MASTER_ID = 0x7E
+
+
 def _heartbeat_rig(option: int) -> Rig:
     r = Rig()
     node = r.node
-    master_id = 0x7E
     node.sdo[0x6007].raw = option
     node.sdo[0x605A].raw = 2
-    node.sdo[0x1016][1].raw = (master_id << 16) | 60  # expect the master's heartbeat every 60 ms
-    task = r.net.send_periodic(0x700 + master_id, b"\x05", 0.02)
+    node.sdo[0x1016][1].raw = (MASTER_ID << 16) | 60  # expect the master's heartbeat every 60 ms
     node.sdo[0x6060].raw = 3
     node.sdo[0x6083].raw = 5_000_000
     node.sdo[0x60FF].raw = 20_000
     node.nmt.state = "OPERATIONAL"
     r.enable()
-    r.hb_task = task
     return r
+
+
+def _sync_with_master_heartbeat(r: Rig, n: int, every: int = 20) -> None:
+    """``n`` SYNCs with the master's heartbeat before every ``every``-th: a lockstep master's heartbeat is part
+    of its cycle, so it comes every ``every`` ms of drive time however fast the host runs the SYNCs."""
+    for i in range(n):
+        if i % every == 0:
+            r.net.send_message(0x700 + MASTER_ID, b"\x05")
+        r.sync(1)
 
 
 def test_heartbeat_loss_faults_the_drive():
     """4: consumer heartbeat 0x1016 times out -> EMCY 0x8130 (bit 4 of 0x1001), 0x6007 = 1: fault."""
     r = _heartbeat_rig(1)
     try:
-        r.sync(50)
-        time.sleep(0.15)
+        _sync_with_master_heartbeat(r, 100)
+        time.sleep(0.15)  # wall time without SYNCs is no drive time: the 60 ms have not passed
+        r.sync(30)
         assert r.sw() & 0x6F == 0x27  # heartbeat present: still running
-        r.hb_task.stop()
+        assert 0x8130 not in r.emcy.codes()
+        # the master's heartbeat stops
         # lockstep: the consumer's 60 ms are drive time, so they pass only with the SYNCs that advance it
         r.wait(lambda: 0x8130 in r.emcy.codes(), sync=True)
         r.wait(lambda: r.sw() & 0x4F == 0x08, sync=True)
@@ -185,9 +196,9 @@ def test_heartbeat_loss_quick_stop_reaction():
     """4: 0x6007 = 3: quick stop (0x605A = 2: then switch on disabled) instead of a fault."""
     r = _heartbeat_rig(3)
     try:
-        r.sync(50)
-        r.hb_task.stop()
-        r.wait(lambda: 0x8130 in r.emcy.codes(), sync=True)  # drive time: the SYNCs advance it
+        _sync_with_master_heartbeat(r, 50)
+        assert 0x8130 not in r.emcy.codes()
+        r.wait(lambda: 0x8130 in r.emcy.codes(), sync=True)  # the heartbeat stops; drive time: the SYNCs advance it
         r.wait(lambda: r.sw() & 0x4F == 0x40, sync=True, timeout=5)
         r.sync(20)
         assert abs(r.node.sdo[0x606C].raw) < 2_000
