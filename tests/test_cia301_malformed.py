@@ -16,12 +16,13 @@ def test_wrong_dlc_frames_are_counted_and_ignored():
         rig.node.nmt.state = "OPERATIONAL"
         rig.send(0x600 + NODE, b"\x40\x00\x10\x00")            # SDO with DLC 4: ignored (client times out)
         rig.send(0x600 + NODE, b"")
-        rig.send(0x700 + NODE, b"\x05")                          # data frame on our own error-control id
+        rig.send(0x700 + NODE, b"\x05")                          # a heartbeat of another node with our id
         rig.send(0x000, b"\x01")                                 # NMT DLC 1
         rig.send(0x80, b"\x01\x02\x03")                          # SYNC with data while 0x1019 = 0
         assert rig.sniffer.wait_for(0x80 + NODE, match=lambda d: d[:2] == b"\x40\x82")
         c = rig.slave.counters
-        assert wait_until(lambda: c["malformed_frames"] == 5)
+        assert wait_until(lambda: c["malformed_frames"] == 4)
+        assert c["node_id_conflicts"] == 1
         assert c["sdo_requests"] == 0 and c["sync_length_errors"] == 1
         time.sleep(0.05)
         assert rig.sniffer.of(0x580 + NODE) == []

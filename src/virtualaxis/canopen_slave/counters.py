@@ -34,6 +34,7 @@ COUNTERS_2100: tuple[tuple[str, str], ...] = (
     ("tx_errors", "Transmit errors"),
     ("life_guarding_events", "Life guarding events"),
     ("sync_timeouts", "SYNC timeouts"),
+    ("node_id_conflicts", "Frames of another node with this node-ID"),
 )
 
 

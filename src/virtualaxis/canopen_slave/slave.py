@@ -9,6 +9,7 @@ handling a frame is counted as ``internal_errors``.
 
 from __future__ import annotations
 
+import logging
 import math
 import select
 import time
@@ -54,6 +55,8 @@ COB_EXTENDED = 0x20000000          # 29-bit frame bit of a COB-ID object (refuse
 _NOTHING_DUE: list = []           # shared, never mutated: a SYNC without synchronous RPDO data
 
 DIAGNOSTICS, ABORT_COUNTERS, RESET_COUNTERS = 0x2100, 0x2101, 0x2102
+
+log = logging.getLogger(__name__)
 
 
 class _SlaveListener(can.Listener):
@@ -101,6 +104,8 @@ class CanopenSlave:
         self.frame_timestamps = True
         #: boot-ups sent (power-on and every NMT reset)
         self.boots = 0
+        #: whether a frame of another node with this node-ID has been reported (:meth:`_on_own_cob_id`; once)
+        self.node_id_conflict_reported = False
         self._sync_counters: list[int] = []
         self._due_sync_rpdos: deque[list] = deque(maxlen=16)
         self._applied_ahead = 0
@@ -436,6 +441,7 @@ class CanopenSlave:
             self._sync_cob = self.sync.cob_id
         handlers[self.sdo.rx_cob] = self._on_sdo
         handlers[HEARTBEAT_BASE + self.node_id] = self._on_guard
+        handlers[self.sdo.tx_cob] = self._on_own_cob_id
         handlers[NMT_COB] = self._on_nmt
         self._handlers = handlers
         if self.on_dispatch_change is not None:
@@ -683,8 +689,24 @@ class CanopenSlave:
     def _on_guard(self, msg: can.Message, now_s: float) -> None:
         if msg.is_remote_frame:
             self.guarding.on_rtr(now_s)
-        else:
-            self.counters["malformed_frames"] += 1   # a data frame on our own error-control COB-ID
+        else:  # a boot-up or heartbeat on this node's own error-control COB-ID
+            self._on_own_cob_id(msg, now_s)
+
+    def _on_own_cob_id(self, msg: can.Message, _now_s: float) -> None:
+        """A data frame on a COB-ID that only a node with this node-ID sends (its boot-up / heartbeat 0x700+id,
+        its SDO answers 0x580+id), and this node did not send it (no bus hands a node its own frames back):
+        another node on the bus has the same node-ID. Counted (0x2100, ``node_id_conflicts``); said once."""
+        if msg.is_remote_frame:
+            self.counters["malformed_frames"] += 1
+            return
+        self.counters["node_id_conflicts"] += 1
+        if not self.node_id_conflict_reported:
+            self.node_id_conflict_reported = True
+            what = "an SDO answer" if msg.arbitration_id == self.sdo.tx_cob else "a boot-up or heartbeat"
+            log.warning("node %d: another node on this bus has node-ID %d (%s on COB-ID 0x%03X that this node did "
+                        "not send); both answer every SDO request and NMT command for node %d, so a master gets "
+                        "two answers: give each node a node-ID of its own", self.node_id, self.node_id, what,
+                        msg.arbitration_id, self.node_id)
 
     def _on_heartbeat(self, msg: can.Message, now_s: float) -> None:
         self.heartbeat_consumer.on_heartbeat(msg.arbitration_id, msg.data, now_s)

@@ -102,7 +102,7 @@ def run(args) -> int:
             ctx.read(0x1000)
         except Exception as exc:  # noqa: BLE001 - any failure to reach the node ends the run here
             raise CliError(f"node {args.node_id} does not answer on {args.can} (SDO read 0x1000: {exc})") from None
-        problem = runner.pacing_problem(ctx)
+        problem = runner.duplicate_node_problem(ctx) or runner.pacing_problem(ctx)
         if problem:
             raise CliError(f"{problem}; no check run")
         ident = runner.identity(ctx)

@@ -823,6 +823,36 @@ PACING_PROBE_QUIET_S = 0.3
 PACING_PROBE_OWN_TIME = 8
 
 
+#: how long the master listens for further answers to its one SDO request of :func:`duplicate_node_problem` [s]
+DUPLICATE_LISTEN_S = 0.3
+
+
+def duplicate_node_problem(ctx: Context) -> str | None:
+    """Two nodes with the node-ID on the bus both answer every SDO request: the checks would judge whichever
+    answer comes first. Asked before the checks: one SDO read of 0x1018:0 (mandatory; no check before reads it,
+    so a late answer to an earlier request is not counted), every answer on 0x580 + id that carries 0x1018:0
+    (an abort too) counted for :data:`DUPLICATE_LISTEN_S`. Returns what is wrong when more than one came."""
+    answers: list[bytes] = []
+    cob = 0x580 + ctx.node_id
+    mux = b"\x18\x10\x00"
+
+    def on(_can_id: int, data: bytearray, _ts: float) -> None:
+        if bytes(data[1:4]) == mux:
+            answers.append(bytes(data))
+
+    ctx.net.subscribe(cob, on)
+    try:
+        ctx.net.send_message(0x600 + ctx.node_id, b"\x40" + mux + b"\x00\x00\x00\x00")
+        time.sleep(DUPLICATE_LISTEN_S)
+    finally:
+        ctx.net.unsubscribe(cob, on)  # (only this callback: canopen's own SDO client stays subscribed)
+    ctx.note(f"SDO raw read 0x1018:0 -> {len(answers)} answer(s) in {DUPLICATE_LISTEN_S:g} s")
+    if len(answers) <= 1:
+        return None
+    return (f"{len(answers)} answers on COB-ID 0x{cob:03X} to one SDO request: more than one node on this bus has "
+            f"node-ID {ctx.node_id}; give each node a node-ID of its own")
+
+
 def pacing_problem(ctx: Context) -> str | None:
     """Lockstep pacing judges every timing in node time (SYNC counts): a node that keeps its own time would fail
     the timed checks (``301-HB-1``, ``301-PDO-7``) for the master's mistake. Asked before the checks: after a
