@@ -12,7 +12,12 @@ import pytest
 from test_services_modbus import Server, make_drive
 
 from virtualaxis.services.modbus import SUPPORTED_FUNCTIONS
-from virtualaxis.services.modbus_map import REASON_BAD_LENGTH, REASON_UNSUPPORTED_FUNCTION
+from virtualaxis.services.modbus_map import (
+    REASON_BAD_COUNT,
+    REASON_BAD_LENGTH,
+    REASON_UNKNOWN_REGISTER,
+    REASON_UNSUPPORTED_FUNCTION,
+)
 
 pytestmark = pytest.mark.exclusive  # timing-sensitive: background jobs stopped meanwhile
 
@@ -112,6 +117,37 @@ def test_a_pdu_too_short_or_too_long_for_its_function_is_exception_03(server, fc
     assert answers[1][0] == 8 and answers[1][1][:2] == bytes([3, 2])  # the next request is served
     reason, _address, _abort = server.last_error()
     assert reason == REASON_BAD_LENGTH
+
+
+W = 40100 - 40001  # a writable register (PDU address)
+
+
+BYTE_COUNT_CASES = [
+    ("FC16 byte count 4 for 1 register", struct.pack(">BHHB", 16, W, 1, 4) + bytes(4), REASON_BAD_LENGTH),
+    ("FC16 byte count 2 for 2 registers", struct.pack(">BHHB", 16, W, 2, 2) + bytes(2), REASON_BAD_LENGTH),
+    ("FC16 byte count 2, 4 bytes sent", struct.pack(">BHHB", 16, W, 1, 2) + bytes(4), REASON_BAD_LENGTH),
+    ("FC16 byte count 4, 2 bytes sent", struct.pack(">BHHB", 16, W, 2, 4) + bytes(2), REASON_BAD_LENGTH),
+    ("FC16 124 registers", struct.pack(">BHHB", 16, W, 124, 248) + bytes(248), REASON_BAD_COUNT),
+    ("FC23 write byte count 2 for 2", struct.pack(">BHHHHB", 23, W, 1, W, 2, 2) + bytes(2), REASON_BAD_LENGTH),
+    ("FC23 write byte count 4 for 1", struct.pack(">BHHHHB", 23, W, 1, W, 1, 4) + bytes(4), REASON_BAD_LENGTH),
+    ("FC23 write byte count 2, 4 bytes", struct.pack(">BHHHHB", 23, W, 1, W, 1, 2) + bytes(4), REASON_BAD_LENGTH),
+    ("FC23 write byte count 4, 2 bytes", struct.pack(">BHHHHB", 23, W, 1, W, 2, 4) + bytes(2), REASON_BAD_LENGTH),
+]
+
+
+@pytest.mark.parametrize("name,pdu,reason", BYTE_COUNT_CASES, ids=[c[0] for c in BYTE_COUNT_CASES])
+def test_a_byte_count_that_does_not_fit_is_exception_03_with_its_reason(server, name, pdu, reason):
+    """The byte count of FC16 / FC23 must be 2 x the register count and the number of data bytes sent; a request
+    where it is not is refused with 03 and its reason in the last-error registers (the registers first hold
+    another error, so a reason left from before cannot pass), nothing written."""
+    before = server.last_error()
+    answers = _exchange(server, [_adu(1, struct.pack(">BHH", 3, 40002 - 40001, 1))], 1)  # reason 7 first
+    assert answers[0] == (1, bytes([0x83, 0x02]))
+    assert server.last_error()[0] == REASON_UNKNOWN_REGISTER, before
+    answers = _exchange(server, [_adu(2, pdu)], 1)
+    assert answers[0] == (2, bytes([pdu[0] | 0x80, 0x03])), name
+    got, address, abort = server.last_error()
+    assert (got, address, abort) == (reason, W, 0), name
 
 
 def test_frames_of_another_protocol_are_skipped_and_the_stream_stays_in_step(server):

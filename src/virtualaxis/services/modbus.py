@@ -608,6 +608,8 @@ def custom_pdus(call: Callable) -> list:
                 return await refused(self, device_id, 2, self.read_address)
             if not 1 <= self.write_count <= 121:
                 return await refused(self, device_id, 2, self.write_address)
+            if self.write_byte_count != self.write_count * 2 or self._payload_byte_count != self.write_byte_count:
+                return await refused(self, device_id, 4, self.write_address)  # its length does not fit its counts
             checked = await context.async_getValues(device_id, self.function_code, self.read_address,
                                                     self.read_count)
             if not isinstance(checked, list):
@@ -615,14 +617,16 @@ def custom_pdus(call: Callable) -> list:
             return await super().datastore_update(context, device_id)
 
     class WriteMultipleCounted(WriteMultipleRegistersRequest):
-        """FC16: a bad count or byte count is recorded in the last-error registers too (exception 03)."""
+        """FC16: a count out of 1..123 (reason 8) or a byte count that does not fit the count or the data sent
+        (reason 10: the request's length does not fit its function) is recorded in the last-error registers
+        too (exception 03)."""
 
         async def datastore_update(self, context, device_id):
-            if not 1 <= self.count <= 123 or (
-                self.byte_count is not None
-                and (self.byte_count != self.count * 2 or self._payload_byte_count != self.byte_count)
-            ):
+            if not 1 <= self.count <= 123:
                 return await refused(self, device_id, 2, self.address)
+            if self.byte_count is not None and (
+                    self.byte_count != self.count * 2 or self._payload_byte_count != self.byte_count):
+                return await refused(self, device_id, 4, self.address)
             return await super().datastore_update(context, device_id)
 
     class WriteSingleEcho(WriteSingleRegisterRequest):

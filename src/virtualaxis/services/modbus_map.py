@@ -55,7 +55,7 @@ REASON_PARTIAL_PAIR = 6  # 03: a write covers only one half of a 32-bit register
 REASON_UNKNOWN_REGISTER = 7  # 02: unknown register or a range that crosses a hole
 REASON_BAD_COUNT = 8  # 03: register count out of range for the function
 REASON_UNSUPPORTED_FUNCTION = 9  # 01: function code not supported
-REASON_BAD_LENGTH = 10  # 03: the request's PDU is too short or too long for its function
+REASON_BAD_LENGTH = 10  # 03: the request's PDU is too short or too long for its function (or its byte count)
 
 REASONS: dict[int, tuple[int, str]] = {
     REASON_NONE: (0, "no error since start"),
@@ -68,7 +68,8 @@ REASONS: dict[int, tuple[int, str]] = {
     REASON_UNKNOWN_REGISTER: (2, "unknown register, or the range crosses a hole in the map"),
     REASON_BAD_COUNT: (3, "register count out of range (FC03/04: 1..125, FC16: 1..123, FC23: 1..125 / 1..121)"),
     REASON_UNSUPPORTED_FUNCTION: (1, "function code not supported (only 03, 04, 06, 16, 23)"),
-    REASON_BAD_LENGTH: (3, "request too short or too long for its function code"),
+    REASON_BAD_LENGTH: (3, "request too short or too long for its function code, or a byte count (FC16, FC23) "
+                           "other than 2 x the register count or other than the data bytes sent"),
 }
 
 
@@ -836,7 +837,8 @@ def render_markdown() -> str:
         "| 03 illegal data value | count out of range (FC03/04 1..125, FC16 1..123, FC23 read 1..125 / write "
         "1..121), a value outside the register's range, a write covering half of a 32-bit value, a value the "
         "drive refuses (SDO abort 0x06090030/31/32; an unknown fault kind number), a request too short or too "
-        "long for its function code | 8, 5, 6, 4, 10 |",
+        "long for its function code or whose byte count (FC16, FC23) does not fit its count or its data | "
+        "8, 5, 6, 4, 10 |",
         "| 04 server device failure | a write while writes are disabled, a write to a read-only register, a "
         "write the drive refuses in its present state (SDO abort 0x08000022; fault injection not allowed) | 1, 2, 3 |",
         "",
