@@ -103,3 +103,4 @@ def test_conformance_against_one_node_sees_one_answer():
     assert "answers on COB-ID" not in conf.stderr
     assert "summary: 1 checks, 1 passed" in conf.stdout, conf.stdout + conf.stderr
 
+

@@ -3,6 +3,10 @@ traceback; ``--list`` prints the checks with their source, stimulus and expectat
 
 from __future__ import annotations
 
+import subprocess
+
+from served_drive import CLI, ROOT, served
+
 from virtualaxis.cli.main import main
 from virtualaxis.conformance.suite import select
 
@@ -49,3 +53,19 @@ def test_only_a_full_id_selects_that_check_alone():
     assert [c.id for c in select("402-FLD-1,301-SDO-1")] == [c.id for c in select(None)
                                                           if c.id in ("402-FLD-1", "301-SDO-1")]
     assert {c.family for c in select("limits")} == {"limits"}
+
+
+def test_conformance_names_a_pacing_that_does_not_fit_the_node():
+    """Through the user's door, both ways: `serve --lockstep` checked with `--pacing realtime`, and `serve` in
+    real time checked with the default `--pacing lockstep`: one error line each, exit 2, no check run."""
+    with served("--node-id", "4", "--lockstep") as lockstep_node:
+        wrong = subprocess.run([*CLI, "conformance", "--can", lockstep_node.spec, "--node-id", "4", "--pacing",
+                                "realtime"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert wrong.returncode == 2, wrong.stdout + wrong.stderr
+    assert "node 4 waits for SYNC" in wrong.stderr and "run with --pacing lockstep" in wrong.stderr, wrong.stderr
+    with served("--node-id", "4") as realtime_node:
+        wrong = subprocess.run([*CLI, "conformance", "--can", realtime_node.spec, "--node-id", "4"],
+                               capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert wrong.returncode == 2, wrong.stdout + wrong.stderr
+    assert "node 4 keeps its own time" in wrong.stderr and "run with --pacing realtime" in wrong.stderr, wrong.stderr
+    assert "summary:" not in wrong.stdout

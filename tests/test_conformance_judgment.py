@@ -163,6 +163,24 @@ def test_lockstep_pacing_against_a_node_that_keeps_its_own_time_is_named_before_
         assert problem and "keeps its own time" in problem and "--pacing realtime" in problem, problem
 
 
+@pytest.mark.parametrize("lockstep", [False, True], ids=["node-in-real-time", "node-in-lockstep"])
+def test_realtime_pacing_against_a_node_that_waits_for_sync_is_named_before_any_check(lockstep):
+    """--pacing realtime judges timings on the wall clock: a node served with --lockstep sends no heartbeat while
+    no SYNC comes, and the SYNC-loss check (its timeout is wall time without SYNC) fails as if the node were wrong.
+    The probe names the mismatch for a node in lockstep and passes a node in real time."""
+    with start_virtual_axis(transport="virtual", lockstep=lockstep) as axis:
+        with _master(axis, lockstep=False) as ctx:
+            problem = runner.pacing_problem(ctx)
+            (res,) = run_checks(ctx, select("301-HB-1")) if not problem else (None,)
+            if lockstep:  # what the probe saves the user from: the check judged on the wall clock fails
+                (unpaced,) = run_checks(ctx, select("301-SYNC-1"))
+    if lockstep:
+        assert problem and "waits for SYNC" in problem and "--pacing lockstep" in problem, problem
+        assert unpaced.status == "fail", unpaced
+    else:
+        assert problem is None and res.status == "pass", (problem, res)
+
+
 def test_a_node_that_goes_away_mid_run_stops_the_run_instead_of_failing_every_later_check():
     """A node whose process ended failed every later check as the node's behaviour (a docs-only tester killed
     serve 14 s into a run: 15 failures over 140 s). After a failed check the suite asks the node for 0x1000; no

@@ -854,14 +854,17 @@ def duplicate_node_problem(ctx: Context) -> str | None:
 
 
 def pacing_problem(ctx: Context) -> str | None:
-    """Lockstep pacing judges every timing in node time (SYNC counts): a node that keeps its own time would fail
-    the timed checks (``301-HB-1``, ``301-PDO-7``) for the master's mistake. Asked before the checks: after a
-    boot and a few SYNCs, with the heartbeat at :data:`PACING_PROBE_HEARTBEAT_MS` and no SYNC for
-    :data:`PACING_PROBE_QUIET_S`, a lockstep node sends no heartbeat (its clock waits for the next SYNC); one
-    that sends :data:`PACING_PROBE_OWN_TIME` or more runs on its own clock. Returns what to do then, else None
-    (also in real-time pacing, which judges on the wall clock)."""
-    if not ctx.lockstep:
-        return None
+    """Whether the node's clock is the one the pacing judges timings on. Asked before the checks: after a boot and
+    a few SYNCs, with the heartbeat at :data:`PACING_PROBE_HEARTBEAT_MS` and no SYNC for
+    :data:`PACING_PROBE_QUIET_S`, a lockstep node sends no heartbeat (its clock waits for the next SYNC); one that
+    sends :data:`PACING_PROBE_OWN_TIME` or more runs on its own clock.
+
+    - Lockstep pacing judges every timing in node time (SYNC counts): a node that keeps its own time would fail
+      the timed checks (``301-HB-1``, ``301-PDO-7``) for the master's mistake.
+    - Real-time pacing judges on the wall clock: a node that sends no heartbeat at all without SYNC waits for
+      SYNC, and would fail every check that waits without sending SYNC (the heartbeat, SYNC loss).
+
+    Returns what to do then, else None."""
     try:
         boot(ctx)
         ctx.write(0x1017, 0, PACING_PROBE_HEARTBEAT_MS)
@@ -875,11 +878,15 @@ def pacing_problem(ctx: Context) -> str | None:
         boot(ctx)
     except (Fail, KeyError, canopen.SdoAbortedError, canopen.SdoCommunicationError, SdoTransferOverrun):
         return None  # (a node that does not boot or answer, an EDS without 0x1017: the checks report that)
-    if n < PACING_PROBE_OWN_TIME:
-        return None
-    return (f"node {ctx.node_id} keeps its own time ({n} heartbeats of {PACING_PROBE_HEARTBEAT_MS} ms in "
-            f"{PACING_PROBE_QUIET_S:g} s without SYNC), but --pacing lockstep judges timings in SYNCs: run with "
-            "--pacing realtime, or serve the node with --lockstep")
+    if ctx.lockstep and n >= PACING_PROBE_OWN_TIME:
+        return (f"node {ctx.node_id} keeps its own time ({n} heartbeats of {PACING_PROBE_HEARTBEAT_MS} ms in "
+                f"{PACING_PROBE_QUIET_S:g} s without SYNC), but --pacing lockstep judges timings in SYNCs: run with "
+                "--pacing realtime, or serve the node with --lockstep")
+    if not ctx.lockstep and n == 0:
+        return (f"node {ctx.node_id} waits for SYNC (no heartbeat of {PACING_PROBE_HEARTBEAT_MS} ms in "
+                f"{PACING_PROBE_QUIET_S:g} s without SYNC: served with --lockstep), but --pacing realtime judges "
+                "timings on the wall clock: run with --pacing lockstep, or serve the node without --lockstep")
+    return None
 
 
 def identity(ctx: Context) -> dict[str, str]:
