@@ -153,3 +153,17 @@ def test_python_snippet_runs_as_written(snippet: Snippet, tmp_path: Path):
     assert key == "", _report(snippet, f"has an unknown fence attribute {key!r} (use serve:, pytest: or no-run:)")
     proc = _run(snippet, snippet.code)
     assert proc.returncode == 0, _report(snippet, f"exited {proc.returncode}", proc)
+
+
+def test_the_first_csp_master_runs_again_against_the_same_drive():
+    """docs/tutorials/first-csp-master.md: its master, run three times against one `serve`, passes each time (it
+    leaves the axis at rest and starts with a fault reset; a master that left the axis moving failed every later
+    run with a following-error fault)."""
+    path = Path(ROOT) / "docs" / "tutorials" / "first-csp-master.md"
+    (snippet,) = [s for s in extract(path) if s.attribute()[0] == "serve"]
+    with served(*shlex.split(snippet.attribute()[1])) as srv:
+        code = snippet.code.replace(DOCUMENTED_BUS, srv.spec)
+        for run in range(3):
+            proc = _run(snippet, code)
+            assert proc.returncode == 0, _report(snippet, f"run {run + 1} of 3 exited {proc.returncode}", proc)
+            assert "following error" in proc.stdout
