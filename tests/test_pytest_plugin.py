@@ -201,3 +201,36 @@ def test_a_test_run_ended_by_sigterm_leaves_no_served_drive(tmp_path):
         finally:
             if run.poll() is None:
                 run.kill()
+
+
+BAD_OPTION_TESTS = '''
+import pytest
+
+
+@pytest.mark.virtual_axis(lokstep=True)
+def test_a_misspelt_option(virtual_axis):
+    pass
+
+
+@pytest.mark.virtual_axis(config="tuned_drive")
+def test_a_config_that_is_no_preset(virtual_axis):
+    pass
+
+
+@pytest.mark.virtual_axis(node_id=200)
+def test_a_node_id_out_of_range(virtual_axis):
+    pass
+'''
+
+
+def test_a_bad_marker_option_is_one_line_naming_it_without_the_plugins_source(tmp_path):
+    """A misspelt keyword, a config that is no file and no preset, a node id out of range: each test errors with
+    one message saying what to write instead; no traceback into the plugin, no served drive started."""
+    (tmp_path / "test_bad.py").write_text(textwrap.dedent(BAD_OPTION_TESTS))
+    r = _pytest(["-rE", "test_bad.py"], tmp_path, timeout=120)
+    out = r.stdout + r.stderr
+    assert "3 error" in r.stdout, out[-4000:]
+    assert "virtual_axis: unknown option 'lokstep' (did you mean lockstep?)" in out, out[-4000:]
+    assert "or name a preset" in out and "tuned-drive" in out, out[-4000:]
+    assert "node_id must be 1..127" in out, out[-4000:]
+    assert "virtualaxis/testing.py" not in out, out[-4000:]

@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import difflib
+import inspect
 import os
 import queue
 import random
@@ -358,9 +360,19 @@ def virtual_axis(request: pytest.FixtureRequest) -> Iterator[VirtualAxis]:
     given = {**(marker.kwargs if marker is not None else {}), **(param if isinstance(param, dict) else {})}
     if "lockstep" in given and "pacing" not in given:
         del options["pacing"]  # (lockstep=True|False given: it says the pacing)
+    known = inspect.signature(start_virtual_axis).parameters
+    unknown = [key for key in options if key not in known]
+    if unknown:
+        key = unknown[0]
+        close = difflib.get_close_matches(key, list(known), n=1)
+        pytest.fail(f"virtual_axis: unknown option {key!r}" + (f" (did you mean {close[0]}?)" if close else "")
+                    + f"; the options are {', '.join(known)}", pytrace=False)
+    cm = start_virtual_axis(**options)
     try:
-        cm = start_virtual_axis(**options)
-    except TypeError as exc:
-        raise pytest.UsageError(f"virtual_axis: {exc}") from None
-    with cm as axis:
+        axis = cm.__enter__()
+    except ValueError as exc:  # a value the options do not allow (a config not found, a node id out of range)
+        pytest.fail(str(exc), pytrace=False)
+    try:
         yield axis
+    finally:
+        cm.__exit__(None, None, None)

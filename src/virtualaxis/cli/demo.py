@@ -74,13 +74,17 @@ def run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"{out}: cannot create output directory ({exc.strerror})") from None
+    from virtualaxis.cli.outputs import staged_dir
+
     t_start = time.perf_counter()
-    try:
-        result = run_demo(cfg, out, args.stroke_mm * 1e-3, args.feed_m_min / 60.0, pace=not args.no_pace)
-    except (RuntimeError, SdoError, NmtError) as exc:
-        raise CliError(f"demo: {exc}") from None
-    result["wall_time_s"] = time.perf_counter() - t_start
-    (out / "demo_summary.json").write_text(json.dumps(result, indent=2))
+    # (the plot and the summary of each run replace the last run's together, once both are complete)
+    with staged_dir(out) as stage:
+        try:
+            result = run_demo(cfg, stage, args.stroke_mm * 1e-3, args.feed_m_min / 60.0, pace=not args.no_pace)
+        except (RuntimeError, SdoError, NmtError) as exc:
+            raise CliError(f"demo: {exc}") from None
+        result["wall_time_s"] = time.perf_counter() - t_start
+        (stage / "demo_summary.json").write_text(json.dumps(result, indent=2))
     print(f"\nwrote {out / 'demo_csp_move.png'} and {out / 'demo_summary.json'} ({result['wall_time_s']:.1f} s)")
     print(
         f"max |following error| {result['max_abs_following_error_um']:.1f} um at "
