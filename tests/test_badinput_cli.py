@@ -377,6 +377,10 @@ CASES += [
      ["semi.csv", "row 1", "separated by semicolons", "comma-separated"]),
     ("diag-trace-units-in-header", ["diagnose", "--config", str(C4), "{T}/units.csv", "--out", "{T}/d"],
      ["units.csv", "row 1", "without units", "'t [SI]'"]),
+    ("diag-trace-unit-suffixes", ["diagnose", "--config", str(C4), "{T}/suffixes.csv", "--out", "{T}/d"],
+     ["suffixes.csv", "row 1", "no known column", "without units", "'t_s'"]),
+    ("diag-trace-position-in-mm-named", ["diagnose", "--config", str(C4), "{T}/pos_mm.csv", "--out", "{T}/d"],
+     ["pos_mm.csv", "column pos_meas_mm", "'pos_meas' is", "without units"]),
     ("diag-trace-upper-case", ["diagnose", "--config", str(C4), "{T}/upper.csv", "--out", "{T}/d"],
      ["upper.csv", "column t", "'T' is not it", "lower case"]),
     ("diag-trace-inf", ["diagnose", "--config", str(C4), "{T}/inf.csv", "--out", "{T}/d"],
@@ -439,6 +443,13 @@ def _setup(tmp: Path) -> None:
     (tmp / "semi.csv").write_text("\n".join(r.replace(",", ";") for r in good) + "\n")
     names = good[0].split(",")
     (tmp / "units.csv").write_text("\n".join([",".join(f"{n} [SI]" for n in names), *good[1:]]) + "\n")
+    suffix = {"t": "t_s", "pos_cmd": "pos_cmd_m", "pos_meas": "pos_meas_m", "pos_fb": "pos_fb_m",
+              "motor_pos": "motor_pos_rad", "current_q": "current_q_a"}
+    (tmp / "suffixes.csv").write_text("\n".join([",".join(suffix.get(n, n + "_x") for n in names), *good[1:]]) + "\n")
+    # only pos_meas as a position, named with its unit: the trace has no position column it can read
+    keep = [names.index(n) for n in ("t", "pos_cmd", "pos_meas")]
+    (tmp / "pos_mm.csv").write_text("\n".join(["t,pos_cmd,pos_meas_mm", *(",".join(r.split(",")[i] for i in keep)
+                                                                          for r in good[1:])]) + "\n")
     (tmp / "upper.csv").write_text("\n".join([",".join(n if n == "pos_meas" else n.upper() for n in names),
                                               *good[1:]]) + "\n")
     body = good[1:]

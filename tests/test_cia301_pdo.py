@@ -374,3 +374,42 @@ def test_sync_timeout(rig):
     sync(rig, 1)
     time.sleep(0.05)
     assert rig.slave.counters["sync_timeouts"] >= 2          # re-armed by the SYNC, lost again
+
+
+def test_a_sync_of_pre_operational_answered_after_a_start_in_the_same_poll_sends_no_tpdo():
+    """A busy host hands the node three SYNCs of PRE-OPERATIONAL and the NMT start after them in one poll: the
+    SYNCs came while PDOs were off, so they get no TPDO (answered after the start, they used to get three: the
+    conformance check 301-PDO-4 counted 8 TPDO1 for 5 SYNCs under load). A SYNC after the start gets its TPDO."""
+    import can
+
+    from virtualaxis.canopen_slave import CanopenSlave
+    from virtualaxis.canopen_slave.testing import EDS_PATH
+
+    channel = f"pdo-preop-{time.monotonic_ns()}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    sniff = can.Bus(interface="virtual", channel=channel)
+    try:
+        slave = CanopenSlave(bus, NODE, EDS_PATH)
+        slave.boot(0.0)
+        slave.write(0x1800, 2, 1)  # TPDO1 synchronous, every SYNC
+        tpdo1 = slave.read(0x1800, 1) & 0x7FF
+
+        def frames(*msgs):
+            for msg in msgs:
+                slave.receive(msg)
+            for counter in slave.poll(0.01):  # one poll: the frames as a late drive thread finds them
+                slave.on_sync(counter, 0.01)
+            out = []
+            while (m := sniff.recv(0.05)) is not None:
+                out.append(m.arbitration_id)
+            return out
+
+        sync = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+        start = can.Message(arbitration_id=0x000, data=bytes((0x01, NODE)), is_extended_id=False)
+        sent = frames(sync, sync, sync, start)
+        assert sent.count(tpdo1) == 0, [hex(c) for c in sent]
+        sent = frames(sync)
+        assert sent.count(tpdo1) == 1, [hex(c) for c in sent]
+    finally:
+        sniff.shutdown()
+        bus.shutdown()

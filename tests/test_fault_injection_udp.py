@@ -222,6 +222,17 @@ def test_every_fault_across_processes():
             t = time.monotonic()
             inj.inject("following_error")
             measured["following_error"] = _expect_fault(node, frames, 0x8611, t, ramp=True)
+            # at rest the following error is gone: the reset is accepted with the brake still on; the next move
+            # trips again (a drive cannot see the brake)
+            measured["following_error"]["reset_refused_while_injected"] = _reset_refused(node)
+            assert not measured["following_error"]["reset_refused_while_injected"]
+            _enable(node, 1)
+            t = time.monotonic()
+            node.sdo[0x6081].raw = 50_000
+            node.sdo[0x607A].raw = 200_000
+            node.sdo[0x6040].raw = 0x5F
+            node.sdo[0x6040].raw = 0x4F
+            _expect_fault(node, frames, 0x8611, t, ramp=True)
             _reset_accepted_after(node, lambda: inj.clear("following_error"), "following_error")
             # motor over-temperature ramp: warning first (bit 7, 0x2031 = 7910, still enabled), then the fault;
             # a reset is refused until the winding model has cooled below 0x200B

@@ -108,6 +108,9 @@ class CanopenSlave:
         self.node_id_conflict_reported = False
         self._sync_counters: list[int] = []
         self._due_sync_rpdos: deque[list] = deque(maxlen=16)
+        #: per SYNC taken from the bus by the last poll, in order: whether the node was OPERATIONAL when it came
+        #: (a SYNC of PRE-OPERATIONAL answered after an NMT start in the same poll gets no TPDO)
+        self._sync_in_operational: deque[bool] = deque()
         self._applied_ahead = 0
         self._handlers: dict[int, Callable[[can.Message, float], None]] = {}
         self._in_error_reaction = False
@@ -181,6 +184,7 @@ class CanopenSlave:
             queue.clear()
             return []
         handlers = self._handlers
+        self._sync_in_operational.clear()  # (the last poll's SYNCs have all been answered)
         while queue:
             msg = queue.popleft()
             counters["frames_received"] += 1
@@ -255,10 +259,11 @@ class CanopenSlave:
         self.apply_sync()
 
     def transmit_sync(self, counter: int, now_s: float) -> None:
-        """First half of :meth:`on_sync`: send the synchronous TPDOs due at this SYNC (OPERATIONAL only, within
-        the synchronous window 0x1007)."""
+        """First half of :meth:`on_sync`: send the synchronous TPDOs due at this SYNC (only when the node was
+        OPERATIONAL when the SYNC came and still is, within the synchronous window 0x1007)."""
         self._now = now_s
-        if self.nmt_state != NMT_STATE.OPERATIONAL:
+        came_in_operational = self._sync_in_operational.popleft() if self._sync_in_operational else True
+        if self.nmt_state != NMT_STATE.OPERATIONAL or not came_in_operational:
             return
         try:
             if self.sync.window_open(now_s):
@@ -757,6 +762,7 @@ class CanopenSlave:
         if self.sync.on_arrival(arrival) and self.nmt_state == NMT_STATE.OPERATIONAL:
             self._sync_timeout()          # a gap longer than 1.5 periods the timer had not caught
         self._sync_counters.append(counter)
+        self._sync_in_operational.append(self.nmt_state == NMT_STATE.OPERATIONAL)
         if self.nmt_state == NMT_STATE.OPERATIONAL and self.pdo.sync_rpdos:
             self._due_sync_rpdos.append(self.pdo.latch_sync_rpdos())
         else:

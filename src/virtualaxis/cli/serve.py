@@ -232,11 +232,16 @@ def run(args) -> int:
         **side.stats(),
     }
     st = runtime.stats
-    print(
-        f"stopped: {st.cycles} drive cycles, {st.syncs} SYNC, {st.overruns} overruns "
-        f"(max lateness {st.max_late_s * 1e3:.3f} ms)",
-        flush=True,
-    )
+    if args.lockstep:  # (no lateness in lockstep: a cycle given up is one of a SYNC backlog the host fell behind)
+        behind = (f"{st.syncs_skipped} SYNC whose cycles were given up ({st.skipped} cycles: the host fell more than "
+                  f"{runtime.max_sync_backlog} SYNC behind)" if st.syncs_skipped else "no cycle given up")
+        print(f"stopped: {st.cycles} drive cycles, {st.syncs} SYNC, {behind}", flush=True)
+    else:
+        print(
+            f"stopped: {st.cycles} drive cycles, {st.syncs} SYNC, {st.overruns} overruns "
+            f"(max lateness {st.max_late_s * 1e3:.3f} ms)",
+            flush=True,
+        )
     healthy = runtime.healthy
     summary["healthy"] = healthy
     summary["drive_exceptions"] = st.drive_exceptions

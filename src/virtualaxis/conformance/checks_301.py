@@ -445,18 +445,26 @@ def tpdo_sync(ctx: Context) -> str:
     ctx.write(0x1800, 2, 1)
     cob = ctx.read(0x1800, 1) & 0x7FF
     ctx.log_frames(cob)
+    t0 = time.monotonic()
     mark = ctx.frames.mark()
+    sent = []
     for _ in range(3):
+        sent.append(time.monotonic() - t0)
         ctx.sync_once()
         time.sleep(0.01)
     pre = len(ctx.frames.since(mark, cob))
+    ctx.note(f"SYNC (PRE-OPERATIONAL) sent at {_ms(sent)} ms; TPDO1 frames: {pre}")
     ctx.nmt(0x01)
     time.sleep(0.05)
     mark = ctx.frames.mark()
+    sent = []
     for _ in range(5):
+        sent.append(time.monotonic() - t0)
         ctx.sync_once()
         time.sleep(0.02)
     op = _count_frames(ctx, mark, cob, 5)
+    ctx.note(f"SYNC (OPERATIONAL) sent at {_ms(sent)} ms; TPDO1 frames received at "
+             f"{_ms([t - t0 for t, _cob, _data in ctx.frames.since(mark, cob)])} ms (times from the first SYNC)")
     boot(ctx)
     if pre:
         raise Fail(f"{pre} TPDO1 frames in PRE-OPERATIONAL")
@@ -911,6 +919,11 @@ def _block_transfer(ctx: Context, what: str, op):
         ctx.read(0x1000)  # answers expedited SDO (else this is the check's failure: no SDO answer)
         raise Skip(f"no answer to an SDO block {what} while expedited SDO is answered: the node does not serve "
                    "block transfer (optional)") from None
+
+
+def _ms(times_s: list[float]) -> str:
+    """Times [s] as a list of ms with one decimal (for a check's trace)."""
+    return ", ".join(f"{1e3 * t:.1f}" for t in times_s) or "none"
 
 
 def _count_frames(ctx: Context, mark: int, cob: int, expected: int) -> int:

@@ -112,6 +112,16 @@ def _meant_column(header_name: str) -> str:
     return header_name.split("[")[0].split("(")[0].strip().lower()
 
 
+def _known_column_meant(header_name: str) -> str | None:
+    """The trace column a header entry stands for when it is written with a unit, in brackets or as a suffix, or in
+    another case (``"T [s]"``, ``"t_s"``, ``"pos_meas_mm"``), else None."""
+    meant = _meant_column(header_name)
+    if meant in KNOWN_COLUMNS:
+        return meant
+    return next((c for c in KNOWN_COLUMNS if meant.startswith(c + "_") and meant[len(c) + 1:] in UNIT_SUFFIXES),
+                None)
+
+
 def _fast_chunk(lines: list[str], ncols: int, use: list[int]) -> np.ndarray | None:
     """Parse a chunk of well-formed numeric lines in C; None when any line needs the careful path."""
     for ln in lines:
@@ -217,7 +227,7 @@ def _parse_csv(path: Path, max_samples: int | None = None
                     if sum(h.strip() in KNOWN_COLUMNS for h in first.rstrip("\r\n").split(sep)) >= 2:
                         raise _err(sp, f"the header is separated by {what}: a trace is comma-separated (CSV with "
                                        "',' between fields and '.' as the decimal point)", 1)
-                meant = [h for h in header if _meant_column(h) in KNOWN_COLUMNS]
+                meant = [h for h in header if _known_column_meant(h)]
                 hint = (f"; column names are lower case, without units ({meant[0]!r}: the units are fixed, see "
                         "docs/reference/trace-format.md)" if meant else "")
                 raise _err(sp, f"no known column in the header ({', '.join(header)[:200]}); expected "
@@ -402,23 +412,20 @@ def read_trace(path: str | Path, axis_name: str | None = None) -> Trace:
 
     for col in ("t", "pos_cmd"):
         if col not in header:
-            near = next((h for h in header if _meant_column(h) == col), None)
+            near = next((h for h in header if _known_column_meant(h) == col), None)
             hint = f"; {near!r} is not it: column names are lower case, without units" if near else ""
             raise _err(sp, f"required column '{col}' missing (header: {', '.join(header)}){hint}", 1, col)
+    extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns() and h not in DRIVE_WORDS]
+    for h in extra:  # a measured channel named with its unit would be dropped unseen: refused instead
+        meant = _known_column_meant(h)
+        if meant is not None and meant not in header:
+            raise _err(sp, f"column {h!r} is not a trace column; {meant!r} is (column names are lower case, without "
+                           "units: every column is in SI units, docs/reference/trace-format.md)", 1, h)
     if not any(c in header for c in POSITION_COLUMNS):
         raise _err(sp, "needs at least one of the columns pos_meas, pos_fb, motor_pos", 1)
     if data.shape[0] < 16:
         raise _err(sp, f"only {data.shape[0]} data row{'s' if data.shape[0] != 1 else ''} (at least 16 needed)")
     cols = {h: data[:, i] for i, h in enumerate(names)}
-    extra = [h for h in header if h not in KNOWN_COLUMNS and h not in simulator_columns() and h not in DRIVE_WORDS]
-    for h in extra:  # a measured channel named with its unit would be dropped unseen: refused instead
-        meant = _meant_column(h)
-        if meant not in KNOWN_COLUMNS:
-            meant = next((c for c in KNOWN_COLUMNS
-                          if meant.startswith(c + "_") and meant[len(c) + 1:] in UNIT_SUFFIXES), meant)
-        if meant in KNOWN_COLUMNS and meant not in header:
-            raise _err(sp, f"column {h!r} is not a trace column; {meant!r} is (column names are lower case, without "
-                           "units: every column is in SI units, docs/reference/trace-format.md)", 1, h)
     if any(extra):
         warnings.append(f"extra columns ignored: {', '.join(h for h in extra if h)}")
     if "" in extra:
