@@ -210,3 +210,6 @@ def test_identified_laws_that_disagree_across_traces_are_not_taken_for_the_contr
     assert checks and all(c["used"] == "config" for c in checks), [c["used"] for c in checks]
     assert all(c["closed_loop"]["disagree"].startswith("kv_per_s") for c in checks), checks[0]["closed_loop"]
     assert "calibrated_controller" not in rep
+    # the verdict first: a trace whose own check proposed identified gains says it was not taken before why not
+    proposed = [c["note"] for c in checks if "proposed" in c["note"]]
+    assert proposed and all(n.startswith("config's controller kept: ") for n in proposed), proposed

@@ -195,8 +195,8 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
             if chk.used == "identified" or k in cand:
                 chk.used = "config"
                 chk.overrides = {}
-                chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: the fit traces' "
-                            f"identified laws disagree ({disagree}), so they are not one controller")
+                chk.note = _kept(f"the fit traces' identified laws disagree ({disagree}), so they are not one "
+                                 "controller", chk.note)
         judgement = {"used": False, "disagree": disagree}
         cand_fit = []
     if cand_fit:
@@ -234,9 +234,8 @@ def check_controllers(cfg: AxisConfig, traces: list[Trace], tds: list[TraceData]
                 chk.note = (chk.note + "; " if chk.note else "") + f"identified controller used: {why}"
             elif chk.used == "identified" or k in cand:
                 chk.used = "config"
-                chk.note = ((chk.note + "; " if chk.note else "") + f"config's controller kept: {why} (needs <= "
-                            f"{CLOSED_LOOP_RATIO}, one channel <= {CLOSED_LOOP_BEST_CHANNEL} and none worse, on "
-                            "both)")
+                chk.note = _kept(f"{why} (needs <= {CLOSED_LOOP_RATIO}, one channel <= {CLOSED_LOOP_BEST_CHANNEL} and "
+                                 "none worse, on both)", chk.note)
     for k, chk in checks.items():
         if chk.note:
             traces[k].warnings.append(chk.note)
@@ -385,6 +384,13 @@ def _align_motor_angle(td: TraceData, tr: Trace, pred: dict[str, np.ndarray], le
         if abs(off) > 1e-3:
             td.measured["motor_pos"] = td.measured["motor_pos"] - off
             tr.warnings.append(f"motor_pos offset of {off:.4g} rad removed (encoder zero)")
+
+
+def _kept(why: str, proposal: str) -> str:
+    """The note of a trace whose own check proposed identified gains that the run did not take: the verdict first
+    (a reader who stops early must not take the proposal for the outcome), then what the trace's check saw."""
+    return f"config's controller kept: {why}" + (f"; this trace's own check had proposed otherwise: {proposal}"
+                                                  if proposal else "")
 
 
 def _hints(cfg: AxisConfig, traces: list[TraceData]) -> Callable:
