@@ -452,6 +452,19 @@ class Context:
 
     def raw_sdo(self, request: bytes, timeout: float = 1.0) -> bytes | None:
         """Send a raw SDO request frame (8 bytes) and return the response (or None)."""
+        got = self._sdo_exchange(request, timeout, first_only=True)
+        self.note(f"SDO raw {request.hex(' ')} -> {got[0].hex(' ') if got else 'no answer'}")
+        return got[0] if got else None
+
+    def sdo_answers(self, request: bytes, listen_s: float) -> list[bytes]:
+        """Send a raw SDO request frame and return every frame on the node's SDO answer COB-ID in ``listen_s``."""
+        got = self._sdo_exchange(request, listen_s, first_only=False)
+        self.note(f"SDO raw {request.hex(' ')} -> {len(got)} frame(s) in {listen_s:g} s")
+        return got
+
+    def _sdo_exchange(self, request: bytes, wait_s: float, *, first_only: bool) -> list[bytes]:
+        """The frames on 0x580 + id after ``request`` went to 0x600 + id: until the first (``first_only``) or
+        for ``wait_s``, at most ``wait_s``."""
         got: list[bytes] = []
         ev = threading.Event()
 
@@ -463,12 +476,13 @@ class Context:
         self.net.subscribe(cob_tx, on)
         try:
             self.net.send_message(0x600 + self.node_id, request)
-            ev.wait(timeout)
+            if first_only:
+                ev.wait(wait_s)
+            else:
+                time.sleep(wait_s)
         finally:
-            self.net.unsubscribe(cob_tx, on)
-            # canopen's own SDO client subscribes too: re-add it (unsubscribe removed only ours)
-        self.note(f"SDO raw {request.hex(' ')} -> {got[0].hex(' ') if got else 'no answer'}")
-        return got[0] if got else None
+            self.net.unsubscribe(cob_tx, on)  # (only this callback: canopen's own SDO client stays subscribed)
+        return list(got)
 
     def expect_abort(self, code: int | Iterable[int], fn: Callable[[], Any], what: str) -> int:
         codes = {code} if isinstance(code, int) else set(code)
@@ -832,21 +846,10 @@ def duplicate_node_problem(ctx: Context) -> str | None:
     answer comes first. Asked before the checks: one SDO read of 0x1018:0 (mandatory; no check before reads it,
     so a late answer to an earlier request is not counted), every answer on 0x580 + id that carries 0x1018:0
     (an abort too) counted for :data:`DUPLICATE_LISTEN_S`. Returns what is wrong when more than one came."""
-    answers: list[bytes] = []
-    cob = 0x580 + ctx.node_id
     mux = b"\x18\x10\x00"
-
-    def on(_can_id: int, data: bytearray, _ts: float) -> None:
-        if bytes(data[1:4]) == mux:
-            answers.append(bytes(data))
-
-    ctx.net.subscribe(cob, on)
-    try:
-        ctx.net.send_message(0x600 + ctx.node_id, b"\x40" + mux + b"\x00\x00\x00\x00")
-        time.sleep(DUPLICATE_LISTEN_S)
-    finally:
-        ctx.net.unsubscribe(cob, on)  # (only this callback: canopen's own SDO client stays subscribed)
-    ctx.note(f"SDO raw read 0x1018:0 -> {len(answers)} answer(s) in {DUPLICATE_LISTEN_S:g} s")
+    answers = [a for a in ctx.sdo_answers(b"\x40" + mux + b"\x00\x00\x00\x00", DUPLICATE_LISTEN_S)
+               if a[1:4] == mux]
+    cob = 0x580 + ctx.node_id
     if len(answers) <= 1:
         return None
     return (f"{len(answers)} answers on COB-ID 0x{cob:03X} to one SDO request: more than one node on this bus has "

@@ -569,6 +569,11 @@ def custom_pdus(call: Callable) -> list:
         WriteSingleRegisterResponse,
     )
 
+    def byte_count_fits(count: int, byte_count: int, payload_bytes: int) -> bool:
+        """FC16 / FC23: the byte count is 2 x the register count and the number of data bytes sent (else the
+        request's length does not fit its counts: reason 10)."""
+        return byte_count == 2 * count and payload_bytes == byte_count
+
     async def refused(pdu, device_id: int, op: int, address: int):
         reply = await call(op, device_id, pdu.function_code, address, 0)
         return ExceptionResponse(pdu.function_code, _exc(reply[1]))
@@ -608,8 +613,8 @@ def custom_pdus(call: Callable) -> list:
                 return await refused(self, device_id, 2, self.read_address)
             if not 1 <= self.write_count <= 121:
                 return await refused(self, device_id, 2, self.write_address)
-            if self.write_byte_count != self.write_count * 2 or self._payload_byte_count != self.write_byte_count:
-                return await refused(self, device_id, 4, self.write_address)  # its length does not fit its counts
+            if not byte_count_fits(self.write_count, self.write_byte_count, self._payload_byte_count):
+                return await refused(self, device_id, 4, self.write_address)
             checked = await context.async_getValues(device_id, self.function_code, self.read_address,
                                                     self.read_count)
             if not isinstance(checked, list):
@@ -624,8 +629,8 @@ def custom_pdus(call: Callable) -> list:
         async def datastore_update(self, context, device_id):
             if not 1 <= self.count <= 123:
                 return await refused(self, device_id, 2, self.address)
-            if self.byte_count is not None and (
-                    self.byte_count != self.count * 2 or self._payload_byte_count != self.byte_count):
+            if self.byte_count is not None and not byte_count_fits(self.count, self.byte_count,
+                                                                     self._payload_byte_count):
                 return await refused(self, device_id, 4, self.address)
             return await super().datastore_update(context, device_id)
 
