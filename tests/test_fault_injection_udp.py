@@ -107,13 +107,18 @@ def _run_pv(node, velocity_units_s: int) -> None:
           what="velocity reached")
 
 
-def _run_pp(node, distance_units: int, velocity_units_s: int) -> None:
-    """Fault reset, PP mode, enable, a relative move under way (position control)."""
+def _start_pp(node, distance_units: int, velocity_units_s: int) -> None:
+    """Fault reset, PP mode, enable, a relative move commanded (position control)."""
     _enable(node, 1)
     node.sdo[0x6081].raw = velocity_units_s
     node.sdo[0x607A].raw = distance_units
     node.sdo[0x6040].raw = 0x5F  # new set-point, relative
     node.sdo[0x6040].raw = 0x4F
+
+
+def _run_pp(node, distance_units: int, velocity_units_s: int) -> None:
+    """:func:`_start_pp`, then wait until the move is under way."""
+    _start_pp(node, distance_units, velocity_units_s)
     _wait(lambda: abs(node.sdo[0x606C].raw) > velocity_units_s * 0.5, what="PP move under way")
 
 
@@ -226,12 +231,8 @@ def test_every_fault_across_processes():
             # trips again (a drive cannot see the brake)
             measured["following_error"]["reset_refused_while_injected"] = _reset_refused(node)
             assert not measured["following_error"]["reset_refused_while_injected"]
-            _enable(node, 1)
             t = time.monotonic()
-            node.sdo[0x6081].raw = 50_000
-            node.sdo[0x607A].raw = 200_000
-            node.sdo[0x6040].raw = 0x5F
-            node.sdo[0x6040].raw = 0x4F
+            _start_pp(node, 200_000, 50_000)
             _expect_fault(node, frames, 0x8611, t, ramp=True)
             _reset_accepted_after(node, lambda: inj.clear("following_error"), "following_error")
             # motor over-temperature ramp: warning first (bit 7, 0x2031 = 7910, still enabled), then the fault;
